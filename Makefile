@@ -1,0 +1,34 @@
+# Two commands for a fresh clone:  make demo  |  make test
+# Both create .venv when it is missing and install the package into it.
+
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.scmr-installed
+
+.PHONY: demo test bench clean help
+
+help:
+	@echo "make demo   run the fleet demo (cloud, leader, 4 robots, a cloud outage, a report)"
+	@echo "make test   run the whole test suite"
+	@echo "make bench  run the benchmarks (writes bench-*.json)"
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@echo "installing scmr-mesh and its pinned dependencies into $(VENV) ..."
+	@$(PY) -m pip install -q --disable-pip-version-check --upgrade pip
+	@$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/scmr demo
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(VENV)/bin/scmr bench pipeline --json bench-pipeline.json
+	$(VENV)/bin/scmr bench mesh --json bench-mesh.json
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache runs

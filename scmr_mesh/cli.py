@@ -1,0 +1,122 @@
+"""The ``scmr`` command line.
+
+Each area of the project contributes its sub-commands through a ``register``
+function in its own ``commands`` module (listed in :data:`COMMAND_MODULES`), so
+this file never needs to know the details.  A ``register(sub, bench)`` call
+receives the top-level sub-parser action and the ``scmr bench`` sub-parser
+action; each sub-command sets ``func`` to a handler ``handler(args) -> int``.
+
+Exit status: 0 success, 1 expected failure (bad input, failed expectation,
+unreachable tier: an :class:`~scmr_mesh.errors.ScmrError`), 2 usage error or
+bug, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import os
+import sys
+import traceback
+from typing import Sequence
+
+from scmr_mesh import __version__
+from scmr_mesh.errors import ScmrError
+
+#: Modules that contribute sub-commands, in the order ``--help`` lists them.
+COMMAND_MODULES: tuple[str, ...] = (
+    "scmr_mesh.demo",
+    "scmr_mesh.imaging.commands",
+    "scmr_mesh.mesh.commands",
+    "scmr_mesh.scenario.commands",
+    "scmr_mesh.energy.commands",
+    "scmr_mesh.data.commands",
+    "scmr_mesh.security.commands",
+    "scmr_mesh.viz_commands",
+)
+
+EPILOG = """\
+Start here:
+  scmr demo                      the fleet demo on one host (what `make demo` runs)
+  scmr segment IMG --out DIR     drivable-region masks for images
+  scmr up --robots 4             cloud, leader and 4 robots on loopback
+Each command has its own --help.  Set SCMR_DEBUG=1 to see tracebacks.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="scmr",
+        description=(
+            "scmr-mesh: robots offload drivable-region segmentation to a cloud "
+            "over Eclipse Zenoh, and fail over to a robot leader when the cloud "
+            "is lost."
+        ),
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"scmr-mesh {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)"
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    bench_parser = sub.add_parser(
+        "bench",
+        help="benchmarks (medians and ratios measured in one run)",
+        description="Benchmarks. Each writes JSON with medians and p99s measured in one run.",
+    )
+    bench = bench_parser.add_subparsers(dest="bench_command", metavar="BENCH")
+    bench_parser.set_defaults(func=lambda args: _missing_sub(bench_parser))
+    for name in COMMAND_MODULES:
+        module = importlib.import_module(name)
+        module.register(sub, bench)
+    return parser
+
+
+def _missing_sub(parser: argparse.ArgumentParser) -> int:
+    parser.print_help(sys.stderr)
+    return 2
+
+
+def _configure_logging(verbosity: int) -> None:
+    level = logging.WARNING if verbosity == 0 else logging.INFO if verbosity == 1 else logging.DEBUG
+    logging.basicConfig(
+        level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``scmr`` command line; return the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help (0) or a usage error (2)
+        return int(exc.code or 0) if isinstance(exc.code, int) else 2
+    if getattr(args, "func", None) is None:
+        parser.print_help(sys.stderr)
+        return 2
+    _configure_logging(args.verbose)
+    try:
+        return int(args.func(args) or 0)
+    except ScmrError as exc:
+        print(f"scmr: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("scmr: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 1
+    except Exception as exc:  # a bug: one line, traceback on request
+        if os.environ.get("SCMR_DEBUG"):
+            traceback.print_exc()
+        print(
+            f"scmr: internal error: {type(exc).__name__}: {exc} "
+            "(this is a bug; rerun with SCMR_DEBUG=1 for the traceback)",
+            file=sys.stderr,
+        )
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,33 @@
+"""Shared fixtures: the repo root, the shared data folder, free ports."""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("SCMR_SHARED", REPO.parent / "shared")).resolve()
+ROADS = SHARED / "data" / "roads"
+
+
+@pytest.fixture(scope="session")
+def repo_root() -> Path:
+    return REPO
+
+
+@pytest.fixture(scope="session")
+def roads_dir() -> Path:
+    """``../shared/data/roads`` (licence: read in place, never copied into the repo)."""
+    if not (ROADS / "manifest.json").is_file():
+        pytest.fail(f"shared road data not found at {ROADS}; set SCMR_SHARED to the shared folder")
+    return ROADS
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that is free right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
