@@ -29,6 +29,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "scmr_mesh.demo",
     "scmr_mesh.imaging.commands",
     "scmr_mesh.mesh.commands",
+    "scmr_mesh.fleet",
     "scmr_mesh.scenario.commands",
     "scmr_mesh.energy.commands",
     "scmr_mesh.data.commands",
