@@ -1,0 +1,317 @@
+"""Pure planning: topology and faults -> the exact actions a backend performs.
+
+Nothing here runs a command.  :func:`compile_timeline` turns a scenario's
+faults into backend-neutral :class:`Event` s (block / unblock a pair of peers,
+kill / start a peer, shape a link, netem a link) with reference counting, so
+overlapping faults (a partition over a link that is already down) neither add a
+route twice nor lift it early.  :class:`NetnsLayout` names the namespaces,
+interfaces and addresses of one run and turns setup, teardown and each event
+into ``ip`` / ``tc`` argv lists.  The proxy backend interprets the same events
+with :func:`proxy_actions`.  Tests check these plans without root.
+
+Example
+-------
+>>> from scmr_mesh.scenario.spec import parse_scenario
+>>> sc = parse_scenario({"name": "t", "seed": 0, "duration_s": 5,
+...     "fleet": {"robots": [{"id": "robot1", "synthetic": "road"}]},
+...     "faults": [{"kind": "link_down", "at_s": 1, "for_s": 2, "link": ["robot1", "cloud"]}]})
+>>> [(e.at_s, e.op, e.target) for e in compile_timeline(sc)]
+[(1.0, 'block', ('cloud', 'robot1')), (3.0, 'unblock', ('cloud', 'robot1'))]
+>>> NetnsLayout(sc, run_id="ab12").commands(compile_timeline(sc)[0])[0]
+('ip', '-n', 'scmrs-ab12-cloud', 'route', 'add', 'blackhole', '198.18.0.12/32')
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+from typing import Iterable
+
+from scmr_mesh.scenario.spec import Fault, Scenario
+
+__all__ = [
+    "Event",
+    "NetnsLayout",
+    "NS_PREFIX",
+    "SUBNET",
+    "UNLIMITED",
+    "compile_timeline",
+    "proxy_actions",
+    "affected_pairs",
+]
+
+#: Every namespace this package creates starts with this prefix.
+NS_PREFIX = "scmrs-"
+#: The private test subnet (RFC 2544 benchmarking range); it exists only inside our namespaces.
+SUBNET = "198.18.0"
+#: The htb rate used for "no limit".
+UNLIMITED = "10gbit"
+
+
+@dataclass(frozen=True)
+class Event:
+    """A backend-neutral change at ``at_s`` seconds.
+
+    ``op`` is one of ``block`` / ``unblock`` (``target`` = sorted peer pair),
+    ``kill`` / ``start`` (``target`` = ``(peer,)``), ``shape`` (``target`` =
+    link, ``value`` = kbit/s or ``None`` for unlimited) and ``netem``
+    (``target`` = link, ``value`` = ``(delay_ms, loss_percent)``, ``None`` to
+    remove).  ``fault`` is the index of the causing fault, ``lift`` whether it
+    is the end of that fault.
+    """
+
+    at_s: float
+    op: str
+    target: tuple[str, ...]
+    value: object = None
+    fault: int = -1
+    lift: bool = False
+
+
+def _pair(a: str, b: str) -> tuple[str, str]:
+    return (a, b) if a <= b else (b, a)
+
+
+def affected_pairs(fault: Fault) -> list[tuple[str, str]]:
+    """The sorted peer pairs a ``link_down`` or ``partition`` cuts."""
+    if fault.kind == "link_down" and fault.link:
+        return [_pair(*fault.link)]
+    if fault.kind == "partition" and fault.groups:
+        pairs = set()
+        for g1, g2 in itertools.combinations(fault.groups, 2):
+            for a in g1:
+                for b in g2:
+                    pairs.add(_pair(a, b))
+        return sorted(pairs)
+    return []
+
+
+def compile_timeline(scenario: Scenario) -> list[Event]:
+    """Turn the scenario's faults into ordered events (reference-counted).
+
+    Faults without ``for_s`` are lifted at ``duration_s`` so that, once every
+    event has run, the topology is whole again.
+
+    Parameters
+    ----------
+    scenario : Scenario
+
+    Returns
+    -------
+    list of Event
+        Sorted by time; at equal times lifts come before new faults.
+    """
+    marks: list[tuple[float, int, int, bool]] = []
+    for i, f in enumerate(scenario.faults):
+        marks.append((f.at_s, 1, i, False))
+        end = f.end_s if f.end_s is not None and f.end_s < scenario.duration_s else scenario.duration_s
+        marks.append((end, 0, i, True))
+    marks.sort()
+    blocks: dict[tuple[str, str], int] = {}
+    shapes: dict[tuple[str, str], list[tuple[int, int]]] = {}
+    netem: dict[tuple[str, str], dict[int, tuple[str, float]]] = {}
+    events: list[Event] = []
+    for at, _, i, lift in marks:
+        f = scenario.faults[i]
+        if f.kind in ("link_down", "partition"):
+            for p in affected_pairs(f):
+                n = blocks.get(p, 0)
+                if lift:
+                    blocks[p] = n - 1
+                    if n == 1:
+                        events.append(Event(at, "unblock", p, fault=i, lift=True))
+                else:
+                    blocks[p] = n + 1
+                    if n == 0:
+                        events.append(Event(at, "block", p, fault=i))
+        elif f.kind == "crash":
+            events.append(Event(at, "start" if lift else "kill", (f.peer,), fault=i, lift=lift))
+        elif f.kind == "bandwidth":
+            link = tuple(f.link)
+            active = shapes.setdefault(link, [])
+            before = min((r for _, r in active), default=None)
+            if lift:
+                active.remove((i, f.rate_kbit))
+            else:
+                active.append((i, f.rate_kbit))
+            after = min((r for _, r in active), default=None)
+            if after != before:
+                events.append(Event(at, "shape", link, after, fault=i, lift=lift))
+        elif f.kind in ("latency", "loss"):
+            link = tuple(f.link)
+            active_n = netem.setdefault(link, {})
+            before_n = _netem_value(active_n)
+            if lift:
+                active_n.pop(i, None)
+            else:
+                active_n[i] = (f.kind, float(f.delay_ms if f.kind == "latency" else f.percent))
+            after_n = _netem_value(active_n)
+            if after_n != before_n:
+                events.append(Event(at, "netem", link, after_n, fault=i, lift=lift))
+    return events
+
+
+def _netem_value(active: dict[int, tuple[str, float]]) -> tuple[float, float] | None:
+    if not active:
+        return None
+    delay = sum(v for k, v in active.values() if k == "latency")
+    loss = max((v for k, v in active.values() if k == "loss"), default=0.0)
+    return (delay, loss)
+
+
+@dataclass
+class NetnsLayout:
+    """Names and addresses of one netns run, and the ``ip``/``tc`` commands for it.
+
+    Every peer gets namespace ``scmrs-<run_id>-<peer>`` with ``eth0`` at
+    ``198.18.0.<10+i>/24``; the bridge ``br0`` lives in its own namespace
+    ``scmrs-<run_id>-br`` with one veth end ``v<i>`` per peer.  Nothing is
+    created in the host's namespace and there is no default route.  Each
+    declared link gets an htb class per direction (rate :data:`UNLIMITED`
+    until a bandwidth fault changes it).
+    """
+
+    scenario: Scenario
+    run_id: str
+    port: int = 7447
+    peers: tuple[str, ...] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.peers = self.scenario.peer_names
+
+    # names ---------------------------------------------------------------
+    @property
+    def bridge_ns(self) -> str:
+        return f"{NS_PREFIX}{self.run_id}-br"
+
+    def ns(self, peer: str) -> str:
+        """The namespace of ``peer``."""
+        return f"{NS_PREFIX}{self.run_id}-{peer}"
+
+    def addr(self, peer: str) -> str:
+        """The IPv4 address of ``peer`` (inside its namespace only)."""
+        return f"{SUBNET}.{10 + self.peers.index(peer)}"
+
+    def endpoint(self, peer: str) -> str:
+        """The Zenoh endpoint ``peer`` listens on."""
+        return f"tcp/{self.addr(peer)}:{self.port}"
+
+    def classid(self, src: str, dst: str) -> str:
+        """The htb class in ``src``'s namespace that carries traffic to ``dst``."""
+        return f"1:{10 + self.peers.index(dst)}"
+
+    def namespaces(self) -> list[str]:
+        return [self.bridge_ns] + [self.ns(p) for p in self.peers]
+
+    # plans ---------------------------------------------------------------
+    def setup(self) -> list[tuple[str, ...]]:
+        """Commands that build the bridge, the namespaces, veths, addresses and htb classes."""
+        br = self.bridge_ns
+        cmds: list[tuple[str, ...]] = [
+            ("ip", "netns", "add", br),
+            ("ip", "-n", br, "link", "set", "lo", "up"),
+            ("ip", "-n", br, "link", "add", "br0", "type", "bridge"),
+            ("ip", "-n", br, "link", "set", "br0", "up"),
+        ]
+        for i, p in enumerate(self.peers):
+            ns = self.ns(p)
+            cmds += [
+                ("ip", "netns", "add", ns),
+                ("ip", "-n", ns, "link", "set", "lo", "up"),
+                ("ip", "-n", br, "link", "add", f"v{i}", "type", "veth", "peer", "name", "eth0", "netns", ns),
+                ("ip", "-n", br, "link", "set", f"v{i}", "master", "br0"),
+                ("ip", "-n", br, "link", "set", f"v{i}", "up"),
+                ("ip", "-n", ns, "addr", "add", f"{self.addr(p)}/24", "dev", "eth0"),
+                ("ip", "-n", ns, "link", "set", "eth0", "up"),
+                ("tc", "-n", ns, "qdisc", "add", "dev", "eth0", "root", "handle", "1:", "htb", "default", "1"),
+                ("tc", "-n", ns, "class", "add", "dev", "eth0", "parent", "1:", "classid", "1:1",
+                 "htb", "rate", UNLIMITED),
+            ]
+        for a, b in self.scenario.links:
+            for src, dst in ((a, b), (b, a)):
+                ns, cid = self.ns(src), self.classid(src, dst)
+                cmds += [
+                    ("tc", "-n", ns, "class", "add", "dev", "eth0", "parent", "1:", "classid", cid,
+                     "htb", "rate", UNLIMITED),
+                    ("tc", "-n", ns, "filter", "add", "dev", "eth0", "parent", "1:", "protocol", "ip",
+                     "prio", "1", "u32", "match", "ip", "dst", f"{self.addr(dst)}/32", "flowid", cid),
+                ]
+        return cmds
+
+    def teardown(self) -> list[tuple[str, ...]]:
+        """Commands that remove everything :meth:`setup` made (peers first, bridge last)."""
+        return [("ip", "netns", "del", self.ns(p)) for p in self.peers] + [("ip", "netns", "del", self.bridge_ns)]
+
+    def commands(self, event: Event) -> list[tuple[str, ...]]:
+        """The ``ip``/``tc`` commands for one network event (``[]`` for kill/start).
+
+        Blocks are blackhole routes on both sides: the kernel drops the packets
+        silently (no FIN, no RST), as when a radio link is lost.
+        """
+        if event.op in ("block", "unblock"):
+            a, b = event.target
+            verb = "add" if event.op == "block" else "del"
+            return [
+                ("ip", "-n", self.ns(a), "route", verb, "blackhole", f"{self.addr(b)}/32"),
+                ("ip", "-n", self.ns(b), "route", verb, "blackhole", f"{self.addr(a)}/32"),
+            ]
+        if event.op == "shape":
+            a, b = event.target
+            rate = UNLIMITED if event.value is None else f"{int(event.value)}kbit"
+            out = []
+            for src, dst in ((a, b), (b, a)):
+                out.append(("tc", "-n", self.ns(src), "class", "change", "dev", "eth0", "parent", "1:",
+                            "classid", self.classid(src, dst), "htb", "rate", rate, "ceil", rate))
+            return out
+        if event.op == "netem":
+            a, b = event.target
+            out = []
+            for src, dst in ((a, b), (b, a)):
+                cid = self.classid(src, dst)
+                handle = f"{cid.split(':')[1]}:"
+                if event.value is None:
+                    out.append(("tc", "-n", self.ns(src), "qdisc", "del", "dev", "eth0", "parent", cid))
+                else:
+                    delay, loss = event.value  # type: ignore[misc]
+                    # delay is one-way per direction: half the round trip each side
+                    out.append(("tc", "-n", self.ns(src), "qdisc", "replace", "dev", "eth0", "parent", cid,
+                                "handle", handle, "netem", "delay", f"{delay / 2:g}ms", "loss", f"{loss:g}%"))
+            return out
+        return []
+
+    def plan(self, events: Iterable[Event] | None = None) -> list[tuple[float | str, tuple[str, ...] | str]]:
+        """The whole run as ``(when, action)`` rows: setup, timed events, teardown.
+
+        ``when`` is ``"setup"``, a time in seconds, or ``"teardown"``; ``action``
+        is an argv tuple or a text like ``kill cloud``.
+        """
+        evs = compile_timeline(self.scenario) if events is None else list(events)
+        rows: list[tuple[float | str, tuple[str, ...] | str]] = [("setup", c) for c in self.setup()]
+        for e in evs:
+            if e.op in ("kill", "start"):
+                rows.append((e.at_s, f"{e.op} {e.target[0]}" + (" (SIGKILL)" if e.op == "kill" else "")))
+            for c in self.commands(e):
+                rows.append((e.at_s, c))
+        rows += [("teardown", c) for c in self.teardown()]
+        return rows
+
+
+def proxy_actions(links: Iterable[tuple[str, str]], event: Event) -> list[tuple[tuple[str, str], str, object]]:
+    """What the proxy backend does for one event: ``(link, action, value)`` rows.
+
+    ``action`` is ``blackhole`` (stop forwarding, keep the sockets), ``forward``,
+    ``rate`` (bytes/s or ``None``) or ``delay`` (seconds).  Only declared links
+    have proxies, so a block between two peers without a link does nothing
+    (there is no proxied path between them).
+    """
+    out: list[tuple[tuple[str, str], str, object]] = []
+    for link in links:
+        key = _pair(*link)
+        if event.op in ("block", "unblock") and key == event.target:
+            out.append((tuple(link), "blackhole" if event.op == "block" else "forward", None))
+        elif event.op == "shape" and key == _pair(*event.target):
+            out.append((tuple(link), "rate", None if event.value is None else int(event.value) * 1000 // 8))
+        elif event.op == "netem" and key == _pair(*event.target):
+            delay = 0.0 if event.value is None else float(event.value[0]) / 1000.0  # type: ignore[index]
+            out.append((tuple(link), "delay", delay))
+    return out
