@@ -1,9 +1,183 @@
-"""Sub-commands of this area (filled in by its issue)."""
+"""``scmr ods``: query the operational data store and inspect telemetry queues."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+from scmr_mesh.errors import InputError
+
+DESCRIPTION = """\
+Query the operational data store (ODS): the SQLite file in which the cloud keeps
+every robot's telemetry (pose, battery, health, results summary), stored once
+per (robot, seq).
+
+  scmr ods --db runs/ods.sqlite counts
+  scmr ods --db runs/ods.sqlite latest
+  scmr ods --db runs/ods.sqlite range --since 2026-11-21T17:00:00Z --until 1795281200
+  scmr ods --db runs/ods.sqlite export --format csv --out telemetry.csv
+  scmr ods queue runs/queues/robot1        (a robot's on-disk telemetry queue)
+
+--db defaults to $SCMR_ODS, else $SCMR_RUN_DIR/ods.sqlite, else runs/ods.sqlite.
+"""
+
+TIME_HELP = ("a time: ISO 8601 (2026-11-21T17:00:00Z; naive means UTC), unix seconds "
+             "(1795281200.5) or unix nanoseconds (an integer >= 1e15)")
+
+
+def parse_time_ns(text: str) -> int:
+    """Parse an ISO 8601 time, unix seconds or unix ns into unix ns.
+
+    Raises
+    ------
+    InputError
+        ``text`` is none of these.
+    """
+    t = text.strip()
+    try:
+        if t.lstrip("-").isdigit() and abs(int(t)) >= 10**15:
+            return int(t)
+        return int(round(float(t) * 1e9))
+    except ValueError:
+        pass
+    try:
+        dt = datetime.fromisoformat(t.replace("Z", "+00:00"))
+    except ValueError:
+        raise InputError(f"cannot read {text!r} as a time; give {TIME_HELP}") from None
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return int(dt.timestamp() * 1e9)
+
+
+def _open(args):
+    from scmr_mesh.data.ods import OperationalDataStore, default_db_path
+
+    return OperationalDataStore(args.db or default_db_path(), readonly=True)
+
+
+def _iso(ns: int) -> str:
+    return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _cmd_counts(args) -> int:
+    with _open(args) as ods:
+        counts = ods.counts()
+    if args.json:
+        json.dump(counts, sys.stdout, indent=1)
+        print()
+        return 0
+    if not counts:
+        print("no telemetry stored yet", file=sys.stderr)
+        return 0
+    print(f"{'robot':<16}{'stored':>8}{'dups':>7}{'min_seq':>9}{'max_seq':>9}{'contig':>8}")
+    for robot, c in counts.items():
+        print(f"{robot:<16}{c['stored']:>8}{c['duplicates']:>7}{c['min_seq']:>9}{c['max_seq']:>9}"
+              f"{c['contiguous']:>8}")
+    tot = sum(c["stored"] for c in counts.values())
+    dup = sum(c["duplicates"] for c in counts.values())
+    print(f"{'total':<16}{tot:>8}{dup:>7}")
+    return 0
+
+
+def _cmd_latest(args) -> int:
+    with _open(args) as ods:
+        latest = ods.latest()
+    if args.json:
+        json.dump(latest, sys.stdout, indent=1)
+        print()
+        return 0
+    for robot, r in latest.items():
+        pose = "-" if r["pose"] is None else "(" + ", ".join(f"{v:.2f}" for v in r["pose"]) + ")"
+        batt = "-" if r["battery"] is None else f"{r['battery']:.2f}"
+        print(f"{robot}: seq {r['seq']} at {_iso(r['t_unix_ns'])} pose {pose} battery {batt} "
+              f"health {r['health']} via {r['received_from']} results {json.dumps(r['results'])}")
+    return 0
+
+
+def _range_bounds(args) -> tuple[int | None, int | None]:
+    since = parse_time_ns(args.since) if args.since else None
+    until = parse_time_ns(args.until) if args.until else None
+    if since is not None and until is not None and until < since:
+        raise InputError(f"--until ({args.until}) is before --since ({args.since}); swap them")
+    return since, until
+
+
+def _cmd_range(args) -> int:
+    since, until = _range_bounds(args)
+    with _open(args) as ods:
+        rows = ods.range(since_ns=since, until_ns=until, robot=args.robot)
+    for r in rows:
+        print(json.dumps(r))
+    print(f"{len(rows)} record(s)", file=sys.stderr)
+    return 0
+
+
+def _cmd_export(args) -> int:
+    since, until = _range_bounds(args)
+    with _open(args) as ods:
+        n = ods.export(args.out, fmt=args.format, since_ns=since, until_ns=until)
+    print(f"wrote {n} record(s) to {args.out}", file=sys.stderr)
+    return 0
+
+
+def _cmd_queue(args) -> int:
+    from scmr_mesh.data.queue import TelemetryQueue
+
+    path = Path(args.dir)
+    if not path.is_dir():
+        raise InputError(f"no telemetry queue folder at {str(path)!r}; pass a robot's queue folder")
+    with TelemetryQueue(path, fsync="never") as q:
+        st = q.stats().to_dict()
+    json.dump(st, sys.stdout, indent=1)
+    print()
+    if st["corruptions"] or st["lost_seqs"]:
+        print(f"queue {path}: {len(st['corruptions'])} corrupt stretch(es), "
+              f"{len(st['lost_seqs'])} seq(s) lost", file=sys.stderr)
+        return 1
+    return 0
 
 
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add this area's sub-commands to ``scmr`` (none yet)."""
+    """Add ``scmr ods`` to the command line."""
+    p = sub.add_parser("ods", help="query the operational data store (telemetry) and robot queues",
+                       description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--db", metavar="FILE", help="the ODS file (see above for the default)")
+    p.set_defaults(func=lambda args: (p.print_help(sys.stderr), 2)[1])
+    ods_sub = p.add_subparsers(dest="ods_command", metavar="QUERY")
+
+    c = ods_sub.add_parser("counts", help="per-robot stored / duplicate counts and seq span",
+                           description="Per robot: records stored, duplicates ignored, lowest and "
+                           "highest seq, highest contiguous seq (1..n all stored).")
+    c.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    c.set_defaults(func=_cmd_counts)
+
+    lt = ods_sub.add_parser("latest", help="latest state (highest seq) of each robot",
+                            description="The record with the highest seq of each robot.")
+    lt.add_argument("--json", action="store_true", help="print JSON instead of one line per robot")
+    lt.set_defaults(func=_cmd_latest)
+
+    r = ods_sub.add_parser("range", help="records in a time range, as JSON lines",
+                           description="Records with SINCE <= t < UNTIL (robot time), one JSON "
+                           "object per line, by time.")
+    r.add_argument("--since", metavar="TIME", help=TIME_HELP)
+    r.add_argument("--until", metavar="TIME", help=TIME_HELP + " (exclusive)")
+    r.add_argument("--robot", help="only this robot")
+    r.set_defaults(func=_cmd_range)
+
+    e = ods_sub.add_parser("export", help="export records to CSV or JSON",
+                           description="Write every record (or a time range) to a CSV or JSON file.")
+    e.add_argument("--format", choices=("csv", "json"), default="csv", help="output format (default csv)")
+    e.add_argument("--out", required=True, metavar="FILE", help="file to write")
+    e.add_argument("--since", metavar="TIME", help=TIME_HELP)
+    e.add_argument("--until", metavar="TIME", help=TIME_HELP + " (exclusive)")
+    e.set_defaults(func=_cmd_export)
+
+    q = ods_sub.add_parser("queue", help="inspect a robot's on-disk telemetry queue",
+                           description="Print a telemetry queue's counters (depth, acked seq, "
+                           "refused, torn bytes, corruptions, lost seqs) as JSON; exit 1 when "
+                           "it found corruption.  Opening repairs a torn tail.")
+    q.add_argument("dir", metavar="DIR", help="the robot's queue folder")
+    q.set_defaults(func=_cmd_queue)

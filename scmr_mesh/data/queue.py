@@ -1,0 +1,487 @@
+"""A bounded, append-only, on-disk queue of one robot's telemetry.
+
+While no tier acknowledges a robot's telemetry, the robot keeps it here and
+replays it after reconnection; a robot restarted mid-outage finds its queue
+again.  Layout of the queue folder::
+
+    seg-000000000001.log   records with seq >= 1 (the name is the segment's first seq)
+    seg-000000000513.log   the active segment (appends go here)
+    ack                    highest acknowledged seq (text), replaced atomically
+
+Record framing (little endian): ``b"SQ01" | u32 length | u64 seq |
+u32 crc32(seq bytes + payload) | payload``.
+
+Durability (``fsync`` policy):
+
+* ``"always"`` (default): every :meth:`TelemetryQueue.append` fsyncs the
+  segment before it returns, so an appended record survives a crash or power
+  loss.  A crash in the middle of an append leaves a torn tail, which the next
+  open detects, reports (``torn_bytes``) and truncates; that append never
+  returned, so its seq was never handed out.
+* ``"batch"``: fsync every ``fsync_every`` appends and on ack/close; a power
+  loss can lose the last unsynced records (a process crash cannot: the OS keeps
+  written pages).
+* ``"never"``: leave it to the OS.
+
+The ``ack`` file is written to a temporary file, fsynced and renamed before any
+fully acknowledged segment is deleted, and the active segment's name carries
+its first seq, so seqs are never reused after a restart.
+
+Full queue: when unacknowledged records would exceed ``max_bytes`` the queue
+refuses the new record with :class:`QueueFullError` and counts it in
+``refused``; nothing already queued is ever dropped, and a refused record
+never received a seq, so the store sees no gap.
+
+Corruption: a record whose magic, length or CRC does not check out is
+reported (an ERROR log line and ``stats().corruptions``), counted, and skipped
+by re-synchronising on the next valid record; the seqs it held are listed in
+``stats().lost_seqs``.  With ``strict=True`` opening raises
+:class:`QueueCorruptError` instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import struct
+import threading
+import zlib
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from scmr_mesh.data.errors import QueueCorruptError, QueueError, QueueFullError
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"SQ01"
+HEADER = struct.Struct("<4sIQI")  # magic, length, seq, crc
+#: Largest payload one record may carry.
+MAX_RECORD_BYTES = 1 << 20
+FSYNC_POLICIES = ("always", "batch", "never")
+_SEG_RE = re.compile(r"^seg-(\d{12})\.log$")
+
+
+def _crc(seq: int, payload: bytes) -> int:
+    return zlib.crc32(payload, zlib.crc32(struct.pack("<Q", seq))) & 0xFFFFFFFF
+
+
+def encode_frame(seq: int, payload: bytes) -> bytes:
+    """One framed record: header + payload."""
+    return HEADER.pack(MAGIC, len(payload), seq, _crc(seq, payload)) + payload
+
+
+@dataclass(frozen=True)
+class Corruption:
+    """A stretch of a segment that did not parse (reported, never silent)."""
+
+    file: str
+    offset: int
+    nbytes: int
+    reason: str
+
+
+@dataclass
+class QueueStats:
+    """Counters of a :class:`TelemetryQueue` (``to_dict`` for reports)."""
+
+    depth: int = 0
+    pending_bytes: int = 0
+    next_seq: int = 1
+    acked_seq: int = 0
+    appended: int = 0
+    refused: int = 0
+    replayed: int = 0
+    torn_bytes: int = 0
+    corruptions: list[Corruption] = field(default_factory=list)
+    lost_seqs: list[int] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["corruptions"] = [c.__dict__ for c in self.corruptions]
+        d["lost_seqs"] = list(self.lost_seqs)
+        return d
+
+
+def scan_segment(data: bytes, *, last: bool) -> tuple[list[tuple[int, bytes, int]], list[tuple[int, int, str]], int]:
+    """Parse a segment's bytes.
+
+    Parameters
+    ----------
+    data : bytes
+        The whole segment file.
+    last : bool
+        Whether this is the active (last) segment: an incomplete record at its
+        end is a torn tail, not a corruption.
+
+    Returns
+    -------
+    records : list of (seq, payload, end_offset)
+    bad : list of (offset, nbytes, reason)
+        Stretches skipped as corrupt.
+    torn_at : int
+        Offset where a torn tail starts (``len(data)`` when there is none).
+    """
+    records: list[tuple[int, bytes, int]] = []
+    bad: list[tuple[int, int, str]] = []
+    pos, n = 0, len(data)
+    bad_start: int | None = None
+    bad_reason = ""
+
+    def parse_at(p: int) -> tuple[str, int, bytes, int]:
+        if n - p < HEADER.size:
+            return "short", 0, b"", 0
+        magic, length, seq, crc = HEADER.unpack_from(data, p)
+        if magic != MAGIC:
+            return "bad magic", 0, b"", 0
+        if length > MAX_RECORD_BYTES:
+            return f"length {length} > {MAX_RECORD_BYTES}", 0, b"", 0
+        end = p + HEADER.size + length
+        if end > n:
+            return "short", 0, b"", 0
+        payload = data[p + HEADER.size:end]
+        if _crc(seq, payload) != crc:
+            return "crc mismatch", 0, b"", 0
+        return "", seq, payload, end
+
+    def _valid_after(p: int) -> bool:
+        q = data.find(MAGIC, p + 1)
+        while q >= 0:
+            if not parse_at(q)[0]:
+                return True
+            q = data.find(MAGIC, q + 1)
+        return False
+
+    while pos < n:
+        why, seq, payload, end = parse_at(pos)
+        if not why:
+            if bad_start is not None:
+                bad.append((bad_start, pos - bad_start, bad_reason))
+                bad_start = None
+            records.append((seq, payload, end))
+            pos = end
+            continue
+        if why == "short" and bad_start is None and last and not _valid_after(pos):
+            return records, bad, pos  # torn tail: an append that never completed
+        if bad_start is None:
+            bad_start, bad_reason = pos, why
+        nxt = data.find(MAGIC, pos + 1)
+        if nxt < 0:
+            pos = n
+            break
+        pos = nxt
+    if bad_start is not None:
+        bad.append((bad_start, n - bad_start, bad_reason))
+    return records, bad, n
+
+
+class TelemetryQueue:
+    """Bounded on-disk FIFO of ``(seq, payload)`` with acknowledgements.
+
+    Parameters
+    ----------
+    path : str or Path
+        The queue's folder (one per robot); created if missing.
+    max_bytes : int
+        Bound on unacknowledged payload bytes (framing excluded).
+    segment_bytes : int
+        Roll over to a new segment file beyond this size.
+    fsync : {"always", "batch", "never"}
+        Durability policy (module docstring).
+    fsync_every : int
+        Appends between fsyncs under ``"batch"``.
+    strict : bool
+        Raise :class:`QueueCorruptError` on a corrupt record instead of
+        reporting and skipping it.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> q = TelemetryQueue(tempfile.mkdtemp())
+    >>> q.append(b"a"), q.append(b"b")
+    (1, 2)
+    >>> q.ack(1)
+    1
+    >>> [s for s, _ in q.pending()]
+    [2]
+    >>> q.close()
+    """
+
+    def __init__(self, path: str | Path, *, max_bytes: int = 16 << 20, segment_bytes: int = 1 << 20,
+                 fsync: str = "always", fsync_every: int = 32, strict: bool = False) -> None:
+        if fsync not in FSYNC_POLICIES:
+            raise QueueError(f"fsync policy must be one of {FSYNC_POLICIES}, got {fsync!r}")
+        if max_bytes < 1 or segment_bytes < 1:
+            raise QueueError(f"max_bytes and segment_bytes must be >= 1, got {max_bytes}, {segment_bytes}")
+        self.path = Path(path)
+        self.max_bytes = int(max_bytes)
+        self.segment_bytes = int(segment_bytes)
+        self.fsync = fsync
+        self.fsync_every = max(1, int(fsync_every))
+        self._lock = threading.RLock()
+        self._pending: deque[tuple[int, bytes]] = deque()
+        self._segments: list[tuple[int, Path, int]] = []  # (first_seq, path, last_seq or first-1)
+        self._fh = None
+        self._unsynced = 0
+        self.stats_ = QueueStats()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise QueueError(f"cannot create the queue folder {str(self.path)!r}: {exc}") from None
+        self._recover(strict)
+
+    # ---------------------------------------------------------------- recovery
+    def _read_ack(self) -> int:
+        f = self.path / "ack"
+        try:
+            text = f.read_text().strip()
+        except FileNotFoundError:
+            return 0
+        except OSError as exc:
+            raise QueueError(f"cannot read {str(f)!r}: {exc}") from None
+        if not text.isdigit():
+            log.error("queue %s: ack file holds %r, not a seq; replaying everything "
+                      "(the store de-duplicates)", self.path, text[:40])
+            return 0
+        return int(text)
+
+    def _recover(self, strict: bool) -> None:
+        st = self.stats_
+        acked = self._read_ack()
+        segs = sorted((int(m.group(1)), p) for p in self.path.iterdir()
+                      if (m := _SEG_RE.match(p.name)))
+        expected: int | None = None
+        last_seq = acked
+        for i, (first, seg) in enumerate(segs):
+            is_last = i == len(segs) - 1
+            data = seg.read_bytes()
+            records, bad, torn_at = scan_segment(data, last=is_last)
+            for off, nbytes, reason in bad:
+                c = Corruption(str(seg), off, nbytes, reason)
+                if strict:
+                    raise QueueCorruptError(
+                        f"queue segment {str(seg)!r}: {nbytes} corrupt bytes at offset {off} ({reason}); "
+                        "open without strict to skip them (their seqs are reported as lost)")
+                log.error("queue %s: %d corrupt bytes at offset %d (%s); skipped and counted",
+                          seg, nbytes, off, reason)
+                st.corruptions.append(c)
+            if torn_at < len(data):
+                st.torn_bytes += len(data) - torn_at
+                log.warning("queue %s: torn tail of %d bytes at offset %d (an append that never "
+                            "completed); truncated", seg, len(data) - torn_at, torn_at)
+                with seg.open("r+b") as fh:
+                    fh.truncate(torn_at)
+                    os.fsync(fh.fileno())
+            seg_last = first - 1
+            if expected is None:
+                expected = min(first, acked + 1)
+            if first > expected:
+                # records between the previous segment and this one are missing
+                st.lost_seqs.extend(s for s in range(expected, first) if s > acked)
+                expected = first
+            for seq, payload, _end in records:
+                if seq < expected:
+                    log.error("queue %s: seq %d out of order (expected %d); ignored", seg, seq, expected)
+                    st.corruptions.append(Corruption(str(seg), _end - len(payload) - HEADER.size,
+                                                     len(payload) + HEADER.size, f"seq {seq} out of order"))
+                    continue
+                if seq > expected:
+                    st.lost_seqs.extend(s for s in range(expected, seq) if s > acked)
+                expected = seq + 1
+                seg_last = seq
+                if seq > acked:
+                    self._pending.append((seq, payload))
+                    st.pending_bytes += len(payload)
+            self._segments.append((first, seg, seg_last))
+            last_seq = max(last_seq, seg_last, first - 1)
+        if st.lost_seqs:
+            log.error("queue %s: %d seq(s) lost to corruption: %s", self.path, len(st.lost_seqs),
+                      _ranges(st.lost_seqs))
+        st.acked_seq = acked
+        st.next_seq = max(last_seq, acked) + 1
+        st.depth = len(self._pending)
+        if not self._segments:
+            self._new_segment(st.next_seq)
+        else:
+            self._fh = self._segments[-1][1].open("ab")
+
+    def _new_segment(self, first: int) -> None:
+        if self._fh is not None:
+            self._sync(force=True)
+            self._fh.close()
+        seg = self.path / f"seg-{first:012d}.log"
+        self._fh = seg.open("ab")
+        self._fsync_dir()
+        self._segments.append((first, seg, first - 1))
+
+    def _fsync_dir(self) -> None:
+        if self.fsync == "never":
+            return
+        fd = os.open(self.path, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+    def _sync(self, *, force: bool = False) -> None:
+        if self._fh is None:
+            return
+        self._fh.flush()
+        if self.fsync == "never":
+            return
+        self._unsynced += 1
+        if force or self.fsync == "always" or self._unsynced >= self.fsync_every:
+            os.fsync(self._fh.fileno())
+            self._unsynced = 0
+
+    # ---------------------------------------------------------------- API
+    @property
+    def next_seq(self) -> int:
+        """The seq the next :meth:`append` will get."""
+        return self.stats_.next_seq
+
+    def __len__(self) -> int:
+        return len(self._pending)
+
+    def append(self, payload: bytes, *, seq: int | None = None) -> int:
+        """Append a record durably (per the fsync policy); return its seq.
+
+        Parameters
+        ----------
+        payload : bytes
+            At most :data:`MAX_RECORD_BYTES`.
+        seq : int, optional
+            If given it must equal :attr:`next_seq` (lets the caller embed the
+            seq in the payload first).
+
+        Raises
+        ------
+        QueueFullError
+            The unacknowledged records already hold ``max_bytes``; counted in ``refused``.
+        """
+        if not isinstance(payload, (bytes, bytearray)):
+            raise QueueError(f"queue payload must be bytes, got {type(payload).__name__}")
+        if len(payload) > MAX_RECORD_BYTES:
+            raise QueueError(f"queue record of {len(payload)} bytes exceeds {MAX_RECORD_BYTES}")
+        with self._lock:
+            st = self.stats_
+            if self._fh is None:
+                raise QueueError(f"queue {str(self.path)!r} is closed")
+            if seq is not None and seq != st.next_seq:
+                raise QueueError(f"append seq must be the next seq {st.next_seq}, got {seq}")
+            if st.pending_bytes + len(payload) > self.max_bytes:
+                st.refused += 1
+                raise QueueFullError(
+                    f"telemetry queue {str(self.path)!r} is full: {st.depth} unacknowledged records, "
+                    f"{st.pending_bytes} of {self.max_bytes} bytes; the record was refused "
+                    f"({st.refused} refused so far); reconnect a tier to drain it or raise max_bytes")
+            seq = st.next_seq
+            first, seg, _last = self._segments[-1]
+            if self._fh.tell() >= self.segment_bytes:
+                self._new_segment(seq)
+                first, seg, _last = self._segments[-1]
+            self._fh.write(encode_frame(seq, bytes(payload)))
+            self._sync()
+            self._segments[-1] = (first, seg, seq)
+            self._pending.append((seq, bytes(payload)))
+            st.pending_bytes += len(payload)
+            st.depth = len(self._pending)
+            st.appended += 1
+            st.next_seq = seq + 1
+            return seq
+
+    def pending(self, *, limit: int | None = None, max_bytes: int | None = None) -> list[tuple[int, bytes]]:
+        """The oldest unacknowledged ``(seq, payload)`` pairs, in seq order."""
+        out: list[tuple[int, bytes]] = []
+        size = 0
+        with self._lock:
+            for seq, payload in self._pending:
+                if limit is not None and len(out) >= limit:
+                    break
+                if max_bytes is not None and out and size + len(payload) > max_bytes:
+                    break
+                out.append((seq, payload))
+                size += len(payload)
+        return out
+
+    def ack(self, upto_seq: int) -> int:
+        """Acknowledge every record with ``seq <= upto_seq``; return how many left the queue."""
+        with self._lock:
+            st = self.stats_
+            if upto_seq <= st.acked_seq:
+                return 0
+            upto_seq = min(upto_seq, st.next_seq - 1)
+            n = 0
+            while self._pending and self._pending[0][0] <= upto_seq:
+                _, payload = self._pending.popleft()
+                st.pending_bytes -= len(payload)
+                n += 1
+            st.acked_seq = upto_seq
+            st.depth = len(self._pending)
+            if self.fsync == "batch":
+                self._sync(force=True)
+            self._write_ack(upto_seq)
+            # delete segments (not the active one) whose records are all acknowledged
+            while len(self._segments) > 1 and self._segments[0][2] <= upto_seq:
+                _, seg, _ = self._segments.pop(0)
+                try:
+                    seg.unlink()
+                except FileNotFoundError:
+                    pass
+            return n
+
+    def _write_ack(self, seq: int) -> None:
+        tmp = self.path / "ack.tmp"
+        with tmp.open("w") as fh:
+            fh.write(f"{seq}\n")
+            fh.flush()
+            if self.fsync != "never":
+                os.fsync(fh.fileno())
+        os.replace(tmp, self.path / "ack")
+        self._fsync_dir()
+
+    def note_replayed(self, n: int) -> None:
+        """Count records sent again after a failed attempt (for reports)."""
+        with self._lock:
+            self.stats_.replayed += n
+
+    def stats(self) -> QueueStats:
+        """A copy of the counters."""
+        with self._lock:
+            st = self.stats_
+            return QueueStats(st.depth, st.pending_bytes, st.next_seq, st.acked_seq, st.appended,
+                              st.refused, st.replayed, st.torn_bytes, list(st.corruptions),
+                              list(st.lost_seqs))
+
+    def close(self) -> None:
+        """Flush, fsync and close the active segment (idempotent)."""
+        with self._lock:
+            if self._fh is not None:
+                self._sync(force=True)
+                self._fh.close()
+                self._fh = None
+
+    def __enter__(self) -> "TelemetryQueue":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _ranges(seqs: list[int]) -> str:
+    out, start, prev = [], None, None
+    for s in sorted(seqs):
+        if start is None:
+            start = prev = s
+        elif s == prev + 1:
+            prev = s
+        else:
+            out.append(f"{start}-{prev}" if start != prev else str(start))
+            start = prev = s
+    if start is not None:
+        out.append(f"{start}-{prev}" if start != prev else str(start))
+    return ",".join(out)
+
+
+__all__ = ["MAX_RECORD_BYTES", "Corruption", "QueueStats", "TelemetryQueue", "encode_frame", "scan_segment"]

@@ -1,0 +1,145 @@
+"""The telemetry record a robot publishes, and its msgpack encoding.
+
+A record is what the operational data store keeps per ``(robot, seq)``:
+pose, battery, health and a summary of the robot's recent results.  ``seq``
+is assigned by the robot's on-disk queue (1, 2, 3, ... per robot, no gaps), so
+the store can tell a duplicate (same ``(robot, seq)``) from a new message and
+a report can tell exactly which messages are missing.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Mapping
+
+import msgpack
+
+from scmr_mesh.data.errors import TelemetryError
+
+#: Tiers a record can reach the store through.
+TIERS: tuple[str, ...] = ("cloud", "leader", "local")
+
+
+@dataclass(frozen=True)
+class TelemetryRecord:
+    """One telemetry message of one robot.
+
+    Parameters
+    ----------
+    robot : str
+        Robot name (non-empty, no ``/``).
+    seq : int
+        Per-robot sequence number, ``>= 1``.
+    t_unix_ns : int
+        When the robot took the reading (robot clock, ns since the epoch).
+    pose : tuple of 3 float or None
+        ``(x, y, theta)`` in metres and radians.
+    battery : float or None
+        State of charge in ``[0, 1]``.
+    health : str
+        Free-form status word (``"ok"``, ``"degraded"``, ...).
+    results : dict
+        Summary of the robot's recent results (msgpack-able values).
+    """
+
+    robot: str
+    seq: int
+    t_unix_ns: int
+    pose: tuple[float, float, float] | None = None
+    battery: float | None = None
+    health: str = "ok"
+    results: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The record as a plain dict (``pose`` as a list or None)."""
+        d = asdict(self)
+        d["pose"] = list(self.pose) if self.pose is not None else None
+        return d
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "TelemetryRecord":
+        """Validate and build a record from a dict.
+
+        Raises
+        ------
+        TelemetryError
+            A field is missing or has the wrong type; the message names it.
+        """
+        if not isinstance(d, Mapping):
+            raise TelemetryError(f"telemetry record must be a map, got {type(d).__name__}")
+        robot = d.get("robot")
+        if not isinstance(robot, str) or not robot or "/" in robot:
+            raise TelemetryError(f"telemetry 'robot' must be a non-empty name without '/', got {robot!r}")
+        seq = d.get("seq")
+        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 1:
+            raise TelemetryError(f"telemetry 'seq' must be an integer >= 1, got {seq!r}")
+        t = d.get("t_unix_ns", 0)
+        if not isinstance(t, int) or isinstance(t, bool):
+            raise TelemetryError(f"telemetry 't_unix_ns' must be an integer, got {t!r}")
+        pose = d.get("pose")
+        if pose is not None:
+            if isinstance(pose, Mapping):
+                pose = (pose.get("x"), pose.get("y"), pose.get("theta"))
+            try:
+                pose = tuple(float(v) for v in pose)
+            except (TypeError, ValueError):
+                raise TelemetryError(f"telemetry 'pose' must be [x, y, theta] numbers, got {pose!r}") from None
+            if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
+                raise TelemetryError(f"telemetry 'pose' must be 3 finite numbers, got {pose!r}")
+        battery = d.get("battery")
+        if battery is not None:
+            if not isinstance(battery, (int, float)) or isinstance(battery, bool) or not math.isfinite(battery):
+                raise TelemetryError(f"telemetry 'battery' must be a number, got {battery!r}")
+            battery = float(battery)
+        health = d.get("health", "ok")
+        if not isinstance(health, str):
+            raise TelemetryError(f"telemetry 'health' must be a string, got {health!r}")
+        results = d.get("results") or {}
+        if not isinstance(results, Mapping):
+            raise TelemetryError(f"telemetry 'results' must be a map, got {type(results).__name__}")
+        return cls(robot, seq, t, pose, battery, health, dict(results))
+
+
+def make_record(
+    robot: str,
+    seq: int,
+    *,
+    pose: tuple[float, float, float] | None = None,
+    battery: float | None = None,
+    health: str = "ok",
+    results: Mapping[str, Any] | None = None,
+    t_unix_ns: int | None = None,
+) -> TelemetryRecord:
+    """Build a validated record, stamping it with the current time by default."""
+    return TelemetryRecord.from_dict(
+        {
+            "robot": robot,
+            "seq": seq,
+            "t_unix_ns": time.time_ns() if t_unix_ns is None else t_unix_ns,
+            "pose": pose,
+            "battery": battery,
+            "health": health,
+            "results": dict(results or {}),
+        }
+    )
+
+
+def encode_records(records: list[TelemetryRecord]) -> bytes:
+    """msgpack ``{"records": [...]}`` for the wire."""
+    return msgpack.packb({"records": [r.to_dict() for r in records]}, use_bin_type=True)
+
+
+def decode_records(payload: bytes) -> list[TelemetryRecord]:
+    """Inverse of :func:`encode_records`; raises :class:`TelemetryError` on bad input."""
+    try:
+        msg = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several unrelated types
+        raise TelemetryError(f"telemetry payload is not msgpack ({len(payload)} bytes): {exc}") from None
+    if not isinstance(msg, dict) or not isinstance(msg.get("records"), list):
+        raise TelemetryError("telemetry payload must be a map with a 'records' list")
+    return [TelemetryRecord.from_dict(d) for d in msg["records"]]
+
+
+__all__ = ["TIERS", "TelemetryRecord", "decode_records", "encode_records", "make_record"]

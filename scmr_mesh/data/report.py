@@ -1,0 +1,100 @@
+"""Telemetry accounting for fleet and scenario reports.
+
+:func:`telemetry_report` compares what each robot says it sent (seqs
+``1..sent``) with what the operational data store holds, and returns the
+``{"telemetry": {...}}`` block of a report.  Pure: SQLite reads only.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from scmr_mesh.data.ods import OperationalDataStore
+
+
+def _ranges(seqs: list[int], *, limit: int = 20) -> list[str]:
+    out: list[str] = []
+    start = prev = None
+    for s in seqs:
+        if start is None:
+            start = prev = s
+        elif s == prev + 1:
+            prev = s
+        else:
+            out.append(f"{start}-{prev}" if start != prev else str(start))
+            start = prev = s
+    if start is not None:
+        out.append(f"{start}-{prev}" if start != prev else str(start))
+    return out[:limit]
+
+
+def telemetry_report(
+    store: OperationalDataStore | str | Path,
+    sent: Mapping[str, int],
+    *,
+    queued: Mapping[str, int] | None = None,
+) -> dict[str, Any]:
+    """Count telemetry per robot and in total.
+
+    Parameters
+    ----------
+    store : OperationalDataStore or path
+        The cloud's ODS (a path is opened read-only).
+    sent : mapping robot -> int
+        How many telemetry messages each robot produced (its seqs are ``1..sent``).
+    queued : mapping robot -> int, optional
+        Messages still in each robot's on-disk queue at the end (reported as
+        ``queued``; they are not in the store yet, so they also count as lost
+        until they are replayed).
+
+    Returns
+    -------
+    dict
+        ``{"telemetry": {"sent", "stored", "duplicates", "lost", "per_robot":
+        {robot: {"sent", "stored", "duplicates", "lost", "missing", "unexpected"
+        [, "queued"]}}}}`` where ``stored`` counts distinct ``(robot, seq)``
+        with ``1 <= seq <= sent``, ``lost = sent - stored``, ``missing`` lists
+        the missing seqs as ranges (at most 20), and ``unexpected`` counts
+        stored seqs beyond ``sent``.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> from scmr_mesh.data.record import make_record
+    >>> with OperationalDataStore(pathlib.Path(tempfile.mkdtemp()) / "o.sqlite") as ods:
+    ...     _ = ods.insert([make_record("r1", s) for s in (1, 2, 2, 4)], received_from="cloud")
+    ...     t = telemetry_report(ods, {"r1": 4})["telemetry"]
+    >>> t["sent"], t["stored"], t["duplicates"], t["lost"], t["per_robot"]["r1"]["missing"]
+    (4, 3, 1, 1, ['3'])
+    """
+    own = not isinstance(store, OperationalDataStore)
+    ods = OperationalDataStore(store, readonly=True) if own else store
+    try:
+        counts = ods.counts()
+        per_robot: dict[str, dict[str, Any]] = {}
+        for robot in sorted(set(sent) | set(counts)):
+            n_sent = int(sent.get(robot, 0))
+            seqs = ods.seqs(robot) if robot in counts else []
+            in_range = [s for s in seqs if 1 <= s <= n_sent]
+            have = set(in_range)
+            missing = [s for s in range(1, n_sent + 1) if s not in have]
+            row: dict[str, Any] = {
+                "sent": n_sent,
+                "stored": len(in_range),
+                "duplicates": counts.get(robot, {}).get("duplicates", 0),
+                "lost": n_sent - len(in_range),
+                "missing": _ranges(missing),
+                "unexpected": len(seqs) - len(in_range),
+            }
+            if queued is not None:
+                row["queued"] = int(queued.get(robot, 0))
+            per_robot[robot] = row
+    finally:
+        if own:
+            ods.close()
+    total = {k: sum(r[k] for r in per_robot.values()) for k in ("sent", "stored", "duplicates", "lost")}
+    return {"telemetry": {**total, "per_robot": per_robot}}
+
+
+__all__ = ["telemetry_report"]
