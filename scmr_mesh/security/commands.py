@@ -1,9 +1,70 @@
-"""Sub-commands of this area (filled in by its issue)."""
+"""Sub-commands of the security area: ``scmr certs`` and ``scmr bench overload``."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+
+CERTS_HELP = """\
+Create a development certificate authority, one certificate per peer (CN = peer name,
+signed by the CA, valid for 127.0.0.1, ::1, localhost, the peer name and --hosts), a
+usrpwd password per peer, and fleet.json (names and roles, the input of the access-control
+rules).  Roles come from names: cloud* -> cloud, leader* -> leader, anything else robot;
+write name=role to choose.  Private keys and passwords are mode 0600.  These are
+development credentials: keep DIR/ca.key off the robots.
+
+Use them with a security profile, e.g. peers/secure/mtls.toml:
+  scmr certs --out certs --peers cloud,leader,robot1,robot2
+  SCMR_CREDENTIALS=certs scmr up ... (peers started with --security peers/secure/mtls.toml)
+"""
+
+
+def _certs(args: argparse.Namespace) -> int:
+    from scmr_mesh.security.credentials import create_credentials
+    from scmr_mesh.security.acl import build_acl
+
+    fleet = create_credentials(
+        args.out,
+        args.peers,
+        days=args.days,
+        hosts=[h for h in (args.hosts or "").split(",") if h.strip()],
+        force=args.force,
+        progress=lambda msg: print(msg, file=sys.stderr),
+    )
+    if args.acl_json:
+        with open(args.acl_json, "w") as fh:
+            json.dump(build_acl(fleet, kind="tls"), fh, indent=2)
+    for p in fleet.peers:
+        print(f"{p.name}\t{p.role}\t{args.out}/{p.name}/")
+    print(f"CA: {args.out}/ca.pem (keep {args.out}/ca.key private)", file=sys.stderr)
+    return 0
+
+
+def _overload(args: argparse.Namespace) -> int:
+    from scmr_mesh.security.overload import run_overload_cli
+
+    return run_overload_cli(args)
 
 
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add this area's sub-commands to ``scmr`` (none yet)."""
+    """Add ``scmr certs`` and ``scmr bench overload``."""
+    p = sub.add_parser(
+        "certs",
+        help="create a development CA, per-peer certificates and passwords",
+        description=CERTS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="directory to write (new or empty)")
+    p.add_argument(
+        "--peers", required=True, metavar="NAMES",
+        help="comma-separated peer names, e.g. cloud,leader,robot1,robot2 (name=role to set a role)",
+    )
+    p.add_argument("--days", type=int, default=365, help="certificate validity in days (default 365)")
+    p.add_argument(
+        "--hosts", default="", metavar="H1,H2",
+        help="extra host names or IPs for every certificate (peers on other hosts or namespaces)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
+    p.add_argument("--acl-json", metavar="FILE", help="also write the fleet's access-control JSON here")
+    p.set_defaults(func=_certs)
