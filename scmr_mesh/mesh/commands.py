@@ -1,9 +1,250 @@
-"""Sub-commands of this area (filled in by its issue)."""
+"""``scmr cloud | leader | robot | router``: the mesh peers, one OS process each.
+
+Contract (other areas start these as processes; ``python -m scmr_mesh <cmd>``
+works too)::
+
+    scmr cloud  --node NAME [--listen EP ...] [--connect EP ...] [--workers N]
+                [--config FILE] [--cfg KEY:JSON5 ...] [--lease-ms MS]
+                [--ready-file PATH] [--mode best|thesis] [--log-file PATH]
+    scmr leader --node NAME (same flags as cloud) [robot flags: also a robot]
+    scmr robot  --id ID (--images DIR | --synthetic KIND) [--rate HZ]
+                [--count N | --duration S] --out DIR [--deadline-ms MS]
+                [--redundant] [--local-fallback/--no-local-fallback]
+                [--listen/--connect/--config/--cfg/--lease-ms] [--ready-file PATH]
+    scmr router [--listen EP ...] [--connect EP ...] [--config/--cfg]
+
+SIGTERM/SIGINT stop a peer cleanly (exit 0).  Logs go to stderr or
+``--log-file``.  See docs/protocol.md for keys and messages.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import logging
+import sys
+import threading
+import time
+
+from scmr_mesh.errors import InputError
+
+log = logging.getLogger(__name__)
+
+_PEER_EPILOG = """\
+Zenoh defaults (docs/ZENOH.md): multicast scouting off, gossip on, lease 500 ms
+with 4 keep-alives, connect retry 100..500 ms.  Give peers explicit endpoints,
+e.g. cloud --listen tcp/127.0.0.1:7447, robots --connect tcp/127.0.0.1:7447.
+"""
 
 
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add this area's sub-commands to ``scmr`` (none yet)."""
+    """Add ``cloud``, ``leader``, ``robot`` and ``router`` to ``scmr``."""
+    from scmr_mesh.mesh import config
+
+    fmt = argparse.RawDescriptionHelpFormatter
+    p = sub.add_parser(
+        "cloud", help="run a cloud node: the drivable-region service (R2C tier)", formatter_class=fmt,
+        description="Serve drivable-region requests on scmr/drivable/cloud/NODE with a pool of worker "
+                    "processes, hold the liveliness token scmr/alive/cloud/NODE and publish load on "
+                    "scmr/load/cloud/NODE.  Runs until SIGTERM/SIGINT.",
+        epilog=_PEER_EPILOG)
+    _service_args(p)
+    config.add_arguments(p)
+    p.set_defaults(func=_cmd_cloud)
+
+    p = sub.add_parser(
+        "leader", help="run the robot leader: the same service on the leader tier (R2R), optionally also a robot",
+        formatter_class=fmt,
+        description="Serve drivable-region requests on scmr/drivable/leader/NODE (token "
+                    "scmr/alive/leader/NODE): robots use it when no cloud node is alive.  With "
+                    "--images or --synthetic (and --out) the leader is also a robot with id NODE.",
+        epilog=_PEER_EPILOG)
+    _service_args(p)
+    _robot_args(p, leader=True)
+    config.add_arguments(p)
+    p.set_defaults(func=_cmd_leader)
+
+    p = sub.add_parser(
+        "robot", help="run a robot: send frames to the mesh, record results", formatter_class=fmt,
+        description="Send frames (a folder of images or synthetic scenes) as requests to the cloud, "
+                    "falling back to the leader and then to local execution, by the live view of "
+                    "liveliness tokens.  Writes OUT/outbox, OUT/inbox/<seq>.mask.png and "
+                    "OUT/records.jsonl (one JSON object per request), and prints a JSON summary "
+                    "on stdout at the end.",
+        epilog=_PEER_EPILOG)
+    p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
+    _robot_args(p, leader=False)
+    p.add_argument("--ready-file", metavar="PATH", help="written once the robot is connected")
+    p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    config.add_arguments(p)
+    p.set_defaults(func=_cmd_robot)
+
+    p = sub.add_parser(
+        "router", help="run a zenoh router linking sites (fleets across hosts)", formatter_class=fmt,
+        description="A zenoh router (a session in router mode).  Across hosts, run the robots and "
+                    "cloud nodes as clients of their site's router (--zmode client) and connect the "
+                    "routers to each other; see docs/ZENOH.md (router section).",
+        epilog=_PEER_EPILOG)
+    p.add_argument("--ready-file", metavar="PATH", help="written once the router runs")
+    p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    config.add_arguments(p)
+    p.set_defaults(func=_cmd_router)
+
+
+def _service_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--node", required=True, help="node name (A-Z a-z 0-9 _ . -)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes running the pipeline (default: number of cores)")
+    p.add_argument("--mode", choices=("best", "thesis"), default=None,
+                   help="default pipeline mode (requests carry their own; kept for symmetry with robots)")
+    p.add_argument("--max-request-bytes", type=int, default=None, metavar="N",
+                   help="larger requests get an 'oversized' error reply (default 32 MiB)")
+    p.add_argument("--process", default=None, metavar="MODULE:FUNC",
+                   help="process function run by the workers (default: the drivable pipeline; tests "
+                        "use scmr_mesh.mesh.testing:stub_process)")
+    p.add_argument("--ready-file", metavar="PATH", help="written once the service is serving")
+    p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+
+
+def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
+    g = p.add_argument_group("robot" + (" (optional: makes the leader a robot too)" if leader else ""))
+    src = g.add_mutually_exclusive_group(required=not leader)
+    src.add_argument("--images", metavar="DIR", help="folder of PNG/JPEG frames (cycled in name order)")
+    src.add_argument("--synthetic", metavar="KIND",
+                     help="synthetic scenes of this kind (seeded per frame); 'stub' needs no imaging module")
+    g.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="frames per second (default 5)")
+    lim = g.add_mutually_exclusive_group()
+    lim.add_argument("--count", type=int, default=None, metavar="N", help="stop after N frames")
+    lim.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
+    g.add_argument("--out", metavar="DIR", required=not leader, help="output folder (outbox, inbox, records.jsonl)")
+    g.add_argument("--deadline-ms", type=float, default=1000.0, metavar="MS",
+                   help="per-attempt deadline; past it the request is re-sent to the next tier (default 1000)")
+    g.add_argument("--redundant", action="store_true",
+                   help="send each frame to cloud and leader at once; the first good reply wins")
+    g.add_argument("--local-fallback", action=argparse.BooleanOptionalAction, default=True,
+                   help="run the pipeline on the robot when no tier answers (default on)")
+    g.add_argument("--priority", type=int, default=0, help="request priority (willingness to pay), default 0")
+    if not leader:
+        g.add_argument("--mode", choices=("best", "thesis"), default="best", help="pipeline mode (default best)")
+        g.add_argument("--process", default=None, metavar="MODULE:FUNC",
+                       help="process function for local execution (default: the drivable pipeline)")
+    g.add_argument("--wait-ms", type=float, default=2000.0, metavar="MS",
+                   help="before the first frame, wait up to MS for a cloud or leader to appear (default 2000)")
+    g.add_argument("--seed", type=int, default=None, help="seed of synthetic frames (default: from the id)")
+    g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _setup_logging(args) -> None:
+    path = getattr(args, "log_file", None)
+    root = logging.getLogger()
+    if path:
+        try:
+            handler = logging.FileHandler(path, encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"--log-file {path}: cannot open ({exc})") from None
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        for h in list(root.handlers):
+            if isinstance(h, logging.StreamHandler) and not isinstance(h, logging.FileHandler):
+                root.removeHandler(h)
+        root.addHandler(handler)
+    # peers log their life cycle at INFO by default (scmr -v raises the rest)
+    logging.getLogger("scmr_mesh").setLevel(min(logging.INFO, root.level or logging.INFO))
+
+
+def _mesh(args, mode: str = "peer"):
+    from scmr_mesh.mesh.config import from_args
+
+    return from_args(args, mode=mode)
+
+
+def _cmd_cloud(args) -> int:
+    from scmr_mesh.mesh.peers import run_service
+
+    _setup_logging(args)
+    return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
+                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file)
+
+
+def _cmd_leader(args) -> int:
+    from scmr_mesh.mesh.peers import run_service
+
+    _setup_logging(args)
+    body = None
+    if args.images or args.synthetic:
+        if not args.out:
+            raise InputError("the leader acts as a robot only with --out DIR; add --out")
+        args.id = args.node
+        args.mode = args.mode or "best"
+
+        def body(session, stop):
+            return _robot_body(args, session, stop)
+
+    return run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
+                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body)
+
+
+def _cmd_robot(args) -> int:
+    from scmr_mesh.mesh.config import close_session, open_session
+    from scmr_mesh.mesh.peers import StopFlag, clear_ready
+
+    _setup_logging(args)
+    stop = StopFlag().install()
+    clear_ready(args.ready_file)
+    session = open_session(_mesh(args))
+    try:
+        return _robot_body(args, session, stop.event)
+    finally:
+        close_session(session)
+        clear_ready(args.ready_file)
+        stop.restore()
+
+
+def _robot_body(args, session, stop: threading.Event) -> int:
+    from scmr_mesh.mesh.peers import write_ready
+    from scmr_mesh.mesh.robot import Robot, RobotOptions, frames_from_args, pick_seed
+    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+
+    if args.rate is not None and args.rate <= 0:
+        raise InputError(f"--rate must be > 0, got {args.rate}")
+    if args.deadline_ms <= 0:
+        raise InputError(f"--deadline-ms must be > 0, got {args.deadline_ms}")
+    frames = frames_from_args(args.images, args.synthetic,
+                              seed=args.seed if args.seed is not None else pick_seed(args.id))
+    opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
+                        priority=args.priority, mode=args.mode or "best",
+                        process=getattr(args, "process", None) or DEFAULT_PROCESS)
+    robot = Robot(args.id, args.out, options=opts)
+    try:
+        robot.attach(session)
+        if opts.local_fallback:
+            robot.warm_local()
+        if getattr(args, "ready_file", None) and not hasattr(args, "node"):
+            write_ready(args.ready_file, {"role": "robot", "node": args.id, "zid": str(session.info.zid()),
+                                          "keys": []})
+        if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
+            log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
+        last = [0.0]
+
+        def progress(rec):
+            if args.quiet:
+                return
+            now = time.monotonic()
+            if now - last[0] >= 2.0:
+                last[0] = now
+                s = robot.stats
+                print(f"robot {args.id}: {s['requests']} requests, {s['succeeded']} ok, by tier {s['by_tier']}, "
+                      f"last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}", file=sys.stderr, flush=True)
+
+        stats = robot.run(frames, rate_hz=args.rate, count=args.count, duration_s=args.duration, stop=stop,
+                          progress=progress)
+    finally:
+        robot.close()
+    print(json.dumps({"robot": args.id, **stats}), flush=True)
+    return 0
+
+
+def _cmd_router(args) -> int:
+    from scmr_mesh.mesh.peers import run_router
+
+    _setup_logging(args)
+    return run_router(_mesh(args, mode="router"), ready_file=args.ready_file)

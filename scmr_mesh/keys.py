@@ -1,0 +1,167 @@
+"""Key expressions of the scmr mesh: one catalog, used by every peer.
+
+Pure module (no Zenoh import): the strings here are Zenoh key expressions and
+double as rerun entity paths, so the viewer's tree mirrors the mesh.  The
+catalog with message formats is in ``docs/protocol.md``.
+
+==========================================  ===========================  ============================
+key expression                              declared by                  carries
+==========================================  ===========================  ============================
+``scmr/drivable/cloud/<node>``              cloud service (queryable)    request -> reply | error
+``scmr/drivable/leader/<node>``             leader service (queryable)   request -> reply | error
+``scmr/alive/cloud/<node>``                 cloud (liveliness token)     presence of a cloud node
+``scmr/alive/leader/<node>``                leader (liveliness token)    presence of a leader node
+``scmr/alive/robot/<robot>``                robot (liveliness token)     presence of a robot
+``scmr/load/cloud/<node>``                  cloud (publisher)            load message (spreading)
+``scmr/load/leader/<node>``                 leader (publisher)           load message
+``scmr/telemetry/<robot>``                  robot (publisher)            telemetry message
+``scmr/results/<robot>``                    robot (publisher)            one record per request
+``scmr/metrics/<node>``                     any peer (publisher)         free-form metrics
+``scmr/data/<tier>/<node>/**``              services (extra queryables)  data-buffer queries
+==========================================  ===========================  ============================
+
+Tiers are distinct key spaces on purpose: a query on one shared key would go
+to both cloud and leader (zenoh facts sheet, section 2).  Node and robot names
+must be single key chunks (no ``/``, ``*``, ``$``, ``?``, ``#``); use
+:func:`check_name`.
+"""
+
+from __future__ import annotations
+
+import re
+
+from scmr_mesh.errors import InputError
+
+#: Root of every scmr key.
+ROOT = "scmr"
+#: Serving tiers, in the default order of preference.
+TIERS: tuple[str, ...] = ("cloud", "leader")
+#: Where a request can end up: a serving tier or the robot itself.
+PLACEMENTS: tuple[str, ...] = ("cloud", "leader", "local")
+#: Roles that hold a liveliness token.
+ROLES: tuple[str, ...] = ("cloud", "leader", "robot")
+
+DRIVABLE = f"{ROOT}/drivable"
+ALIVE = f"{ROOT}/alive"
+LOAD = f"{ROOT}/load"
+TELEMETRY = f"{ROOT}/telemetry"
+RESULTS = f"{ROOT}/results"
+METRICS = f"{ROOT}/metrics"
+DATA = f"{ROOT}/data"
+
+#: Every drivable queryable.
+DRIVABLE_ALL = f"{DRIVABLE}/**"
+#: Every liveliness token (subscribe with ``history=True``).
+ALIVE_ALL = f"{ALIVE}/**"
+#: Every load publication.
+LOAD_ALL = f"{LOAD}/**"
+#: Every telemetry publication.
+TELEMETRY_ALL = f"{TELEMETRY}/*"
+#: Every results publication.
+RESULTS_ALL = f"{RESULTS}/*"
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+
+
+def check_name(name: str, *, what: str = "node name") -> str:
+    """Return ``name`` if it is usable as one key chunk, else raise.
+
+    Parameters
+    ----------
+    name : str
+        A node or robot name: 1-64 characters from ``A-Z a-z 0-9 _ . -``.
+    what : str
+        What the name is, for the error message.
+
+    Raises
+    ------
+    InputError
+        When the name is empty, too long, or has characters that are special
+        in key expressions.
+    """
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise InputError(
+            f"{what} must be 1-64 characters from A-Z a-z 0-9 _ . - (got {name!r}); "
+            "pick a plain name such as 'cloud1' or 'robot-3'"
+        )
+    return name
+
+
+def _tier(tier: str) -> str:
+    if tier not in TIERS:
+        raise InputError(f"tier must be one of {TIERS}, got {tier!r}")
+    return tier
+
+
+def drivable(tier: str, node: str) -> str:
+    """Key of the drivable-region queryable of ``node`` serving ``tier``.
+
+    >>> drivable("cloud", "c1")
+    'scmr/drivable/cloud/c1'
+    """
+    return f"{DRIVABLE}/{_tier(tier)}/{check_name(node)}"
+
+
+def drivable_tier(tier: str) -> str:
+    """Key expression matching every node of one tier (``scmr/drivable/<tier>/*``)."""
+    return f"{DRIVABLE}/{_tier(tier)}/*"
+
+
+def alive(role: str, node: str) -> str:
+    """Liveliness token key of ``node`` in ``role`` (cloud, leader or robot).
+
+    >>> alive("leader", "L")
+    'scmr/alive/leader/L'
+    """
+    if role not in ROLES:
+        raise InputError(f"role must be one of {ROLES}, got {role!r}")
+    return f"{ALIVE}/{role}/{check_name(node)}"
+
+
+def load(tier: str, node: str) -> str:
+    """Key on which a service publishes its load (``scmr/load/<tier>/<node>``)."""
+    return f"{LOAD}/{_tier(tier)}/{check_name(node)}"
+
+
+def telemetry(robot: str) -> str:
+    """Key on which ``robot`` publishes telemetry (``scmr/telemetry/<robot>``)."""
+    return f"{TELEMETRY}/{check_name(robot, what='robot id')}"
+
+
+def results(robot: str) -> str:
+    """Key on which ``robot`` publishes one record per finished request."""
+    return f"{RESULTS}/{check_name(robot, what='robot id')}"
+
+
+def metrics(node: str) -> str:
+    """Key on which a peer may publish metrics (``scmr/metrics/<node>``)."""
+    return f"{METRICS}/{check_name(node)}"
+
+
+def data(tier: str, node: str, name: str = "**") -> str:
+    """Key prefix for extra (data-buffer) queryables of a service."""
+    return f"{DATA}/{_tier(tier)}/{check_name(node)}/{name}"
+
+
+def parse(key: str) -> tuple[str, str, str]:
+    """Split ``scmr/<kind>/<role>/<node>`` into ``(kind, role, node)``.
+
+    Parameters
+    ----------
+    key : str
+        A key such as ``scmr/alive/cloud/c1``.
+
+    Returns
+    -------
+    tuple of str
+        ``("alive", "cloud", "c1")``.
+
+    Raises
+    ------
+    InputError
+        When the key does not have four chunks under ``scmr/``.
+    """
+    parts = str(key).split("/")
+    if len(parts) != 4 or parts[0] != ROOT:
+        raise InputError(f"expected a key scmr/<kind>/<role>/<node>, got {key!r}")
+    return parts[1], parts[2], parts[3]

@@ -1,0 +1,240 @@
+"""Zenoh configuration for scmr peers, built in layers and validated.
+
+Layers, later wins: scmr defaults (:data:`DEFAULTS`) -> ``--config FILE``
+(JSON5, zenoh's own format) -> ``--cfg KEY:JSON5`` overrides -> explicit flags
+(``--listen``, ``--connect``, ``--lease-ms``, mode).  A default only applies
+where the file left zenoh's built-in value untouched.
+
+The defaults encode the measured facts (``docs/ZENOH.md``): multicast scouting
+off (peers are wired with explicit endpoints), gossip on (robots find each
+other through the leader), lease 500 ms with 4 keep-alives (silent link loss
+seen in ~400 ms, no false expiries), fast reconnect ``connect/retry
+{100, 500, 2}`` and ``transport/unicast/open_timeout`` 1000 ms (bounds
+``close()``).  Zenoh itself does not validate the lease: ``keep_alive`` 0
+panics in Rust and lease 0 loops, so :func:`check` rejects both.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+from scmr_mesh.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: Default lease (ms) of every scmr peer; detection of a silent loss ~0.8x this.
+DEFAULT_LEASE_MS = 500
+#: Default keep-alives per lease (zenoh's ``keep_alive`` divisor).
+DEFAULT_KEEP_ALIVE = 4
+
+#: scmr defaults: zenoh key -> JSON value.
+DEFAULTS: dict[str, Any] = {
+    "scouting/multicast/enabled": False,
+    "scouting/gossip/enabled": True,
+    "transport/link/tx/lease": DEFAULT_LEASE_MS,
+    "transport/link/tx/keep_alive": DEFAULT_KEEP_ALIVE,
+    "transport/unicast/open_timeout": 1000,
+    "connect/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
+    "listen/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
+}
+
+MODES = ("peer", "client", "router")
+
+
+@dataclass
+class MeshConfig:
+    """Everything needed to open a zenoh session for an scmr peer.
+
+    Attributes
+    ----------
+    mode : str
+        ``peer`` (default), ``client`` or ``router``.
+    listen, connect : list of str
+        Zenoh endpoints such as ``tcp/127.0.0.1:7447``.
+    config_file : str or None
+        A zenoh JSON5 config file applied over the defaults.
+    cfg : list of str
+        ``KEY:JSON5`` overrides, e.g. ``transport/link/tx/lease:1000``.
+    lease_ms : int or None
+        Shortcut for ``transport/link/tx/lease`` (applied last).
+    keep_alive : int or None
+        Shortcut for ``transport/link/tx/keep_alive``.
+    """
+
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    config_file: str | None = None
+    cfg: list[str] = field(default_factory=list)
+    lease_ms: int | None = None
+    keep_alive: int | None = None
+
+    def build(self):
+        """Return a validated ``zenoh.Config``; raise :class:`ConfigError` if unusable."""
+        return build_config(self)
+
+
+def _parse_override(item: str) -> tuple[str, str]:
+    key, sep, value = item.partition(":")
+    if not sep or not key or not value:
+        raise ConfigError(
+            f"--cfg expects KEY:JSON5, got {item!r}; example: --cfg 'transport/link/tx/lease:1000'"
+        )
+    return key.strip(), value.strip()
+
+
+def build_config(mc: MeshConfig):
+    """Build a ``zenoh.Config`` from ``mc`` (see module docstring for the layers).
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, unknown key, bad JSON5, unusable lease/keep_alive.
+    """
+    import zenoh
+
+    if mc.mode not in MODES:
+        raise ConfigError(f"mode must be one of {MODES}, got {mc.mode!r}")
+    pristine = zenoh.Config()
+    if mc.config_file:
+        path = Path(mc.config_file)
+        if not path.is_file():
+            raise ConfigError(f"zenoh config file {path} not found; pass an existing JSON5 file to --config")
+        try:
+            conf = zenoh.Config.from_file(str(path))
+        except Exception as exc:
+            raise ConfigError(f"zenoh config file {path} is invalid: {exc}") from None
+    else:
+        conf = zenoh.Config()
+    for key, value in DEFAULTS.items():
+        try:
+            untouched = conf.get_json(key) == pristine.get_json(key)
+        except Exception:
+            untouched = True
+        if untouched:
+            _insert(conf, key, json.dumps(value), source="scmr defaults")
+    for item in mc.cfg:
+        key, value = _parse_override(item)
+        _insert(conf, key, value, source="--cfg")
+    _insert(conf, "mode", json.dumps(mc.mode), source="mode")
+    if mc.listen:
+        _insert(conf, "listen/endpoints", json.dumps(list(mc.listen)), source="--listen")
+    if mc.connect:
+        _insert(conf, "connect/endpoints", json.dumps(list(mc.connect)), source="--connect")
+    if mc.lease_ms is not None:
+        _insert(conf, "transport/link/tx/lease", json.dumps(int(mc.lease_ms)), source="--lease-ms")
+    if mc.keep_alive is not None:
+        _insert(conf, "transport/link/tx/keep_alive", json.dumps(int(mc.keep_alive)), source="keep_alive")
+    check(conf)
+    return conf
+
+
+def _insert(conf, key: str, value: str, *, source: str) -> None:
+    try:
+        conf.insert_json5(key, value)
+    except Exception as exc:
+        raise ConfigError(f"{source}: cannot set zenoh key {key!r} to {value!r}: {exc}") from None
+
+
+def _get(conf, key: str) -> Any:
+    """The JSON value of ``key`` (zenoh's get_json returns JSON text)."""
+    raw = conf.get_json(key)
+    try:
+        return json.loads(raw) if isinstance(raw, str) else raw
+    except ValueError:
+        return raw
+
+
+def check(conf) -> None:
+    """Reject settings zenoh accepts but cannot run with.
+
+    Raises
+    ------
+    ConfigError
+        ``lease`` < 10 ms (0 makes zenoh loop connect/disconnect; below 10 ms
+        links flap) or ``keep_alive`` < 2 (0 panics, 1 gives spurious expiries).
+    """
+    lease = _get(conf, "transport/link/tx/lease")
+    ka = _get(conf, "transport/link/tx/keep_alive")
+    if not isinstance(lease, int) or lease < 10:
+        raise ConfigError(
+            f"transport/link/tx/lease must be an integer >= 10 ms, got {lease!r}; "
+            f"use {DEFAULT_LEASE_MS} (0 makes zenoh reconnect in a loop)"
+        )
+    if not isinstance(ka, int) or ka < 2:
+        raise ConfigError(
+            f"transport/link/tx/keep_alive must be an integer >= 2, got {ka!r}; "
+            f"use {DEFAULT_KEEP_ALIVE} (0 panics in zenoh, 1 expires idle links)"
+        )
+    if lease // ka < 2:
+        raise ConfigError(
+            f"lease {lease} ms / keep_alive {ka} leaves under 2 ms between keep-alives; "
+            "raise the lease or lower keep_alive"
+        )
+
+
+def add_arguments(parser, *, lease_default: int | None = None) -> None:
+    """Add the shared zenoh flags to an argparse parser.
+
+    ``--listen EP``, ``--connect EP`` (repeatable), ``--config FILE``,
+    ``--cfg KEY:JSON5`` (repeatable), ``--lease-ms MS``, ``--zmode``.
+    """
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--listen", action="append", default=[], metavar="EP",
+                   help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--connect", action="append", default=[], metavar="EP",
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--config", metavar="FILE", default=None,
+                   help="zenoh JSON5 config file applied over scmr's defaults (see peers/*.json5)")
+    g.add_argument("--cfg", action="append", default=[], metavar="KEY:JSON5",
+                   help="zenoh config override, e.g. 'scouting/multicast/enabled:true' (repeatable)")
+    g.add_argument("--lease-ms", type=int, default=lease_default, metavar="MS",
+                   help=f"link lease in ms (default {DEFAULT_LEASE_MS}); silent link loss is "
+                        "detected in about 0.8 x lease")
+    g.add_argument("--zmode", choices=MODES, default=None,
+                   help="zenoh session mode (default: peer; router for `scmr router`)")
+
+
+def from_args(args, *, mode: str = "peer") -> MeshConfig:
+    """A :class:`MeshConfig` from parsed :func:`add_arguments` flags."""
+    return MeshConfig(
+        mode=getattr(args, "zmode", None) or mode,
+        listen=list(args.listen or []),
+        connect=list(args.connect or []),
+        config_file=args.config,
+        cfg=list(args.cfg or []),
+        lease_ms=args.lease_ms,
+    )
+
+
+def open_session(mc: MeshConfig):
+    """Open a zenoh session for ``mc``; raise :class:`MeshError` when zenoh refuses."""
+    import zenoh
+
+    from scmr_mesh.errors import MeshError
+
+    conf = mc.build()
+    try:
+        return zenoh.open(conf)
+    except Exception as exc:
+        raise MeshError(
+            f"cannot open a zenoh session (listen={mc.listen}, connect={mc.connect}): {exc}; "
+            "check that the listen port is free and the endpoints are well formed"
+        ) from None
+
+
+def close_session(session) -> None:
+    """Close ``session``, never raising (close can time out on a dead endpoint)."""
+    try:
+        session.close()
+    except Exception as exc:  # zenoh: "close operation timed out!"
+        log.warning("zenoh session close failed: %s", exc)
+
+
+def endpoints(values: Sequence[str]) -> list[str]:
+    """Normalise endpoint strings (strip blanks, drop empties)."""
+    return [v.strip() for v in values if v and v.strip()]

@@ -1,0 +1,163 @@
+"""Running peers as OS processes: signals, ready files, logging, life cycles.
+
+Library functions behind ``scmr cloud | leader | robot | router`` (the CLI
+wiring is in :mod:`scmr_mesh.mesh.commands`).  Each ``run_*`` function blocks
+until its work is done or SIGTERM/SIGINT arrives, then shuts down cleanly
+(undeclare, close the zenoh session, stop the workers, flush files) and
+returns.
+
+Ready file: written atomically (temp file + rename) once the peer serves or
+is connected, holding JSON ``{"pid", "role", "node", "zid", "keys",
+"t_unix_ns"}``; removed again at a clean exit.  A stale one is removed at
+start.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+
+log = logging.getLogger(__name__)
+
+
+class StopFlag:
+    """A threading.Event set by SIGTERM/SIGINT (installed on the main thread)."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.signal: int | None = None
+        self._old: dict[int, object] = {}
+
+    def install(self) -> "StopFlag":
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGTERM, signal.SIGINT):
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame) -> None:
+        self.signal = signum
+        self.event.set()
+
+    def restore(self) -> None:
+        for sig, old in self._old.items():
+            try:
+                signal.signal(sig, old)
+            except Exception:
+                pass
+        self._old = {}
+
+
+def write_ready(path: str | Path | None, info: dict) -> None:
+    """Atomically write the ready file ``path`` (no-op when None)."""
+    if not path:
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(dict(info, pid=os.getpid(), t_unix_ns=time.time_ns())) + "\n")
+    os.replace(tmp, path)
+
+
+def clear_ready(path: str | Path | None) -> None:
+    """Remove a ready file if present."""
+    if path:
+        try:
+            Path(path).unlink()
+        except FileNotFoundError:
+            pass
+
+
+def run_service(
+    node: str,
+    mesh: MeshConfig,
+    *,
+    tier: str,
+    workers: int | None = None,
+    process: str | None = None,
+    max_request_bytes: int | None = None,
+    ready_file: str | None = None,
+    stop: StopFlag | None = None,
+    robot_body: Callable | None = None,
+    setup: Callable | None = None,
+) -> int:
+    """Run a cloud or leader service until stopped.
+
+    Parameters
+    ----------
+    node : str
+        Node name.
+    mesh : MeshConfig
+        Zenoh settings.
+    tier : {"cloud", "leader"}
+    workers, process, max_request_bytes
+        Passed to :class:`~scmr_mesh.mesh.server.Service`.
+    ready_file : str, optional
+        Written once the queryable and token are declared.
+    robot_body : callable, optional
+        ``fn(session, stop_event) -> int`` run on the main thread after the
+        service is up (the leader's own robot); the service stops when it
+        returns or on a signal.
+    setup : callable, optional
+        ``fn(service)`` called before attach (hooks: admission, queryables).
+
+    Returns
+    -------
+    int
+        Exit status (0 clean).
+    """
+    from scmr_mesh import keys, wire
+    from scmr_mesh.mesh.server import Service
+    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+
+    stop = stop or StopFlag().install()
+    clear_ready(ready_file)
+    # workers first: they are forked before zenoh starts any thread
+    svc = Service(node, tier=tier, workers=workers, process=process or DEFAULT_PROCESS,
+                  max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES)
+    session = None
+    rc = 0
+    try:
+        if setup is not None:
+            setup(svc)
+        session = open_session(mesh)
+        svc.attach(session)
+        write_ready(ready_file, {"role": tier, "node": node, "zid": str(session.info.zid()),
+                                 "keys": [svc.key, keys.alive(tier, node)]})
+        log.info("%s %s ready (zid %s)", tier, node, session.info.zid())
+        if robot_body is not None:
+            rc = int(robot_body(session, stop.event) or 0)
+        else:
+            stop.event.wait()
+    finally:
+        svc.detach()
+        if session is not None:
+            close_session(session)
+        svc.shutdown()
+        clear_ready(ready_file)
+        stop.restore()
+    return rc
+
+
+def run_router(mesh: MeshConfig, *, ready_file: str | None = None, stop: StopFlag | None = None) -> int:
+    """Run a zenoh router (a session in router mode) until stopped."""
+    stop = stop or StopFlag().install()
+    clear_ready(ready_file)
+    session = open_session(mesh)
+    try:
+        write_ready(ready_file, {"role": "router", "node": str(session.info.zid()), "zid": str(session.info.zid()),
+                                 "keys": []})
+        log.info("router ready (zid %s) listen=%s connect=%s", session.info.zid(), mesh.listen, mesh.connect)
+        stop.event.wait()
+    finally:
+        close_session(session)
+        clear_ready(ready_file)
+        stop.restore()
+    return 0

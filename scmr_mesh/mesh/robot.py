@@ -1,0 +1,640 @@
+"""The robot client: what ``scmr robot`` runs (and ``scmr leader`` with robot flags).
+
+A :class:`Robot` takes frames from a source (a folder of images or a synthetic
+scene), puts each in its outbox, sends it as a request to a serving tier and
+writes the result to its inbox and one line of ``records.jsonl``.
+
+Routing
+-------
+The robot keeps a live view (:class:`LiveView`) of which nodes are alive,
+from a liveliness subscriber on ``scmr/alive/**`` (``history=True``), and of
+their load (``scmr/load/**``).  For each frame the *placement* function
+returns the tiers to try, in order; the default (:func:`default_placement`)
+is ``cloud`` if a cloud node is alive, then ``leader`` if one is alive, then
+``local`` when local fallback is on.  Within the cloud tier the least loaded
+alive node is tried first (then one more).  Each attempt is gated on the
+querier's matching status (a queryable is really there) and bounded by the
+per-request deadline (``--deadline-ms``): when it passes, or the server dies
+mid-request (no reply), or it answers with an error, the request is re-sent
+at once to the next candidate, so requests in flight when a link dies are
+still answered.  When nothing answers the robot runs the pipeline itself
+(``--local-fallback``, default) or writes an explicit failure record: it never
+hangs.  ``--redundant`` sends each frame to the best cloud node and a leader at
+once and keeps the first good reply (``bytes_up`` counts both sends).
+
+Output (``--out DIR``)
+----------------------
+* ``DIR/outbox/<seq>.<ext>``: frames waiting for an answer (removed when done).
+* ``DIR/inbox/<seq>.mask.png``: the (225, 300) mask, 255 = drivable.
+* ``DIR/records.jsonl``: one JSON object per finished request, flushed per
+  line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
+  received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"local"|null),
+  served_by, attempts [{tier, node, outcome, t_unix_ns}], error``.
+  ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
+  ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
+  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode),
+  ``bad_reply``.
+
+Hooks
+-----
+* :meth:`Robot.add_observer` ``fn(record: dict, rgb: ndarray, mask: ndarray | None)``
+  is called after each request (rgb is the (H, W, 3) uint8 frame, mask the
+  (225, 300) uint8 mask or None).  The viz engineer logs overlays from it.
+* ``Robot.placement``: ``fn(view: Reachable, frame: FrameInfo) -> sequence of
+  "cloud" | "leader" | "local"``, the tiers to try in order (energy policy).
+* ``Robot.publish_telemetry(message: dict)``: publishes one telemetry message on
+  ``scmr/telemetry/<robot>``; wrap or replace it to also store telemetry.
+  :meth:`Robot.make_telemetry` builds the message.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import math
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator, Sequence
+
+from scmr_mesh import keys, wire
+from scmr_mesh.errors import InputError
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+# ------------------------------------------------------------------ view
+@dataclass(frozen=True)
+class Reachable:
+    """A snapshot of the live view handed to the placement function.
+
+    Attributes
+    ----------
+    cloud, leader : tuple of str
+        Alive nodes of each tier; cloud nodes sorted by load, least first.
+    loads : dict
+        node -> (inflight / workers) from the last load message.
+    local : bool
+        Whether this robot can run the pipeline itself.
+    """
+
+    cloud: tuple[str, ...] = ()
+    leader: tuple[str, ...] = ()
+    loads: dict = field(default_factory=dict)
+    local: bool = False
+
+    def nodes(self, tier: str) -> tuple[str, ...]:
+        return self.cloud if tier == "cloud" else self.leader if tier == "leader" else ()
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """What the placement function knows about a frame."""
+
+    robot: str
+    seq: int
+    bytes: int
+    encoding: str
+
+
+Placement = Callable[[Reachable, FrameInfo], Sequence[str]]
+
+
+def default_placement(view: Reachable, frame: FrameInfo) -> list[str]:
+    """Cloud if any cloud node is alive, then leader if alive, then local if able."""
+    order = [t for t in ("cloud", "leader") if view.nodes(t)]
+    if view.local:
+        order.append("local")
+    return order
+
+
+class LiveView:
+    """Which serving nodes are alive, and how loaded, from liveliness + load samples."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._alive: dict[str, set[str]] = {t: set() for t in keys.ROLES}
+        self._loads: dict[str, float] = {}
+        self.changed = threading.Condition(self._lock)
+        self._rr = itertools.count()
+
+    def on_liveliness(self, sample) -> None:
+        """Liveliness subscriber callback (PUT = alive, DELETE = gone)."""
+        try:
+            _, role, node = keys.parse(str(sample.key_expr))
+        except InputError:
+            return
+        alive = str(sample.kind) == "SampleKind.PUT" or str(sample.kind).endswith("PUT")
+        with self._lock:
+            bucket = self._alive.setdefault(role, set())
+            if alive:
+                bucket.add(node)
+            else:
+                bucket.discard(node)
+                self._loads.pop(node, None)
+            self.changed.notify_all()
+        log.info("liveliness: %s %s %s", role, node, "up" if alive else "down")
+
+    def on_load(self, sample) -> None:
+        """Load subscriber callback."""
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), kind="load")
+        except wire.WireProblem as exc:
+            log.debug("ignoring load sample: %s", exc)
+            return
+        with self._lock:
+            self._loads[msg["node"]] = msg["inflight"] / max(1, msg["workers"])
+
+    def mark_busy(self, node: str, amount: float = 1.0) -> None:
+        """Raise a node's load estimate locally (until its next load message)."""
+        with self._lock:
+            self._loads[node] = self._loads.get(node, 0.0) + amount
+
+    def snapshot(self, *, local: bool = False) -> Reachable:
+        with self._lock:
+            loads = dict(self._loads)
+            rr = next(self._rr)
+            clouds = sorted(self._alive["cloud"])
+            # least loaded first; ties broken by rotation so robots spread out
+            if clouds:
+                k = rr % len(clouds)
+                clouds = clouds[k:] + clouds[:k]
+            clouds.sort(key=lambda n: loads.get(n, 0.0))
+            return Reachable(tuple(clouds), tuple(sorted(self._alive["leader"])), loads, local)
+
+    def wait_for_tier(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until some cloud or leader node is alive."""
+        end = time.monotonic() + timeout
+        with self._lock:
+            while not (self._alive["cloud"] or self._alive["leader"]):
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self.changed.wait(left)
+            return True
+
+
+# ---------------------------------------------------------------- frames
+@dataclass
+class Frame:
+    """One frame to send: encoded bytes, and how to get its pixels."""
+
+    name: str
+    data: bytes
+    encoding: str
+    shape: list | None = None
+    rgb: Any = None  # (H, W, 3) uint8 when already known
+
+    def pixels(self):
+        if self.rgb is None:
+            import cv2
+            import numpy as np
+
+            arr = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_COLOR)
+            self.rgb = None if arr is None else np.ascontiguousarray(arr[:, :, ::-1])
+        return self.rgb
+
+
+def image_frames(folder: str | Path) -> Iterator[Frame]:
+    """Cycle forever over the PNG/JPEG files of ``folder`` (sorted by name).
+
+    Raises
+    ------
+    InputError
+        When the folder is missing or holds no PNG/JPEG file.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"--images {folder} is not a folder; pass a folder of PNG/JPEG frames")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not files:
+        raise InputError(f"--images {folder} holds no .png/.jpg/.jpeg file")
+    for p in itertools.cycle(files):
+        enc = "png" if p.suffix.lower() == ".png" else "jpeg"
+        yield Frame(p.name, p.read_bytes(), enc)
+
+
+def synthetic_frames(kind: str, *, seed: int = 0) -> Iterator[Frame]:
+    """Endless synthetic scenes of ``kind`` (seeded per frame), PNG-encoded.
+
+    ``kind="stub"`` uses :func:`scmr_mesh.mesh.testing.synthetic_png` and needs no
+    imaging module; other kinds come from ``scmr_mesh.imaging.synthetic``.
+    """
+    if kind == "stub":
+        from scmr_mesh.mesh.testing import synthetic_png
+
+        for i in itertools.count():
+            yield Frame(f"stub-{seed + i}.png", synthetic_png(seed + i), "png")
+    try:
+        from scmr_mesh.imaging import encode_png
+        from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
+    except ImportError as exc:
+        raise InputError(f"--synthetic {kind}: synthetic scenes unavailable ({exc}); use --synthetic stub") from None
+    if kind not in SCENE_KINDS:
+        raise InputError(f"--synthetic must be one of {sorted(SCENE_KINDS)} or 'stub', got {kind!r}")
+    for i in itertools.count():
+        rgb, _truth = make_scene(kind, seed=seed + i)
+        yield Frame(f"{kind}-{seed + i}.png", encode_png(rgb), "png", rgb=rgb)
+
+
+# ----------------------------------------------------------------- robot
+@dataclass
+class RobotOptions:
+    """Settings of a :class:`Robot` (the ``scmr robot`` flags)."""
+
+    deadline_ms: float = 1000.0
+    redundant: bool = False
+    local_fallback: bool = True
+    priority: int = 0
+    mode: str = "best"
+    process: str = "scmr_mesh.mesh.work:process_frame"
+    max_nodes_per_tier: int = 2
+
+
+class Robot:
+    """A robot peer: sends frames to the mesh and records what happened.
+
+    Parameters
+    ----------
+    robot_id : str
+        Robot id (a key chunk).
+    out_dir : path
+        Output folder (outbox/, inbox/, records.jsonl).
+    options : RobotOptions, optional
+    placement : callable, optional
+        Replaces :func:`default_placement`.
+
+    Notes
+    -----
+    Call :meth:`attach` with an open zenoh session, then :meth:`request` per
+    frame or :meth:`run` for a paced loop; :meth:`close` flushes the records.
+    """
+
+    def __init__(self, robot_id: str, out_dir: str | Path, *, options: RobotOptions | None = None,
+                 placement: Placement | None = None) -> None:
+        self.id = keys.check_name(robot_id, what="robot id")
+        self.options = options or RobotOptions()
+        self.placement: Placement = placement or default_placement
+        self.view = LiveView()
+        self.out = Path(out_dir)
+        self.outbox = self.out / "outbox"
+        self.inbox = self.out / "inbox"
+        try:
+            self.outbox.mkdir(parents=True, exist_ok=True)
+            self.inbox.mkdir(parents=True, exist_ok=True)
+            self._records = open(self.out / "records.jsonl", "a", buffering=1, encoding="utf-8")
+        except OSError as exc:
+            raise InputError(f"--out {self.out}: cannot create the robot's folders ({exc})") from None
+        self._observers: list[Callable] = []
+        self._queriers: dict[str, Any] = {}
+        self._session = None
+        self._subs: list[Any] = []
+        self._token = None
+        self._tele_pub = None
+        self._res_pub = None
+        self._local_fn = None
+        self._local_ok: bool | None = None
+        self.stats = {"requests": 0, "succeeded": 0, "by_tier": {"cloud": 0, "leader": 0, "local": 0},
+                      "last_tor_ms": None, "last_tier": None}
+        self._t0 = time.monotonic()
+        self._last_seq = 0
+        self._health = "ok"
+
+    # ------------------------------------------------------------ hooks
+    def add_observer(self, fn: Callable[[dict, Any, Any], None]) -> None:
+        """Call ``fn(record, rgb, mask)`` after each request (see module docstring)."""
+        self._observers.append(fn)
+
+    def publish_telemetry(self, message: dict) -> None:
+        """Publish one telemetry message on ``scmr/telemetry/<robot>``."""
+        if self._tele_pub is not None:
+            self._tele_pub.put(wire.encode(message))
+
+    def make_telemetry(self) -> dict:
+        """The current telemetry message (simulated pose and battery, real results)."""
+        t = time.monotonic() - self._t0
+        pose = {"x": 10.0 * math.cos(0.05 * t), "y": 10.0 * math.sin(0.05 * t), "theta": (0.05 * t + math.pi / 2) % (2 * math.pi)}
+        battery = max(0.0, 1.0 - t / 7200.0 - 2e-4 * self.stats["by_tier"]["local"])
+        return wire.make_telemetry(self.id, self._last_seq, pose=pose, battery=battery, health=self._health,
+                                   results=dict(self.stats, by_tier=dict(self.stats["by_tier"])))
+
+    # ------------------------------------------------------- life cycle
+    def attach(self, session) -> None:
+        """Subscribe to liveliness and load, declare publishers and the robot's token."""
+        self._session = session
+        self._subs.append(session.liveliness().declare_subscriber(keys.ALIVE_ALL, self.view.on_liveliness, history=True))
+        self._subs.append(session.declare_subscriber(keys.LOAD_ALL, self.view.on_load))
+        self._tele_pub = session.declare_publisher(keys.telemetry(self.id))
+        self._res_pub = session.declare_publisher(keys.results(self.id))
+        self._token = session.liveliness().declare_token(keys.alive("robot", self.id))
+
+    def close(self) -> None:
+        """Undeclare everything this robot declared and close the records file."""
+        for obj in [self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub]:
+            if obj is None:
+                continue
+            try:
+                obj.undeclare()
+            except Exception:
+                pass
+        self._subs, self._queriers, self._token = [], {}, None
+        self._tele_pub = self._res_pub = None
+        try:
+            self._records.close()
+        except Exception:
+            pass
+
+    # ------------------------------------------------------------ work
+    def _querier(self, tier: str, node: str):
+        key = keys.drivable(tier, node)
+        q = self._queriers.get(key)
+        if q is None:
+            import zenoh
+
+            q = self._session.declare_querier(
+                key,
+                target=zenoh.QueryTarget.BEST_MATCHING,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=self.options.deadline_ms / 1e3,
+            )
+            self._queriers[key] = q
+        return q
+
+    def _local_available(self) -> bool:
+        if not self.options.local_fallback:
+            return False
+        if self._local_ok is None:
+            try:
+                from scmr_mesh.mesh.work import resolve
+
+                self._local_fn = resolve(self.options.process)
+                self._local_ok = True
+            except Exception as exc:
+                log.warning("local execution unavailable: %s", exc)
+                self._local_ok = False
+        return bool(self._local_ok)
+
+    def warm_local(self) -> None:
+        """Load (and JIT-warm) the local pipeline now rather than at the first fallback."""
+        if self._local_available():
+            from scmr_mesh.mesh.work import warm
+
+            try:
+                warm(self._local_fn)
+            except Exception as exc:
+                log.warning("local warm-up failed: %s", exc)
+                self._local_ok = False
+
+    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list) -> tuple | None:
+        """Send ``payload`` to every target at once; return the first good reply.
+
+        Returns ``(tier, node, reply_dict, nbytes_down)`` or None.  Appends one
+        attempt per target to ``attempts``.
+        """
+        import zenoh
+
+        results: queue.Queue = queue.Queue()
+        live = []
+        for tier, node in targets:
+            t_ns = time.time_ns()
+            att = {"tier": tier, "node": node, "outcome": "pending", "t_unix_ns": t_ns}
+            attempts.append(att)
+            q = self._querier(tier, node)
+            if not q.matching_status.matching:
+                att["outcome"] = "unreachable"
+                continue
+            token = zenoh.CancellationToken()
+
+            def on_reply(reply, _att=att):
+                results.put((_att, reply))
+
+            def on_done(_att=att):
+                results.put((_att, None))
+
+            try:
+                q.get(zenoh.handlers.Callback(on_reply, on_done), payload=payload, cancellation_token=token)
+            except Exception as exc:
+                att["outcome"] = f"error:send ({exc})"
+                continue
+            live.append((att, token))
+        pending = {id(a) for a, _ in live}
+        got = {id(a): False for a, _ in live}
+        deadline = time.monotonic() + self.options.deadline_ms / 1e3
+        winner = None
+        while pending and winner is None:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            try:
+                att, reply = results.get(timeout=left)
+            except queue.Empty:
+                break
+            if reply is None:  # the query finished
+                pending.discard(id(att))
+                if att["outcome"] == "pending":
+                    att["outcome"] = "no_reply"
+                continue
+            got[id(att)] = True
+            if reply.ok is not None:
+                data = reply.ok.payload.to_bytes()
+                try:
+                    msg = wire.decode(data, kind="reply")
+                except wire.WireProblem as exc:
+                    att["outcome"] = "bad_reply"
+                    log.warning("bad reply from %s: %s", att["node"], exc)
+                    continue
+                if msg["robot"] != self.id:
+                    att["outcome"] = "bad_reply"
+                    continue
+                att["outcome"] = "ok"
+                winner = (att["tier"], att["node"], msg, len(data))
+            else:
+                raw = reply.err.payload.to_bytes()
+                try:
+                    err = wire.decode(raw, kind="error")
+                    att["outcome"] = f"error:{err['code']}"
+                    att["message"] = err["message"][:200]
+                except wire.WireProblem:
+                    text = raw.decode("utf-8", "replace")[:200]
+                    att["outcome"] = "timeout" if text == "Timeout" else f"error:{text}"
+        for att, token in live:
+            if att["outcome"] == "pending":
+                att["outcome"] = "superseded" if winner is not None else "timeout"
+            if att["outcome"] != "ok":
+                try:
+                    token.cancel()
+                except Exception:
+                    pass
+        return winner
+
+    def request(self, seq: int, frame: Frame) -> dict:
+        """Process one frame through the mesh (or locally); return its record.
+
+        The record is also appended to ``records.jsonl``, published on
+        ``scmr/results/<robot>`` and handed to the observers.
+        """
+        opts = self.options
+        suffix = {"png": ".png", "jpeg": ".jpg", "raw": ".rgb"}[frame.encoding]
+        outbox_file = self.outbox / f"{seq}{suffix}"
+        try:
+            outbox_file.write_bytes(frame.data)
+        except OSError as exc:
+            log.warning("outbox write failed: %s", exc)
+        sent_ns = time.time_ns()
+        t_start = time.perf_counter()
+        req = wire.make_request(self.id, seq, frame.data, encoding=frame.encoding, shape=frame.shape,
+                                priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns)
+        payload = wire.encode(req)
+        view = self.view.snapshot(local=self._local_available())
+        info = FrameInfo(self.id, seq, len(frame.data), frame.encoding)
+        plan = [t for t in self.placement(view, info) if t in keys.PLACEMENTS]
+        attempts: list[dict] = []
+        bytes_up = bytes_down = 0
+        winner = None
+        mask_png = None
+        error = None
+        if opts.redundant:
+            targets = [(t, view.nodes(t)[0]) for t in ("cloud", "leader") if t in plan and view.nodes(t)]
+            if targets:
+                bytes_up += len(payload) * len(targets)
+                winner = self._send(targets, payload, attempts)
+            plan = [t for t in plan if t == "local"] if winner is None else []
+        for tier in plan:
+            if winner is not None:
+                break
+            if tier == "local":
+                winner = self._run_local(frame, attempts)
+                continue
+            nodes = self.view.snapshot(local=False).nodes(tier) or view.nodes(tier)
+            for node in nodes[: opts.max_nodes_per_tier]:
+                before = len(attempts)
+                winner = self._send([(tier, node)], payload, attempts)
+                if attempts[before]["outcome"] != "unreachable":
+                    bytes_up += len(payload)
+                if winner is not None:
+                    break
+                if attempts[before]["outcome"] == "error:busy":
+                    self.view.mark_busy(node)
+        received_ns = time.time_ns()
+        tor_ms = (time.perf_counter() - t_start) * 1e3
+        tier = served_by = None
+        mask = None
+        if winner is not None:
+            tier, served_by, msg, nbytes = winner
+            bytes_down = nbytes
+            mask_png = msg["mask_png"]
+        else:
+            if not attempts:
+                error = "no serving tier alive and local execution off or unavailable"
+            else:
+                error = "no tier answered: " + ", ".join(f"{a['tier']}/{a['node']}={a['outcome']}" for a in attempts)
+        record = {
+            "robot": self.id, "seq": int(seq), "image": frame.name, "bytes_up": int(bytes_up),
+            "bytes_down": int(bytes_down), "sent_unix_ns": sent_ns, "received_unix_ns": received_ns,
+            "tor_ms": round(tor_ms, 3), "ok": winner is not None, "tier": tier, "served_by": served_by,
+            "attempts": attempts, "error": error,
+        }
+        if mask_png is not None:
+            try:
+                (self.inbox / f"{seq}.mask.png").write_bytes(mask_png)
+            except OSError as exc:
+                log.warning("inbox write failed: %s", exc)
+        try:
+            outbox_file.unlink()
+        except OSError:
+            pass
+        self._records.write(json.dumps(record, separators=(",", ":")) + "\n")
+        self._records.flush()
+        self._account(record)
+        if self._res_pub is not None:
+            try:
+                self._res_pub.put(json.dumps(record, separators=(",", ":")).encode())
+            except Exception as exc:
+                log.debug("results publish failed: %s", exc)
+        try:
+            self.publish_telemetry(self.make_telemetry())
+        except Exception as exc:
+            log.warning("telemetry publish failed: %s", exc)
+        if self._observers:
+            if mask_png is not None:
+                import cv2
+                import numpy as np
+
+                mask = cv2.imdecode(np.frombuffer(mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
+            rgb = frame.pixels()
+            for fn in list(self._observers):
+                try:
+                    fn(record, rgb, mask)
+                except Exception:
+                    log.exception("observer %r failed", fn)
+        return record
+
+    def _run_local(self, frame: Frame, attempts: list) -> tuple | None:
+        att = {"tier": "local", "node": self.id, "outcome": "pending", "t_unix_ns": time.time_ns()}
+        attempts.append(att)
+        try:
+            out = self._local_fn(frame.data, encoding=frame.encoding, shape=frame.shape, mode=self.options.mode)
+        except Exception as exc:
+            att["outcome"] = f"error:{type(exc).__name__}"
+            att["message"] = str(exc)[:200]
+            return None
+        att["outcome"] = "ok"
+        return "local", self.id, {"mask_png": out["mask_png"]}, 0
+
+    def _account(self, record: dict) -> None:
+        self._last_seq = record["seq"]
+        s = self.stats
+        s["requests"] += 1
+        if record["ok"]:
+            s["succeeded"] += 1
+            s["by_tier"][record["tier"]] += 1
+            s["last_tor_ms"] = record["tor_ms"]
+        s["last_tier"] = record["tier"]
+        self._health = "fault" if not record["ok"] else "ok" if record["tier"] == "cloud" else "degraded"
+
+    def run(self, frames: Iterator[Frame], *, rate_hz: float = 5.0, count: int | None = None,
+            duration_s: float | None = None, stop: threading.Event | None = None,
+            progress: Callable[[dict], None] | None = None) -> dict:
+        """Send frames at ``rate_hz`` until ``count`` frames, ``duration_s`` or ``stop``.
+
+        Returns
+        -------
+        dict
+            The robot's stats: requests, succeeded, by_tier, last_tor_ms, last_tier.
+        """
+        stop = stop or threading.Event()
+        period = 1.0 / rate_hz if rate_hz and rate_hz > 0 else 0.0
+        t0 = time.monotonic()
+        next_t = t0
+        for seq in itertools.count():
+            if stop.is_set() or (count is not None and seq >= count):
+                break
+            if duration_s is not None and time.monotonic() - t0 >= duration_s:
+                break
+            now = time.monotonic()
+            if next_t > now and stop.wait(next_t - now):
+                break
+            next_t = max(next_t + period, time.monotonic() - period)  # no catch-up bursts
+            frame = next(frames)
+            rec = self.request(seq, frame)
+            if progress is not None:
+                progress(rec)
+        return dict(self.stats)
+
+
+def frames_from_args(images: str | None, synthetic: str | None, *, seed: int = 0) -> Iterator[Frame]:
+    """The frame source of ``--images DIR`` or ``--synthetic KIND``."""
+    if (images is None) == (synthetic is None):
+        raise InputError("give exactly one of --images DIR or --synthetic KIND")
+    return image_frames(images) if images is not None else synthetic_frames(synthetic, seed=seed)
+
+
+def pick_seed(robot_id: str) -> int:
+    """A stable per-robot seed (so robots do not send identical synthetic frames)."""
+    return sum(ord(c) * 131 ** i for i, c in enumerate(robot_id)) % 100_000

@@ -1,0 +1,305 @@
+"""The drivable-region service: what ``scmr cloud`` and ``scmr leader`` run.
+
+A :class:`Service` answers queries on ``scmr/drivable/<tier>/<node>``
+(queryable, ``complete=True``) with the pipeline run in a
+:class:`~scmr_mesh.mesh.work.WorkerPool`, holds the liveliness token
+``scmr/alive/<tier>/<node>`` and publishes its load on
+``scmr/load/<tier>/<node>`` (robots spread requests over cloud nodes by it).
+
+Life cycle (done for you by :func:`run_service`)::
+
+    svc = Service("c1", tier="cloud", workers=2)   # forks + warms the workers
+    session = open_session(mesh_config)             # only now open zenoh
+    svc.attach(session)                             # queryable, token, load
+    ...
+    svc.detach(); close_session(session); svc.shutdown()
+
+Per query: the payload is size-checked and validated (``wire.decode``); a bad
+one gets an error reply (``malformed``, ``oversized``, ``wrong_version``) and
+the service keeps serving.  Then the *admission function* decides; a refused
+request gets its error reply (``busy`` by default when more than
+``max_inflight`` requests are being processed).  Admitted requests go to the
+pool; the reply is sent from the pool's callback thread (``query.reply`` then
+``query.drop``), so zenoh's threads never wait for the pipeline.
+
+Hooks for other areas
+---------------------
+* ``Service.admission``: replaceable ``fn(request: dict, state: ServiceState)
+  -> Refusal | None``.  Return ``None`` to admit, or a :class:`Refusal`
+  (``code`` usually ``"busy"``, ``message``, ``retry_after_ms``).  The security
+  engineer's priority negotiator plugs in here; :func:`default_admission` is
+  the default.
+* ``Service.add_queryable(key, callback, complete=False)``: extra queryables
+  declared on the service's session (data-buffer queries under
+  ``keys.data(tier, node)``); callable before or after :meth:`attach`.
+* ``Service.session``: the zenoh session once attached.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from scmr_mesh import keys, wire
+from scmr_mesh.errors import ImageDecodeError, InputError
+from scmr_mesh.mesh.work import DEFAULT_PROCESS, WorkerPool
+
+log = logging.getLogger(__name__)
+
+#: How often (s) a service publishes its load.
+LOAD_PERIOD_S = 0.1
+
+
+@dataclass
+class Refusal:
+    """Why the admission function turned a request away (sent as an error reply)."""
+
+    code: str = "busy"
+    message: str = "server too busy, try later"
+    retry_after_ms: float | None = None
+
+
+@dataclass
+class ServiceState:
+    """Live counters the admission function may read.
+
+    Attributes
+    ----------
+    node, tier : str
+    workers : int
+    inflight : int
+        Admitted requests not answered yet.
+    max_inflight : int
+        The default admission's limit.
+    served, errors, refused : int
+        Totals since start.
+    """
+
+    node: str
+    tier: str
+    workers: int
+    max_inflight: int
+    inflight: int = 0
+    served: int = 0
+    errors: int = 0
+    refused: int = 0
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+
+Admission = Callable[[dict, ServiceState], "Refusal | None"]
+
+
+def default_admission(request: dict, state: ServiceState) -> Refusal | None:
+    """Admit unless ``state.inflight >= state.max_inflight`` (then ``busy``)."""
+    if state.inflight >= state.max_inflight:
+        return Refusal(
+            "busy",
+            f"server too busy, try later ({state.inflight} requests in progress, "
+            f"limit {state.max_inflight})",
+            retry_after_ms=50.0,
+        )
+    return None
+
+
+class Service:
+    """One drivable-region service (cloud or leader tier) on one node.
+
+    Parameters
+    ----------
+    node : str
+        Node name (a key chunk).
+    tier : {"cloud", "leader"}
+    workers : int
+        Worker processes (default: CPU count).
+    process : str
+        ``"module:function"`` process function (tests inject a stub).
+    max_request_bytes : int
+        Larger payloads get an ``oversized`` error reply.
+    max_inflight : int, optional
+        Limit of the default admission (default ``8 * workers``).
+    admission : callable, optional
+        Replaces :func:`default_admission`.
+    """
+
+    def __init__(
+        self,
+        node: str,
+        *,
+        tier: str = "cloud",
+        workers: int | None = None,
+        process: str = DEFAULT_PROCESS,
+        max_request_bytes: int = wire.MAX_REQUEST_BYTES,
+        max_inflight: int | None = None,
+        admission: Admission | None = None,
+    ) -> None:
+        import os
+
+        keys.check_name(node)
+        if tier not in keys.TIERS:
+            raise InputError(f"tier must be one of {keys.TIERS}, got {tier!r}")
+        workers = int(workers or os.cpu_count() or 1)
+        self.node = node
+        self.tier = tier
+        self.key = keys.drivable(tier, node)
+        self.max_request_bytes = int(max_request_bytes)
+        self.state = ServiceState(node, tier, workers, int(max_inflight or 8 * workers))
+        self.admission: Admission = admission or default_admission
+        self.session = None
+        self._extra: list[tuple[str, Callable, bool]] = []
+        self._declared: list[Any] = []
+        self._token = None
+        self._load_pub = None
+        self._stop = threading.Event()
+        self._load_thread: threading.Thread | None = None
+        self.pool = WorkerPool(workers, process=process)
+        self.worker_pids = self.pool.start()
+        log.info("%s %s: %d workers ready %s", tier, node, workers, self.worker_pids)
+
+    # ------------------------------------------------------------ hooks
+    def add_queryable(self, key: str, callback: Callable, *, complete: bool = False) -> None:
+        """Declare an extra queryable on this service's session (now or at attach)."""
+        self._extra.append((key, callback, complete))
+        if self.session is not None:
+            self._declared.append(self.session.declare_queryable(key, callback, complete=complete))
+
+    # ------------------------------------------------------- life cycle
+    def attach(self, session) -> None:
+        """Declare the queryable, extra queryables, the load publisher, then the token."""
+        self.session = session
+        self._declared.append(session.declare_queryable(self.key, self._on_query, complete=True))
+        for key, cb, complete in self._extra:
+            self._declared.append(session.declare_queryable(key, cb, complete=complete))
+        self._load_pub = session.declare_publisher(keys.load(self.tier, self.node))
+        # the token last: a robot that sees it finds the queryable in place
+        self._token = session.liveliness().declare_token(keys.alive(self.tier, self.node))
+        self._stop.clear()
+        self._load_thread = threading.Thread(target=self._publish_load, name="scmr-load", daemon=True)
+        self._load_thread.start()
+        log.info("%s %s serving on %s", self.tier, self.node, self.key)
+
+    def detach(self) -> None:
+        """Undeclare everything (token first, so robots stop sending here)."""
+        self._stop.set()
+        for obj in [self._token, *self._declared, self._load_pub]:
+            if obj is None:
+                continue
+            try:
+                obj.undeclare()
+            except Exception as exc:  # already gone with the session
+                log.debug("undeclare: %s", exc)
+        self._token = None
+        self._declared = []
+        self._load_pub = None
+        if self._load_thread is not None:
+            self._load_thread.join(timeout=1.0)
+        self.session = None
+
+    def shutdown(self) -> None:
+        """Stop the worker pool."""
+        self.pool.shutdown()
+
+    # ------------------------------------------------------------ serving
+    def _publish_load(self) -> None:
+        last = None
+        while not self._stop.wait(LOAD_PERIOD_S):
+            st = self.state
+            now = (st.inflight, st.served)
+            pub = self._load_pub
+            if pub is None:
+                return
+            if now == last and st.inflight == 0:
+                continue  # idle: publish on change only
+            last = now
+            msg = wire.make_load(self.node, self.tier, workers=st.workers, inflight=st.inflight, served=st.served)
+            try:
+                pub.put(wire.encode(msg))
+            except Exception as exc:
+                log.debug("load publish failed: %s", exc)
+
+    def _reply_error(self, query, code: str, message: str, request=None, retry_after_ms=None) -> None:
+        msg = wire.make_error(
+            code, message, served_by=self.node, tier=self.tier, request=request, retry_after_ms=retry_after_ms
+        )
+        with self.state.lock:
+            if code == "busy":
+                self.state.refused += 1
+            else:
+                self.state.errors += 1
+        log.info("error reply %s to %s/%s: %s", code, msg["robot"], msg["seq"], message)
+        try:
+            query.reply_err(wire.encode(msg))
+        except Exception as exc:
+            log.warning("could not send error reply: %s", exc)
+        finally:
+            _drop(query)
+
+    def _on_query(self, query) -> None:
+        t_arrival = time.perf_counter()
+        try:
+            payload = query.payload
+            if payload is None:
+                self._reply_error(query, "malformed", "query carries no payload; send a msgpack request")
+                return
+            data = payload.to_bytes()
+            try:
+                req = wire.decode(data, kind="request", max_bytes=self.max_request_bytes)
+            except wire.WireProblem as exc:
+                self._reply_error(query, exc.code, str(exc))
+                return
+            refusal = self.admission(req, self.state)
+            if refusal is not None:
+                self._reply_error(query, refusal.code, refusal.message, req, refusal.retry_after_ms)
+                return
+            with self.state.lock:
+                self.state.inflight += 1
+            t_sub = time.perf_counter()
+            fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"])
+        except Exception as exc:  # never let a query go unanswered
+            log.exception("query handling failed")
+            self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
+            return
+        fut.add_done_callback(lambda f: self._finish(query, req, f, t_arrival, t_sub))
+
+    def _finish(self, query, req: dict, fut, t_arrival: float, t_sub: float) -> None:
+        with self.state.lock:
+            self.state.inflight -= 1
+        try:
+            out = fut.result()
+        except (ImageDecodeError, InputError) as exc:
+            self._reply_error(query, "malformed", f"image unusable: {exc}", req)
+            return
+        except Exception as exc:
+            log.error("worker failed on %s/%s: %s: %s", req["robot"], req["seq"], type(exc).__name__, exc)
+            self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}", req)
+            return
+        now = time.perf_counter()
+        worker_ms = float(out.get("worker_ms", 0.0))
+        try:
+            reply = wire.make_reply(
+                req,
+                mask_png=out["mask_png"],
+                shape=out["shape"],
+                threshold=out["threshold"],
+                timings_ms=out.get("timings_ms", {}),
+                served_by=self.node,
+                tier=self.tier,
+                server_ms=(now - t_arrival) * 1e3,
+                queue_ms=max(0.0, (now - t_sub) * 1e3 - worker_ms),
+            )
+            query.reply(query.key_expr, wire.encode(reply))
+            with self.state.lock:
+                self.state.served += 1
+        except Exception as exc:
+            log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
+        finally:
+            _drop(query)
+
+
+def _drop(query) -> None:
+    try:
+        query.drop()
+    except Exception:  # already finalised
+        pass

@@ -1,0 +1,219 @@
+"""The work a service runs per request, in a pool of worker processes.
+
+A *process function* takes the request's image fields and returns the reply's
+payload fields::
+
+    fn(image: bytes, *, encoding: str, shape: list | None, mode: str) -> dict
+        {"mask_png": bytes, "shape": (225, 300), "threshold": int,
+         "timings_ms": {stage: ms}}
+
+It is named by a spec string ``"module:function"`` so worker processes can
+import it (:data:`DEFAULT_PROCESS` runs the drivable-region pipeline).  If the
+function has a ``warm_up`` attribute, each worker calls it once before the
+service declares itself ready (the pipeline's numba JIT).
+
+:class:`WorkerPool` wraps a :class:`concurrent.futures.ProcessPoolExecutor`
+whose workers are forked *before* the zenoh session exists (zenoh's Rust
+threads must not be forked), pre-started and warmed, and die with their parent
+(``PR_SET_PDEATHSIG`` plus a watchdog thread), so a SIGKILLed service leaves no
+orphans.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import signal
+import threading
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any, Callable
+
+from scmr_mesh.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: The pipeline process function.
+DEFAULT_PROCESS = "scmr_mesh.mesh.work:process_frame"
+
+_FN: Callable[..., dict] | None = None
+
+
+def resolve(spec: str) -> Callable[..., dict]:
+    """Import ``"module:function"`` and return the function.
+
+    Raises
+    ------
+    ConfigError
+        When the spec is malformed or does not name a callable.
+    """
+    mod, sep, name = str(spec).partition(":")
+    if not sep or not mod or not name:
+        raise ConfigError(f"process function must be 'module:function', got {spec!r}")
+    try:
+        fn = getattr(importlib.import_module(mod), name)
+    except (ImportError, AttributeError) as exc:
+        raise ConfigError(f"cannot load process function {spec!r}: {exc}") from None
+    if not callable(fn):
+        raise ConfigError(f"{spec!r} is not callable")
+    return fn
+
+
+def warm(fn: Callable[..., Any]) -> None:
+    """Call ``fn.warm_up()`` when the process function has one."""
+    w = getattr(fn, "warm_up", None)
+    if callable(w):
+        w()
+
+
+def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str = "best") -> dict:
+    """Run the drivable-region pipeline on one encoded frame.
+
+    Parameters
+    ----------
+    image : bytes
+        PNG/JPEG bytes, or raw RGB rows when ``encoding == "raw"``.
+    encoding : {"png", "jpeg", "raw"}
+    shape : list of int or None
+        ``[H, W, 3]`` for raw frames.
+    mode : {"best", "thesis"}
+
+    Returns
+    -------
+    dict
+        ``mask_png`` (PNG of the (225, 300) uint8 0/255 mask), ``shape``,
+        ``threshold``, ``timings_ms`` (per stage, plus ``decode`` and ``encode``).
+    """
+    from scmr_mesh.imaging import decode_image, encode_png, segment_drivable
+
+    t0 = time.perf_counter()
+    rgb = decode_image(image, shape=tuple(shape[:2]) if encoding == "raw" and shape else None)
+    t1 = time.perf_counter()
+    res = segment_drivable(rgb, mode=mode)
+    t2 = time.perf_counter()
+    png = encode_png(res.mask)
+    t3 = time.perf_counter()
+    timings = {str(k): float(v) for k, v in dict(getattr(res, "timings_ms", {}) or {}).items()}
+    timings["decode"] = (t1 - t0) * 1e3
+    timings["encode"] = (t3 - t2) * 1e3
+    timings.setdefault("pipeline", (t2 - t1) * 1e3)
+    return {
+        "mask_png": png,
+        "shape": tuple(res.mask.shape[:2]),
+        "threshold": int(res.threshold),
+        "timings_ms": timings,
+    }
+
+
+def _warm_pipeline() -> None:
+    from scmr_mesh import imaging
+
+    w = getattr(imaging, "warm_up", None)
+    if callable(w):
+        w()
+
+
+process_frame.warm_up = _warm_pipeline  # type: ignore[attr-defined]
+
+
+# ------------------------------------------------------------------- workers
+def _die_with_parent(parent_pid: int) -> None:
+    try:  # Linux: SIGKILL this worker when its parent thread dies
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except Exception:  # pragma: no cover - not Linux
+        pass
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(0)
+            time.sleep(0.25)
+
+    threading.Thread(target=watch, name="scmr-parent-watch", daemon=True).start()
+
+
+def _init_worker(spec: str, parent_pid: int) -> None:
+    global _FN
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent(parent_pid)
+    _FN = resolve(spec)
+    warm(_FN)
+
+
+def _run(image: bytes, encoding: str, shape, mode: str) -> dict:
+    assert _FN is not None
+    t0 = time.perf_counter()
+    out = _FN(image, encoding=encoding, shape=shape, mode=mode)
+    out["worker_ms"] = (time.perf_counter() - t0) * 1e3
+    return out
+
+
+def _ping() -> int:
+    return os.getpid()
+
+
+class WorkerPool:
+    """A pool of warmed worker processes running one process function.
+
+    Parameters
+    ----------
+    workers : int
+        Number of worker processes (>= 1).
+    process : str
+        ``"module:function"`` spec of the process function.
+
+    Notes
+    -----
+    Create it before opening any zenoh session: the workers are forked and
+    started in the constructor, and :meth:`start` waits until each has warmed
+    up.
+    """
+
+    def __init__(self, workers: int, *, process: str = DEFAULT_PROCESS) -> None:
+        import multiprocessing as mp
+
+        if workers < 1:
+            raise ConfigError(f"--workers must be >= 1, got {workers}")
+        # fail early, in the parent, with a clear message; warming here first
+        # means the forked workers inherit the compiled JIT code
+        warm(resolve(process))
+        self.workers = int(workers)
+        self.process = process
+        self._executor = ProcessPoolExecutor(
+            max_workers=self.workers,
+            mp_context=mp.get_context("fork"),
+            initializer=_init_worker,
+            initargs=(process, os.getpid()),
+        )
+
+    def start(self, *, timeout: float = 300.0) -> list[int]:
+        """Start and warm every worker; return their pids.
+
+        Raises
+        ------
+        MeshError
+            When a worker fails to start or warm up.
+        """
+        from scmr_mesh.errors import MeshError
+
+        try:
+            futs = [self._executor.submit(_ping) for _ in range(self.workers)]
+            return sorted({f.result(timeout=timeout) for f in futs})
+        except Exception as exc:
+            raise MeshError(f"worker pool failed to start ({type(exc).__name__}: {exc})") from None
+
+    def submit(self, image: bytes, *, encoding: str, shape, mode: str) -> Future:
+        """Queue one frame; the future yields the process function's dict."""
+        return self._executor.submit(_run, image, encoding, shape, mode)
+
+    def shutdown(self) -> None:
+        """Stop the workers (pending work is cancelled)."""
+        try:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+        except Exception as exc:  # pragma: no cover
+            log.warning("worker pool shutdown: %s", exc)
