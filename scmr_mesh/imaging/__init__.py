@@ -1,1 +1,76 @@
-"""imaging"""
+"""The drivable-region pipeline (pure numpy / numba / OpenCV; no Zenoh, no rerun).
+
+Public API (re-exported here, imported lazily so ``scmr --help`` stays fast)::
+
+    decode_image, load_image, resize_frame, encode_png       codec
+    segment_drivable, DrivableResult, warm_up                 pipeline
+    gaussian_blur_3x3, srm, roi, bottom_centre,
+    dominant_channel, histogram, otsu_threshold,
+    sobel_magnitude, remove_sparse_pixels, red_green, overlay  the SPEC 1 steps
+
+Frames are ``(H, W, 3) uint8`` RGB; masks are ``(225, 300) uint8`` with
+255 = drivable.  See docs/PIPELINE.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_EXPORTS = {
+    "decode_image": "codec",
+    "load_image": "codec",
+    "resize_frame": "codec",
+    "encode_png": "codec",
+    "MAX_PIXELS": "codec",
+    "FRAME_SHAPE": "codec",
+    "segment_drivable": "pipeline",
+    "DrivableResult": "pipeline",
+    "warm_up": "pipeline",
+    "MODES": "pipeline",
+    "srm": "srm",
+    "SrmResult": "srm",
+    "gaussian_blur_3x3": "steps",
+    "roi": "steps",
+    "bottom_centre": "steps",
+    "dominant_channel": "steps",
+    "histogram": "steps",
+    "otsu_threshold": "steps",
+    "sobel_magnitude": "steps",
+    "remove_sparse_pixels": "steps",
+    "red_green": "steps",
+    "overlay": "steps",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # pragma: no cover
+    from scmr_mesh.imaging.codec import FRAME_SHAPE, MAX_PIXELS, decode_image, encode_png, load_image, resize_frame
+    from scmr_mesh.imaging.pipeline import MODES, DrivableResult, segment_drivable, warm_up
+    from scmr_mesh.imaging.srm import SrmResult, srm
+    from scmr_mesh.imaging.steps import (
+        bottom_centre,
+        dominant_channel,
+        gaussian_blur_3x3,
+        histogram,
+        otsu_threshold,
+        overlay,
+        red_green,
+        remove_sparse_pixels,
+        roi,
+        sobel_magnitude,
+    )

@@ -1,0 +1,120 @@
+"""``scmr bench pipeline``: per-stage timing of :func:`segment_drivable`.
+
+Runs in one process pinned to one core (``os.sched_setaffinity``) with numba
+and OpenCV limited to one thread, after JIT warm-up.  ``total`` is the time
+from a 300x225 RGB array to the mask; ``decode`` (PNG bytes to RGB) and
+``resize`` (source size to 300x225) are measured separately.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _pin_one_core() -> int | None:
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+        core = cpus[-1]
+        os.sched_setaffinity(0, {core})
+        return core
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return None
+
+
+def _frames(images: Path | None, limit: int = 64) -> list[tuple[str, bytes]]:
+    """Encoded frames to cycle through: real images from a folder, else synthetic scenes."""
+    from scmr_mesh.errors import InputError
+    from scmr_mesh.imaging.codec import encode_png
+
+    if images is not None:
+        if not Path(images).is_dir():
+            raise InputError(f"--images must be a folder of PNG/JPEG files, got {images}")
+        files = sorted(
+            p for p in Path(images).rglob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg") and p.is_file()
+        )
+        # a manifest folder: use the photos, not the label masks
+        if (Path(images) / "images").is_dir():
+            files = [p for p in files if "images" in p.parts]
+        if not files:
+            raise InputError(f"no PNG/JPEG files in {images}")
+        return [(p.name, p.read_bytes()) for p in files[:limit]]
+    from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
+
+    out = []
+    for seed in range(4):
+        for kind in SCENE_KINDS:
+            rgb, _ = make_scene(kind, seed=seed, width=640, height=480)
+            out.append((f"{kind}:{seed}", encode_png(rgb)))
+    return out
+
+
+def bench_pipeline(
+    *,
+    frames: int = 200,
+    images: Path | None = None,
+    mode: str = "best",
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """Time the pipeline stages over ``frames`` frames.
+
+    Returns
+    -------
+    dict
+        ``{"frames", "mode", "core", "sources", "median_ms": {stage: ms, ...,
+        "total": ms}, "p99_ms": {...}}``; stages include ``decode`` and
+        ``resize``, which are not part of ``total``.
+    """
+    import cv2
+    import numba
+
+    from scmr_mesh.errors import InputError
+    from scmr_mesh.imaging.codec import decode_image, resize_frame
+    from scmr_mesh.imaging.pipeline import segment_drivable, warm_up
+
+    if frames < 1:
+        raise InputError(f"--frames must be at least 1, got {frames}")
+    core = _pin_one_core()
+    numba.set_num_threads(1)
+    cv2.setNumThreads(1)
+    sources = _frames(images)
+    decoded = [decode_image(data) for _, data in sources]
+    ready = [resize_frame(rgb) for rgb in decoded]
+    warm_up()
+    for f in ready[: min(len(ready), 5)]:
+        segment_drivable(f, mode=mode)
+
+    samples: dict[str, list[float]] = {}
+    for i in range(frames):
+        j = i % len(sources)
+        t0 = time.perf_counter()
+        rgb = decode_image(sources[j][1])
+        t1 = time.perf_counter()
+        resize_frame(rgb)
+        t2 = time.perf_counter()
+        res = segment_drivable(ready[j], mode=mode)
+        samples.setdefault("decode", []).append((t1 - t0) * 1000)
+        samples.setdefault("resize", []).append((t2 - t1) * 1000)
+        for k, v in res.timings_ms.items():
+            if k != "resize":
+                samples.setdefault(k, []).append(v)
+        if progress and (i % 20 == 0 or i == frames - 1):
+            progress(i + 1, frames)
+    median = {k: round(float(np.median(v)), 4) for k, v in samples.items()}
+    p99 = {k: round(float(np.percentile(v, 99)), 4) for k, v in samples.items()}
+    h, w = decoded[0].shape[:2]
+    return {
+        "frames": frames,
+        "mode": mode,
+        "core": core,
+        "sources": {"n": len(sources), "from": str(images) if images else "synthetic 640x480 PNG", "first_size": [w, h]},
+        "median_ms": median,
+        "p99_ms": p99,
+    }

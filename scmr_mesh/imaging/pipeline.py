@@ -1,0 +1,212 @@
+"""The drivable-region pipeline: :func:`segment_drivable` (SPEC section 1).
+
+Two modes:
+
+``"thesis"``
+    The dissertation's rules as written: Gaussian 3x3 -> SRM -> ROI (lower
+    half) -> bottom-centre cell -> dominant channel -> Otsu ``T`` -> Appendix E
+    binarisation over the whole SRM image (``(R+G+B) // 3 >= T`` is green) ->
+    Sobel edges of the SRM grey image -> column-wise bottom-up sparse-pixel
+    removal (a column stops at its first red pixel or strong edge).
+
+``"best"`` (default)
+    The same building blocks arranged for accuracy; see :func:`_best_mask`
+    and docs/PIPELINE.md for the rules and what was measured to choose them.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from scmr_mesh.errors import InputError
+from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
+from scmr_mesh.imaging.srm import srm
+from scmr_mesh.imaging.steps import (
+    bottom_centre,
+    dominant_channel,
+    gaussian_blur_3x3,
+    histogram,
+    otsu_threshold,
+    remove_sparse_pixels,
+    roi,
+    sobel_magnitude,
+)
+
+MODES = ("best", "thesis")
+
+#: Sobel magnitude that stops a column in sparse-pixel removal: the response
+#: of a clean step of 32 grey levels (4 * 32).
+THESIS_EDGE_THRESHOLD = 128.0
+
+
+@dataclass
+class DrivableResult:
+    """Output of :func:`segment_drivable`.
+
+    Attributes
+    ----------
+    mask : (225, 300) uint8
+        255 = drivable, 0 = not.
+    threshold : int
+        Otsu threshold ``T`` of the bottom-centre histogram.
+    timings_ms : dict of str to float
+        Milliseconds per stage, including ``"resize"`` and ``"total"``
+        (``total`` excludes ``resize``: it is the 300x225 frame to the mask).
+    stages : dict of str to ndarray, or None
+        With ``stages=True``: ``"frame"`` (225, 300, 3), ``"srm"`` (225, 300, 3)
+        region-mean image, ``"otsu"`` (225, 300) uint8 black/white image,
+        ``"histogram"`` (256,) int64 counts, ``"edges"`` (225, 300) float32
+        Sobel magnitude; plus ``"channel"`` (0-d int) the dominant channel.
+    """
+
+    mask: np.ndarray
+    threshold: int
+    timings_ms: dict = field(default_factory=dict)
+    stages: dict | None = None
+
+
+def _clock() -> float:
+    return time.perf_counter() * 1000.0
+
+
+def segment_drivable(
+    rgb: np.ndarray, *, mode: str = "best", q: float = 32, stages: bool = False
+) -> DrivableResult:
+    """Find the drivable region of a camera frame.
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+        RGB frame of any size (grey (H, W) and RGBA are accepted too); it is
+        resized to 300x225 first.
+    mode : {"best", "thesis"}, keyword-only
+        ``"best"`` (most accurate) or ``"thesis"`` (the dissertation's rules).
+    q : float, keyword-only
+        SRM complexity parameter Q.
+    stages : bool, keyword-only
+        Also return the intermediate images.
+
+    Returns
+    -------
+    DrivableResult
+
+    Raises
+    ------
+    InputError
+        Unknown mode, or an array that is not an RGB image.
+
+    Examples
+    --------
+    >>> from scmr_mesh.imaging.synthetic import make_scene
+    >>> img, truth = make_scene("structured_road", seed=1)
+    >>> segment_drivable(img).mask.shape
+    (225, 300)
+    """
+    if mode not in MODES:
+        raise InputError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
+    t = {}
+    t0 = _clock()
+    rgb = as_rgb(rgb, name="rgb")
+    frame = resize_frame(rgb)
+    t1 = _clock()
+    t["resize"] = t1 - t0
+
+    blurred = gaussian_blur_3x3(frame)
+    t2 = _clock()
+    t["blur"] = t2 - t1
+
+    seg = srm(blurred, q=q)
+    srm_img = seg.image()
+    t3 = _clock()
+    t["srm"] = t3 - t2
+
+    window = bottom_centre(roi(srm_img))
+    channel = dominant_channel(window)
+    hist = histogram(np.ascontiguousarray(window[:, :, channel]))
+    threshold = otsu_threshold(hist)
+    t4 = _clock()
+    t["otsu"] = t4 - t3
+
+    grey = srm_img.sum(axis=2, dtype=np.int32) // 3
+    edges = sobel_magnitude(grey)
+    t5 = _clock()
+    t["edges"] = t5 - t4
+
+    if mode == "thesis":
+        otsu_bw = np.where(grey >= threshold, 255, 0).astype(np.uint8)
+        t6 = _clock()
+        t["classify"] = t6 - t5
+        inner = _inner_edges(edges)
+        mask = remove_sparse_pixels(otsu_bw, inner, edge_threshold=THESIS_EDGE_THRESHOLD)
+        t7 = _clock()
+        t["sparse"] = t7 - t6
+    else:
+        otsu_bw = _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold)
+        t6 = _clock()
+        t["classify"] = t6 - t5
+        mask = _best_mask(frame, blurred, seg, srm_img, otsu_bw, edges)
+        t7 = _clock()
+        t["sparse"] = t7 - t6
+    t["total"] = t7 - t1
+
+    out_stages = None
+    if stages:
+        out_stages = {
+            "frame": frame,
+            "blur": blurred,
+            "srm": srm_img,
+            "otsu": otsu_bw,
+            "histogram": hist,
+            "edges": edges,
+            "channel": np.array(channel),
+        }
+    return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages)
+
+
+def _inner_edges(edges: np.ndarray) -> np.ndarray:
+    """Edge magnitude with the one-pixel frame border zeroed.
+
+    Zero padding makes the frame border itself a strong edge; left in, the
+    bottom row would stop every column at once.
+    """
+    inner = edges.copy()
+    inner[0, :] = 0
+    inner[-1, :] = 0
+    inner[:, 0] = 0
+    inner[:, -1] = 0
+    return inner
+
+
+def _otsu_class_image(channel_img: np.ndarray, window_channel: np.ndarray, threshold: int) -> np.ndarray:
+    """255 where a pixel is in the Otsu class that holds most bottom-centre pixels."""
+    upper_in_window = int(np.count_nonzero(window_channel > threshold))
+    upper_is_road = upper_in_window * 2 > window_channel.size
+    if upper_is_road:
+        return np.where(channel_img > threshold, 255, 0).astype(np.uint8)
+    return np.where(channel_img <= threshold, 255, 0).astype(np.uint8)
+
+
+def _best_mask(frame, blurred, seg, srm_img, otsu_bw, edges) -> np.ndarray:
+    """Version 1: SRM regions in the road's Otsu class, connected to the bottom-centre."""
+    h, w = otsu_bw.shape
+    cand = (otsu_bw > 0).astype(np.uint8)
+    n, comp = cv2.connectedComponents(cand, connectivity=4)
+    win = bottom_centre(roi(comp))
+    ids = np.bincount(win.ravel(), minlength=n)
+    ids[0] = 0
+    keep = ids > 0
+    mask = np.where(keep[comp], 255, 0).astype(np.uint8)
+    return mask
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every numba kernel by running both modes once."""
+    img = np.zeros((*FRAME_SHAPE, 3), np.uint8)
+    img[FRAME_SHAPE[0] // 2 :] = 90
+    img[: FRAME_SHAPE[0] // 2] = 200
+    for mode in MODES:
+        segment_drivable(img, mode=mode)
