@@ -1,9 +1,173 @@
-"""Sub-commands of this area (filled in by its issue)."""
+"""``scmr scenario run|check|plan|cleanup``: scripted fault scenarios (issue 4).
+
+Heavy modules (the runner, OpenCV, the proxies) are imported inside the
+handlers so ``scmr --help`` stays fast.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from scmr_mesh.errors import ConfigError, ScmrError
+
+DESCRIPTION = """\
+Scripted fault scenarios against a fleet on one host (thesis chapter 4).
+
+A scenario file (TOML; schema in schemas/scenario.schema.json; examples in
+peers/scenarios/) declares the fleet, its links, a timeline of faults
+(link_down, partition, crash, bandwidth, latency, loss) and expectations.
+
+  scmr scenario check peers/scenarios/*.toml            validate files
+  scmr scenario plan peers/scenarios/cloud-link-drop.toml   the exact ip/tc commands
+  scmr scenario run peers/scenarios/cloud-link-drop.toml    run it, write a report
+  scmr scenario cleanup                                 remove leftovers of a crashed run
+"""
+
+
+def _out(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def _err(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _cmd_check(args: argparse.Namespace) -> int:
+    from scmr_mesh.scenario.spec import load_scenario
+
+    bad = 0
+    for f in args.files:
+        try:
+            sc = load_scenario(f)
+        except ConfigError as exc:
+            if len(args.files) == 1:
+                raise
+            _err(f"scmr: error: {exc}")
+            bad += 1
+            continue
+        _out(f"{f}: ok - {sc.name}: {len(sc.robots)} robots, {len(sc.links)} links, "
+             f"{len(sc.faults)} faults, {len(sc.expectations)} expectations, {sc.duration_s:g} s, seed {sc.seed}")
+    return 1 if bad else 0
+
+
+def _fmt_cmd(c) -> str:
+    return c if isinstance(c, str) else " ".join(c)
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from scmr_mesh.scenario.plan import NetnsLayout, compile_timeline, proxy_actions
+    from scmr_mesh.scenario.spec import load_scenario
+
+    sc = load_scenario(args.file)
+    events = compile_timeline(sc)
+    if args.backend == "netns":
+        layout = NetnsLayout(sc, run_id=args.run_id)
+        for when, action in layout.plan(events):
+            w = when if isinstance(when, str) else f"t={when:g}s"
+            _out(f"{w:>9}  {_fmt_cmd(action)}")
+    else:
+        _out(f"    setup  one TCP proxy per link: {', '.join(a + '->' + b for a, b in sc.links)}; gossip off")
+        for e in events:
+            if e.op in ("kill", "start"):
+                _out(f"{'t=' + format(e.at_s, 'g') + 's':>9}  {e.op} {e.target[0]}")
+            for link, action, value in proxy_actions(sc.links, e):
+                v = (" unlimited" if action == "rate" else "") if value is None else f" {value}"
+                _out(f"{'t=' + format(e.at_s, 'g') + 's':>9}  proxy {link[0]}->{link[1]}: {action}{v}")
+        _out(" teardown  close every proxy")
+    return 0
+
+
+def _cmd_cleanup(args: argparse.Namespace) -> int:
+    from scmr_mesh.scenario.netns import check_root, cleanup_stale
+
+    check_root()
+    removed = cleanup_stale()
+    _out(f"removed {len(removed)} namespace(s)" + (": " + ", ".join(removed) if removed else ""))
+    return 0
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from scmr_mesh.scenario.report import build_report, write_report
+    from scmr_mesh.scenario.runner import run_scenario
+    from scmr_mesh.scenario.spec import load_scenario
+
+    sc = load_scenario(args.file)
+    backend = args.backend
+    if backend == "auto":
+        backend = "netns" if hasattr(os, "geteuid") and os.geteuid() == 0 else "proxy"
+        _err(f"scenario: backend {backend} ({'root' if backend == 'netns' else 'not root'}; choose with --backend)")
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    out = Path(args.out) if args.out else Path("runs") / f"scenario-{sc.name}-{stamp}"
+    res = run_scenario(sc, backend=backend, out_dir=out, data_dir=args.data,
+                       progress=lambda m: _err(f"scenario: {m}"), ready_timeout=args.ready_timeout)
+    thesis = Path(args.thesis_csv) if args.thesis_csv else None
+    if thesis is None:
+        from scmr_mesh.scenario.runner import default_data_dir
+
+        cand = default_data_dir().parent / "thesis_table_4_2.csv"
+        thesis = cand if cand.is_file() else None
+    report = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
+                          notes=res.notes, thesis_csv=thesis)
+    paths = write_report(report, out, json_path=Path(args.json) if args.json else None)
+    s = report["summary"]
+    _out(f"{sc.name} ({backend}): {s['requests']} requests, RoR {s['ror'] if s['ror'] is None else round(s['ror'], 3)}, "
+         f"ToR p50 {s['tor_ms']['p50'] and round(s['tor_ms']['p50'], 1)} ms p99 "
+         f"{s['tor_ms']['p99'] and round(s['tor_ms']['p99'], 1)} ms, tiers {s['by_tier']}")
+    for f in report["faults"]:
+        _out(f"  fault {f['label']}: failover gap {f['failover_gap_ms']} ms, failback gap {f['failback_gap_ms']} ms")
+    for e in report["expectations"]:
+        _out(f"  expectation {e['name']}: observed {e['observed']} -> {'held' if e['held'] else 'FAILED'}")
+    for n in report["notes"]:
+        _out(f"  note: {n}")
+    _out(f"report: {paths['md']} and {paths['json']} (plots {paths['tor_png'].name}, {paths['tiers_png'].name})")
+    if not s["requests"]:
+        raise ScmrError(f"scenario {sc.name}: no request was recorded; see the peer logs in {out / 'logs'}")
+    return 0 if report["passed"] else 1
 
 
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add this area's sub-commands to ``scmr`` (none yet)."""
+    """Add ``scmr scenario ...``."""
+    p = sub.add_parser("scenario", help="scripted link-drop / crash / partition scenarios with reports",
+                       description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ssub = p.add_subparsers(dest="scenario_command", metavar="ACTION")
+    p.set_defaults(func=lambda a: (p.print_help(sys.stderr), 2)[1])
+
+    run = ssub.add_parser("run", help="run a scenario and write Markdown + JSON + PNG reports",
+                          description="Run a scenario file against real peers, play its faults, write "
+                          "report.md, report.json, tor.png and tiers.png. Exit 1 when an expectation fails.")
+    run.add_argument("file", help="scenario TOML file (e.g. peers/scenarios/cloud-link-drop.toml)")
+    run.add_argument("--backend", choices=["auto", "netns", "proxy"], default="auto",
+                     help="netns: a network namespace per peer, kernel-level faults (root); proxy: TCP proxies "
+                          "per link on loopback (no root); auto (default): netns when root, else proxy")
+    run.add_argument("--out", metavar="DIR", help="output folder (default runs/scenario-<name>-<UTC time>)")
+    run.add_argument("--json", metavar="FILE", help="also write the JSON report here (default DIR/report.json)")
+    run.add_argument("--data", metavar="DIR", type=Path, default=None,
+                     help="folder the image sets are relative to (default $SCMR_DATA or ../shared/data/roads)")
+    run.add_argument("--thesis-csv", metavar="FILE", help="thesis Table 4.2 CSV to compare with "
+                     "(default: thesis_table_4_2.csv beside the data folder)")
+    run.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
+                     help="seconds each peer may take to become ready (default 120)")
+    run.set_defaults(func=_cmd_run)
+
+    chk = ssub.add_parser("check", help="validate scenario files",
+                          description="Validate scenario files against schemas/scenario.schema.json and the "
+                          "rules of the scenario format; print a one-line summary of each.")
+    chk.add_argument("files", nargs="+", help="scenario TOML files")
+    chk.set_defaults(func=_cmd_check)
+
+    pl = ssub.add_parser("plan", help="print the exact commands a scenario would issue (no root needed)",
+                         description="Print the setup, fault and teardown actions of a scenario without "
+                         "running anything: ip/tc commands for netns, proxy actions for proxy.")
+    pl.add_argument("file", help="scenario TOML file")
+    pl.add_argument("--backend", choices=["netns", "proxy"], default="netns", help="which backend's plan (default netns)")
+    pl.add_argument("--run-id", default="RUNID", help="run id used in namespace names (default RUNID)")
+    pl.set_defaults(func=_cmd_plan)
+
+    cl = ssub.add_parser("cleanup", help="remove scmrs-* namespaces and their processes left by a crashed run",
+                         description="Kill the processes inside, and delete, every network namespace whose "
+                         "name starts with 'scmrs-' (only scenario runs create them). Needs root.")
+    cl.set_defaults(func=_cmd_cleanup)

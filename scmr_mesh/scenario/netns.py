@@ -1,0 +1,220 @@
+"""The realistic backend: one Linux network namespace per peer (needs root).
+
+Peers sit in namespaces ``scmrs-<run id>-<peer>`` joined by veth pairs to a
+bridge that lives in its own namespace (``scmrs-<run id>-br``); addresses are
+in the private 198.18.0.0/24 test subnet, which exists only inside those
+namespaces; there is no default route, so nothing can leave.  Faults are
+kernel-level (see :mod:`scmr_mesh.scenario.plan`): blackhole routes for silent
+loss, htb class rates for bandwidth, netem for latency/loss where the kernel has
+it (:func:`netem_available` detects it; without it those faults are skipped and
+reported, not failed).
+
+The executor is passed in (``run=``), so tests can record the commands.
+:func:`cleanup_stale` removes ``scmrs-*`` namespaces (and kills the processes
+inside them) that a crashed run left behind.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+from typing import Callable, Sequence
+
+from scmr_mesh.errors import ScenarioError
+from scmr_mesh.scenario.plan import NS_PREFIX, Event, NetnsLayout
+from scmr_mesh.scenario.spec import Scenario
+
+__all__ = [
+    "NetnsBackend",
+    "check_root",
+    "cleanup_stale",
+    "list_namespaces",
+    "netem_available",
+    "run_cmd",
+]
+
+log = logging.getLogger(__name__)
+
+Runner = Callable[[Sequence[str]], str]
+
+
+def run_cmd(argv: Sequence[str]) -> str:
+    """Run one ``ip``/``tc`` command; return its stdout.
+
+    Raises
+    ------
+    ScenarioError
+        The command failed (message: the command and its stderr).
+    """
+    try:
+        p = subprocess.run(list(argv), capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        raise ScenarioError(f"command failed: {' '.join(argv)}: {exc}") from None
+    if p.returncode != 0:
+        raise ScenarioError(f"command failed (status {p.returncode}): {' '.join(argv)}: {p.stderr.strip()}")
+    return p.stdout
+
+
+def check_root() -> None:
+    """Raise :class:`ScenarioError` unless we are root on Linux with ``ip`` and ``tc``."""
+    if not hasattr(os, "geteuid") or os.geteuid() != 0:
+        raise ScenarioError("the netns backend needs root (network namespaces); "
+                            "run as root or use --backend proxy")
+    for tool in ("ip", "tc"):
+        if shutil.which(tool) is None:
+            raise ScenarioError(f"the netns backend needs '{tool}' (iproute2); install it or use --backend proxy")
+
+
+def list_namespaces(prefix: str = NS_PREFIX, *, run: Runner = run_cmd) -> list[str]:
+    """Names of the network namespaces starting with ``prefix``."""
+    out = run(("ip", "netns", "list"))
+    names = [line.split()[0] for line in out.splitlines() if line.strip()]
+    return [n for n in names if n.startswith(prefix)]
+
+
+def _kill_pids_in(ns: str, run: Runner) -> int:
+    try:
+        out = run(("ip", "netns", "pids", ns))
+    except ScenarioError:
+        return 0
+    n = 0
+    for tok in out.split():
+        try:
+            os.kill(int(tok), signal.SIGKILL)
+            n += 1
+        except (ValueError, ProcessLookupError, PermissionError):
+            pass
+    return n
+
+
+def cleanup_stale(prefix: str = NS_PREFIX, *, run: Runner = run_cmd) -> list[str]:
+    """Kill processes in, and delete, every namespace starting with ``prefix``.
+
+    Only namespaces this package creates carry the ``scmrs-`` prefix.  Returns
+    the names removed.
+    """
+    if not prefix.startswith(NS_PREFIX):
+        raise ScenarioError(f"refusing to clean namespaces with prefix {prefix!r}; it must start with {NS_PREFIX!r}")
+    removed = []
+    for ns in list_namespaces(prefix, run=run):
+        killed = _kill_pids_in(ns, run)
+        if killed:
+            log.info("killed %d process(es) in %s", killed, ns)
+        try:
+            run(("ip", "netns", "del", ns))
+            removed.append(ns)
+        except ScenarioError as exc:
+            log.warning("could not delete %s: %s", ns, exc)
+    return removed
+
+
+_NETEM: bool | None = None
+
+
+def netem_available(*, run: Runner = run_cmd) -> bool:
+    """Whether this kernel has the netem qdisc (probed in a throw-away namespace)."""
+    global _NETEM
+    if _NETEM is not None:
+        return _NETEM
+    ns = f"{NS_PREFIX}probe{secrets.token_hex(3)}"
+    run(("ip", "netns", "add", ns))
+    try:
+        run(("ip", "-n", ns, "link", "set", "lo", "up"))
+        try:
+            run(("tc", "-n", ns, "qdisc", "add", "dev", "lo", "root", "netem", "delay", "1ms"))
+            _NETEM = True
+        except ScenarioError as exc:
+            log.info("netem not available: %s", exc)
+            _NETEM = False
+    finally:
+        try:
+            run(("ip", "netns", "del", ns))
+        except ScenarioError:  # pragma: no cover
+            pass
+    return _NETEM
+
+
+class NetnsBackend:
+    """Build a scenario's namespaces, apply its network events, tear it down.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    run_id : str, keyword-only
+        Short id in every namespace name (default: 6 random hex digits).
+    run : callable, keyword-only
+        Executes one argv (default :func:`run_cmd`); pass a recorder in tests.
+    """
+
+    name = "netns"
+
+    def __init__(self, scenario: Scenario, *, run_id: str | None = None, run: Runner = run_cmd) -> None:
+        self.scenario = scenario
+        self.run_id = run_id or secrets.token_hex(3)
+        self.layout = NetnsLayout(scenario, self.run_id)
+        self._run = run
+        self.netem: bool | None = None
+        self.notes: list[str] = []
+        self._up = False
+
+    def setup(self) -> None:
+        """Create namespaces, bridge, veths, addresses and htb classes (undone on failure)."""
+        if self._run is run_cmd:
+            check_root()
+        self._up = True
+        try:
+            for cmd in self.layout.setup():
+                self._run(cmd)
+        except BaseException:
+            self.teardown()
+            raise
+        try:
+            self.netem = netem_available(run=self._run)
+        except ScenarioError as exc:
+            self.netem = False
+            log.info("netem probe failed: %s", exc)
+
+    def wrap(self, peer: str, argv: Sequence[str]) -> list[str]:
+        """The command line that runs ``argv`` inside ``peer``'s namespace."""
+        return ["ip", "netns", "exec", self.layout.ns(peer), *argv]
+
+    def listen(self, peer: str) -> list[str]:
+        """Endpoints ``peer`` listens on."""
+        return [self.layout.endpoint(peer)]
+
+    def connect(self, peer: str) -> list[str]:
+        """Endpoints ``peer`` connects to (its outgoing links)."""
+        return [self.layout.endpoint(b) for a, b in self.scenario.links if a == peer]
+
+    def extra_cfg(self, peer: str) -> list[str]:
+        """Extra ``--cfg`` overrides for ``peer`` (none: gossip may run, paths are real)."""
+        return []
+
+    def apply(self, event: Event) -> list[str]:
+        """Run the commands of one network event; return notes (e.g. netem skipped)."""
+        if event.op == "netem" and not self.netem:
+            note = (f"{self.scenario.faults[event.fault].label}: skipped, this kernel has no netem qdisc "
+                    "('tc qdisc ... netem' -> 'Specified qdisc kind is unknown')")
+            if note not in self.notes:
+                self.notes.append(note)
+            return [note]
+        for cmd in self.layout.commands(event):
+            self._run(cmd)
+        return []
+
+    def teardown(self) -> None:
+        """Kill what runs in our namespaces and delete them (never raises)."""
+        if not self._up:
+            return
+        for ns in self.layout.namespaces():
+            _kill_pids_in(ns, self._run)
+        for cmd in self.layout.teardown():
+            try:
+                self._run(cmd)
+            except ScenarioError as exc:
+                log.debug("teardown: %s", exc)
+        self._up = False

@@ -1,0 +1,447 @@
+"""Scenario reports: JSON, Markdown and two PNG plots (OpenCV), from a run's records.
+
+:func:`build_report` is pure (records and fault times in, a dict out): the
+summary comes from :func:`scmr_mesh.metrics.summarize` (the same definitions
+as ``scmr up``), expectations are checked against it, energy per robot comes
+from the energy model, and the thesis's Table 4.2 is put beside our figures.
+:func:`write_report` writes ``report.json``, ``report.md``, ``tor.png`` and
+``tiers.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+from scmr_mesh.scenario.spec import Scenario
+
+__all__ = ["build_report", "check_expectations", "energy_per_robot", "markdown", "thesis_table", "write_report",
+           "plot_tor", "plot_tiers"]
+
+log = logging.getLogger(__name__)
+
+REQUEST_FIELDS = ("robot", "seq", "image", "bytes_up", "bytes_down", "sent_unix_ns", "received_unix_ns",
+                  "tor_ms", "ok", "tier", "served_by", "attempts", "error")
+
+#: BGR colours of the tiers in the plots.
+TIER_COLOURS = {"cloud": (200, 120, 30), "leader": (30, 140, 240), "local": (60, 170, 60),
+                "failed": (40, 40, 220), "unknown": (128, 128, 128)}
+
+
+def _metric_values(summary: Mapping[str, Any]) -> dict[str, float | None]:
+    over: list[float] = []
+    over_missing = False
+    for f in summary.get("faults", []):
+        by_robot = f.get("failover_by_robot") or {}
+        if not by_robot:
+            continue  # no robot noticed this fault
+        if any(v is None for v in by_robot.values()):
+            over_missing = True
+        over += [v for v in by_robot.values() if v is not None]
+    back = [f.get("failback_gap_ms") for f in summary.get("faults", [])
+            if f.get("tier") is not None and f.get("end_unix_ns") is not None]
+    tor = summary.get("tor_ms") or {}
+    tiers = summary.get("by_tier") or {}
+    return {
+        "ror": summary.get("ror"),
+        "requests": summary.get("requests"),
+        "succeeded": summary.get("succeeded"),
+        "tor_p50_ms": tor.get("p50"),
+        "tor_p99_ms": tor.get("p99"),
+        "max_failover_gap_ms": None if over_missing else (max(over) if over else 0.0),
+        "max_failback_gap_ms": None if any(b is None for b in back) else (max(back) if back else 0.0),
+        "leader_answers": tiers.get("leader", 0),
+        "cloud_answers": tiers.get("cloud", 0),
+    }
+
+
+def check_expectations(scenario: Scenario, summary: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """``[{"name", "metric", "observed", "held"}]`` for each expectation of ``scenario``.
+
+    A metric that could not be measured (e.g. a failover that never happened)
+    is ``None`` and fails its expectation.
+    """
+    values = _metric_values(summary)
+    return [{"name": e.name, "metric": e.metric, "observed": values.get(e.metric),
+             "held": e.holds(values.get(e.metric))} for e in scenario.expectations]
+
+
+def energy_per_robot(scenario: Scenario, records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Robot energy per robot and tier (J), from the energy model.
+
+    When records carry ``energy_j`` (the robot's own ledger), those are summed.
+    Otherwise each request is costed with the thesis model and measured inputs:
+    a remote answer costs ``P_i * ToR + P_u * bytes_up / B_u + P_d *
+    bytes_down / B_d`` (Eq 4.3-4.4 with the measured wait instead of ``C /
+    S_c``; B_u, B_d = the thesis's 23 and 28 Mb/s); a local answer costs
+    ``P_c * ToR`` (measured compute time).  Robots without a known profile are
+    skipped.  Returns ``{}`` when the energy package is missing.
+    """
+    try:
+        from scmr_mesh.energy import get_profile
+        from scmr_mesh.energy.model import e_trans
+    except ImportError:  # pragma: no cover - energy area absent
+        return {}
+    up_bps, down_bps = 23 * 131072, 28 * 131072
+    out: dict[str, Any] = {}
+    for r in scenario.robots:
+        if not r.profile:
+            continue
+        try:
+            prof = get_profile(r.profile)
+        except Exception as exc:  # noqa: BLE001 - unknown profile: report, do not fail
+            out[r.id] = {"profile": r.profile, "error": str(exc)}
+            continue
+        per_tier: dict[str, float] = {}
+        source = "model"
+        for rec in records:
+            if str(rec.get("robot")) != r.id or not rec.get("ok"):
+                continue
+            tier = rec.get("tier") or "unknown"
+            if rec.get("energy_j") is not None:
+                e = float(rec["energy_j"])
+                source = "robot ledger"
+            else:
+                tor_s = float(rec.get("tor_ms") or 0.0) / 1000.0
+                if tier == "local":
+                    e = prof.p_compute_w * tor_s
+                else:
+                    e = prof.p_idle_w * tor_s + e_trans(
+                        float(rec.get("bytes_up") or 0), float(rec.get("bytes_down") or 0),
+                        p_up_w=prof.p_up_w, p_down_w=prof.p_down_w, up_Bps=up_bps, down_Bps=down_bps)
+            per_tier[tier] = per_tier.get(tier, 0.0) + e
+        out[r.id] = {"profile": r.profile, "source": source, "total_j": sum(per_tier.values()),
+                     "per_tier_j": per_tier}
+    return out
+
+
+def thesis_table(path: Path | None) -> dict[str, Any] | None:
+    """Per-robot figures of the thesis's Table 4.2 (ms): cloud ToR and leader processing.
+
+    Cloud ToR of an image = download end - upload start; leader = the R2R
+    processing column.  ``None`` when the CSV is not found.
+    """
+    if path is None or not Path(path).is_file():
+        return None
+    rows = list(csv.DictReader(Path(path).open(encoding="utf-8")))
+    per: dict[str, dict[str, list[float]]] = {}
+    for row in rows:
+        robot = row["robot"].lower().replace(" ", "")
+        d = per.setdefault(robot, {"cloud_tor_ms": [], "leader_ms": [], "bytes": []})
+        d["cloud_tor_ms"].append(float(row["download_end_ms"]) - float(row["upload_start_ms"]))
+        d["leader_ms"].append(float(row["r2r_leader_processing_ms"]))
+        d["bytes"].append(float(row["original_bytes"]))
+    from scmr_mesh.metrics import percentile
+
+    return {k: {"images": len(v["bytes"]), "mean_bytes": sum(v["bytes"]) / len(v["bytes"]),
+                "cloud_tor_p50_ms": percentile(v["cloud_tor_ms"], 50),
+                "leader_p50_ms": percentile(v["leader_ms"], 50)} for k, v in sorted(per.items())}
+
+
+def build_report(
+    scenario: Scenario,
+    records: Sequence[Mapping[str, Any]],
+    faults: Sequence[Mapping[str, Any]],
+    *,
+    t0_unix_ns: int,
+    backend: str,
+    notes: Sequence[str] = (),
+    thesis_csv: Path | None = None,
+) -> dict[str, Any]:
+    """The report as a JSON-able dict (pure).
+
+    Parameters
+    ----------
+    scenario : Scenario
+    records : sequence of dict
+        The robots' ``records.jsonl`` rows.
+    faults : sequence of dict
+        Faults as :func:`scmr_mesh.metrics.summarize` takes them, plus
+        ``kind``, ``label``, ``at_s``.
+    t0_unix_ns : int, keyword-only
+        When the robots started (time 0 of the timeline).
+    backend : str, keyword-only
+    notes : sequence of str, keyword-only
+        Backend notes (skipped faults...).
+    thesis_csv : Path, keyword-only
+        ``thesis_table_4_2.csv`` to put beside our figures.
+
+    Returns
+    -------
+    dict
+        ``{"scenario", "seed", "backend", "summary", "per_robot", "per_tier",
+        "faults", "expectations", "passed", "energy", "thesis", "notes",
+        "requests"}``.
+    """
+    from scmr_mesh.metrics import summarize
+
+    summ = summarize(records, faults, robots=len(scenario.robots))
+    faults_out = []
+    for f in summ["faults"]:
+        faults_out.append({
+            "kind": f.get("kind"), "label": f.get("label"), "at_s": f.get("at_s"), "for_s": f.get("for_s"),
+            "tier": f.get("tier"), "robots": f.get("robots"),
+            "started_at_s": (int(f["start_unix_ns"]) - t0_unix_ns) / 1e9,
+            "ended_at_s": None if f.get("end_unix_ns") is None else (int(f["end_unix_ns"]) - t0_unix_ns) / 1e9,
+            "failover_gap_ms": f.get("failover_gap_ms"), "failover_by_robot": f.get("failover_by_robot"),
+            "failback_gap_ms": f.get("failback_gap_ms"), "notes": f.get("notes", []),
+        })
+    expectations = check_expectations(scenario, summ)
+    requests = []
+    for r in records:
+        row = {k: r.get(k) for k in REQUEST_FIELDS}
+        if r.get("sent_unix_ns") is not None:
+            row["sent_s"] = (int(r["sent_unix_ns"]) - t0_unix_ns) / 1e9
+        requests.append(row)
+    return {
+        "scenario": scenario.name,
+        "description": scenario.description,
+        "source": scenario.source,
+        "seed": scenario.seed,
+        "backend": backend,
+        "duration_s": scenario.duration_s,
+        "lease_ms": scenario.lease_ms,
+        "t0_unix_ns": t0_unix_ns,
+        "summary": {
+            "requests": summ["requests"], "succeeded": summ["succeeded"], "ror": summ["ror"],
+            "tor_ms": summ["tor_ms"], "by_tier": summ["by_tier"],
+        },
+        "per_robot": summ["per_robot"],
+        "per_tier": summ["per_tier"],
+        "faults": faults_out,
+        "expectations": expectations,
+        "passed": all(e["held"] for e in expectations),
+        "energy": energy_per_robot(scenario, records),
+        "thesis": thesis_table(thesis_csv),
+        "notes": list(notes),
+        "requests": requests,
+    }
+
+
+def _fmt(v: Any, nd: int = 1) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}" if math.isfinite(v) else str(v)
+    return str(v)
+
+
+def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
+    """The report as Markdown."""
+    s = report["summary"]
+    L = [f"# Scenario `{report['scenario']}` ({report['backend']} backend)", ""]
+    if report.get("description"):
+        L += [report["description"], ""]
+    L += [f"Seed {report['seed']}, duration {report['duration_s']:g} s, lease {report['lease_ms']} ms, "
+          f"file `{report['source']}`. Result: **{'PASSED' if report['passed'] else 'FAILED'}**.", ""]
+    L += ["## Expectations", "", "| expectation | observed | held |", "|---|---|---|"]
+    for e in report["expectations"]:
+        L.append(f"| {e['name']} | {_fmt(e['observed'])} | {'yes' if e['held'] else '**no**'} |")
+    if not report["expectations"]:
+        L.append("| (none) | | |")
+    L += ["", "## Summary", "",
+          f"{s['requests']} requests, {s['succeeded']} succeeded, RoR {_fmt(s['ror'], 3)}; "
+          f"ToR p50 {_fmt(s['tor_ms'].get('p50'))} ms, p99 {_fmt(s['tor_ms'].get('p99'))} ms.", "",
+          "| tier | answers | ToR p50 ms | ToR p99 ms |", "|---|---|---|---|"]
+    for tier, n in s["by_tier"].items():
+        t = report["per_tier"].get(tier, {})
+        L.append(f"| {tier} | {n} | {_fmt(t.get('p50'))} | {_fmt(t.get('p99'))} |")
+    L += ["", "### Per robot", "", "| robot | requests | RoR | ToR p50 ms | ToR p99 ms | cloud | leader | local | failed |",
+          "|---|---|---|---|---|---|---|---|---|"]
+    for rid, g in report["per_robot"].items():
+        bt = g["by_tier"]
+        L.append(f"| {rid} | {g['requests']} | {_fmt(g['ror'], 3)} | {_fmt(g['tor_ms'].get('p50'))} | "
+                 f"{_fmt(g['tor_ms'].get('p99'))} | {bt.get('cloud', 0)} | {bt.get('leader', 0)} | "
+                 f"{bt.get('local', 0)} | {bt.get('failed', 0)} |")
+    L += ["", "## Faults", "", "| fault | applied at s | lifted at s | tier lost | failover gap ms | failback gap ms |",
+          "|---|---|---|---|---|---|"]
+    for f in report["faults"]:
+        L.append(f"| {f['label']} | {_fmt(f['started_at_s'], 3)} | {_fmt(f['ended_at_s'], 3)} | {_fmt(f['tier'])} | "
+                 f"{_fmt(f['failover_gap_ms'])} | {_fmt(f['failback_gap_ms'])} |")
+    if not report["faults"]:
+        L.append("| (none) | | | | | |")
+    L += ["", "Failover gap per robot: from the later of the fault and the sending of the robot's first request the "
+          "lost tier failed to answer, to that robot's first fallback answer (largest per fault). Failback: from the "
+          "link's return / the restart to the first answer of the restored tier (scmr_mesh.metrics).", ""]
+    if report.get("energy"):
+        L += ["## Energy per robot", "", "| robot | profile | total J | per tier J | source |", "|---|---|---|---|---|"]
+        for rid, e in report["energy"].items():
+            if "error" in e:
+                L.append(f"| {rid} | {e['profile']} | - | {e['error']} | |")
+                continue
+            per = ", ".join(f"{k} {v:.2f}" for k, v in e["per_tier_j"].items())
+            L.append(f"| {rid} | {e['profile']} | {e['total_j']:.2f} | {per} | {e['source']} |")
+        L += ["", "Model: remote answer = P_i x ToR + P_u x bytes_up / 23 Mb/s + P_d x bytes_down / 28 Mb/s "
+              "(Eq 4.3-4.4, measured wait); local = P_c x ToR. Table 4.3 profiles.", ""]
+    if report.get("thesis"):
+        L += ["## Beside the thesis (Table 4.2)", "",
+              "| robot | thesis images | thesis mean bytes | thesis cloud ToR p50 ms | thesis leader p50 ms | "
+              "our ToR p50 ms | our cloud p50 ms | our leader p50 ms |", "|---|---|---|---|---|---|---|---|"]
+        recs = report["requests"]
+        from scmr_mesh.metrics import tor_summary
+
+        for rid, t in report["thesis"].items():
+            mine = [r for r in recs if str(r.get("robot")) == rid]
+            ours = report["per_robot"].get(rid, {}).get("tor_ms", {})
+            cl = tor_summary([r for r in mine if r.get("tier") == "cloud"])
+            le = tor_summary([r for r in mine if r.get("tier") == "leader"])
+            L.append(f"| {rid} | {t['images']} | {t['mean_bytes']:.0f} | {t['cloud_tor_p50_ms']:.0f} | "
+                     f"{t['leader_p50_ms']:.0f} | {_fmt(ours.get('p50'))} | {_fmt(cl['p50'])} | {_fmt(le['p50'])} |")
+        L.append("")
+    if report.get("notes"):
+        L += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
+    if plots:
+        L += ["## Plots", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in plots] + [""]
+    L += ["## Requests", "", "| robot | seq | image | bytes up | bytes down | sent s | ToR ms | ok | tier | served by |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["requests"]:
+        L.append(f"| {r['robot']} | {_fmt(r['seq'])} | {_fmt(r['image'])} | {_fmt(r['bytes_up'])} | "
+                 f"{_fmt(r['bytes_down'])} | {_fmt(r.get('sent_s'), 3)} | {_fmt(r['tor_ms'])} | {_fmt(r['ok'])} | "
+                 f"{_fmt(r['tier'])} | {_fmt(r['served_by'])} |")
+    return "\n".join(L) + "\n"
+
+
+# -- plots (OpenCV) --------------------------------------------------------
+_W, _H, _ML, _MR, _MT, _MB = 1000, 420, 70, 20, 40, 50
+
+
+def _canvas(title: str):
+    import numpy as np
+    import cv2
+
+    img = np.full((_H, _W, 3), 255, np.uint8)
+    cv2.putText(img, title, (_ML, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def _x(t: float, t_max: float) -> int:
+    return int(_ML + (_W - _ML - _MR) * (t / t_max if t_max > 0 else 0))
+
+
+def _axes(img, t_max: float, faults: Sequence[Mapping[str, Any]]) -> None:
+    import cv2
+
+    for f in faults:  # shade fault intervals
+        a = f.get("started_at_s")
+        b = f.get("ended_at_s")
+        if a is None:
+            continue
+        b = t_max if b is None else b
+        x0, x1 = _x(max(0.0, a), t_max), _x(min(t_max, b), t_max)
+        sub = img[_MT:_H - _MB, x0:max(x0 + 1, x1)]
+        sub[:] = (sub * 0.85).astype(sub.dtype)
+    cv2.rectangle(img, (_ML, _MT), (_W - _MR, _H - _MB), (0, 0, 0), 1)
+    step = max(1, int(math.ceil(t_max / 10)))
+    for s in range(0, int(t_max) + 1, step):
+        x = _x(s, t_max)
+        cv2.line(img, (x, _H - _MB), (x, _H - _MB + 5), (0, 0, 0), 1)
+        cv2.putText(img, f"{s}", (x - 5, _H - _MB + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "time since robots started (s); shaded = fault active", (_ML, _H - 8),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+
+
+def _legend(img) -> None:
+    import cv2
+
+    x = _W - _MR - 330
+    for name, col in TIER_COLOURS.items():
+        if name == "unknown":
+            continue
+        cv2.circle(img, (x, 20), 5, col, -1)
+        cv2.putText(img, name, (x + 8, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        x += 80
+
+
+def _t_max(report: Mapping[str, Any]) -> float:
+    ts = [r.get("sent_s") or 0.0 for r in report["requests"]]
+    return max([float(report["duration_s"])] + ts) * 1.02 + 0.1
+
+
+def plot_tor(report: Mapping[str, Any], path: Path) -> Path:
+    """ToR over time (log scale), one dot per request coloured by tier; failures on the top edge."""
+    import cv2
+
+    img = _canvas(f"{report['scenario']}: time of response per request ({report['backend']})")
+    t_max = _t_max(report)
+    _axes(img, t_max, report["faults"])
+    _legend(img)
+    tors = [float(r["tor_ms"]) for r in report["requests"] if r.get("ok") and r.get("tor_ms") is not None]
+    lo = math.log10(max(0.1, min(tors))) if tors else -1.0
+    hi = math.log10(max(tors)) if tors else 3.0
+    lo, hi = math.floor(lo), max(math.ceil(hi), math.floor(lo) + 1)
+
+    def y(v: float) -> int:
+        f = (math.log10(max(v, 1e-3)) - lo) / (hi - lo)
+        return int(_H - _MB - f * (_H - _MB - _MT - 12))
+
+    for d in range(lo, hi + 1):
+        yy = y(10 ** d)
+        cv2.line(img, (_ML - 5, yy), (_ML, yy), (0, 0, 0), 1)
+        cv2.putText(img, f"{10 ** d:g} ms", (4, yy + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for r in report["requests"]:
+        if r.get("sent_s") is None:
+            continue
+        x = _x(float(r["sent_s"]), t_max)
+        if r.get("ok") and r.get("tor_ms") is not None:
+            cv2.circle(img, (x, y(float(r["tor_ms"]))), 3, TIER_COLOURS.get(r.get("tier") or "unknown",
+                                                                            TIER_COLOURS["unknown"]), -1)
+        else:
+            cv2.drawMarker(img, (x, _MT + 6), TIER_COLOURS["failed"], cv2.MARKER_TILTED_CROSS, 8, 2)
+    path = Path(path)
+    cv2.imwrite(str(path), img)
+    return path
+
+
+def plot_tiers(report: Mapping[str, Any], path: Path) -> Path:
+    """Serving tier over time: one row per robot, one tick per request coloured by tier."""
+    import cv2
+
+    img = _canvas(f"{report['scenario']}: serving tier per request ({report['backend']})")
+    t_max = _t_max(report)
+    _axes(img, t_max, report["faults"])
+    _legend(img)
+    robots = sorted({str(r.get("robot")) for r in report["requests"]}) or ["-"]
+    band = (_H - _MB - _MT) / len(robots)
+    for i, rid in enumerate(robots):
+        yc = int(_MT + band * (i + 0.5))
+        cv2.putText(img, rid, (4, yc + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+        for r in report["requests"]:
+            if str(r.get("robot")) != rid or r.get("sent_s") is None:
+                continue
+            tier = (r.get("tier") or "unknown") if r.get("ok") else "failed"
+            x = _x(float(r["sent_s"]), t_max)
+            h = int(band * 0.35)
+            cv2.line(img, (x, yc - h), (x, yc + h), TIER_COLOURS.get(tier, TIER_COLOURS["unknown"]), 2)
+    path = Path(path)
+    cv2.imwrite(str(path), img)
+    return path
+
+
+def write_report(report: Mapping[str, Any], out_dir: Path, *, json_path: Path | None = None) -> dict[str, Path]:
+    """Write ``report.json``, ``report.md``, ``tor.png`` and ``tiers.png`` into ``out_dir``.
+
+    Returns the paths written (``json`` is ``json_path`` when given).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"tor_png": out_dir / "tor.png", "tiers_png": out_dir / "tiers.png"}
+    try:
+        plot_tor(report, paths["tor_png"])
+        plot_tiers(report, paths["tiers_png"])
+        plots = [str(paths["tor_png"]), str(paths["tiers_png"])]
+    except Exception as exc:  # noqa: BLE001 - plots are a bonus; never lose the report
+        log.warning("plots not drawn: %s", exc)
+        plots = []
+    jp = Path(json_path) if json_path else out_dir / "report.json"
+    jp.parent.mkdir(parents=True, exist_ok=True)
+    jp.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    md = out_dir / "report.md"
+    md.write_text(markdown(report, plots=plots))
+    paths.update({"json": jp, "md": md})
+    return paths

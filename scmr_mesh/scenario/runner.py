@@ -1,0 +1,354 @@
+"""Run a scenario: build the backend, start the peers, play the faults, collect records.
+
+The runner is the only impure part of the scenario package besides the
+backends: it starts real ``scmr cloud|leader|robot`` processes through the
+shared :class:`scmr_mesh.procs.Supervisor`, sleeps until each event of
+:func:`scmr_mesh.scenario.plan.compile_timeline` is due, applies it (network
+events through the backend, crash/restart through the supervisor) and records
+when each fault really took effect.  Everything is undone in ``finally`` and
+on SIGTERM/SIGINT/SIGHUP (turned into ``KeyboardInterrupt``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from scmr_mesh.errors import ConfigError, ScenarioError
+from scmr_mesh.scenario.plan import Event, affected_pairs, compile_timeline
+from scmr_mesh.scenario.spec import Fault, Scenario
+
+__all__ = ["RunResult", "default_data_dir", "fault_tier", "run_scenario"]
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str], None]
+
+
+def default_data_dir() -> Path:
+    """``$SCMR_DATA`` or ``<repo>/../shared/data/roads``."""
+    env = os.environ.get("SCMR_DATA")
+    if env:
+        return Path(env)
+    shared = Path(os.environ.get("SCMR_SHARED", Path(__file__).resolve().parents[3] / "shared"))
+    return shared / "data" / "roads"
+
+
+def fault_tier(scenario: Scenario, fault: Fault) -> tuple[str | None, list[str] | None]:
+    """Which serving tier ``fault`` takes away, and from which robots (pure).
+
+    Returns ``(tier, robots)`` in the form :mod:`scmr_mesh.metrics` expects:
+    ``tier`` is ``"cloud"``, ``"leader"`` or ``None``; ``robots`` ``None``
+    means every robot.
+    """
+    robots = [r.id for r in scenario.robots]
+    if fault.kind == "crash":
+        role = scenario.role(fault.peer or "")
+        return (role, None) if role in ("cloud", "leader") else (None, None)
+    if fault.kind in ("link_down", "partition"):
+        pairs = set(affected_pairs(fault))
+        for tier, servers in (("cloud", scenario.clouds), ("leader", (scenario.leader,))):
+            cut = [r for r in robots if all(tuple(sorted((r, s))) in pairs for s in servers)]
+            if cut:
+                return tier, (None if len(cut) == len(robots) else cut)
+    return None, None
+
+
+@dataclass
+class AppliedFault:
+    """When one fault really took effect (unix ns) and what was skipped."""
+
+    index: int
+    fault: Fault
+    start_unix_ns: int | None = None
+    end_unix_ns: int | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class RunResult:
+    """What a run produced: records, fault times, backend notes, paths."""
+
+    scenario: Scenario
+    backend: str
+    out_dir: Path
+    t0_unix_ns: int
+    records: list[dict[str, Any]]
+    faults: list[AppliedFault]
+    notes: list[str]
+    run_id: str = ""
+    peer_logs: dict[str, str] = field(default_factory=dict)
+
+    def metric_faults(self) -> list[dict[str, Any]]:
+        """Faults as :func:`scmr_mesh.metrics.summarize` takes them."""
+        out = []
+        for af in self.faults:
+            tier, robots = fault_tier(self.scenario, af.fault)
+            target = (af.fault.peer or ("-".join(af.fault.link) if af.fault.link else
+                      " | ".join(",".join(g) for g in af.fault.groups or ())))
+            out.append({
+                "kind": af.fault.kind, "target": target, "label": af.fault.label, "tier": tier,
+                "robots": robots, "at_s": af.fault.at_s, "for_s": af.fault.for_s,
+                "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
+                else self.t0_unix_ns + int(af.fault.at_s * 1e9),
+                "end_unix_ns": af.end_unix_ns, "notes": af.notes,
+            })
+        return out
+
+
+def _peer_options(command: str) -> set[str]:
+    """Option strings the installed ``scmr <command>`` accepts (empty if it does not exist)."""
+    from scmr_mesh.cli import build_parser
+
+    parser = build_parser()
+    for action in parser._subparsers._group_actions:  # type: ignore[union-attr]
+        choices = getattr(action, "choices", None) or {}
+        if command in choices:
+            opts: set[str] = set()
+            for a in choices[command]._actions:
+                opts.update(a.option_strings)
+            return opts
+    return set()
+
+
+def _image_dir(scenario: Scenario, robot_set: str, data_dir: Path, out_dir: Path, robot: str) -> Path:
+    d = out_dir / "images" / robot
+    d.mkdir(parents=True, exist_ok=True)
+    for i, rel in enumerate(scenario.image_sets[robot_set]):
+        src = (data_dir / rel).resolve()
+        if not src.is_file():
+            raise ConfigError(
+                f"scenario {scenario.source}: field 'image_sets.{robot_set}': image {rel!r} not found under "
+                f"{data_dir}; pass --data with the folder that holds it (the shared data/roads)")
+        link = d / f"{i:02d}_{src.name}"
+        if not link.exists():
+            link.symlink_to(src)  # read in place: never copied
+    return d
+
+
+@contextmanager
+def _signals_to_interrupt() -> Iterator[None]:
+    """Turn SIGTERM/SIGHUP into KeyboardInterrupt so ``finally`` cleans up."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):  # noqa: ARG001
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGHUP)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _make_backend(scenario: Scenario, backend: str):
+    if backend == "netns":
+        from scmr_mesh.scenario.netns import NetnsBackend, check_root
+
+        check_root()
+        return NetnsBackend(scenario)
+    if backend == "proxy":
+        from scmr_mesh.scenario.proxy import ProxyBackend
+
+        return ProxyBackend(scenario)
+    raise ConfigError(f"backend must be netns or proxy, got {backend!r}")
+
+
+def run_scenario(
+    scenario: Scenario,
+    *,
+    backend: str = "netns",
+    out_dir: Path,
+    data_dir: Path | None = None,
+    progress: Progress | None = None,
+    ready_timeout: float = 120.0,
+    python: str = sys.executable,
+) -> RunResult:
+    """Run ``scenario`` once and return its records and fault times.
+
+    Parameters
+    ----------
+    scenario : Scenario
+    backend : {"netns", "proxy"}, keyword-only
+    out_dir : Path, keyword-only
+        Peer logs, robot records and image links go here.
+    data_dir : Path, keyword-only
+        Root of the image sets (default :func:`default_data_dir`).
+    progress : callable, keyword-only
+        Receives one-line progress messages.
+    ready_timeout : float, keyword-only
+        Seconds each peer may take to become ready (first numba compile is slow).
+
+    Raises
+    ------
+    ScenarioError
+        Setup failed or a peer did not start (message names it, with its log tail).
+    """
+    from scmr_mesh.errors import MeshError
+    from scmr_mesh.procs import PeerSpec, Supervisor
+
+    say = progress or (lambda m: log.info("%s", m))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
+    robot_opts = _peer_options("robot")
+    server_opts = _peer_options("cloud")
+    if not robot_opts or not server_opts:
+        raise ScenarioError("this installation has no 'scmr robot' / 'scmr cloud' peers yet "
+                            "(the mesh area provides them); cannot run a scenario")
+    images = {r.id: _image_dir(scenario, r.image_set, data_dir, out_dir, r.id)
+              for r in scenario.robots if r.image_set}
+    events = compile_timeline(scenario)
+    applied = [AppliedFault(i, f) for i, f in enumerate(scenario.faults)]
+    be = _make_backend(scenario, backend)
+    notes: list[str] = []
+    base = [python, "-m", "scmr_mesh"]
+    starts: dict[str, int] = {}
+
+    def common(peer: str, opts: set[str]) -> list[str]:
+        a: list[str] = []
+        for ep in be.listen(peer):
+            a += ["--listen", ep]
+        for ep in be.connect(peer):
+            a += ["--connect", ep]
+        if "--lease-ms" in opts:
+            a += ["--lease-ms", str(scenario.lease_ms)]
+        if "--cfg" in opts:
+            for c in be.extra_cfg(peer):
+                a += ["--cfg", c]
+        elif be.extra_cfg(peer):
+            note = f"peers take no --cfg: could not set {be.extra_cfg(peer)} (gossip may bypass proxies)"
+            if note not in notes:
+                notes.append(note)
+        return a
+
+    def spec_for(peer: str, *, remaining_s: float | None = None) -> PeerSpec:
+        role = scenario.role(peer)
+        n = starts[peer] = starts.get(peer, 0) + 1
+        suffix = "" if n == 1 else f"-{n}"
+        ready = out_dir / "ready" / f"{peer}{suffix}"
+        ready.parent.mkdir(parents=True, exist_ok=True)
+        if role in ("cloud", "leader"):
+            argv = base + [role, "--node", peer] + common(peer, server_opts)
+        else:
+            r = next(x for x in scenario.robots if x.id == peer)
+            argv = base + ["robot", "--id", peer]
+            argv += ["--images", str(images[peer])] if r.image_set else ["--synthetic", r.synthetic or "road"]
+            dur = scenario.duration_s if remaining_s is None else max(0.5, remaining_s)
+            argv += ["--rate", f"{r.rate_hz:g}", "--duration", f"{dur:g}",
+                     "--out", str(out_dir / "robots" / f"{peer}{suffix}")]
+            if r.profile and "--profile" in robot_opts:
+                argv += ["--profile", r.profile]
+            argv += common(peer, robot_opts)
+        argv += ["--ready-file", str(ready)]
+        env = {"SCMR_SCENARIO_SEED": str(scenario.seed)}
+        return PeerSpec(peer + suffix, be.wrap(peer, argv), log_path=out_dir / "logs" / f"{peer}{suffix}.log",
+                        ready_file=ready, env=env)
+
+    t0 = time.time_ns()
+    sup = Supervisor(term_timeout=5.0)
+    names: dict[str, str] = {}
+    with _signals_to_interrupt():
+        try:
+            say(f"[{backend}] setting up {len(scenario.peers)} peers, {len(scenario.links)} links")
+            be.setup()
+            servers = [p.name for p in scenario.peers if p.role != "robot"]
+            for p in servers:
+                spec = spec_for(p)
+                sup.start(spec)
+                names[p] = spec.name
+            sup.wait_ready([names[p] for p in servers], timeout=ready_timeout)
+            say(f"servers ready: {', '.join(servers)}; starting {len(scenario.robots)} robots")
+            for r in scenario.robots:
+                spec = spec_for(r.id)
+                sup.start(spec)
+                names[r.id] = spec.name
+            sup.wait_ready([names[r.id] for r in scenario.robots], timeout=ready_timeout)
+            t0 = time.time_ns()
+            t0_mono = time.monotonic()
+            say(f"robots ready; run of {scenario.duration_s:g}s starts (seed {scenario.seed})")
+            for ev in events:
+                delay = t0_mono + ev.at_s - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                _apply(ev, be, sup, names, applied, spec_for, scenario, t0_mono, say)
+            left = t0_mono + scenario.duration_s - time.monotonic()
+            if left > 0:
+                time.sleep(left)
+            say("duration over; waiting for robots to finish")
+            deadline = time.monotonic() + 30.0 + 2.0 * scenario.lease_ms / 1000
+            robot_procs = [sup.procs[names[r.id]] for r in scenario.robots]
+            while time.monotonic() < deadline and any(p.alive() for p in robot_procs):
+                time.sleep(0.1)
+            late = [p.name for p in robot_procs if p.alive()]
+            if late:
+                notes.append(f"robots still running 30 s after the end were stopped: {', '.join(late)}")
+        except MeshError as exc:
+            raise ScenarioError(f"scenario {scenario.name}: {exc}") from None
+        finally:
+            try:
+                sup.stop_all(timeout=5.0)
+            finally:
+                be.teardown()
+    notes.extend(be.notes)
+    for af in applied:
+        notes.extend(n for n in af.notes if n not in notes)
+    records = _read_records(out_dir / "robots")
+    say(f"done: {len(records)} requests recorded")
+    return RunResult(scenario=scenario, backend=backend, out_dir=out_dir, t0_unix_ns=t0, records=records,
+                     faults=applied, notes=notes, run_id=getattr(be, "run_id", ""),
+                     peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()})
+
+
+def _apply(ev: Event, be, sup, names: dict[str, str], applied: list[AppliedFault], spec_for,
+           scenario: Scenario, t0_mono: float, say: Progress) -> None:
+    af = applied[ev.fault]
+    if ev.op == "kill":
+        t = sup.kill(names[ev.target[0]])
+        say(f"t={time.monotonic() - t0_mono:5.2f}s  SIGKILL {ev.target[0]}")
+    elif ev.op == "start":
+        peer = ev.target[0]
+        remaining = scenario.duration_s - (time.monotonic() - t0_mono) if scenario.role(peer) == "robot" else None
+        spec = spec_for(peer, remaining_s=remaining)
+        proc = sup.start(spec)
+        names[peer] = spec.name
+        t = proc.started_unix_ns
+        say(f"t={time.monotonic() - t0_mono:5.2f}s  restart {peer}")
+    else:
+        af.notes.extend(be.apply(ev))
+        t = time.time_ns()
+        say(f"t={time.monotonic() - t0_mono:5.2f}s  {ev.op} {'-'.join(ev.target)}"
+            + (f" -> {ev.value}" if ev.value is not None else ""))
+    if ev.lift:
+        if ev.at_s < scenario.duration_s or af.fault.end_s is not None and af.fault.end_s <= scenario.duration_s:
+            af.end_unix_ns = t
+    elif af.start_unix_ns is None:
+        af.start_unix_ns = t
+
+
+def _read_records(robots_dir: Path) -> list[dict[str, Any]]:
+    recs: list[dict[str, Any]] = []
+    for f in sorted(robots_dir.glob("*/records.jsonl")):
+        for line in f.read_text(encoding="utf-8", errors="replace").splitlines():
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                recs.append(json.loads(line))
+            except json.JSONDecodeError:
+                log.warning("%s: skipping a line that is not JSON", f)
+    recs.sort(key=lambda r: (r.get("sent_unix_ns") or 0, str(r.get("robot"))))
+    return recs
