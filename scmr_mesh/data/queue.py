@@ -9,7 +9,9 @@ again.  Layout of the queue folder::
     ack                    highest acknowledged seq (text), replaced atomically
 
 Record framing (little endian): ``b"SQ01" | u32 length | u64 seq |
-u32 crc32(seq bytes + payload) | payload``.
+u32 crc32(length, seq) | u32 crc32(payload) | payload``.  The header has its
+own CRC so that a torn tail (a complete, valid header whose payload is cut
+short, or a cut header) can be told from a corrupted length field.
 
 Durability (``fsync`` policy):
 
@@ -56,20 +58,21 @@ from scmr_mesh.data.errors import QueueCorruptError, QueueError, QueueFullError
 log = logging.getLogger(__name__)
 
 MAGIC = b"SQ01"
-HEADER = struct.Struct("<4sIQI")  # magic, length, seq, crc
+HEADER = struct.Struct("<4sIQII")  # magic, length, seq, header crc, payload crc
+_HCRC = struct.Struct("<IQ")
 #: Largest payload one record may carry.
 MAX_RECORD_BYTES = 1 << 20
 FSYNC_POLICIES = ("always", "batch", "never")
 _SEG_RE = re.compile(r"^seg-(\d{12})\.log$")
 
 
-def _crc(seq: int, payload: bytes) -> int:
-    return zlib.crc32(payload, zlib.crc32(struct.pack("<Q", seq))) & 0xFFFFFFFF
+def _hcrc(length: int, seq: int) -> int:
+    return zlib.crc32(_HCRC.pack(length, seq)) & 0xFFFFFFFF
 
 
 def encode_frame(seq: int, payload: bytes) -> bytes:
     """One framed record: header + payload."""
-    return HEADER.pack(MAGIC, len(payload), seq, _crc(seq, payload)) + payload
+    return HEADER.pack(MAGIC, len(payload), seq, _hcrc(len(payload), seq), zlib.crc32(payload)) + payload
 
 
 @dataclass(frozen=True)
@@ -132,17 +135,19 @@ def scan_segment(data: bytes, *, last: bool) -> tuple[list[tuple[int, bytes, int
     def parse_at(p: int) -> tuple[str, int, bytes, int]:
         if n - p < HEADER.size:
             return "short", 0, b"", 0
-        magic, length, seq, crc = HEADER.unpack_from(data, p)
+        magic, length, seq, hcrc, pcrc = HEADER.unpack_from(data, p)
         if magic != MAGIC:
             return "bad magic", 0, b"", 0
+        if _hcrc(length, seq) != hcrc:
+            return "header crc mismatch", 0, b"", 0
         if length > MAX_RECORD_BYTES:
             return f"length {length} > {MAX_RECORD_BYTES}", 0, b"", 0
         end = p + HEADER.size + length
         if end > n:
             return "short", 0, b"", 0
         payload = data[p + HEADER.size:end]
-        if _crc(seq, payload) != crc:
-            return "crc mismatch", 0, b"", 0
+        if zlib.crc32(payload) != pcrc:
+            return "payload crc mismatch", 0, b"", 0
         return "", seq, payload, end
 
     def _valid_after(p: int) -> bool:
@@ -293,6 +298,13 @@ class TelemetryQueue:
                 if seq > acked:
                     self._pending.append((seq, payload))
                     st.pending_bytes += len(payload)
+            if is_last and bad and bad[-1][0] >= (records[-1][2] if records else 0):
+                # a corrupt stretch at the very end: its records' seqs must never be reused
+                tail = _tail_seqs(data, bad[-1][0], bad[-1][1], max(seg_last, expected - 1))
+                st.lost_seqs.extend(s for s in tail if s > acked)
+                if tail:
+                    seg_last = tail[-1]
+                    expected = seg_last + 1
             self._segments.append((first, seg, seg_last))
             last_seq = max(last_seq, seg_last, first - 1)
         if st.lost_seqs:
@@ -301,8 +313,8 @@ class TelemetryQueue:
         st.acked_seq = acked
         st.next_seq = max(last_seq, acked) + 1
         st.depth = len(self._pending)
-        if not self._segments:
-            self._new_segment(st.next_seq)
+        if not self._segments or (st.corruptions and st.corruptions[-1].file == str(self._segments[-1][1])):
+            self._new_segment(st.next_seq)  # never append behind a corrupt stretch
         else:
             self._fh = self._segments[-1][1].open("ab")
 
@@ -467,6 +479,19 @@ class TelemetryQueue:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _tail_seqs(data: bytes, off: int, nbytes: int, last_good: int) -> list[int]:
+    """Seqs a corrupt tail stretch probably held: from plausible headers, at least one."""
+    hi = last_good + 1
+    bound = last_good + nbytes // HEADER.size + 1
+    p = data.find(MAGIC, off, off + nbytes)
+    while p >= 0 and p + HEADER.size <= len(data):
+        _, length, seq, hcrc, _ = HEADER.unpack_from(data, p)
+        if _hcrc(length, seq) == hcrc and last_good < seq <= bound:
+            hi = max(hi, seq)
+        p = data.find(MAGIC, p + 1, off + nbytes)
+    return list(range(last_good + 1, hi + 1))
 
 
 def _ranges(seqs: list[int]) -> str:

@@ -1,0 +1,89 @@
+"""`scmr ods ...`: queries, exports, queue inspection and one-line errors."""
+
+from __future__ import annotations
+
+import json
+from datetime import datetime, timezone
+
+import pytest
+
+from scmr_mesh.cli import main
+from scmr_mesh.data.commands import parse_time_ns
+from scmr_mesh.data.ods import OperationalDataStore
+from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.data.record import make_record
+from scmr_mesh.errors import InputError
+
+T0 = 1_795_000_000 * 10**9
+
+
+@pytest.fixture()
+def db(tmp_path):
+    path = tmp_path / "ods.sqlite"
+    with OperationalDataStore(path) as ods:
+        ods.insert([make_record(r, s, pose=(s, 0, 0), battery=0.9, t_unix_ns=T0 + s * 10**9)
+                    for r in ("r1", "r2") for s in (1, 2, 3)], received_from="cloud")
+        ods.insert([make_record("r1", 3, t_unix_ns=T0)], received_from="leader")
+    return path
+
+
+def test_counts_latest_range_export(db, tmp_path, capsys):
+    assert main(["ods", "--db", str(db), "counts", "--json"]) == 0
+    counts = json.loads(capsys.readouterr().out)
+    assert counts["r1"] == {"stored": 3, "duplicates": 1, "min_seq": 1, "max_seq": 3, "contiguous": 3}
+    assert main(["ods", "--db", str(db), "counts"]) == 0
+    assert "r2" in capsys.readouterr().out
+    assert main(["ods", "--db", str(db), "latest", "--json"]) == 0
+    assert {r: v["seq"] for r, v in json.loads(capsys.readouterr().out).items()} == {"r1": 3, "r2": 3}
+    since = datetime.fromtimestamp((T0 + 2 * 10**9) / 1e9, tz=timezone.utc).isoformat()
+    assert main(["ods", "--db", str(db), "range", "--since", since, "--until", str(T0 + 3 * 10**9),
+                 "--robot", "r2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [json.loads(x)["seq"] for x in lines] == [2]
+    out = tmp_path / "e.csv"
+    assert main(["ods", "--db", str(db), "export", "--format", "csv", "--out", str(out)]) == 0
+    assert len(out.read_text().splitlines()) == 1 + 6
+
+
+def test_missing_and_corrupt_database_are_one_line_errors(tmp_path, capsys):
+    assert main(["ods", "--db", str(tmp_path / "nope.sqlite"), "counts"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("scmr: error: no operational data store at") and "Traceback" not in err
+    bad = tmp_path / "bad.sqlite"
+    bad.write_bytes(b"\x00garbage" * 512)
+    assert main(["ods", "--db", str(bad), "latest"]) == 1
+    assert "not a readable SQLite database" in capsys.readouterr().err
+
+
+def test_bad_time_and_reversed_range(db, capsys):
+    assert main(["ods", "--db", str(db), "range", "--since", "yesterday-ish"]) == 1
+    assert "cannot read 'yesterday-ish' as a time" in capsys.readouterr().err
+    assert main(["ods", "--db", str(db), "range", "--since", "20", "--until", "10"]) == 1
+    assert "before --since" in capsys.readouterr().err
+
+
+def test_parse_time_forms():
+    assert parse_time_ns("1.5") == 1_500_000_000
+    assert parse_time_ns(str(T0)) == T0
+    assert parse_time_ns("1970-01-01T00:00:02Z") == 2 * 10**9
+    assert parse_time_ns("1970-01-01T00:00:02") == 2 * 10**9
+    with pytest.raises(InputError):
+        parse_time_ns("soon")
+
+
+def test_queue_inspection_reports_corruption(tmp_path, capsys):
+    qdir = tmp_path / "q"
+    with TelemetryQueue(qdir) as q:
+        for _ in range(3):
+            q.append(b"hello")
+    assert main(["ods", "queue", str(qdir)]) == 0
+    assert json.loads(capsys.readouterr().out)["depth"] == 3
+    seg = next(qdir.glob("seg-*.log"))
+    raw = bytearray(seg.read_bytes())
+    raw[-1] ^= 0xFF  # last payload byte of seq 3
+    seg.write_bytes(bytes(raw))
+    assert main(["ods", "queue", str(qdir)]) == 1
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["lost_seqs"] == [3]
+    assert "1 seq(s) lost" in captured.err
+    assert main(["ods", "queue", str(tmp_path / "none")]) == 1

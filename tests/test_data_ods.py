@@ -1,0 +1,191 @@
+"""The operational data store: exactly-once storage, counts, queries, export, schema, errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import random
+import sqlite3
+import tempfile
+import threading
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from scmr_mesh.data.errors import StoreError
+from scmr_mesh.data.ods import MIGRATIONS, SCHEMA_VERSION, OperationalDataStore
+from scmr_mesh.data.record import TelemetryRecord, decode_records, encode_records, make_record
+from scmr_mesh.data.report import telemetry_report
+from scmr_mesh.errors import WireError
+
+
+def _contiguous(seqs: set[int]) -> int:
+    c = 0
+    while c + 1 in seqs:
+        c += 1
+    return c
+
+
+msgs_st = st.lists(st.tuples(st.sampled_from(["a", "b", "c"]), st.integers(1, 25)), max_size=80)
+
+
+@settings(max_examples=40, deadline=None)
+@given(msgs=msgs_st, cuts=st.lists(st.integers(0, 80), max_size=6))
+def test_exactly_once_under_any_interleaving(msgs, cuts):
+    """Duplicates and reorders, in any batching: each (robot, seq) stored once, the rest counted."""
+    path = Path(tempfile.mkdtemp()) / "ods.sqlite"
+    bounds = sorted({0, len(msgs), *[min(c, len(msgs)) for c in cuts]})
+    with OperationalDataStore(path) as ods:
+        acks: dict[str, int] = {}
+        for lo, hi in zip(bounds, bounds[1:]):
+            res = ods.insert([make_record(r, s, t_unix_ns=s) for r, s in msgs[lo:hi]], received_from="cloud")
+            acks.update(res.contiguous)
+        counts = ods.counts()
+        for robot in "abc":
+            seqs = {s for r, s in msgs if r == robot}
+            sent = [s for r, s in msgs if r == robot]
+            if not sent:
+                assert robot not in counts
+                continue
+            assert ods.seqs(robot) == sorted(seqs)
+            assert counts[robot]["stored"] == len(seqs)
+            assert counts[robot]["duplicates"] == len(sent) - len(seqs)
+            assert counts[robot]["contiguous"] == _contiguous(seqs) == acks[robot] == ods.contiguous(robot)
+    path.unlink()
+
+
+def test_concurrent_writers_store_each_pair_once(tmp_path):
+    pairs = [(f"r{i % 3}", s) for i in range(3) for s in range(1, 101)]
+    rng = random.Random(7)
+    batches = []
+    for _ in range(4):  # four threads each send every pair, shuffled, in small batches
+        p = pairs[:]
+        rng.shuffle(p)
+        batches.append([p[i:i + 9] for i in range(0, len(p), 9)])
+    with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
+        errors = []
+
+        def run(bs):
+            try:
+                for b in bs:
+                    ods.insert([make_record(r, s) for r, s in b], received_from="leader")
+            except Exception as exc:  # pragma: no cover - reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=run, args=(b,)) for b in batches]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert errors == []
+        counts = ods.counts()
+        assert {r: (c["stored"], c["duplicates"], c["contiguous"]) for r, c in counts.items()} == {
+            "r0": (100, 300, 100), "r1": (100, 300, 100), "r2": (100, 300, 100)}
+
+
+def test_wal_schema_version_and_migration_from_v1(tmp_path):
+    path = tmp_path / "old.sqlite"
+    con = sqlite3.connect(path)
+    for stmt in MIGRATIONS[0]:
+        con.execute(stmt)
+    con.execute("INSERT INTO telemetry (robot, seq, t_unix_ns, health, results, received_from, stored_unix_ns) "
+                "VALUES ('r1', 1, 5, 'ok', '{}', 'cloud', 6)")
+    con.execute("PRAGMA user_version = 1")
+    con.commit()
+    con.close()
+    with OperationalDataStore(path) as ods:
+        assert ods.schema_version() == SCHEMA_VERSION == 2
+        assert ods.seqs("r1") == [1]
+    con = sqlite3.connect(path)
+    assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    assert {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type='index'")} >= {"telemetry_time"}
+    con.close()
+
+
+def test_store_errors_name_the_file_and_the_fix(tmp_path):
+    with pytest.raises(StoreError, match="no operational data store at .*pass --db"):
+        OperationalDataStore(tmp_path / "missing.sqlite", readonly=True)
+    junk = tmp_path / "junk.sqlite"
+    junk.write_bytes(b"not a database at all" * 100)
+    with pytest.raises(StoreError, match="not a readable SQLite database"):
+        OperationalDataStore(junk, readonly=True)
+    with pytest.raises(StoreError, match="cannot open .* as an operational data store"):
+        OperationalDataStore(junk)
+    other = tmp_path / "other.sqlite"
+    sqlite3.connect(other).execute("CREATE TABLE x (y)").connection.commit()
+    with pytest.raises(StoreError, match="not an operational data store"):
+        OperationalDataStore(other, readonly=True)
+    newer = tmp_path / "newer.sqlite"
+    c = sqlite3.connect(newer)
+    c.execute("PRAGMA user_version = 99")
+    c.commit()
+    c.close()
+    with pytest.raises(StoreError, match="schema version 99, newer"):
+        OperationalDataStore(newer)
+    with OperationalDataStore(tmp_path / "ok.sqlite") as ods:
+        with pytest.raises(StoreError, match="received_from"):
+            ods.insert([], received_from="mars")
+    with pytest.raises(StoreError, match="read-only"):
+        OperationalDataStore(tmp_path / "ok.sqlite", readonly=True).insert([], received_from="cloud")
+
+
+def _fill(ods: OperationalDataStore) -> list[TelemetryRecord]:
+    recs = [make_record(f"r{r}", s, pose=(r, s, 0.5), battery=1 - s / 10, health="ok" if s < 4 else "low",
+                        results={"frames": s, "drivable": 0.25 * r}, t_unix_ns=1000 * s + r)
+            for r in (1, 2) for s in range(1, 6)]
+    ods.insert(recs, received_from="cloud")
+    return recs
+
+
+def test_latest_range_and_exports(tmp_path):
+    with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
+        recs = _fill(ods)
+        latest = ods.latest()
+        assert {r: (v["seq"], v["health"], v["pose"]) for r, v in latest.items()} == {
+            "r1": (5, "low", [1.0, 5.0, 0.5]), "r2": (5, "low", [2.0, 5.0, 0.5])}
+        rows = ods.range(since_ns=2001, until_ns=4002)  # [since, until): r2 seq 4 (t=4002) is out
+        assert [(r["robot"], r["seq"]) for r in rows] == [("r1", 2), ("r2", 2), ("r1", 3), ("r2", 3), ("r1", 4)]
+        assert [r["seq"] for r in ods.range(robot="r2")] == [1, 2, 3, 4, 5]
+        n = ods.export(tmp_path / "x.csv", fmt="csv")
+        with (tmp_path / "x.csv").open() as fh:
+            table = list(csv.DictReader(fh))
+        assert n == len(table) == len(recs)
+        by = {(r["robot"], int(r["seq"])): r for r in table}
+        for rec in recs:
+            row = by[(rec.robot, rec.seq)]
+            assert float(row["battery"]) == rec.battery and float(row["y"]) == rec.pose[1]
+            assert json.loads(row["results"]) == rec.results and row["received_from"] == "cloud"
+        ods.export(tmp_path / "x.json", fmt="json", since_ns=5000)
+        data = json.loads((tmp_path / "x.json").read_text())
+        assert [(d["robot"], d["seq"]) for d in data] == [("r1", 5), ("r2", 5)]
+        with pytest.raises(StoreError, match="'csv' or 'json', got 'xml'"):
+            ods.export(tmp_path / "x.xml", fmt="xml")
+
+
+def test_records_round_trip_and_validation():
+    recs = [make_record("r1", 3, pose=(1, 2, 3), battery=0.5, results={"k": [1, 2]})]
+    assert decode_records(encode_records(recs)) == recs
+    with pytest.raises(WireError, match="'seq' must be an integer >= 1, got 0"):
+        make_record("r1", 0)
+    with pytest.raises(WireError, match="'robot'"):
+        make_record("a/b", 1)
+    with pytest.raises(WireError, match="pose"):
+        make_record("r1", 1, pose=(1, 2))
+    with pytest.raises(WireError, match="not msgpack"):
+        decode_records(b"\xc1")
+
+
+def test_telemetry_report_counts_lost_duplicates_and_unexpected(tmp_path):
+    with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
+        ods.insert([make_record("r1", s) for s in (1, 2, 3, 3, 5, 6, 7)], received_from="cloud")
+        ods.insert([make_record("r2", s) for s in (1, 2)], received_from="leader")
+        ods.insert([make_record("r2", 2)], received_from="cloud")
+    rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 8, "r2": 2, "r3": 1}, queued={"r1": 1})["telemetry"]
+    assert (rep["sent"], rep["stored"], rep["duplicates"], rep["lost"]) == (11, 8, 2, 3)
+    assert rep["per_robot"]["r1"] == {"sent": 8, "stored": 6, "duplicates": 1, "lost": 2,
+                                      "missing": ["4", "8"], "unexpected": 0, "queued": 1}
+    assert rep["per_robot"]["r3"]["lost"] == 1 and rep["per_robot"]["r3"]["missing"] == ["1"]
+    rep2 = telemetry_report(tmp_path / "ods.sqlite", {"r1": 5})["telemetry"]
+    assert rep2["per_robot"]["r1"]["unexpected"] == 2
