@@ -64,8 +64,6 @@ def _field_path(err: Any) -> str:
     elif err.validator == "additionalProperties":
         extra = err.message.split("'")[1] if "'" in err.message else "?"
         parts.append(extra)
-    elif err.validator == "propertyNames":
-        parts.append(repr(err.instance))
     return ".".join(parts) or "(top level)"
 
 
@@ -75,7 +73,8 @@ def validate_profiles_doc(doc: Any, *, source: str) -> None:
     Raises
     ------
     ConfigError
-        Naming ``source``, the first offending field (in path order) and the fix.
+        Naming ``source`` and, for up to three problems (in path order), the
+        offending field and the fix.
     """
     import jsonschema
 
@@ -83,14 +82,20 @@ def validate_profiles_doc(doc: Any, *, source: str) -> None:
     errors = sorted(validator.iter_errors(doc), key=lambda e: [str(p) for p in e.absolute_path])
     if not errors:
         return
-    err = errors[0]
-    if err.validator == "propertyNames":
-        field = f"profiles.{err.instance}"
+    problems = [_describe(e) for e in errors[:3]]
+    more = f"; and {len(errors) - 3} more problem(s)" if len(errors) > 3 else ""
+    raise ConfigError(f"{source}: " + "; also ".join(problems) + more)
+
+
+def _describe(err: Any) -> str:
+    if "propertyNames" in err.schema_path:
+        field, fix = f"profiles.{err.instance}", _FIX["propertyNames"]
     else:
         field = _field_path(err)
-    fix = _FIX.get(str(err.validator), "see schemas/energy-profiles.schema.json")
-    more = f" (and {len(errors) - 1} more problem(s))" if len(errors) > 1 else ""
-    raise ConfigError(f"{source}: field {field}: {err.message}; fix: {fix}{more}")
+        fix = _FIX.get(str(err.validator), "see schemas/energy-profiles.schema.json")
+        if len(err.absolute_path) == 0 and err.validator in ("required", "additionalProperties"):
+            fix = "put each profile in a [profiles.NAME] table, as in peers/profiles/example.toml"
+    return f"field {field}: {err.message}; fix: {fix}"
 
 
 def load_profiles(path: str | Path) -> dict[str, Profile]:
