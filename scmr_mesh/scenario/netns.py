@@ -35,6 +35,7 @@ __all__ = [
     "list_namespaces",
     "netem_available",
     "run_cmd",
+    "run_parallel",
 ]
 
 log = logging.getLogger(__name__)
@@ -57,6 +58,35 @@ def run_cmd(argv: Sequence[str]) -> str:
     if p.returncode != 0:
         raise ScenarioError(f"command failed (status {p.returncode}): {' '.join(argv)}: {p.stderr.strip()}")
     return p.stdout
+
+
+def run_parallel(cmds: Sequence[Sequence[str]], *, run: Runner = run_cmd) -> None:
+    """Run independent commands at once (one fault touching many namespaces lands together).
+
+    With the default runner they run as concurrent processes; any other runner
+    is called in order.  Raises :class:`ScenarioError` naming the first failure.
+    """
+    if run is not run_cmd or len(cmds) <= 1:
+        for c in cmds:
+            run(c)
+        return
+    procs = []
+    for c in cmds:
+        try:
+            procs.append((c, subprocess.Popen(list(c), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)))
+        except OSError as exc:
+            raise ScenarioError(f"command failed: {' '.join(c)}: {exc}") from None
+    errors = []
+    for c, p in procs:
+        try:
+            _, err = p.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            _, err = p.communicate()
+        if p.returncode != 0:
+            errors.append(f"{' '.join(c)}: {err.strip()}")
+    if errors:
+        raise ScenarioError(f"{len(errors)} command(s) failed: " + "; ".join(errors))
 
 
 def check_root() -> None:
@@ -196,15 +226,22 @@ class NetnsBackend:
 
     def apply(self, event: Event) -> list[str]:
         """Run the commands of one network event; return notes (e.g. netem skipped)."""
-        if event.op == "netem" and not self.netem:
-            note = (f"{self.scenario.faults[event.fault].label}: skipped, this kernel has no netem qdisc "
-                    "('tc qdisc ... netem' -> 'Specified qdisc kind is unknown')")
-            if note not in self.notes:
-                self.notes.append(note)
-            return [note]
-        for cmd in self.layout.commands(event):
-            self._run(cmd)
-        return []
+        return self.apply_many([event])
+
+    def apply_many(self, events: Sequence[Event]) -> list[str]:
+        """Run the commands of simultaneous network events concurrently; return notes."""
+        notes, cmds = [], []
+        for event in events:
+            if event.op == "netem" and not self.netem:
+                note = (f"{self.scenario.faults[event.fault].label}: skipped, this kernel has no netem qdisc "
+                        "('tc qdisc ... netem' -> 'Specified qdisc kind is unknown')")
+                if note not in self.notes:
+                    self.notes.append(note)
+                notes.append(note)
+                continue
+            cmds += self.layout.commands(event)
+        run_parallel(cmds, run=self._run)
+        return notes
 
     def teardown(self) -> None:
         """Kill what runs in our namespaces and delete them (never raises)."""

@@ -305,6 +305,12 @@ class ProxyBackend:
                 px.set_delay(value)  # type: ignore[arg-type]
         return notes
 
+    def apply_many(self, events: Sequence[Event]) -> list[str]:
+        notes: list[str] = []
+        for e in events:
+            notes += self.apply(e)
+        return notes
+
     def teardown(self) -> None:
         for px in self.proxies.values():
             px.close()

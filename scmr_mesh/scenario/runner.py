@@ -243,6 +243,8 @@ def run_scenario(
         ready.parent.mkdir(parents=True, exist_ok=True)
         if role in ("cloud", "leader"):
             argv = base + [role, "--node", peer] + common(peer, server_opts)
+            if scenario.process:
+                argv += ["--process", scenario.process]
         else:
             r = next(x for x in scenario.robots if x.id == peer)
             argv = base + ["robot", "--id", peer]
@@ -252,6 +254,13 @@ def run_scenario(
                      "--out", str(out_dir / "robots" / f"{peer}{suffix}")]
             if r.profile and "--profile" in robot_opts:
                 argv += ["--profile", r.profile]
+            if r.deadline_ms is not None:
+                argv += ["--deadline-ms", str(r.deadline_ms)]
+            if not r.local_fallback:
+                argv += ["--no-local-fallback"]
+            if scenario.process:
+                argv += ["--process", scenario.process]
+            argv += ["--seed", str(scenario.seed), "--quiet"]
             argv += common(peer, robot_opts)
         argv += ["--ready-file", str(ready)]
         env = {"SCMR_SCENARIO_SEED": str(scenario.seed)}
@@ -280,11 +289,11 @@ def run_scenario(
             t0 = time.time_ns()
             t0_mono = time.monotonic()
             say(f"robots ready; run of {scenario.duration_s:g}s starts (seed {scenario.seed})")
-            for ev in events:
-                delay = t0_mono + ev.at_s - time.monotonic()
+            for batch in _batches(events):
+                delay = t0_mono + batch[0].at_s - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-                _apply(ev, be, sup, names, applied, spec_for, scenario, t0_mono, say)
+                _apply_batch(batch, be, sup, names, applied, spec_for, scenario, t0_mono, say)
             left = t0_mono + scenario.duration_s - time.monotonic()
             if left > 0:
                 time.sleep(left)
@@ -313,30 +322,55 @@ def run_scenario(
                      peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()})
 
 
-def _apply(ev: Event, be, sup, names: dict[str, str], applied: list[AppliedFault], spec_for,
-           scenario: Scenario, t0_mono: float, say: Progress) -> None:
-    af = applied[ev.fault]
-    if ev.op == "kill":
-        t = sup.kill(names[ev.target[0]])
-        say(f"t={time.monotonic() - t0_mono:5.2f}s  SIGKILL {ev.target[0]}")
-    elif ev.op == "start":
-        peer = ev.target[0]
+def _batches(events: list[Event]) -> list[list[Event]]:
+    """Group events due at the same time and of the same kind (network, or each process op)."""
+    out: list[list[Event]] = []
+    for ev in events:
+        net = ev.op not in ("kill", "start")
+        if out and out[-1][0].at_s == ev.at_s and net and out[-1][0].op not in ("kill", "start"):
+            out[-1].append(ev)
+        else:
+            out.append([ev])
+    return out
+
+
+def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: list[AppliedFault], spec_for,
+                 scenario: Scenario, t0_mono: float, say: Progress) -> None:
+    """Apply events due together.
+
+    A fault's start is the time *before* its commands are issued and its end
+    the time *after* the lifting commands completed, so the failover and
+    failback gaps are never flattered by the time the commands take.
+    """
+    ev0 = batch[0]
+    t_before = time.time_ns()
+    if ev0.op == "kill":
+        t_before = sup.kill(names[ev0.target[0]])
+        t_after = t_before
+        say(f"t={time.monotonic() - t0_mono:5.2f}s  SIGKILL {ev0.target[0]}")
+    elif ev0.op == "start":
+        peer = ev0.target[0]
         remaining = scenario.duration_s - (time.monotonic() - t0_mono) if scenario.role(peer) == "robot" else None
         spec = spec_for(peer, remaining_s=remaining)
         proc = sup.start(spec)
         names[peer] = spec.name
-        t = proc.started_unix_ns
+        t_after = proc.started_unix_ns
         say(f"t={time.monotonic() - t0_mono:5.2f}s  restart {peer}")
     else:
-        af.notes.extend(be.apply(ev))
-        t = time.time_ns()
-        say(f"t={time.monotonic() - t0_mono:5.2f}s  {ev.op} {'-'.join(ev.target)}"
-            + (f" -> {ev.value}" if ev.value is not None else ""))
-    if ev.lift:
-        if ev.at_s < scenario.duration_s or af.fault.end_s is not None and af.fault.end_s <= scenario.duration_s:
-            af.end_unix_ns = t
-    elif af.start_unix_ns is None:
-        af.start_unix_ns = t
+        notes = be.apply_many(batch)
+        t_after = time.time_ns()
+        for ev in batch:
+            applied[ev.fault].notes.extend(n for n in notes if n not in applied[ev.fault].notes
+                                           and scenario.faults[ev.fault].label in n)
+        say(f"t={time.monotonic() - t0_mono:5.2f}s  " + ", ".join(
+            f"{ev.op} {'-'.join(ev.target)}" + (f" -> {ev.value}" if ev.value is not None else "") for ev in batch))
+    for ev in batch:
+        af = applied[ev.fault]
+        if ev.lift:
+            if ev.at_s < scenario.duration_s or (af.fault.end_s is not None and af.fault.end_s <= scenario.duration_s):
+                af.end_unix_ns = t_after
+        elif af.start_unix_ns is None:
+            af.start_unix_ns = t_before
 
 
 def _read_records(robots_dir: Path) -> list[dict[str, Any]]:

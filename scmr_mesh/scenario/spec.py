@@ -78,6 +78,8 @@ class RobotSpec:
     image_set: str | None = None
     synthetic: str | None = None
     rate_hz: float = 2.0
+    deadline_ms: int | None = None
+    local_fallback: bool = True
 
 
 @dataclass(frozen=True)
@@ -158,6 +160,7 @@ class Scenario:
     links: tuple[tuple[str, str], ...] = ()
     faults: tuple[Fault, ...] = ()
     expectations: tuple[Expectation, ...] = ()
+    process: str | None = None
     source: str = "<dict>"
 
     @property
@@ -279,7 +282,8 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
             raise _err(source, f"{where}.image_set", f"unknown image set {r['image_set']!r}",
                        f"use one of {sorted(image_sets) or '(none defined)'} or add it under [image_sets]")
         robots.append(RobotSpec(id=r["id"], profile=r.get("profile"), image_set=r.get("image_set"),
-                                synthetic=r.get("synthetic"), rate_hz=float(r.get("rate_hz", 2.0))))
+                                synthetic=r.get("synthetic"), rate_hz=float(r.get("rate_hz", 2.0)),
+                                deadline_ms=r.get("deadline_ms"), local_fallback=bool(r.get("local_fallback", True))))
     names = list(clouds) + [leader] + [r.id for r in robots]
     seen: set[str] = set()
     for n in names:
@@ -351,7 +355,8 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         name=data["name"], seed=int(data["seed"]), duration_s=duration, robots=tuple(robots),
         clouds=clouds, leader=leader, lease_ms=int(data.get("lease_ms", 500)),
         description=data.get("description", ""), image_sets=image_sets, links=links_t,
-        faults=tuple(sorted(faults, key=lambda x: x.at_s)), expectations=expectations, source=source,
+        faults=tuple(sorted(faults, key=lambda x: x.at_s)), expectations=expectations,
+        process=data.get("process"), source=source,
     )
 
 
