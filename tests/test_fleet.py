@@ -1,0 +1,140 @@
+"""Fleet planning, record following, report schema and output (no processes). <1 s."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from scmr_mesh import metrics
+from scmr_mesh.errors import InputError, MeshError
+from scmr_mesh.fleet import (
+    FleetConfig, RecordTail, bench_targets, check_ror, format_summary, parse_outage, plan_fleet,
+    validate_report,
+)
+
+
+def test_plan_wires_robots_to_cloud_and_leader(tmp_path):
+    cfg = FleetConfig(robots=3, duration_s=7, rate_hz=2.5, synthetic=["a", "b"], lease_ms=250,
+                      server_args=["--process", "m:f"])
+    ports = {"cloud": 7001, "leader": 7002, "r1": 7003, "r2": 7004, "r3": 7005}
+    specs = plan_fleet(cfg, tmp_path, ports)
+    assert list(specs) == ["cloud", "leader", "r1", "r2", "r3"]
+    cloud = specs["cloud"].argv
+    assert cloud[cloud.index("--listen") + 1] == "tcp/127.0.0.1:7001"
+    assert cloud[-2:] == ["--process", "m:f"] and "--lease-ms" in cloud
+    r2 = specs["r2"].argv
+    assert r2[r2.index("--listen") + 1] == "tcp/127.0.0.1:7004"
+    connects = [r2[i + 1] for i, a in enumerate(r2) if a == "--connect"]
+    assert connects == ["tcp/127.0.0.1:7001", "tcp/127.0.0.1:7002"]
+    assert r2[r2.index("--synthetic") + 1] == "b"  # kinds dealt round-robin
+    assert specs["r3"].argv[specs["r3"].argv.index("--synthetic") + 1] == "a"
+    assert r2[r2.index("--duration") + 1] == "7" and r2[r2.index("--rate") + 1] == "2.5"
+    assert specs["r2"].log_path == tmp_path / "logs" / "r2.log"
+    assert specs["r2"].ready_file.name == "r2.ready" and str(specs["r2"].ready_file) in r2
+    # every port distinct -> every endpoint distinct
+    eps = {s.argv[s.argv.index("--listen") + 1] for s in specs.values()}
+    assert len(eps) == 5
+
+
+def test_plan_with_images(tmp_path):
+    specs = plan_fleet(FleetConfig(robots=1, images=tmp_path), tmp_path, {"cloud": 1, "leader": 2, "r1": 3})
+    argv = specs["r1"].argv
+    assert argv[argv.index("--images") + 1] == str(tmp_path) and "--synthetic" not in argv
+
+
+@pytest.mark.parametrize("text, want", [("8:14", (8.0, 14.0)), ("0:0.5", (0.0, 0.5))])
+def test_parse_outage(text, want):
+    assert parse_outage(text) == want
+
+
+@pytest.mark.parametrize("text", ["8", "a:b", "5:3", "3:3", "-1:2"])
+def test_parse_outage_rejects(text):
+    with pytest.raises(InputError, match=repr(text).replace("(", r"\(")):
+        parse_outage(text)
+
+
+@pytest.mark.parametrize("kw, msg", [
+    ({"robots": 0}, "--robots must be at least 1, got 0"),
+    ({"duration_s": 0}, "--duration must be positive"),
+    ({"rate_hz": -1}, "--rate must be positive"),
+    ({"cloud_outage": (5, 12), "duration_s": 10}, "got 5:12"),
+])
+def test_config_check(kw, msg):
+    with pytest.raises(InputError, match=msg):
+        FleetConfig(**kw).check()
+
+
+def test_record_tail_reads_only_complete_lines(tmp_path):
+    f = tmp_path / "records.jsonl"
+    tail = RecordTail(f)
+    assert tail.read_new() == []  # not there yet
+    f.write_bytes(b'{"seq": 0}\n{"seq": 1')
+    assert tail.read_new() == [{"seq": 0}]
+    with open(f, "ab") as fh:
+        fh.write(b'}\nnot json\n{"seq": 2}\n')
+    assert tail.read_new() == [{"seq": 1}, {"seq": 2}]
+    assert tail.bad_lines == 1 and tail.read_new() == []
+
+
+T0 = 1_700_000_000_000_000_000
+
+
+def _report():
+    recs = [{"robot": "r1", "seq": i, "sent_unix_ns": T0 + i * 10**8, "received_unix_ns": T0 + i * 10**8 + 5 * 10**6,
+             "tor_ms": 5.0, "ok": True, "tier": "cloud" if i < 5 else "leader"} for i in range(10)]
+    fault = {"kind": "crash", "target": "cloud0", "tier": "cloud", "start_unix_ns": T0 + 450_000_000,
+             "end_unix_ns": None, "robots": None}
+    rep = {"v": 1, "kind": "report", **metrics.summarize(recs, [fault], robots=1),
+           "rate_hz": 10.0, "duration_s": 1.0, "started_unix_ns": T0, "run_dir": "/x"}
+    return rep
+
+
+def test_summary_validates_against_schema_and_prints():
+    rep = _report()
+    validate_report(rep)
+    json.dumps(rep)  # serialisable
+    text = format_summary(rep)
+    assert "r1" in text and "crash cloud0 at 0.45 s, restored never" in text
+    assert "failover gap 5.0 ms" in text  # first leader answer 5 ms after seq 5 was sent at 0.5 s
+
+
+def test_schema_rejects_a_broken_report():
+    rep = _report()
+    del rep["tor_ms"]["p99"]
+    with pytest.raises(MeshError, match="tor_ms.*p99"):
+        validate_report(rep)
+    rep = _report()
+    rep["ror"] = 1.5
+    with pytest.raises(MeshError, match="at ror"):
+        validate_report(rep)
+
+
+def test_check_ror():
+    rep = _report()
+    assert check_ror(rep, 1.0) == 0
+    rep["succeeded"] = 9
+    with pytest.raises(MeshError, match=r"1 of 10 requests failed \(RoR 0.900"):
+        check_ror(rep, 1.0)
+    assert check_ror(rep, 0.9) == 0
+    rep["requests"] = rep["succeeded"] = 0
+    with pytest.raises(MeshError, match="no request finished"):
+        check_ror(rep, 1.0)
+
+
+def test_bench_targets():
+    run4 = {"robots": 4, "rate_hz": 5.0, "tor_ms": {"p50": 10.0, "p99": 60.0}}
+    crash = {"ror": 1.0, "failover_gaps_ms": [20.0], "failback_gaps_ms": [1500.0]}
+    t = bench_targets([run4], crash)
+    assert t["tor_p50_4x5hz_ok"] is True and t["tor_p99_4x5hz_ok"] is False
+    assert t["crash_ror_ok"] and t["failover_ok"] and t["failback_ok"] is False
+    t = bench_targets([], {"ror": 0.99, "failover_gaps_ms": [None], "failback_gaps_ms": []})
+    assert t["tor_p50_4x5hz_ok"] is None and not t["crash_ror_ok"] and not t["failover_ok"] and not t["failback_ok"]
+
+
+def test_schema_file_is_valid_json_schema(repo_root: Path):
+    import jsonschema
+
+    schema = json.loads((repo_root / "schemas" / "report.schema.json").read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
