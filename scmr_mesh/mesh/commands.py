@@ -25,6 +25,7 @@ import logging
 import sys
 import threading
 import time
+from pathlib import Path
 
 from scmr_mesh.errors import InputError
 
@@ -50,6 +51,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
         epilog=_PEER_EPILOG)
     _service_args(p)
     config.add_arguments(p)
+    _data_args(p, "cloud")
     p.set_defaults(func=_cmd_cloud)
 
     p = sub.add_parser(
@@ -62,6 +64,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     _service_args(p)
     _robot_args(p, leader=True)
     config.add_arguments(p)
+    _data_args(p, "leader")
     p.set_defaults(func=_cmd_leader)
 
     p = sub.add_parser(
@@ -77,6 +80,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--ready-file", metavar="PATH", help="written once the robot is connected")
     p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
+    _data_args(p, "robot")
     p.set_defaults(func=_cmd_robot)
 
     p = sub.add_parser(
@@ -124,6 +128,14 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     g.add_argument("--local-fallback", action=argparse.BooleanOptionalAction, default=True,
                    help="run the pipeline on the robot when no tier answers (default on)")
     g.add_argument("--priority", type=int, default=0, help="request priority (willingness to pay), default 0")
+    g.add_argument("--profile", metavar="NAME", default=None,
+                   help="energy profile (leader, robot1..robot4, or from --profiles-file): place each frame on "
+                        "local/cloud/leader by least robot energy within --deadline-ms and record energy_j per "
+                        "request (docs/ENERGY.md)")
+    g.add_argument("--profiles-file", metavar="TOML", default=None,
+                   help="user energy profiles (schemas/energy-profiles.schema.json), used with --profile")
+    g.add_argument("--dvs", action="store_true",
+                   help="with --profile: local runs at the lowest DVS clock that meets the deadline")
     if not leader:
         g.add_argument("--mode", choices=("best", "thesis"), default="best", help="pipeline mode (default best)")
         g.add_argument("--process", default=None, metavar="MODULE:FUNC",
@@ -162,7 +174,8 @@ def _cmd_cloud(args) -> int:
 
     _setup_logging(args)
     return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
-                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file)
+                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file,
+                       setup=_data_setup(args, "cloud"))
 
 
 def _cmd_leader(args) -> int:
@@ -180,7 +193,8 @@ def _cmd_leader(args) -> int:
             return _robot_body(args, session, stop)
 
     return run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
-                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body)
+                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
+                       setup=_data_setup(args, "leader"))
 
 
 def _cmd_robot(args) -> int:
@@ -213,9 +227,13 @@ def _robot_body(args, session, stop: threading.Event) -> int:
     opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
                         priority=args.priority, mode=args.mode or "best",
                         process=getattr(args, "process", None) or DEFAULT_PROCESS)
+    profile = _energy_profile(args)
     robot = Robot(args.id, args.out, options=opts)
+    placer = _energy_placer(args, robot, profile)
+    agent = None
     try:
         robot.attach(session)
+        agent = _data_agent(robot, args)
         if opts.local_fallback:
             robot.warm_local()
         if getattr(args, "ready_file", None) and not hasattr(args, "node"):
@@ -223,6 +241,7 @@ def _robot_body(args, session, stop: threading.Event) -> int:
                                           "keys": []})
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
             log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
+        robot.prepare()
         last = [0.0]
 
         def progress(rec):
@@ -238,9 +257,56 @@ def _robot_body(args, session, stop: threading.Event) -> int:
         stats = robot.run(frames, rate_hz=args.rate, count=args.count, duration_s=args.duration, stop=stop,
                           progress=progress)
     finally:
+        if agent is not None:  # drain, write OUT/telemetry.json, keep the rest queued on disk
+            agent.close(summary_path=Path(args.out) / "telemetry.json")
         robot.close()
-    print(json.dumps({"robot": args.id, **stats}), flush=True)
+    extra = {"energy": placer.summary()} if placer is not None else {}
+    print(json.dumps({"robot": args.id, **stats, **extra}), flush=True)
     return 0
+
+
+def _energy_profile(args):
+    """The --profile energy profile (validated before anything starts), or None."""
+    if not getattr(args, "profile", None):
+        if getattr(args, "profiles_file", None) or getattr(args, "dvs", False):
+            raise InputError("--profiles-file and --dvs only apply with --profile NAME; add --profile")
+        return None
+    from scmr_mesh.energy import get_profile
+
+    return get_profile(args.profile, profiles_file=args.profiles_file)
+
+
+def _energy_placer(args, robot, profile):
+    """Install the energy policy as the robot's placement and record annotator."""
+    if profile is None:
+        return None
+    from scmr_mesh.energy.live import EnergyPlacer
+
+    placer = EnergyPlacer(profile, robot_id=robot.id, deadline_s=robot.options.deadline_ms / 1e3, dvs=args.dvs)
+    robot.placement = placer
+    robot.annotators.append(placer.annotate)
+    return placer
+
+
+def _data_args(p: argparse.ArgumentParser, role: str) -> None:
+    """The data tier's flags (ODS, sync period, telemetry queue): scmr_mesh.mesh.data_service."""
+    from scmr_mesh.mesh.data_service import add_arguments
+
+    add_arguments(p, role)
+
+
+def _data_setup(args, tier: str):
+    """Service setup hook installing the data tier (telemetry store, data buffer, leader sync)."""
+    from scmr_mesh.mesh.data_service import service_setup
+
+    return service_setup(args, tier)
+
+
+def _data_agent(robot, args):
+    """Queue the robot's telemetry on disk until a tier stores it (data_service.TelemetryAgent)."""
+    from scmr_mesh.mesh.data_service import attach_robot
+
+    return attach_robot(robot, args)
 
 
 def _cmd_router(args) -> int:

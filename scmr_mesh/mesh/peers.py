@@ -130,13 +130,14 @@ def run_service(
         session = open_session(mesh)
         svc.attach(session)
         write_ready(ready_file, {"role": tier, "node": node, "zid": str(session.info.zid()),
-                                 "keys": [svc.key, keys.alive(tier, node)]})
+                                 "keys": [svc.key, keys.alive(tier, node)], "workers": svc.worker_pids})
         log.info("%s %s ready (zid %s)", tier, node, session.info.zid())
         if robot_body is not None:
             rc = int(robot_body(session, stop.event) or 0)
         else:
             stop.event.wait()
     finally:
+        log.info("%s %s stopping", tier, node)
         svc.detach()
         if session is not None:
             close_session(session)

@@ -42,10 +42,20 @@ def stub_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> d
     }
 
 
+def _warm_stub() -> None:
+    stub_process(synthetic_png(0), encoding="png", shape=None)
+
+
+stub_process.warm_up = _warm_stub  # type: ignore[attr-defined]
+
+
 def slow_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> dict:
     """:func:`stub_process` after a sleep of ``SCMR_STUB_DELAY_MS`` ms (default 200)."""
     time.sleep(float(os.environ.get("SCMR_STUB_DELAY_MS", "200")) / 1e3)
     return stub_process(image, encoding=encoding, shape=shape, mode=mode)
+
+
+slow_process.warm_up = _warm_stub  # type: ignore[attr-defined]
 
 
 def synthetic_png(seed: int = 0, *, height: int = 120, width: int = 160) -> bytes:
@@ -58,3 +68,81 @@ def synthetic_png(seed: int = 0, *, height: int = 120, width: int = 160) -> byte
     img[height // 2:, width // 4: 3 * width // 4] = 150 + rng.integers(0, 20, dtype=np.uint8)
     ok, buf = cv2.imencode(".png", img)
     return buf.tobytes()
+
+
+# ------------------------------------------------------------ processes
+STUB = "scmr_mesh.mesh.testing:stub_process"
+SLOW = "scmr_mesh.mesh.testing:slow_process"
+
+
+def spawn_peer(args: list[str], *, log_path, env: dict | None = None):
+    """Start ``python -m scmr_mesh ARGS`` in its own process group, logging to ``log_path``.
+
+    Returns the :class:`subprocess.Popen`; stop it with :func:`stop_peer`.
+    """
+    import subprocess
+    import sys
+
+    full_env = dict(os.environ)
+    full_env.pop("RUST_LOG", None)
+    full_env.update(env or {})
+    log = open(log_path, "ab")
+    try:
+        return subprocess.Popen([sys.executable, "-m", "scmr_mesh", *args], stdout=log, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env=full_env, start_new_session=True)
+    finally:
+        log.close()
+
+
+def stop_peer(proc, *, sig: int | None = None, timeout: float = 10.0) -> int | None:
+    """Signal a peer's process group (SIGTERM by default), wait, SIGKILL if needed; return its status."""
+    import signal
+    import subprocess
+
+    sig = signal.SIGTERM if sig is None else sig
+    if proc.poll() is None:
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            pass
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        return proc.wait(timeout=5)
+    finally:
+        try:  # leftovers of the group (workers) when only the leader died
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def wait_for(predicate, *, timeout: float = 20.0, interval: float = 0.05, what: str = "condition") -> None:
+    """Poll ``predicate()`` until true; raise TimeoutError naming ``what``."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(interval)
+    raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+
+
+def read_records(path) -> list[dict]:
+    """The records of a robot's ``records.jsonl`` (complete lines only)."""
+    import json
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.exists():
+        return []
+    out = []
+    for line in p.read_text().splitlines():
+        if line.strip():
+            try:
+                out.append(json.loads(line))
+            except ValueError:
+                break
+    return out

@@ -1,0 +1,200 @@
+"""Real cloud / leader / robot processes on loopback (multicast off, free ports).
+
+Services run the stub process function (scmr_mesh.mesh.testing), so these
+tests exercise the mesh, not the pipeline.  About 30-40 s on a 2-core box.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import free_port
+from scmr_mesh.mesh.testing import SLOW, STUB, read_records, spawn_peer, stop_peer, wait_for
+
+LEASE = "300"
+
+
+class Fleet:
+    """Start peers, remember them, stop them all at the end (also on failure)."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: dict[str, object] = {}
+
+    def service(self, role: str, node: str, port: int, *, connect=(), process=STUB, extra=(), env=None, wait=True):
+        ready = self.tmp / f"{node}.ready"
+        args = [role, "--node", node, "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+                "--process", process, "--lease-ms", LEASE, "--ready-file", str(ready), *extra]
+        for ep in connect:
+            args += ["--connect", ep]
+        p = spawn_peer(args, log_path=self.tmp / f"{node}.log", env=env)
+        self.procs[node] = p
+        if wait:
+            wait_for(lambda: ready.exists() or p.poll() is not None, timeout=30, what=f"{node} ready")
+            assert p.poll() is None, (self.tmp / f"{node}.log").read_text()
+        return p
+
+    def robot(self, rid: str, connect, *, extra=()):
+        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / rid), "--process", STUB,
+                "--lease-ms", LEASE, *extra]
+        for ep in connect:
+            args += ["--connect", ep]
+        p = spawn_peer(args, log_path=self.tmp / f"{rid}.log")
+        self.procs[rid] = p
+        return p
+
+    def records(self, rid: str) -> list[dict]:
+        return read_records(self.tmp / rid / "records.jsonl")
+
+    def log(self, name: str) -> str:
+        return (self.tmp / f"{name}.log").read_text(errors="replace")
+
+    def stop_all(self) -> None:
+        for p in self.procs.values():
+            stop_peer(p, timeout=5)
+
+
+@pytest.fixture
+def fleet(tmp_path):
+    f = Fleet(tmp_path)
+    try:
+        yield f
+    finally:
+        f.stop_all()
+
+
+def _ep(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie is dead for our purposes
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def test_normal_service_and_leader_crash_has_no_effect(fleet):
+    cp, lp = free_port(), free_port()
+    fleet.service("cloud", "c1", cp)
+    leader = fleet.service("leader", "L1", lp, connect=[_ep(cp)])
+    robot = fleet.robot("r1", [_ep(cp), _ep(lp)], extra=["--count", "30", "--rate", "25"])
+    wait_for(lambda: len(fleet.records("r1")) >= 8, what="8 records")
+    stop_peer(leader, sig=signal.SIGKILL)
+    assert robot.wait(timeout=30) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert [r["seq"] for r in recs] == list(range(30))
+    assert all(r["ok"] and r["tier"] == "cloud" and r["served_by"] == "c1" for r in recs)
+    for r in recs:
+        assert r["sent_unix_ns"] <= r["received_unix_ns"]
+        assert r["bytes_up"] > 0 and r["bytes_down"] > 0 and r["tor_ms"] > 0
+        assert [a["outcome"] for a in r["attempts"]] == ["ok"]
+        assert (fleet.tmp / "r1" / "inbox" / f"{r['seq']}.mask.png").exists()
+    assert list((fleet.tmp / "r1" / "outbox").iterdir()) == []
+    summary = json.loads(fleet.log("r1").strip().splitlines()[-1])
+    assert summary["succeeded"] == 30 and summary["by_tier"]["cloud"] == 30
+
+
+def test_cloud_sigkill_and_restart_every_request_answered(fleet):
+    cp, lp = free_port(), free_port()
+    # a slow cloud keeps requests in flight, so the kill lands mid-request
+    env = {"SCMR_STUB_DELAY_MS": "60"}
+    cloud = fleet.service("cloud", "c1", cp, process=SLOW, env=env)
+    workers = json.loads((fleet.tmp / "c1.ready").read_text())["workers"]
+    fleet.service("leader", "L1", lp, connect=[_ep(cp)])
+    robot = fleet.robot("r1", [_ep(cp), _ep(lp)], extra=["--count", "45", "--rate", "12", "--deadline-ms", "2000"])
+    wait_for(lambda: len(fleet.records("r1")) >= 8, what="8 records before the crash")
+    os.kill(cloud.pid, signal.SIGKILL)  # the service process only: its workers must die with it
+    cloud.wait(timeout=5)
+    t_kill = time.time_ns()
+    wait_for(lambda: not any(_pid_alive(p) for p in workers), timeout=5, what="cloud workers to exit")
+    wait_for(lambda: len(fleet.records("r1")) >= 20, what="records during the outage")
+    (fleet.tmp / "c1.ready").unlink(missing_ok=True)
+    fleet.service("cloud", "c1", cp, process=SLOW, env=env)
+    assert robot.wait(timeout=60) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert len(recs) == 45
+    assert all(r["ok"] for r in recs), [r for r in recs if not r["ok"]]
+    tiers = [r["tier"] for r in recs]
+    assert set(tiers) <= {"cloud", "leader"}
+    assert tiers[:5] == ["cloud"] * 5
+    assert "leader" in tiers
+    assert tiers[-5:] == ["cloud"] * 5  # failback
+    after = [r for r in recs if r["sent_unix_ns"] > t_kill + 50_000_000]
+    first_cloud_again = next(i for i, r in enumerate(after) if r["tier"] == "cloud")
+    assert all(r["tier"] == "leader" for r in after[:first_cloud_again])
+    # no request after the crash waited for the deadline: failover is driven by liveliness
+    assert all(a["outcome"] != "timeout" for r in recs for a in r["attempts"])
+
+
+def test_both_tiers_down_gives_explicit_failures_without_hanging(fleet):
+    port = free_port()  # nobody listens there
+    robot = fleet.robot("r1", [_ep(port)], extra=["--count", "3", "--rate", "20", "--wait-ms", "100",
+                                                 "--no-local-fallback"])
+    assert robot.wait(timeout=30) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert len(recs) == 3
+    assert all(not r["ok"] and r["tier"] is None and r["served_by"] is None and r["error"] for r in recs)
+    assert list((fleet.tmp / "r1" / "inbox").iterdir()) == []
+
+
+def test_local_fallback_when_no_tier(fleet):
+    port = free_port()
+    robot = fleet.robot("r1", [_ep(port)], extra=["--count", "2", "--wait-ms", "100"])
+    assert robot.wait(timeout=30) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert [(r["ok"], r["tier"], r["served_by"]) for r in recs] == [(True, "local", "r1")] * 2
+
+
+def test_robot_started_before_the_cloud(fleet):
+    cp = free_port()
+    robot = fleet.robot("r1", [_ep(cp)], extra=["--count", "5", "--rate", "20", "--wait-ms", "20000",
+                                               "--no-local-fallback"])
+    time.sleep(1.0)
+    assert robot.poll() is None
+    fleet.service("cloud", "c1", cp)
+    assert robot.wait(timeout=30) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert [(r["ok"], r["tier"]) for r in recs] == [(True, "cloud")] * 5
+
+
+def test_redundant_mode_and_two_cloud_nodes(fleet):
+    c1, c2, lp = free_port(), free_port(), free_port()
+    fleet.service("cloud", "c1", c1)
+    fleet.service("cloud", "c2", c2, connect=[_ep(c1)])
+    fleet.service("leader", "L1", lp, connect=[_ep(c1), _ep(c2)])
+    ends = [_ep(c1), _ep(c2), _ep(lp)]
+    spread = fleet.robot("r1", ends, extra=["--count", "20", "--rate", "40"])
+    red = fleet.robot("r2", ends, extra=["--count", "6", "--rate", "20", "--redundant"])
+    assert spread.wait(timeout=30) == 0, fleet.log("r1")
+    assert red.wait(timeout=30) == 0, fleet.log("r2")
+    served = {r["served_by"] for r in fleet.records("r1")}
+    assert served == {"c1", "c2"}
+    for r in fleet.records("r2"):
+        assert r["ok"]
+        assert sorted(a["tier"] for a in r["attempts"]) == ["cloud", "leader"]
+        winner = [a for a in r["attempts"] if a["outcome"] == "ok"]
+        assert len(winner) == 1 and winner[0]["tier"] == r["tier"]
+    single = fleet.records("r1")[0]["bytes_up"]
+    assert all(r["bytes_up"] > 1.5 * single for r in fleet.records("r2"))
+
+
+def test_sigterm_stops_peers_cleanly(fleet):
+    cp = free_port()
+    cloud = fleet.service("cloud", "c1", cp)
+    robot = fleet.robot("r1", [_ep(cp)], extra=["--rate", "10"])
+    wait_for(lambda: len(fleet.records("r1")) >= 2, what="2 records")
+    assert stop_peer(robot) == 0
+    assert stop_peer(cloud) == 0
+    assert not (fleet.tmp / "c1.ready").exists()
+    assert "Traceback" not in fleet.log("c1") + fleet.log("r1")
