@@ -1,0 +1,276 @@
+"""Break-in attempts against an authenticated mesh, with real peer processes.
+
+Each peer is this file run as a script (``python test_security_mesh.py agent ...``): a
+Zenoh peer that joins with a security profile, serves / subscribes / publishes / queries
+as told and prints JSON lines.  One scenario runs a cloud, an honest robot, a rogue robot
+(valid robot certificate, declares drivable queryables and a fake cloud liveliness token)
+and two strangers (plain TCP; TLS with a certificate from another CA that claims to be
+``robot1``), all at once; the tests check what each saw.  The same scenario without ACL
+is the control: there the rogue's attacks work, so these tests can fail.
+
+About 8 s in total.  Run alone with ``pytest -m security``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conftest import free_port  # noqa: E402
+
+pytestmark = pytest.mark.security
+
+HERE = Path(__file__).resolve()
+
+
+# ----------------------------------------------------------------------------- agent
+def agent(argv: list[str]) -> int:
+    """A scripted peer (runs in its own process)."""
+    import argparse
+    import threading
+
+    import zenoh
+
+    from scmr_mesh.mesh.security import secure_config
+    from scmr_mesh.security.profile import SecurityProfile
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--kind", default="tls")
+    ap.add_argument("--creds")
+    ap.add_argument("--acl", action="store_true")
+    ap.add_argument("--id", required=True)
+    ap.add_argument("--listen", action="append", default=[])
+    ap.add_argument("--connect", action="append", default=[])
+    ap.add_argument("--serve", action="append", default=[])
+    ap.add_argument("--sub", action="append", default=[])
+    ap.add_argument("--pub", action="append", default=[])
+    ap.add_argument("--query", action="append", default=[])
+    ap.add_argument("--token", action="append", default=[])
+    ap.add_argument("--alive", default=None, help="liveliness key expr to list")
+    ap.add_argument("--delay", type=float, default=0.0)
+    ap.add_argument("--duration", type=float, default=2.0)
+    a = ap.parse_args(argv)
+    lock = threading.Lock()
+
+    def out(**kw):
+        with lock:
+            print(json.dumps(kw), flush=True)
+
+    prof = None if a.kind == "none" else SecurityProfile(kind=a.kind, credentials=Path(a.creds), acl=a.acl)
+    conf = secure_config(prof, identity=a.id, listen=a.listen, connect=a.connect, lease_ms=1000)
+    with zenoh.open(conf) as s:
+        keep = []
+        for k in a.serve:
+            keep.append(s.declare_queryable(
+                k, lambda q: q.reply(q.key_expr, f"served-by-{a.id}".encode()), complete=True))
+        for k in a.sub:
+            keep.append(s.declare_subscriber(
+                k, lambda smp: out(ev="sample", key=str(smp.key_expr),
+                                   payload=smp.payload.to_bytes().decode())))
+        for k in a.token:
+            keep.append(s.liveliness().declare_token(k))
+        out(ev="ready")
+        time.sleep(a.delay)
+        out(ev="peers", n=len(list(s.info.peers_zid())))
+        if a.alive:
+            out(ev="alive", keys=sorted(str(r.ok.key_expr) for r in s.liveliness().get(a.alive, timeout=1.0) if r.ok))
+        t_end = time.time() + a.duration
+        while time.time() < t_end:
+            for k in a.pub:
+                s.put(k, f"from-{a.id}")
+            for k in a.query:
+                res = [r.ok.payload.to_bytes().decode() if r.ok else "ERR" for r in s.get(k, timeout=0.5)]
+                out(ev="reply", key=k, replies=res)
+            time.sleep(0.15)
+        out(ev="done")
+    return 0
+
+
+# ----------------------------------------------------------------------------- harness
+def _start(args: list[str]) -> subprocess.Popen:
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)
+    return subprocess.Popen(
+        [sys.executable, str(HERE), "agent", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        start_new_session=True, env=env,
+    )
+
+
+def _events(proc: subprocess.Popen, timeout: float) -> list[dict]:
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, _ = proc.communicate()
+    evs = []
+    for line in out.splitlines():
+        try:
+            evs.append(json.loads(line))
+        except ValueError:
+            pass
+    return evs
+
+
+def _run_scenario(creds: Path, other_ca: Path, *, acl: bool) -> dict[str, list[dict]]:
+    """Cloud + robot1 + rogue + two strangers, concurrently; returns each one's events."""
+    pc, pr, prg = free_port(), free_port(), free_port()
+    cloud_ep, robot_ep, rogue_ep = (f"tcp/127.0.0.1:{p}" for p in (pc, pr, prg))
+    base = ["--creds", str(creds)] + (["--acl"] if acl else [])
+    procs: dict[str, subprocess.Popen] = {}
+    try:
+        procs["cloud"] = _start(base + [
+            "--id", "cloud", "--listen", cloud_ep, "--serve", "scmr/drivable/cloud/cloud",
+            "--sub", "scmr/telemetry/*", "--token", "scmr/alive/cloud/cloud", "--duration", "4.2"])
+        time.sleep(0.3)
+        procs["rogue"] = _start(base + [
+            "--id", "rogue", "--listen", rogue_ep, "--connect", cloud_ep, "--connect", robot_ep,
+            "--serve", "scmr/drivable/leader/leader", "--serve", "scmr/drivable/cloud/cloud",
+            "--token", "scmr/alive/cloud/fake", "--sub", "scmr/telemetry/*",
+            "--pub", "scmr/telemetry/robot1", "--delay", "0.5", "--duration", "3.0"])
+        procs["robot1"] = _start(base + [
+            "--id", "robot1", "--listen", robot_ep, "--connect", cloud_ep, "--connect", rogue_ep,
+            "--pub", "scmr/telemetry/robot1", "--pub", "scmr/telemetry/robot2",
+            "--query", "scmr/drivable/cloud/cloud", "--query", "scmr/drivable/leader/leader",
+            "--alive", "scmr/alive/**", "--delay", "1.2", "--duration", "1.5"])
+        # strangers: no TLS at all; TLS with a certificate from another CA (CN robot1)
+        procs["plain"] = _start([
+            "--kind", "none", "--id", "plain", "--connect", cloud_ep, "--connect", robot_ep,
+            "--pub", "scmr/telemetry/robot1", "--query", "scmr/drivable/cloud/cloud",
+            "--delay", "1.0", "--duration", "1.0"])
+        procs["forged"] = _start([
+            "--creds", str(other_ca), "--id", "robot1", "--connect", cloud_ep, "--connect", robot_ep,
+            "--pub", "scmr/telemetry/robot2", "--query", "scmr/drivable/cloud/cloud",
+            "--delay", "1.0", "--duration", "1.0"])
+        return {name: _events(p, timeout=15) for name, p in procs.items()}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+
+
+@pytest.fixture(scope="module")
+def credentials(tmp_path_factory):
+    from scmr_mesh.security.credentials import create_credentials
+
+    d = tmp_path_factory.mktemp("creds")
+    create_credentials(d / "fleet", "cloud,leader,robot1,robot2,rogue")
+    create_credentials(d / "other", "cloud,robot1,robot2")  # a different CA
+    return d / "fleet", d / "other"
+
+
+@pytest.fixture(scope="module")
+def secured(credentials):
+    return _run_scenario(*credentials, acl=True)
+
+
+@pytest.fixture(scope="module")
+def control(credentials):
+    return _run_scenario(*credentials, acl=False)
+
+
+def _replies(evs, key):
+    return [r for e in evs if e["ev"] == "reply" and e["key"] == key for r in e["replies"]]
+
+
+def _samples(evs):
+    return [(e["key"], e["payload"]) for e in evs if e["ev"] == "sample"]
+
+
+def _peers(evs):
+    return [e["n"] for e in evs if e["ev"] == "peers"]
+
+
+# ----------------------------------------------------------------------------- tests
+def test_credentialed_robot_is_served(secured):
+    got = _replies(secured["robot1"], "scmr/drivable/cloud/cloud")
+    assert got and set(got) == {"served-by-cloud"}
+    assert ("scmr/telemetry/robot1", "from-robot1") in _samples(secured["cloud"])
+
+
+@pytest.mark.parametrize("stranger", ["plain", "forged"])
+def test_peer_without_credentials_cannot_join(secured, stranger):
+    evs = secured[stranger]
+    assert _peers(evs) == [0], f"{stranger} joined the mesh: {evs}"
+    assert _replies(evs, "scmr/drivable/cloud/cloud") == []
+    assert f"from-{stranger}" not in [p for _, p in _samples(secured["cloud"])]
+    # the forged peer claims to be robot1 and publishes robot2's telemetry: never seen
+    assert ("scmr/telemetry/robot2", "from-robot1") not in _samples(secured["cloud"])
+
+
+def test_robot_cannot_publish_another_robots_telemetry(secured, control):
+    keys = {k for k, p in _samples(secured["cloud"]) if p == "from-robot1"}
+    assert keys == {"scmr/telemetry/robot1"}
+    # the rogue (a valid robot identity) publishing robot1's telemetry is dropped too
+    assert ("scmr/telemetry/robot1", "from-rogue") not in _samples(secured["cloud"])
+    # control: without ACL the spoofed telemetry arrives, so the check above can fail
+    assert ("scmr/telemetry/robot2", "from-robot1") in _samples(control["cloud"])
+
+
+def test_robot_cannot_read_other_robots_telemetry(secured, control):
+    assert [s for s in _samples(secured["rogue"]) if s[1] == "from-robot1"] == []
+    assert [s for s in _samples(control["rogue"]) if s[1] == "from-robot1"] != []
+
+
+def test_rogue_drivable_queryable_never_answers(secured, control):
+    robot = secured["robot1"]
+    assert _peers(robot) == [2]  # the rogue holds a valid certificate and is connected
+    assert _replies(robot, "scmr/drivable/leader/leader") == []
+    assert "served-by-rogue" not in _replies(robot, "scmr/drivable/cloud/cloud")
+    # control: without ACL the rogue answers the robot
+    assert "served-by-rogue" in _replies(control["robot1"], "scmr/drivable/leader/leader")
+
+
+def test_rogue_cannot_fake_a_cloud_liveliness_token(secured, control):
+    alive = [e["keys"] for e in secured["robot1"] if e["ev"] == "alive"]
+    assert alive == [["scmr/alive/cloud/cloud"]]
+    alive_ctl = [e["keys"] for e in control["robot1"] if e["ev"] == "alive"]
+    assert "scmr/alive/cloud/fake" in alive_ctl[0]
+
+
+def test_usrpwd_keeps_out_peers_without_password(credentials, tmp_path):
+    creds, _ = credentials
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    procs = {}
+    try:
+        procs["cloud"] = _start(["--kind", "usrpwd", "--creds", str(creds), "--id", "cloud",
+                                 "--listen", ep, "--serve", "scmr/drivable/cloud/cloud", "--duration", "2.5"])
+        time.sleep(0.3)
+        procs["robot1"] = _start(["--kind", "usrpwd", "--creds", str(creds), "--id", "robot1",
+                                  "--connect", ep, "--query", "scmr/drivable/cloud/cloud",
+                                  "--delay", "0.5", "--duration", "0.6"])
+        procs["none"] = _start(["--kind", "none", "--id", "x", "--connect", ep,
+                                "--query", "scmr/drivable/cloud/cloud", "--delay", "0.5", "--duration", "0.6"])
+        # robot2's name with robot1's password
+        wrong = tmp_path / "wrong"
+        import shutil
+        shutil.copytree(creds, wrong)
+        (wrong / "robot2" / "password").write_text((creds / "robot1" / "password").read_text())
+        procs["wrong"] = _start(["--kind", "usrpwd", "--creds", str(wrong), "--id", "robot2",
+                                 "--connect", ep, "--query", "scmr/drivable/cloud/cloud",
+                                 "--delay", "0.5", "--duration", "0.6"])
+        evs = {k: _events(p, timeout=10) for k, p in procs.items()}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+    assert _peers(evs["robot1"]) == [1]
+    assert "served-by-cloud" in _replies(evs["robot1"], "scmr/drivable/cloud/cloud")
+    for k in ("none", "wrong"):
+        assert _peers(evs[k]) == [0], k
+        assert _replies(evs[k], "scmr/drivable/cloud/cloud") == [], k
+
+
+if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "agent":
+    sys.exit(agent(sys.argv[2:]))
