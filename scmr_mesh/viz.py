@@ -590,13 +590,27 @@ class _Viz:
     """Shared fleet-level logging (liveliness, faults, text)."""
 
     _stream: _Stream
+    _alive: dict[str, bool]
+
+    def _step_series(self, entity: str, name: str) -> None:
+        """Declare ``entity`` a step-shaped series (once per process)."""
+        s = self._stream
+        if entity not in self._alive:
+            s.rec.log(
+                entity,
+                s.rr.SeriesLines(names=name, interpolation_mode="StepAfter", aggregation_policy="Off"),
+                static=True,
+            )
+            self._alive[entity] = True
 
     def log_alive(self, role: str, node: str, alive: bool, *, t_unix_ns: int | None = None) -> None:
-        """Log that ``node`` (cloud, leader or robot) is alive (1) or gone (0)."""
+        """Log that ``node`` (cloud, leader or robot) is alive (1) or gone (0), as a step."""
         s = self._stream
+        key = keys.alive(role, node)
         with s._lock:
+            self._step_series(key, f"{node} alive")
             s.at(t_unix_ns)
-            s.rec.log(keys.alive(role, node), s.rr.Scalars(1.0 if alive else 0.0))
+            s.rec.log(key, s.rr.Scalars(1.0 if alive else 0.0))
 
     def log_fault(self, fault: Mapping[str, Any]) -> None:
         """Log a scenario fault as a step (1 while on) and start/end markers.
@@ -609,6 +623,7 @@ class _Viz:
         kind = str(fault.get("kind", "fault"))
         entity = f"{FAULTS}/{target}"
         with s._lock:
+            self._step_series(entity, f"fault: {kind} {target}")
             s.at(fault.get("start_unix_ns"))
             s.rec.log(entity, rr.Scalars(1.0))
             s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} starts", level="WARN"))
@@ -656,15 +671,16 @@ class RobotViz(_Viz):
         self.image_every = int(image_every)
         self.jpeg_quality = int(jpeg_quality)
         self._stream = _Stream(options)
+        self._alive = {}
         self._n = 0
         self._ok = 0
         self.camera = f"{ROBOT_ROOT}/{self.robot}/camera"
         self.results = f"{keys.RESULTS}/{self.robot}"
         self.telemetry = f"{keys.TELEMETRY}/{self.robot}"
         rr, rec = self._stream.rr, self._stream.rec
-        rec.log(f"{self.results}/tor_ms", rr.SeriesLines(names="ToR (ms)"), static=True)
-        rec.log(f"{self.results}/tier", rr.SeriesPoints(names="tier (2 cloud, 1 leader, 0 local, -1 failed)"), static=True)
-        rec.log(f"{self.results}/ror", rr.SeriesLines(names="RoR"), static=True)
+        rec.log(f"{self.results}/tor_ms", rr.SeriesLines(names=f"{self.robot} ToR (ms)"), static=True)
+        rec.log(f"{self.results}/tier", rr.SeriesPoints(names=f"{self.robot} tier"), static=True)
+        rec.log(f"{self.results}/ror", rr.SeriesLines(names=f"{self.robot} RoR"), static=True)
 
     def observe(self, record: Mapping[str, Any], rgb: np.ndarray | None = None, mask: np.ndarray | None = None, *, srm: np.ndarray | None = None) -> None:
         """Log one finished request (usable as ``robot.add_observer(viz.observe)``).
@@ -725,7 +741,11 @@ class RobotViz(_Viz):
         if mask is not None:
             s.rec.log(f"{self.camera}/drivable", rr.SegmentationImage(classes, opacity=0.5))
         if srm is not None:
-            s.rec.log(f"{ROBOT_ROOT}/{self.robot}/srm", rr.Image(_rgb(srm, None)))
+            import cv2
+
+            ok, jpg = cv2.imencode(".jpg", _rgb(srm, None)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
+            if ok:
+                s.rec.log(f"{ROBOT_ROOT}/{self.robot}/srm", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
 
     def log_telemetry(self, *, battery: float | None = None, energy_j: float | None = None, t_unix_ns: int | None = None) -> None:
         """Log battery level and/or energy outside a request."""
@@ -769,6 +789,7 @@ class FleetViz(_Viz):
             self._sink.close()
             raise
         self.robots = [keys.check_name(r, what="robot id") for r in robots]
+        self._alive = {}
         self._n = 0
         self._ok = 0
         rr = self._stream.rr
@@ -798,13 +819,24 @@ class FleetViz(_Viz):
         overlays = [rrb.Spatial2DView(origin=f"{ROBOT_ROOT}/{r}/camera", name=r) for r in robots]
         if not overlays:
             overlays = [rrb.Spatial2DView(origin=ROBOT_ROOT, name="robots")]
+        def per_robot(leaf: str) -> list[str]:
+            if robots:
+                return [f"{keys.RESULTS}/{r}/{leaf}" for r in robots]
+            return [f"{keys.RESULTS}/**"]
+
         plots = rrb.Horizontal(
-            rrb.TimeSeriesView(origin=keys.RESULTS, contents=f"{keys.RESULTS}/*/tor_ms", name="ToR (ms)"),
-            rrb.TimeSeriesView(origin=keys.RESULTS, contents=f"{keys.RESULTS}/*/tier", name="tier (2 cloud, 1 leader, 0 local)"),
+            rrb.TimeSeriesView(origin=keys.RESULTS, contents=per_robot("tor_ms"), name="ToR (ms)"),
+            rrb.TimeSeriesView(
+                origin=keys.RESULTS,
+                contents=per_robot("tier"),
+                name="tier (2 cloud, 1 leader, 0 local, -1 failed)",
+                axis_y=rrb.ScalarAxis(range=(-1.3, 2.3)),
+            ),
             rrb.TimeSeriesView(
                 origin=keys.ROOT,
-                contents=[f"{keys.ALIVE}/**", f"{FAULTS}/**", f"{FLEET}/ror", f"{keys.TELEMETRY}/*/battery"],
-                name="alive / faults / RoR",
+                contents=[f"{keys.ALIVE}/**", f"{FAULTS}/**", f"{FLEET}/ror"],
+                name="alive / faults / fleet RoR",
+                axis_y=rrb.ScalarAxis(range=(-0.1, 1.1)),
             ),
         )
         logs = rrb.TextLogView(origin=keys.ROOT, name="events")
@@ -912,4 +944,90 @@ def rrd_rows(path: str | os.PathLike) -> dict[str, dict[str, int]]:
         for col in cols.split():
             comp = col.split("@", 1)[-1]
             comps[comp] = comps.get(comp, 0) + rows
+    return out
+
+
+# --------------------------------------------------------------------------
+# looking at recordings
+
+
+def _use_rerun_env_here() -> None:
+    """Point this process's XDG dirs at :func:`state_dir` (for viewers rerun spawns itself)."""
+    env = rerun_env()
+    os.environ["XDG_CONFIG_HOME"] = env["XDG_CONFIG_HOME"]
+    os.environ["XDG_DATA_HOME"] = env["XDG_DATA_HOME"]
+
+
+def screenshot(
+    path: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    settle: float = 6.0,
+    max_size: int | None = None,
+    port: int | None = None,
+) -> Path:
+    """Render a ``.rrd`` in rerun's headless native viewer and save a PNG.
+
+    Needs a Vulkan driver (Debian: ``apt-get install -y mesa-vulkan-drivers``,
+    the lavapipe software renderer); without one the viewer panics with
+    "Failed to get render context".  Meant for the CLI (``scmr view
+    --screenshot``): it points this process's XDG dirs at :func:`state_dir`.
+
+    Parameters
+    ----------
+    path : path-like
+        The recording.
+    out : path-like
+        PNG to write.
+    settle : float
+        Seconds to wait after opening (chunks load lazily).
+    max_size : int, optional
+        Longest side of the PNG in pixels (default: the viewer's 1920x1080).
+    port : int, optional
+        Port of the headless viewer (default: a free one).
+
+    Returns
+    -------
+    Path
+        ``out``.
+    """
+    rrd = check_rrd(path)
+    out = Path(out)
+    if not out.parent.exists():
+        raise InputError(f"--screenshot {out}: folder {out.parent} does not exist")
+    _use_rerun_env_here()
+    from rerun.experimental import ViewerClient
+
+    port = port or _free_port()
+    try:
+        client = ViewerClient.spawn(
+            headless=True, port=port, executable_path=rerun_executable(), hide_welcome_screen=True
+        )
+    except Exception as exc:  # the bindings raise plain exceptions
+        raise ViewerError(
+            f"the headless rerun viewer did not start ({exc}); it needs a Vulkan driver: "
+            "apt-get install -y mesa-vulkan-drivers"
+        ) from exc
+    try:
+        client.open(str(rrd.resolve()))
+        time.sleep(settle)
+        png = client.take_screenshot(max_size=max_size)
+    except Exception as exc:
+        raise ViewerError(
+            f"the headless rerun viewer could not render {rrd} ({type(exc).__name__}: {exc}); "
+            "a Vulkan driver is needed: apt-get install -y mesa-vulkan-drivers"
+        ) from exc
+    finally:
+        for closer in ("quit", "close"):
+            try:
+                getattr(client, closer)()
+            except Exception:  # already gone
+                pass
+        pid = getattr(client, "_pid", None)
+        if pid:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    out.write_bytes(png)
     return out

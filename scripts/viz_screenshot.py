@@ -1,0 +1,88 @@
+"""Record a small fleet run from real road images and screenshot it headless.
+
+Check-by-looking tool for the rerun viewer (issue 5), not part of the test
+suite.  It logs N robots through the same code path the fleet uses (a
+:class:`scmr_mesh.viz.FleetViz` sink in --save mode, one :class:`RobotViz`
+per robot connected with the child arguments), with drivability maps from
+``scmr_mesh.imaging.pipeline.segment_drivable`` on the images in
+``--data`` (read in place), a cloud outage in the middle (tier drops from
+cloud to leader), then renders the recording in rerun's headless viewer.
+
+    .venv/bin/python scripts/viz_screenshot.py --data ../shared/data/roads \
+        --rrd /tmp/viz-shot.rrd --png docs/img/viewer.png
+
+Needs ``apt-get install -y mesa-vulkan-drivers`` for the headless viewer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", required=True, help="the roads folder (with manifest.json)")
+    ap.add_argument("--rrd", default="/tmp/viz-shot.rrd")
+    ap.add_argument("--png", default="docs/img/viewer.png")
+    ap.add_argument("--robots", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--settle", type=float, default=8.0)
+    args = ap.parse_args(argv)
+
+    from scmr_mesh import viz
+    from scmr_mesh.imaging.codec import load_image
+    from scmr_mesh.imaging.pipeline import segment_drivable
+
+    data = Path(args.data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    images = sorted((data / "images").glob("*.png"))[: args.robots]
+    robots = [f"r{i}" for i in range(len(images))]
+    frames = {}
+    for r, path in zip(robots, images):
+        rgb = load_image(path)
+        res = segment_drivable(rgb, stages=True)
+        frames[r] = (rgb, res.mask, res.stages["srm"])
+        print(f"{r}: {path.name} drivable {np.mean(res.mask > 0):.0%}", file=sys.stderr)
+    del manifest
+
+    fv = viz.FleetViz(viz.RerunOptions("save", args.rrd), robots=robots)
+    rid = fv.recording_id
+    rvs = {r: viz.RobotViz(viz.RerunOptions("connect", fv.url, rid), r) for r in robots}
+    t0 = time.time_ns()
+    step = 200_000_000  # 0.2 s per request
+    fv.log_alive("cloud", "cloud0", True, t_unix_ns=t0)
+    fv.log_alive("leader", "leader0", True, t_unix_ns=t0)
+    outage = (args.frames // 3, 2 * args.frames // 3)
+    fv.log_fault({"kind": "crash", "target": "cloud0", "tier": "cloud",
+                  "start_unix_ns": t0 + outage[0] * step, "end_unix_ns": t0 + outage[1] * step})
+    fv.log_alive("cloud", "cloud0", False, t_unix_ns=t0 + outage[0] * step + 2_000_000)
+    fv.log_alive("cloud", "cloud0", True, t_unix_ns=t0 + outage[1] * step + 250_000_000)
+    rng = np.random.default_rng(5)
+    for i in range(args.frames):
+        tier = "leader" if outage[0] <= i < outage[1] else "cloud"
+        for k, r in enumerate(robots):
+            rgb, mask, srm = frames[r]
+            tor = float(rng.normal(40 if tier == "cloud" else 70, 5))
+            rec = {"robot": r, "seq": i, "ok": True, "tier": tier, "served_by": f"{tier}0",
+                   "sent_unix_ns": t0 + i * step, "received_unix_ns": t0 + i * step + int(tor * 1e6),
+                   "tor_ms": tor, "energy_j": 1.0 + 0.1 * k, "battery": 1.0 - 0.01 * i}
+            rvs[r].observe(rec, rgb, mask, srm=srm)
+            fv.log_record(rec)
+    for rv in rvs.values():
+        rv.close()
+    path = fv.close()
+    print(f"saved {path}", file=sys.stderr)
+    t = time.perf_counter()
+    viz.screenshot(path, args.png, settle=args.settle)
+    print(f"wrote {args.png} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
