@@ -197,7 +197,7 @@ class OperationalDataStore:
             mode = con.execute("PRAGMA journal_mode = WAL").fetchone()[0]
             if mode.lower() != "wal":
                 log.warning("ODS %s: journal mode is %s, not WAL", self.path, mode)
-            con.execute("PRAGMA synchronous = NORMAL")
+            con.execute("PRAGMA synchronous = FULL")  # an ack means the row survives power loss
             version = con.execute("PRAGMA user_version").fetchone()[0]
             self._check_version(version)
             for v in range(version, SCHEMA_VERSION):

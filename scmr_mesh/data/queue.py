@@ -403,6 +403,11 @@ class TelemetryQueue:
             st.next_seq = seq + 1
             return seq
 
+    def free_bytes(self) -> int:
+        """Payload bytes that can still be appended before the queue is full."""
+        with self._lock:
+            return self.max_bytes - self.stats_.pending_bytes
+
     def pending(self, *, limit: int | None = None, max_bytes: int | None = None) -> list[tuple[int, bytes]]:
         """The oldest unacknowledged ``(seq, payload)`` pairs, in seq order."""
         out: list[tuple[int, bytes]] = []

@@ -126,20 +126,31 @@ def make_record(
     )
 
 
-def encode_records(records: list[TelemetryRecord]) -> bytes:
-    """msgpack ``{"records": [...]}`` for the wire."""
-    return msgpack.packb({"records": [r.to_dict() for r in records]}, use_bin_type=True)
+def encode_records(records: list[TelemetryRecord], *, via: str | None = None) -> bytes:
+    """msgpack ``{"records": [...], "via": tier}`` for the wire (``via``: relaying tier)."""
+    msg: dict[str, Any] = {"records": [r.to_dict() for r in records]}
+    if via is not None:
+        msg["via"] = via
+    return msgpack.packb(msg, use_bin_type=True)
 
 
-def decode_records(payload: bytes) -> list[TelemetryRecord]:
-    """Inverse of :func:`encode_records`; raises :class:`TelemetryError` on bad input."""
+def decode_batch(payload: bytes) -> tuple[list[TelemetryRecord], str | None]:
+    """Decode an :func:`encode_records` payload into ``(records, via)``."""
     try:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types
         raise TelemetryError(f"telemetry payload is not msgpack ({len(payload)} bytes): {exc}") from None
     if not isinstance(msg, dict) or not isinstance(msg.get("records"), list):
         raise TelemetryError("telemetry payload must be a map with a 'records' list")
-    return [TelemetryRecord.from_dict(d) for d in msg["records"]]
+    via = msg.get("via")
+    if via is not None and via not in TIERS:
+        raise TelemetryError(f"telemetry 'via' must be one of {TIERS}, got {via!r}")
+    return [TelemetryRecord.from_dict(d) for d in msg["records"]], via
 
 
-__all__ = ["TIERS", "TelemetryRecord", "decode_records", "encode_records", "make_record"]
+def decode_records(payload: bytes) -> list[TelemetryRecord]:
+    """Inverse of :func:`encode_records` (records only); raises :class:`TelemetryError`."""
+    return decode_batch(payload)[0]
+
+
+__all__ = ["TIERS", "TelemetryRecord", "decode_batch", "decode_records", "encode_records", "make_record"]

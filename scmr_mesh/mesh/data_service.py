@@ -1,0 +1,591 @@
+"""Zenoh glue of the data tier: telemetry storage, data-buffer queries, leader sync.
+
+The pure parts live in :mod:`scmr_mesh.data` (ODS, on-disk queue, buffer);
+this module puts them on the mesh.  Keys (all under :func:`scmr_mesh.keys.data`):
+
+==============================================  ===================  =====================================
+key                                             queryable of         payload -> reply
+==============================================  ===================  =====================================
+``scmr/data/cloud/<node>/telemetry``            cloud                records batch -> ack (stored in ODS)
+``scmr/data/leader/<node>/telemetry``           leader               records batch -> ack (relay queue)
+``scmr/data/<tier>/<node>/buffer``              cloud and leader     ``{"sel": selector}`` -> items
+``scmr/data/cloud/<node>/sync``                 cloud                ``{"epoch", "since"}`` -> delta
+==============================================  ===================  =====================================
+
+Flow ("nothing lost"):
+
+1. A robot's :class:`TelemetryAgent` wraps ``Robot.publish_telemetry``: each
+   message gets the next per-robot seq and is appended (fsync) to the robot's
+   on-disk :class:`~scmr_mesh.data.queue.TelemetryQueue` *before* anything is sent.
+2. A flusher thread sends the oldest unacknowledged records, in order, as a
+   query to the first alive cloud node, else to the leader, exactly like frame
+   requests fail over (live view of liveliness tokens + querier matching +
+   deadline).  The tier answers only after the records are durable (ODS commit
+   on the cloud; fsynced relay queue on the leader); then the robot acks its
+   queue.  No answer: the records stay queued and are replayed later, also
+   after a robot restart (the queue is on disk).
+3. The leader relays what it stored to the cloud once a cloud node is alive
+   again (``via="leader"``), and acks its relay queue on the cloud's answer.
+4. The ODS stores each ``(robot, seq)`` once (``INSERT OR IGNORE``); replays
+   and relays are counted as duplicates, never stored twice.
+5. The leader pulls the cloud's data buffer every ``--sync-period`` seconds
+   (delta since the last revision) and serves the same buffer queries when
+   the cloud is gone.
+"""
+
+from __future__ import annotations
+
+import atexit
+import json
+import logging
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import msgpack
+
+from scmr_mesh import keys
+from scmr_mesh.data.buffer import BufferSync, DataBuffer
+from scmr_mesh.data.errors import QueueFullError, TelemetryError
+from scmr_mesh.data.ods import DEFAULT_FILENAME, OperationalDataStore
+from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.data.record import TelemetryRecord, decode_batch, encode_records
+from scmr_mesh.errors import InputError, MeshError
+
+log = logging.getLogger(__name__)
+
+#: Records per telemetry query.
+BATCH = 64
+#: Seconds between flush attempts while records are queued and no tier answers.
+RETRY_PERIOD_S = 0.2
+
+
+def telemetry_key(tier: str, node: str) -> str:
+    """``scmr/data/<tier>/<node>/telemetry``."""
+    return keys.data(tier, node, "telemetry")
+
+
+def buffer_key(tier: str, node: str) -> str:
+    """``scmr/data/<tier>/<node>/buffer``."""
+    return keys.data(tier, node, "buffer")
+
+
+def sync_key(node: str) -> str:
+    """``scmr/data/cloud/<node>/sync``."""
+    return keys.data("cloud", node, "sync")
+
+
+def _pack(obj: Any) -> bytes:
+    return msgpack.packb(obj, use_bin_type=True)
+
+
+def _unpack(data: bytes) -> Any:
+    try:
+        return msgpack.unpackb(data, raw=False, strict_map_key=False)
+    except Exception as exc:
+        raise TelemetryError(f"data message is not msgpack ({len(data)} bytes): {exc}") from None
+
+
+def _payload(query) -> bytes:
+    p = query.payload
+    return b"" if p is None else p.to_bytes()
+
+
+def _answer(query, obj: Any, *, error: bool = False) -> None:
+    try:
+        if error:
+            query.reply_err(_pack(obj))
+        else:
+            query.reply(query.key_expr, _pack(obj))
+    except Exception as exc:
+        log.warning("data reply failed: %s", exc)
+
+
+def record_from_message(msg: dict, seq: int) -> TelemetryRecord:
+    """A store record from a mesh telemetry message (``wire.make_telemetry``) and a telemetry seq.
+
+    The message's own ``seq`` (the last finished request) goes to
+    ``results["request_seq"]``.
+    """
+    results = dict(msg.get("results") or {})
+    results["request_seq"] = msg.get("seq")
+    return TelemetryRecord.from_dict({
+        "robot": msg["robot"], "seq": seq, "t_unix_ns": msg.get("t_unix_ns", time.time_ns()),
+        "pose": msg.get("pose"), "battery": msg.get("battery"), "health": msg.get("health", "ok"),
+        "results": results,
+    })
+
+
+def serve_buffer(buffer: DataBuffer, tier: str, node: str) -> Callable:
+    """Queryable callback answering ``{"sel": selector}`` with the matching buffer items."""
+
+    def on_query(query) -> None:
+        try:
+            req = _unpack(_payload(query)) if _payload(query) else {}
+            sel = req.get("sel", "**") if isinstance(req, dict) else None
+            if not isinstance(sel, str):
+                raise TelemetryError(f"buffer query must be {{'sel': str}}, got {req!r}")
+            _answer(query, {"tier": tier, "node": node, "rev": buffer.rev, "items": buffer.query(sel)})
+        except Exception as exc:
+            _answer(query, {"error": str(exc)}, error=True)
+
+    return on_query
+
+
+# ---------------------------------------------------------------------- cloud
+class CloudData:
+    """The cloud's data tier: ODS ingest, data buffer, sync source.
+
+    Parameters
+    ----------
+    node : str
+        Cloud node name.
+    ods_path : path
+        The SQLite file (shared by every cloud node that is given the same path).
+    params : dict, optional
+        Initial buffer entries (``maps/...``, ``params/...``).
+    """
+
+    def __init__(self, node: str, ods_path: str | Path, *, params: dict | None = None) -> None:
+        self.node = node
+        self.ods = OperationalDataStore(ods_path)
+        self.buffer = DataBuffer(node)
+        for rec in self.ods.latest().values():  # a restarted cloud serves the last states at once
+            self.buffer.record_telemetry(rec)
+        for k, v in (params or {}).items():
+            self.buffer.put(k, v)
+        self.ingested = 0
+
+    def queryables(self) -> list[tuple[str, Callable]]:
+        return [(telemetry_key("cloud", self.node), self._on_telemetry),
+                (buffer_key("cloud", self.node), serve_buffer(self.buffer, "cloud", self.node)),
+                (sync_key(self.node), self._on_sync)]
+
+    def _on_telemetry(self, query) -> None:
+        try:
+            records, via = decode_batch(_payload(query))
+            res = self.ods.insert(records, received_from=via or "cloud")
+        except Exception as exc:  # not stored: no ack, the sender keeps the records
+            log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
+            _answer(query, {"error": str(exc)}, error=True)
+            return
+        for r in records:
+            self.buffer.record_telemetry(r.to_dict())
+        self.ingested += len(records)
+        _answer(query, {"acked": len(records), "stored": len(res.stored), "duplicates": len(res.duplicates),
+                        "contiguous": res.contiguous})
+
+    def _on_sync(self, query) -> None:
+        try:
+            req = _unpack(_payload(query)) if _payload(query) else {}
+            blob = self.buffer.delta(int(req.get("since", 0)), epoch=req.get("epoch"))
+            query.reply(query.key_expr, blob)
+        except Exception as exc:
+            _answer(query, {"error": str(exc)}, error=True)
+
+    def close(self) -> None:
+        self.ods.close()
+
+
+# --------------------------------------------------------------------- leader
+class LeaderData:
+    """The leader's data tier: relay queue, buffer copy, sync and forwarding.
+
+    Parameters
+    ----------
+    node : str
+        Leader node name.
+    relay_dir : path
+        On-disk queue of telemetry the leader stored for robots while the
+        cloud was gone; forwarded to the cloud after failback.
+    sync_period_s : float
+        Seconds between buffer pulls from the cloud (scheduled batches).
+    relay_max_bytes : int
+        Bound of the relay queue; a full relay refuses (robots keep theirs).
+    """
+
+    def __init__(self, node: str, relay_dir: str | Path, *, sync_period_s: float = 1.0,
+                 relay_max_bytes: int = 64 << 20, deadline_s: float = 1.0) -> None:
+        self.node = node
+        self.buffer = DataBuffer(node)
+        self.relay = TelemetryQueue(relay_dir, max_bytes=relay_max_bytes)
+        self.deadline_s = float(deadline_s)
+        self._lock = threading.Lock()
+        for _, payload in self.relay.pending():
+            self.buffer.record_telemetry(_unpack(payload))
+        self.sync = BufferSync(self.buffer, self._fetch, period_s=sync_period_s)
+        self.session = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.forwarded = 0
+        self.received = 0
+
+    def queryables(self) -> list[tuple[str, Callable]]:
+        return [(telemetry_key("leader", self.node), self._on_telemetry),
+                (buffer_key("leader", self.node), serve_buffer(self.buffer, "leader", self.node))]
+
+    def _on_telemetry(self, query) -> None:
+        try:
+            records, _via = decode_batch(_payload(query))
+            blobs = [_pack(r.to_dict()) for r in records]
+            with self._lock:
+                if sum(map(len, blobs)) > self.relay.free_bytes():
+                    raise QueueFullError(
+                        f"leader {self.node}: relay queue full ({self.relay.stats().depth} records waiting "
+                        "for the cloud); the robot keeps its records")
+                for b in blobs:
+                    self.relay.append(b)
+        except Exception as exc:
+            log.warning("leader %s: telemetry not stored: %s", self.node, exc)
+            _answer(query, {"error": str(exc)}, error=True)
+            return
+        for r in records:
+            self.buffer.record_telemetry(r.to_dict())
+        self.received += len(records)
+        _answer(query, {"acked": len(records), "stored": len(records), "duplicates": 0})
+
+    # -- background: sync + forward
+    def _clouds(self) -> list[str]:
+        s = self.session
+        if s is None:
+            return []
+        nodes = set()
+        for reply in s.liveliness().get(f"{keys.ALIVE}/cloud/*", timeout=self.deadline_s):
+            if reply.ok is not None:
+                nodes.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return sorted(nodes)
+
+    def _query(self, key: str, payload: bytes) -> bytes | None:
+        s = self.session
+        if s is None:
+            return None
+        for reply in s.get(key, payload=payload, timeout=self.deadline_s):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+        return None
+
+    def _fetch(self, epoch: str | None, since: int) -> bytes | None:
+        clouds = self._clouds()
+        if not clouds:
+            return None
+        return self._query(sync_key(clouds[0]), _pack({"epoch": epoch, "since": since}))
+
+    def forward_once(self) -> int:
+        """Send the oldest relayed records to a cloud node; return how many were acknowledged."""
+        batch = self.relay.pending(limit=BATCH)
+        if not batch:
+            return 0
+        clouds = self._clouds()
+        if not clouds:
+            return 0
+        records = [TelemetryRecord.from_dict(_unpack(p)) for _, p in batch]
+        for node in clouds:
+            raw = self._query(telemetry_key("cloud", node), encode_records(records, via="leader"))
+            if raw is not None:
+                self.relay.ack(batch[-1][0])
+                self.forwarded += len(batch)
+                log.info("leader %s: forwarded %d relayed records to cloud %s", self.node, len(batch), node)
+                return len(batch)
+        return 0
+
+    def _loop(self, svc) -> None:
+        while self.session is None and not self._stop.is_set():
+            self.session = getattr(svc, "session", None)
+            self._stop.wait(0.05)
+        next_sync = 0.0
+        while not self._stop.is_set():
+            if getattr(svc, "session", None) is None:
+                break
+            now = time.monotonic()
+            try:
+                if now >= next_sync:
+                    next_sync = now + self.sync.period_s
+                    self.sync.pull_once()
+                while self.forward_once() and not self._stop.is_set():
+                    pass
+            except Exception as exc:  # the session closing under us at shutdown
+                log.debug("leader data loop: %s", exc)
+            self._stop.wait(RETRY_PERIOD_S)
+
+    def start(self, svc) -> None:
+        """Sync and forward in a daemon thread once ``svc`` is attached to a session."""
+        self._thread = threading.Thread(target=self._loop, args=(svc,), name="leader-data", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=3)
+        self.session = None
+        self.relay.close()
+
+
+# ---------------------------------------------------------------------- robot
+class TelemetryAgent:
+    """A robot's side: on-disk queue, ordered replay, acks, data requests.
+
+    Parameters
+    ----------
+    robot : scmr_mesh.mesh.robot.Robot
+        The robot (attached to a session); its ``publish_telemetry`` is wrapped.
+    queue_dir : path
+        The robot's telemetry queue folder (kept across restarts).
+    max_bytes : int
+        Queue bound; when full, new telemetry is refused and counted.
+    deadline_ms : float
+        Per-attempt deadline of telemetry and data queries.
+    """
+
+    def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
+                 deadline_ms: float = 1000.0) -> None:
+        self.robot = robot
+        self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes)
+        self.deadline_s = deadline_ms / 1e3
+        self.acked_by = {"cloud": 0, "leader": 0}
+        self.refused_logged = 0
+        self._replay_upto = 0  # records with seq <= this waited through a failed attempt
+        self._queriers: dict[str, Any] = {}
+        self._qlock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._orig = robot.publish_telemetry
+        robot.publish_telemetry = self.publish
+        self._thread = threading.Thread(target=self._loop, name=f"telemetry-{robot.id}", daemon=True)
+        self._thread.start()
+        st = self.queue.stats()
+        if st.depth:
+            log.info("robot %s: %d telemetry records queued from before; replaying", robot.id, st.depth)
+            self._replay_upto = st.next_seq - 1
+
+    # -- producer side
+    def publish(self, message: dict) -> int | None:
+        """Publish ``message`` as before and queue it for the store; return its telemetry seq."""
+        try:
+            self._orig(message)
+        except Exception as exc:
+            log.debug("telemetry publish failed: %s", exc)
+        seq = self.queue.next_seq
+        rec = record_from_message(message, seq)
+        try:
+            self.queue.append(_pack(rec.to_dict()), seq=seq)
+        except QueueFullError as exc:
+            self.refused_logged += 1
+            if self.refused_logged in (1, 10, 100) or self.refused_logged % 1000 == 0:
+                log.error("robot %s: %s", self.robot.id, exc)
+            return None
+        self._wake.set()
+        return seq
+
+    # -- sending
+    def _querier(self, key: str):
+        import zenoh
+
+        with self._qlock:
+            q = self._queriers.get(key)
+            if q is None:
+                q = self.robot._session.declare_querier(
+                    key, target=zenoh.QueryTarget.BEST_MATCHING,
+                    consolidation=zenoh.ConsolidationMode.NONE, timeout=self.deadline_s)
+                self._queriers[key] = q
+            return q
+
+    def _ask(self, key: str, payload: bytes) -> tuple[str, Any] | None:
+        """One query; ``("ok", reply)``, ``("err", message)`` or None (unreachable/no reply)."""
+        q = self._querier(key)
+        if not q.matching_status.matching:
+            return None
+        for reply in q.get(payload=payload):
+            if reply.ok is not None:
+                return "ok", _unpack(reply.ok.payload.to_bytes())
+            try:
+                return "err", _unpack(reply.err.payload.to_bytes())
+            except TelemetryError:
+                return "err", reply.err.payload.to_bytes().decode("utf-8", "replace")
+        return None
+
+    def _targets(self) -> list[tuple[str, str]]:
+        view = self.robot.view.snapshot(local=False)
+        return [("cloud", n) for n in sorted(view.cloud)] + [("leader", n) for n in sorted(view.leader)]
+
+    def flush_once(self) -> int:
+        """Send the oldest queued records to the first tier that stores them; return how many were acked."""
+        batch = self.queue.pending(limit=BATCH)
+        if not batch:
+            return 0
+        payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
+        for tier, node in self._targets():
+            try:
+                ans = self._ask(telemetry_key(tier, node), payload)
+            except Exception as exc:
+                log.debug("telemetry to %s/%s failed: %s", tier, node, exc)
+                continue
+            if ans is None:
+                continue
+            kind, body = ans
+            if kind == "ok":
+                upto = batch[-1][0]
+                replayed = sum(1 for s, _ in batch if s <= self._replay_upto)
+                self.queue.ack(upto)
+                if replayed:
+                    self.queue.note_replayed(replayed)
+                self.acked_by[tier] += len(batch)
+                return len(batch)
+            log.warning("robot %s: %s/%s did not store telemetry: %s", self.robot.id, tier, node, body)
+        self._replay_upto = self.queue.next_seq - 1
+        return 0
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.clear()
+            try:
+                sent = self.flush_once()
+            except Exception as exc:  # session closing at shutdown
+                log.debug("telemetry flush: %s", exc)
+                sent = 0
+            if sent and len(self.queue):
+                continue
+            self._wake.wait(RETRY_PERIOD_S if len(self.queue) else 1.0)
+
+    # -- data requests (fail over like frame requests)
+    def fetch(self, selector: str) -> tuple[str, str, dict]:
+        """Items of the data buffer matching ``selector``, from the cloud, else the leader.
+
+        Returns
+        -------
+        (tier, node, items)
+
+        Raises
+        ------
+        MeshError
+            No tier answered.
+        """
+        tried = []
+        for tier, node in self._targets():
+            ans = self._ask(buffer_key(tier, node), _pack({"sel": selector}))
+            tried.append(f"{tier}/{node}={'no reply' if ans is None else ans[0]}")
+            if ans is not None and ans[0] == "ok":
+                return tier, node, ans[1]["items"]
+        raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier alive'})")
+
+    # -- end
+    def summary(self) -> dict:
+        st = self.queue.stats()
+        return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
+                "replayed": st.replayed, "acked_by": dict(self.acked_by), "torn_bytes": st.torn_bytes,
+                "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100]}
+
+    def close(self, *, drain_s: float = 2.0, summary_path: str | Path | None = None) -> dict:
+        """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
+        end = time.monotonic() + drain_s
+        while len(self.queue) and time.monotonic() < end and self._targets():
+            self._wake.set()
+            time.sleep(0.05)
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=5)
+        for q in list(self._queriers.values()):
+            try:
+                q.undeclare()
+            except Exception:
+                pass
+        self._queriers = {}
+        self.robot.publish_telemetry = self._orig
+        out = self.summary()
+        if summary_path is not None:
+            tmp = Path(f"{summary_path}.tmp")
+            tmp.write_text(json.dumps(out) + "\n")
+            os.replace(tmp, summary_path)
+        if out["queued"]:
+            log.warning("robot %s: %d telemetry records still queued at exit (kept on disk in %s; "
+                        "replayed at the next start)", self.robot.id, out["queued"], self.queue.path)
+        self.queue.close()
+        return out
+
+
+# ------------------------------------------------------------ CLI plumbing
+def _run_dir_from(args) -> Path | None:
+    if os.environ.get("SCMR_RUN_DIR"):
+        return Path(os.environ["SCMR_RUN_DIR"])
+    ready = getattr(args, "ready_file", None)
+    if ready:  # the fleet layout: <run dir>/ready/<peer>.ready
+        return Path(ready).resolve().parent.parent
+    return None
+
+
+def add_arguments(parser, role: str) -> None:
+    """Add the data-tier flags of ``role`` ("cloud", "leader" or "robot") to a peer's parser."""
+    g = parser.add_argument_group("data tier")
+    if role == "cloud":
+        g.add_argument("--ods", metavar="FILE",
+                       help="operational data store (SQLite) file; default $SCMR_ODS, else "
+                            "$SCMR_RUN_DIR/ods.sqlite, else <run dir of --ready-file>/ods.sqlite, "
+                            "else runs/ods.sqlite")
+        g.add_argument("--data-params", metavar="FILE",
+                       help="JSON object of shared entries for the data buffer (keys like "
+                            "'maps/site' or 'params/speed')")
+    if role == "leader":
+        g.add_argument("--sync-period", type=float, default=1.0, metavar="S",
+                       help="seconds between pulls of the cloud's data buffer (default 1)")
+        g.add_argument("--relay-dir", metavar="DIR",
+                       help="on-disk queue of telemetry held for the cloud (default <run dir>/relay-NODE)")
+    if role in ("robot", "leader"):
+        g.add_argument("--telemetry-queue", metavar="DIR",
+                       help="the robot's on-disk telemetry queue (default OUT/telemetry-queue; kept "
+                            "across restarts)")
+        g.add_argument("--telemetry-max-bytes", type=int, default=16 << 20, metavar="N",
+                       help="bound of the telemetry queue; beyond it new telemetry is refused and "
+                            "counted (default 16 MiB)")
+
+
+def service_setup(args, tier: str) -> Callable:
+    """The ``setup`` hook for :func:`~scmr_mesh.mesh.peers.run_service`: installs the data tier."""
+
+    def setup(svc) -> None:
+        run_dir = _run_dir_from(args)
+        if tier == "cloud":
+            from scmr_mesh.data.ods import default_db_path
+
+            if getattr(args, "ods", None):
+                path = Path(args.ods)
+            elif os.environ.get("SCMR_ODS") or run_dir is None:
+                path = default_db_path()
+            else:
+                path = run_dir / DEFAULT_FILENAME
+            params = None
+            if getattr(args, "data_params", None):
+                try:
+                    params = json.loads(Path(args.data_params).read_text())
+                except (OSError, ValueError) as exc:
+                    raise InputError(f"--data-params {args.data_params}: not a readable JSON file ({exc})") from None
+                if not isinstance(params, dict):
+                    raise InputError(f"--data-params {args.data_params}: must hold a JSON object, "
+                                     f"got {type(params).__name__}")
+            data = CloudData(svc.node, path, params=params)
+            log.info("cloud %s: operational data store %s", svc.node, path)
+        else:
+            if not getattr(args, "sync_period", 1.0) > 0:
+                raise InputError(f"--sync-period must be > 0 s, got {args.sync_period}")
+            relay = getattr(args, "relay_dir", None) or (run_dir or Path("runs")) / f"relay-{svc.node}"
+            data = LeaderData(svc.node, relay, sync_period_s=getattr(args, "sync_period", 1.0))
+            data.start(svc)
+        for key, cb in data.queryables():
+            svc.add_queryable(key, cb)
+        svc.data = data
+        atexit.register(data.close)
+
+    return setup
+
+
+def attach_robot(robot, args) -> TelemetryAgent:
+    """Wrap ``robot``'s telemetry with a :class:`TelemetryAgent` configured from ``args``."""
+    qdir = getattr(args, "telemetry_queue", None) or Path(args.out) / "telemetry-queue"
+    return TelemetryAgent(robot, qdir, max_bytes=getattr(args, "telemetry_max_bytes", 16 << 20),
+                          deadline_ms=getattr(args, "deadline_ms", 1000.0))
+
+
+__all__ = [
+    "CloudData", "LeaderData", "TelemetryAgent", "add_arguments", "attach_robot", "buffer_key",
+    "record_from_message", "service_setup", "sync_key", "telemetry_key",
+]
