@@ -509,8 +509,9 @@ def _run_dir_from(args) -> Path | None:
     if os.environ.get("SCMR_RUN_DIR"):
         return Path(os.environ["SCMR_RUN_DIR"])
     ready = getattr(args, "ready_file", None)
-    if ready:  # the fleet layout: <run dir>/ready/<peer>.ready
-        return Path(ready).resolve().parent.parent
+    if ready:  # the fleet layout is <run dir>/ready/<peer>.ready; else the ready file's folder
+        folder = Path(ready).resolve().parent
+        return folder.parent if folder.name == "ready" else folder
     return None
 
 
@@ -520,8 +521,9 @@ def add_arguments(parser, role: str) -> None:
     if role == "cloud":
         g.add_argument("--ods", metavar="FILE",
                        help="operational data store (SQLite) file; default $SCMR_ODS, else "
-                            "$SCMR_RUN_DIR/ods.sqlite, else <run dir of --ready-file>/ods.sqlite, "
-                            "else runs/ods.sqlite")
+                            "$SCMR_RUN_DIR/ods.sqlite, else RUN/ods.sqlite where RUN is the folder of "
+                            "--ready-file (its parent when that folder is named 'ready'), else "
+                            "runs/ods.sqlite")
         g.add_argument("--data-params", metavar="FILE",
                        help="JSON object of shared entries for the data buffer (keys like "
                             "'maps/site' or 'params/speed')")
