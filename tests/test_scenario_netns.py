@@ -1,0 +1,160 @@
+"""netns backend: kernel primitives in our own namespaces, and one real short cloud-link-drop run.
+
+Needs root and iproute2 (CI has both); skipped with the reason otherwise.  ~15 s.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from scmr_mesh.scenario.netns import NetnsBackend, cleanup_stale, list_namespaces, netem_available, run_cmd
+from scmr_mesh.scenario.plan import Event
+from scmr_mesh.scenario.spec import parse_scenario
+
+pytestmark = [
+    pytest.mark.netns,
+    pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0,
+                       reason="netns tests need root (network namespaces); CI runs them as root"),
+    pytest.mark.skipif(shutil.which("ip") is None or shutil.which("tc") is None, reason="needs iproute2 (ip, tc)"),
+]
+
+TINY = {"name": "tiny", "seed": 3, "duration_s": 5,
+        "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"}]}}
+
+SERVER = textwrap.dedent("""
+    import socket, sys
+    s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    s.bind((sys.argv[1], 7000)); s.listen(4); print("listening", flush=True)
+    c, _ = s.accept()
+    while True:
+        d = c.recv(100)
+        if not d: break
+        c.sendall(d)
+""")
+
+CLIENT = textwrap.dedent("""
+    import socket, sys
+    c = socket.create_connection((sys.argv[1], 7000), timeout=5)
+    c.sendall(b"a"); print("echo", c.recv(10).decode(), flush=True)
+    sys.stdin.readline()                     # the test blocks the link here
+    c.sendall(b"b"); c.settimeout(1.0)
+    try:
+        print("during", c.recv(10).decode() or "closed", flush=True)
+    except socket.timeout:
+        print("during timeout", flush=True)
+    try:
+        socket.create_connection((sys.argv[1], 7000), timeout=1.0); print("new ok", flush=True)
+    except OSError as e:
+        print("new failed", type(e).__name__, flush=True)
+    sys.stdin.readline()                     # the test lifts the block here
+    c.settimeout(10)
+    print("after", c.recv(10).decode(), flush=True)
+""")
+
+
+def test_blackhole_is_silent_and_reversible_between_two_namespaces():
+    sc = parse_scenario(TINY)
+    be = NetnsBackend(sc)
+    srv = cli = None
+    try:
+        be.setup()
+        assert set(be.layout.namespaces()) <= set(list_namespaces())
+        # nothing routes out: the peer namespaces have no default route
+        routes = run_cmd(("ip", "-n", be.layout.ns("robot1"), "route", "show"))
+        assert "default" not in routes
+        cloud_ip = be.layout.addr("cloud")
+        srv = subprocess.Popen(be.wrap("cloud", [sys.executable, "-c", SERVER, cloud_ip]),
+                               stdout=subprocess.PIPE, text=True)
+        assert srv.stdout.readline().strip() == "listening"
+        cli = subprocess.Popen(be.wrap("robot1", [sys.executable, "-c", CLIENT, cloud_ip]),
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert cli.stdout.readline().strip() == "echo a"
+        be.apply(Event(0.0, "block", ("cloud", "robot1")))
+        cli.stdin.write("\n")
+        cli.stdin.flush()
+        assert cli.stdout.readline().strip() == "during timeout"  # silent: no reply, no reset
+        assert cli.stdout.readline().startswith("new failed")  # and no new connection
+        be.apply(Event(1.0, "unblock", ("cloud", "robot1"), lift=True))
+        cli.stdin.write("\n")
+        cli.stdin.flush()
+        assert cli.stdout.readline().strip() == "after b"  # TCP retransmitted once the link came back
+    finally:
+        for p in (cli, srv):
+            if p is not None:
+                p.kill()
+                p.wait()
+        be.teardown()
+    assert not set(be.layout.namespaces()) & set(list_namespaces())
+
+
+def test_netem_detection_skips_latency_with_a_note():
+    have = netem_available()
+    assert isinstance(have, bool)
+    sc = parse_scenario(dict(TINY, faults=[{"kind": "latency", "at_s": 1, "link": ["robot1", "cloud"],
+                                            "delay_ms": 10}]))
+    be = NetnsBackend(sc)
+    try:
+        be.setup()
+        notes = be.apply(Event(1.0, "netem", ("robot1", "cloud"), (10.0, 0.0), fault=0))
+        qd = run_cmd(("tc", "-n", be.layout.ns("robot1"), "qdisc", "show", "dev", "eth0"))
+        if have:
+            assert notes == [] and "netem" in qd
+        else:
+            assert notes and "no netem" in notes[0] and "netem" not in qd
+    finally:
+        be.teardown()
+
+
+def test_cleanup_removes_stale_namespaces_and_their_processes():
+    prefix = f"scmrs-stale{secrets.token_hex(2)}"
+    ns = f"{prefix}-x"
+    run_cmd(("ip", "netns", "add", ns))
+    p = subprocess.Popen(["ip", "netns", "exec", ns, "sleep", "60"])
+    try:
+        assert cleanup_stale(prefix) == [ns]
+        assert p.wait(timeout=10) != 0  # killed
+        assert ns not in list_namespaces()
+    finally:
+        if p.poll() is None:
+            p.kill()
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_real_cloud_link_drop_with_netns(tmp_path):
+    """Real peers (stub pipeline) in namespaces; the cloud is silently cut and comes back."""
+    from scmr_mesh.scenario.report import build_report, write_report
+    from scmr_mesh.scenario.runner import run_scenario
+
+    sc = parse_scenario({
+        "name": "short-drop", "seed": 11, "duration_s": 7, "lease_ms": 200,
+        "process": "scmr_mesh.mesh.testing:stub_process",
+        "fleet": {"robots": [{"id": "robot1", "synthetic": "stub", "rate_hz": 8, "local_fallback": False},
+                             {"id": "robot2", "synthetic": "stub", "rate_hz": 8, "local_fallback": False}]},
+        "faults": [{"kind": "partition", "at_s": 2.5, "for_s": 2.0,
+                    "groups": [["cloud"], ["leader", "robot1", "robot2"]]}],
+        "expectations": [{"metric": "ror", "op": ">=", "value": 0.9}],
+    })
+    res = run_scenario(sc, backend="netns", out_dir=tmp_path, ready_timeout=90)
+    assert not set(NetnsBackend(sc, run_id=res.run_id).layout.namespaces()) & set(list_namespaces())
+    rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend="netns")
+    paths = write_report(rep, tmp_path)
+    s = rep["summary"]
+    assert s["requests"] > 0
+    assert s["by_tier"]["leader"] > 0 and s["by_tier"]["cloud"] > 0
+    f = rep["faults"][0]
+    assert f["tier"] == "cloud"
+    assert f["failover_gap_ms"] is not None and f["failover_gap_ms"] > 0
+    assert f["failback_gap_ms"] is not None  # the cloud answered again after the link returned
+    # the cloud is preferred: the leader answered nothing before the cut
+    t_cut = rep["t0_unix_ns"] + f["started_at_s"] * 1e9
+    assert all(r["received_unix_ns"] >= t_cut for r in rep["requests"] if r["tier"] == "leader")
+    data = json.loads(paths["json"].read_text())
+    assert data["seed"] == 11 and {"summary", "faults", "expectations", "requests"} <= set(data)
