@@ -1,0 +1,79 @@
+"""Zenoh config layering and validation (no network; < 2 s)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from scmr_mesh.errors import ConfigError
+from scmr_mesh.mesh.config import DEFAULTS, MeshConfig, build_config
+
+
+def _get(conf, key):
+    return json.loads(conf.get_json(key))
+
+
+def test_defaults_applied():
+    conf = build_config(MeshConfig())
+    for key, value in DEFAULTS.items():
+        got = _get(conf, key)
+        if isinstance(value, dict):
+            assert {k: float(v) for k, v in got.items()} == {k: float(v) for k, v in value.items()}
+        else:
+            assert got == value
+    assert _get(conf, "mode") == "peer"
+
+
+def test_layers_file_then_cfg_then_flags(tmp_path):
+    f = tmp_path / "z.json5"
+    f.write_text('{ transport: { link: { tx: { lease: 2000, keep_alive: 5 } } }, scouting: { gossip: { enabled: false } } }')
+    conf = build_config(MeshConfig(config_file=str(f)))
+    assert _get(conf, "transport/link/tx/lease") == 2000  # file beats defaults
+    assert _get(conf, "transport/link/tx/keep_alive") == 5
+    assert _get(conf, "scouting/gossip/enabled") is False
+    assert _get(conf, "transport/unicast/open_timeout") == 1000  # default where the file is silent
+    conf = build_config(MeshConfig(config_file=str(f), cfg=["transport/link/tx/lease:1500"]))
+    assert _get(conf, "transport/link/tx/lease") == 1500  # --cfg beats the file
+    conf = build_config(MeshConfig(config_file=str(f), cfg=["transport/link/tx/lease:1500"], lease_ms=700,
+                                   listen=["tcp/127.0.0.1:1"], connect=["tcp/127.0.0.1:2"], mode="client"))
+    assert _get(conf, "transport/link/tx/lease") == 700  # flags beat --cfg
+    assert _get(conf, "listen/endpoints") == ["tcp/127.0.0.1:1"]
+    assert _get(conf, "connect/endpoints") == ["tcp/127.0.0.1:2"]
+    assert _get(conf, "mode") == "client"
+
+
+@pytest.mark.parametrize("cfg,needle", [
+    (["transport/link/tx/keep_alive:0"], "keep_alive"),
+    (["transport/link/tx/keep_alive:1"], "keep_alive"),
+    (["transport/link/tx/lease:0"], "lease"),
+    (["transport/link/tx/lease:5"], "lease"),
+    (["no/such/key:1"], "no/such/key"),
+    (["transport/link/tx/lease:'x'"], "lease"),
+    (["missing-colon"], "KEY:JSON5"),
+])
+def test_unusable_settings_rejected(cfg, needle):
+    with pytest.raises(ConfigError) as ei:
+        build_config(MeshConfig(cfg=cfg))
+    assert needle in str(ei.value)
+
+
+def test_lease_flag_validated():
+    with pytest.raises(ConfigError, match="lease"):
+        build_config(MeshConfig(lease_ms=0))
+
+
+def test_missing_or_bad_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        build_config(MeshConfig(config_file=str(tmp_path / "nope.json5")))
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: ")
+    with pytest.raises(ConfigError, match="invalid"):
+        build_config(MeshConfig(config_file=str(bad)))
+
+
+def test_example_peer_configs_load(repo_root):
+    files = sorted((repo_root / "peers").glob("*.json5"))
+    assert files, "peers/*.json5 examples missing"
+    for f in files:
+        build_config(MeshConfig(config_file=str(f)))

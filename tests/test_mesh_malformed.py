@@ -1,0 +1,89 @@
+"""Malformed, oversized and wrong-version requests get error replies naming the
+problem, and the service keeps serving.  One real cloud process; ~3 s."""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+import zenoh
+
+from conftest import free_port
+from scmr_mesh import keys, wire
+from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, synthetic_png, wait_for
+
+LIMIT = 60_000
+
+
+@pytest.fixture(scope="module")
+def cloud(tmp_path_factory):
+    tmp_path = tmp_path_factory.mktemp("malformed")
+    port = free_port()
+    ready = tmp_path / "c.ready"
+    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+                    "--process", STUB, "--max-request-bytes", str(LIMIT), "--ready-file", str(ready)],
+                   log_path=tmp_path / "c.log")
+    try:
+        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=30, what="cloud ready")
+        assert p.poll() is None, (tmp_path / "c.log").read_text()
+        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
+        try:
+            q = session.declare_querier(keys.drivable("cloud", "c1"), timeout=5.0)
+            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
+            yield p, q
+        finally:
+            close_session(session)
+    finally:
+        assert stop_peer(p) == 0
+
+
+def _ask(q, payload: bytes):
+    replies = list(q.get(payload=payload))
+    assert len(replies) == 1
+    r = replies[0]
+    if r.ok is not None:
+        return "ok", wire.decode(r.ok.payload.to_bytes(), kind="reply")
+    return "err", wire.decode(r.err.payload.to_bytes(), kind="error")
+
+
+def _good(seq=1):
+    return wire.make_request("t1", seq, synthetic_png(seq), encoding="png")
+
+
+CASES = [
+    ("not msgpack", b"\xc1\xc1\xc1", "malformed", "not msgpack"),
+    ("not a map", msgpack.packb([1, 2, 3]), "malformed", "map"),
+    ("empty", b"", "malformed", ""),
+    ("wrong version", wire.encode({**_good(), "v": 99}), "wrong_version", "99"),
+    ("missing field", wire.encode({k: v for k, v in _good().items() if k != "seq"}), "malformed", "seq"),
+    ("bad encoding", wire.encode({**_good(), "encoding": "gif"}), "malformed", "encoding"),
+    ("image not bytes", wire.encode({**_good(), "image": "abc"}), "malformed", "image"),
+    ("oversized", wire.encode({**_good(), "image": b"\x00" * (LIMIT + 1)}), "oversized", str(LIMIT)),
+    ("undecodable image", wire.encode({**_good(), "image": b"not an image at all"}), "malformed", "image"),
+]
+
+
+def test_bad_requests_get_error_replies_and_service_keeps_serving(cloud):
+    proc, q = cloud
+    kind, rep = _ask(q, wire.encode(_good(0)))
+    assert kind == "ok" and rep["served_by"] == "c1" and rep["tier"] == "cloud" and rep["seq"] == 0
+    for name, payload, code, needle in CASES:
+        kind, msg = _ask(q, payload)
+        assert kind == "err", name
+        assert msg["code"] == code, (name, msg)
+        assert needle in msg["message"], (name, msg["message"])
+        assert msg["served_by"] == "c1"
+    # robot and seq are echoed when the request could be read
+    kind, msg = _ask(q, wire.encode({**_good(7), "image": b"junk"}))
+    assert (msg["robot"], msg["seq"]) == ("t1", 7)
+    for seq in range(2, 5):
+        kind, rep = _ask(q, wire.encode(_good(seq)))
+        assert kind == "ok" and rep["seq"] == seq
+    assert proc.poll() is None
+
+
+def test_no_payload_is_an_error_reply(cloud):
+    _, q = cloud
+    replies = list(q.get())
+    assert len(replies) == 1 and replies[0].err is not None
+    assert wire.decode(replies[0].err.payload.to_bytes(), kind="error")["code"] == "malformed"
