@@ -1,0 +1,191 @@
+"""The data tier with real processes: cloud outage, robot restart, full and corrupt queues.
+
+Cloud and leader run the stub process function; robots send stub frames.
+Multicast off, explicit tcp/127.0.0.1 endpoints, lease 300 ms, every process
+group killed at the end.  About 40-60 s on a loaded 2-core box.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import free_port
+from scmr_mesh.data.ods import OperationalDataStore
+from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.data.report import telemetry_report
+from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, wait_for
+
+LEASE = "300"
+
+
+def _ep(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+class Peers:
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: list = []
+
+    def service(self, role: str, node: str, port: int, *, connect=(), extra=()):
+        ready = self.tmp / f"{node}.ready"
+        args = [role, "--node", node, "--listen", _ep(port), "--workers", "1", "--process", STUB,
+                "--lease-ms", LEASE, "--ready-file", str(ready), *extra]
+        for ep in connect:
+            args += ["--connect", ep]
+        p = spawn_peer(args, log_path=self.tmp / f"{node}.log")
+        self.procs.append(p)
+        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=40, what=f"{node} ready")
+        assert p.poll() is None, self.log(node)
+        return p
+
+    def robot(self, rid: str, connect, *extra):
+        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / rid), "--process", STUB,
+                "--lease-ms", LEASE, "--quiet", *extra]
+        for ep in connect:
+            args += ["--connect", ep]
+        p = spawn_peer(args, log_path=self.tmp / f"{rid}.log")
+        self.procs.append(p)
+        return p
+
+    def log(self, name: str) -> str:
+        path = self.tmp / f"{name}.log"
+        return path.read_text(errors="replace") if path.exists() else ""
+
+    def stop_all(self) -> None:
+        for p in self.procs:
+            stop_peer(p, timeout=5)
+
+
+@pytest.fixture
+def peers(tmp_path):
+    p = Peers(tmp_path)
+    try:
+        yield p
+    finally:
+        p.stop_all()
+
+
+def _stored(ods_path: Path, robot: str) -> list[int]:
+    if not ods_path.exists():
+        return []
+    with OperationalDataStore(ods_path, readonly=True) as ods:
+        return ods.seqs(robot)
+
+
+def _summary(tmp: Path, rid: str) -> dict:
+    return json.loads((tmp / rid / "telemetry.json").read_text())
+
+
+def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path):
+    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+    from scmr_mesh.mesh.data_service import TelemetryAgent
+    from scmr_mesh.mesh.robot import Robot, RobotOptions
+
+    pc, pl = free_port(), free_port()
+    ods_path = tmp_path / "ods.sqlite"
+    cloud_args = dict(extra=["--ods", str(ods_path)])
+    cloud = peers.service("cloud", "c1", pc, **cloud_args)
+    peers.service("leader", "L", pl, connect=[_ep(pc)], extra=["--sync-period", "0.3"])
+    r1 = peers.robot("r1", [_ep(pc), _ep(pl)], "--rate", "20", "--duration", "7", "--deadline-ms", "400",
+                     "--listen", _ep(free_port()))
+    session = open_session(MeshConfig(connect=[_ep(pc), _ep(pl)], lease_ms=int(LEASE)))
+    probe = Robot("probe", tmp_path / "probe", options=RobotOptions(local_fallback=False, deadline_ms=400))
+    agent = None
+    try:
+        probe.attach(session)
+        agent = TelemetryAgent(probe, tmp_path / "probe" / "q", deadline_ms=400)
+        wait_for(lambda: len(_stored(ods_path, "r1")) >= 10, timeout=30, what="r1 telemetry in the ODS")
+        # the cloud's buffer serves the latest state; the leader pulls it in batches
+        tier, node, items = agent.fetch("state/r1")
+        assert (tier, node) == ("cloud", "c1") and items["state/r1"]["robot"] == "r1"
+        time.sleep(0.8)  # > 2 sync periods
+        stop_peer(cloud, sig=signal.SIGKILL)
+        wait_for(lambda: not probe.view.snapshot().cloud, timeout=10, what="the probe to see the cloud go")
+        tier, node, items = agent.fetch("state/r1")
+        assert (tier, node) == ("leader", "L")  # same query, answered by the leader's copy
+        seq_at_leader = items["state/r1"]["seq"]
+        time.sleep(1.5)  # r1 keeps sending telemetry to the leader during the outage
+        _, _, items = agent.fetch("state/r1")
+        assert items["state/r1"]["seq"] > seq_at_leader  # the leader stores what it receives
+        cloud = peers.service("cloud", "c1", pc, **cloud_args)  # failback, same ODS file
+        assert r1.wait(timeout=30) == 0, peers.log("r1")
+        sent = _summary(tmp_path, "r1")["sent"]
+        wait_for(lambda: len(_stored(ods_path, "r1")) >= sent, timeout=30, what="every r1 record in the ODS")
+    finally:
+        if agent is not None:
+            agent.close(drain_s=0)
+        probe.close()
+        close_session(session)
+    rep = telemetry_report(ods_path, {"r1": sent})["telemetry"]
+    assert rep["lost"] == 0 and rep["stored"] == sent and rep["per_robot"]["r1"]["unexpected"] == 0
+    assert _stored(ods_path, "r1") == list(range(1, sent + 1))  # each seq exactly once
+    with OperationalDataStore(ods_path, readonly=True) as ods:
+        via = {r["received_from"] for r in ods.range(robot="r1")}
+    assert via == {"cloud", "leader"}  # some records reached the store through the leader's relay
+
+
+def test_robot_restarted_mid_outage_keeps_its_queue(peers, tmp_path):
+    pc = free_port()
+    ods_path = tmp_path / "ods.sqlite"
+    cloud = peers.service("cloud", "c1", pc, extra=["--ods", str(ods_path)])
+    r = peers.robot("r2", [_ep(pc)], "--rate", "50", "--count", "10")
+    assert r.wait(timeout=30) == 0, peers.log("r2")
+    assert _summary(tmp_path, "r2")["queued"] == 0
+    stop_peer(cloud, sig=signal.SIGKILL)
+    # mid-outage: the robot queues telemetry on disk, then crashes (SIGKILL, no clean exit)
+    r = peers.robot("r2", [_ep(pc)], "--rate", "50", "--count", "100000", "--wait-ms", "0")
+    qdir = tmp_path / "r2" / "telemetry-queue"
+
+    def depth() -> int:
+        st = TelemetryQueue(qdir, fsync="never")
+        try:
+            return st.stats().depth
+        finally:
+            st.close()
+
+    wait_for(lambda: r.poll() is None and depth() >= 15, timeout=30, what="telemetry queued during the outage")
+    stop_peer(r, sig=signal.SIGKILL)
+    queued = depth()
+    assert queued >= 15
+    peers.service("cloud", "c1", pc, extra=["--ods", str(ods_path)])
+    r = peers.robot("r2", [_ep(pc)], "--rate", "50", "--count", "5")
+    assert r.wait(timeout=30) == 0, peers.log("r2")
+    summary = _summary(tmp_path, "r2")
+    sent = summary["sent"]
+    assert sent >= 10 + queued + 5 and summary["queued"] == 0 and summary["replayed"] >= queued
+    wait_for(lambda: len(_stored(ods_path, "r2")) >= sent, timeout=20, what="replayed telemetry in the ODS")
+    rep = telemetry_report(ods_path, {"r2": sent})["telemetry"]
+    assert (rep["lost"], rep["stored"]) == (0, sent)
+
+
+def test_full_and_corrupt_queues_are_reported(peers, tmp_path):
+    dead = _ep(free_port())  # nothing listens: no tier stores anything
+    r = peers.robot("r3", [dead], "--rate", "200", "--count", "40", "--wait-ms", "0",
+                    "--telemetry-max-bytes", "3000")
+    assert r.wait(timeout=60) == 0, peers.log("r3")
+    s = _summary(tmp_path, "r3")
+    assert s["refused"] > 0 and s["queued"] == s["sent"] and s["queued"] + s["refused"] == 40
+    assert "is full" in peers.log("r3") and "refused" in peers.log("r3")
+    qdir = tmp_path / "r3" / "telemetry-queue"
+    seg = sorted(qdir.glob("seg-*.log"))[0]
+    raw = bytearray(seg.read_bytes())
+    raw[len(raw) // 2] ^= 0x5A  # somewhere in the middle of the segment
+    seg.write_bytes(bytes(raw))
+    out = subprocess.run([sys.executable, "-m", "scmr_mesh", "ods", "queue", str(qdir)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and "lost" in out.stderr and "Traceback" not in out.stderr
+    lost = json.loads(out.stdout)["lost_seqs"]
+    assert len(lost) >= 1
+    r = peers.robot("r3", [dead], "--rate", "50", "--count", "1", "--wait-ms", "0")
+    assert r.wait(timeout=60) == 0, peers.log("r3")
+    assert "corrupt bytes" in peers.log("r3")
+    s = _summary(tmp_path, "r3")
+    assert s["corruptions"] >= 1 and s["lost_seqs"] == lost
