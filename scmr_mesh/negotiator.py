@@ -383,3 +383,65 @@ def jain_index(values) -> float:
     if not xs or sq == 0:
         return 1.0
     return sum(xs) ** 2 / (len(xs) * sq)
+
+
+# --------------------------------------------------------------------------- CLI glue
+def add_arguments(parser) -> None:
+    """Add ``--queue``, ``--min-priority`` and ``--per-robot`` to a service's parser."""
+    g = parser.add_argument_group("request negotiator (thesis Table 3.6)")
+    g.add_argument(
+        "--queue", type=int, default=None, metavar="N",
+        help="rank requests by priority with at most N waiting beyond the workers; the rest get "
+             "an immediate 'busy' reply so robots fall back (default: no negotiator, FIFO with "
+             "the service's in-flight limit)",
+    )
+    g.add_argument("--min-priority", type=int, default=0, metavar="P",
+                   help="with --queue: refuse requests below priority P at once (default 0)")
+    g.add_argument("--per-robot", type=int, default=None, metavar="N",
+                   help="with --queue: at most N waiting requests per robot (default: no quota)")
+
+
+def service_setup(args) -> Callable[[Any], None] | None:
+    """A ``setup(service)`` hook installing a :class:`Negotiator` from parsed flags, or None.
+
+    Raises
+    ------
+    ValueError
+        Through :class:`Negotiator` on bad values (the CLI reports them).
+    """
+    capacity = getattr(args, "queue", None)
+    if capacity is None:
+        if getattr(args, "per_robot", None) is not None or getattr(args, "min_priority", 0):
+            from scmr_mesh.errors import InputError
+
+            raise InputError("--min-priority and --per-robot only apply with --queue N; add --queue")
+        return None
+    from scmr_mesh.errors import InputError
+
+    if capacity < 0:
+        raise InputError(f"--queue must be >= 0, got {capacity}")
+    if args.per_robot is not None and args.per_robot < 1:
+        raise InputError(f"--per-robot must be >= 1, got {args.per_robot}")
+
+    def setup(service) -> None:
+        service.use_negotiator(
+            Negotiator(capacity=capacity, workers=service.state.workers,
+                       min_priority=args.min_priority, per_robot=args.per_robot)
+        )
+        log.info("negotiator: queue %d, %d workers, min priority %d, per-robot %s",
+                 capacity, service.state.workers, args.min_priority, args.per_robot)
+
+    return setup
+
+
+def chain(*hooks: Callable[[Any], None] | None) -> Callable[[Any], None] | None:
+    """One setup hook calling each non-None hook in order (None if there are none)."""
+    live = [h for h in hooks if h is not None]
+    if not live:
+        return None
+
+    def setup(service) -> None:
+        for h in live:
+            h(service)
+
+    return setup

@@ -108,6 +108,9 @@ def _service_args(p: argparse.ArgumentParser) -> None:
                         "use scmr_mesh.mesh.testing:stub_process)")
     p.add_argument("--ready-file", metavar="PATH", help="written once the service is serving")
     p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    from scmr_mesh import negotiator
+
+    negotiator.add_arguments(p)
 
 
 def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
@@ -175,7 +178,7 @@ def _cmd_cloud(args) -> int:
     _setup_logging(args)
     return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file,
-                       setup=_data_setup(args, "cloud"))
+                       setup=_setup(args, "cloud"))
 
 
 def _cmd_leader(args) -> int:
@@ -194,7 +197,7 @@ def _cmd_leader(args) -> int:
 
     return run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                       setup=_data_setup(args, "leader"))
+                       setup=_setup(args, "leader"))
 
 
 def _cmd_robot(args) -> int:
@@ -293,6 +296,13 @@ def _data_args(p: argparse.ArgumentParser, role: str) -> None:
     from scmr_mesh.mesh.data_service import add_arguments
 
     add_arguments(p, role)
+
+
+def _setup(args, tier: str):
+    """Service setup hooks: the data tier, then the priority negotiator (--queue)."""
+    from scmr_mesh import negotiator
+
+    return negotiator.chain(_data_setup(args, tier), negotiator.service_setup(args))
 
 
 def _data_setup(args, tier: str):

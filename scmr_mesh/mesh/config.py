@@ -63,6 +63,13 @@ class MeshConfig:
         Shortcut for ``transport/link/tx/lease`` (applied last).
     keep_alive : int or None
         Shortcut for ``transport/link/tx/keep_alive``.
+    security : str or None
+        Security profile TOML (``peers/secure/mtls.toml``): TLS with mutual
+        certificates or usrpwd, and access control (docs/SECURITY.md).
+    credentials : str or None
+        Overrides the profile's credentials directory (made by ``scmr certs``).
+    identity : str or None
+        This peer's name in the credentials (node name or robot id).
     """
 
     mode: str = "peer"
@@ -72,6 +79,9 @@ class MeshConfig:
     cfg: list[str] = field(default_factory=list)
     lease_ms: int | None = None
     keep_alive: int | None = None
+    security: str | None = None
+    credentials: str | None = None
+    identity: str | None = None
 
     def build(self):
         """Return a validated ``zenoh.Config``; raise :class:`ConfigError` if unusable."""
@@ -129,6 +139,14 @@ def build_config(mc: MeshConfig):
         _insert(conf, "transport/link/tx/lease", json.dumps(int(mc.lease_ms)), source="--lease-ms")
     if mc.keep_alive is not None:
         _insert(conf, "transport/link/tx/keep_alive", json.dumps(int(mc.keep_alive)), source="keep_alive")
+    if mc.security:
+        from scmr_mesh.mesh.security import apply_security
+        from scmr_mesh.security.profile import load_profile
+
+        if not mc.identity:
+            raise ConfigError(f"--security {mc.security} needs this peer's name (--node or --id)")
+        apply_security(conf, load_profile(mc.security, credentials=mc.credentials), identity=mc.identity,
+                       listen=mc.listen, connect=mc.connect)
     check(conf)
     return conf
 
@@ -197,6 +215,11 @@ def add_arguments(parser, *, lease_default: int | None = None) -> None:
                         "detected in about 0.8 x lease")
     g.add_argument("--zmode", choices=MODES, default=None,
                    help="zenoh session mode (default: peer; router for `scmr router`)")
+    g.add_argument("--security", metavar="PROFILE", default=None,
+                   help="security profile TOML, e.g. peers/secure/mtls.toml (mutual TLS + access control; "
+                        "tcp/ endpoints become tls/); credentials from `scmr certs` (docs/SECURITY.md)")
+    g.add_argument("--credentials", metavar="DIR", default=None,
+                   help="credentials directory made by `scmr certs` (overrides the profile and $SCMR_CREDENTIALS)")
 
 
 def from_args(args, *, mode: str = "peer") -> MeshConfig:
@@ -208,6 +231,9 @@ def from_args(args, *, mode: str = "peer") -> MeshConfig:
         config_file=args.config,
         cfg=list(args.cfg or []),
         lease_ms=args.lease_ms,
+        security=getattr(args, "security", None),
+        credentials=getattr(args, "credentials", None),
+        identity=getattr(args, "node", None) or getattr(args, "id", None),
     )
 
 

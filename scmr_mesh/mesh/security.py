@@ -64,6 +64,13 @@ def apply_security(
     if not isinstance(profile, SecurityProfile):
         profile = load_profile(profile)
     settings = zenoh_settings(profile, identity, listen=listen, connect=connect)
+    if profile.kind == "tls":
+        # endpoints the caller did not pass (zenoh's default listen tcp/[::]:0, a config
+        # file's) must become tls/ too: a TLS-only peer refuses to open tcp/ links
+        for key, given in (("listen/endpoints", listen), ("connect/endpoints", connect)):
+            if not given:
+                current = json.loads(conf.get_json(key))
+                settings[key] = _rewrite(current)
     for key, value in settings.items():
         try:
             conf.insert_json5(key, json.dumps(value))
@@ -74,6 +81,17 @@ def apply_security(
             ) from exc
     log.info("security %s for %s: %s", profile.kind, identity, sorted(describe(settings)))
     return conf
+
+
+def _rewrite(value):
+    """tcp/ -> tls/ in an endpoint list or a per-mode ``{mode: [endpoints]}`` map."""
+    from scmr_mesh.security.profile import secure_endpoint
+
+    if isinstance(value, list):
+        return [secure_endpoint(e, "tls") for e in value]
+    if isinstance(value, dict):
+        return {k: _rewrite(v) for k, v in value.items()}
+    return value
 
 
 def secure_config(

@@ -29,6 +29,10 @@ Hooks for other areas
   (``code`` usually ``"busy"``, ``message``, ``retry_after_ms``).  The security
   engineer's priority negotiator plugs in here; :func:`default_admission` is
   the default.
+* ``Service.use_negotiator(negotiator)``: rank admitted requests by priority
+  in a bounded queue (:class:`scmr_mesh.negotiator.Negotiator`): a dispatcher
+  thread feeds the pool highest priority first, at most ``negotiator.workers``
+  at a time; requests refused or displaced get a ``busy`` error reply at once.
 * ``Service.add_queryable(key, callback, complete=False)``: extra queryables
   declared on the service's session (data-buffer queries under
   ``keys.data(tier, node)``); callable before or after :meth:`attach`.
@@ -147,6 +151,7 @@ class Service:
         self.max_request_bytes = int(max_request_bytes)
         self.state = ServiceState(node, tier, workers, int(max_inflight or 8 * workers))
         self.admission: Admission = admission or default_admission
+        self.negotiator = None
         self.session = None
         self._extra: list[tuple[str, Callable, bool]] = []
         self._declared: list[Any] = []
@@ -221,7 +226,11 @@ class Service:
         self.session = None
 
     def shutdown(self) -> None:
-        """Stop the worker pool."""
+        """Stop the worker pool (and the negotiator, answering what still waits)."""
+        if self.negotiator is not None:
+            for e in self.negotiator.close():
+                query, req, _ = e.payload
+                self._reply_error(query, "unavailable", "service shutting down; send it to another tier", req)
         self.pool.shutdown()
 
     # ------------------------------------------------------------ serving
@@ -276,6 +285,9 @@ class Service:
             if refusal is not None:
                 self._reply_error(query, refusal.code, refusal.message, req, refusal.retry_after_ms)
                 return
+            if self.negotiator is not None:
+                self._negotiate(query, req, t_arrival)
+                return
             with self.state.lock:
                 self.state.inflight += 1
             t_sub = time.perf_counter()
@@ -285,6 +297,50 @@ class Service:
             self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
             return
         fut.add_done_callback(lambda f: self._finish(query, req, f, t_arrival, t_sub))
+
+    # ------------------------------------------------- priority negotiator
+    def use_negotiator(self, negotiator) -> None:
+        """Rank requests with ``negotiator`` (see :mod:`scmr_mesh.negotiator`); before attach."""
+        self.negotiator = negotiator
+        threading.Thread(target=self._dispatch, name="scmr-dispatch", daemon=True).start()
+
+    def _negotiate(self, query, req: dict, t_arrival: float) -> None:
+        neg = self.negotiator
+        d = neg.offer((req["robot"], req["seq"]), req["priority"], robot=req["robot"],
+                      payload=(query, req, t_arrival))
+        for e in d.refused:
+            q, r, _ = e.payload
+            self._reply_error(
+                q, "busy",
+                f"server too busy, try later: request {r['robot']}/{r['seq']} with priority {e.priority} "
+                f"{e.reason} ({neg.waiting} waiting, {neg.in_service} in service, queue {neg.capacity}); "
+                "send it to another tier or run it locally",
+                r, d.retry_after_ms or neg.retry_after_ms())
+
+    def _dispatch(self) -> None:
+        neg = self.negotiator
+        while True:
+            e = neg.take()
+            if e is None:  # closed
+                return
+            query, req, t_arrival = e.payload
+            with self.state.lock:
+                self.state.inflight += 1
+            t_sub = time.perf_counter()
+            try:
+                fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"])
+            except Exception as exc:
+                with self.state.lock:
+                    self.state.inflight -= 1
+                neg.done(e)
+                self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}", req)
+                continue
+
+            def finished(f, e=e, query=query, req=req, t_arrival=t_arrival, t_sub=t_sub):
+                neg.done(e, service_s=time.perf_counter() - t_sub)
+                self._finish(query, req, f, t_arrival, t_sub)
+
+            fut.add_done_callback(finished)
 
     def _finish(self, query, req: dict, fut, t_arrival: float, t_sub: float) -> None:
         with self.state.lock:

@@ -264,16 +264,31 @@ def create_credentials(
         plist: list[Peer] = items  # type: ignore[assignment]
     else:
         plist = parse_peers(",".join(str(i) for i in items))
-    out = Path(out)
+    out = Path(out).resolve()
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out} is a file; give a directory path")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise ConfigError(
             f"--out {out} is not empty; choose a new directory or pass --force to overwrite"
         )
-    out.mkdir(parents=True, exist_ok=True)
-    say = progress or (lambda msg: None)
-    say(f"creating development CA in {out}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    final, out = out, Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        fleet = _create(out, plist, days=days, hosts=hosts, say=progress or (lambda msg: None))
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    # all or nothing: the directory appears only when every file is written
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(out, final)
+    os.chmod(final, 0o755)
+    log.info("wrote credentials for %d peers to %s", len(plist), final)
+    return Fleet(fleet.peers, final)
+
+
+def _create(out: Path, plist: list[Peer], *, days: int, hosts: Sequence[str], say) -> Fleet:
+    say("creating the development CA")
     _make_ca(out, days=days)
     passwords: dict[str, str] = {}
     for i, peer in enumerate(plist, 1):
@@ -297,7 +312,6 @@ def create_credentials(
         )
         + "\n"
     )
-    log.info("wrote credentials for %d peers to %s", len(plist), out)
     return fleet
 
 
