@@ -457,7 +457,10 @@ def run_fleet(
     })
     for f in report["faults"]:
         if f.get("ready_unix_ns") is not None and f.get("end_unix_ns") is not None:
+            # split the failback gap: process start-up, then ready -> first answer
             f["restart_to_ready_ms"] = (f["ready_unix_ns"] - f["end_unix_ns"]) / 1e6
+            f["failback_after_ready_ms"] = metrics.failback_gap_ms(
+                records, {**f, "end_unix_ns": f["ready_unix_ns"]})
     validate_report(report)
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
@@ -515,7 +518,8 @@ def format_summary(report: Mapping[str, Any]) -> str:
         lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, restored {end}; "
                      f"failover gap {_ms(f.get('failover_gap_ms'))} ms (largest robot), "
                      f"failback gap {_ms(f.get('failback_gap_ms'))} ms"
-                     + (f" (restart to ready {f['restart_to_ready_ms']:.0f} ms)"
+                     + (f" = restart to ready {f['restart_to_ready_ms']:.0f} ms"
+                        f" + ready to first answer {_ms(f.get('failback_after_ready_ms'))} ms"
                         if f.get("restart_to_ready_ms") is not None else ""))
     if not report.get("faults"):
         lines.append("  no faults injected")
@@ -650,8 +654,8 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     b = bench.add_parser(
         "mesh", help="ToR/RoR of fleets of 1, 4, 16 robots and a cloud-crash run",
         description=(
-            "Run fleets of each size in --robots (no faults), then a crash run (4 robots, cloud "
-            "SIGKILLed at 40%% of --duration and restarted at 70%%), and write "
+            "Run fleets of each size in --robots (no faults), then a crash run (4 robots for 16 s, "
+            "cloud SIGKILLed at 4 s and restarted at 7 s), and write "
             '{"runs": [{"robots", "rate_hz", "requests", "ror", "tor_ms"}], "crash": {...}, '
             '"targets": {...}}. Targets: ToR p50 <= 15 ms and p99 <= 50 ms with 4 robots at 5 Hz; '
             "RoR 1.0 through a cloud crash; failover gap <= 50 ms; failback gap <= 1 s."
@@ -662,6 +666,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     _add_fleet_args(b)
     b.add_argument("--crash-robots", type=int, default=4, metavar="N",
                    help="robots in the crash run (0 skips it; default: %(default)s)")
+    b.add_argument("--crash-duration", type=float, default=16.0, metavar="S",
+                   help="length of the crash run (default: %(default)s)")
+    b.add_argument("--crash-outage", default="4:7", metavar="START:END",
+                   help="cloud SIGKILL and restart in the crash run, s (default: %(default)s; the run "
+                        "goes on after END so the restarted cloud's first answer is seen)")
     b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
     b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
     b.set_defaults(func=_cmd_bench_mesh)
@@ -738,11 +747,11 @@ def _cmd_bench_mesh(args: argparse.Namespace) -> int:
               f"ToR p50 {_ms(t['p50'])} p99 {_ms(t['p99'])} max {_ms(t['max'])} ms", file=sys.stderr)
     crash = None
     if args.crash_robots > 0:
-        d = args.duration
-        outage = (round(0.4 * d, 3), round(0.7 * d, 3))
+        outage = parse_outage(args.crash_outage)
         print(f"bench mesh: crash run, {args.crash_robots} robots, cloud down {outage[0]:g}-{outage[1]:g} s ...",
               file=sys.stderr)
         cfg = _config_from_args(args, args.crash_robots, root / "crash")
+        cfg.duration_s = args.crash_duration
         cfg.cloud_outage = outage
         rep = run_with_output(cfg)
         crash = {**_run_entry(rep), "failover_gaps_ms": rep["failover_gaps_ms"],
