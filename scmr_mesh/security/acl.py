@@ -8,7 +8,9 @@ under usrpwd).  The default is **deny**; the policy allows:
 subject            allowed (``flows`` as seen by the enforcing node)
 =================  ======================================================================
 cloud, leader      everything under ``scmr/**`` in both directions (they are the servers)
-every robot        ingress ``query`` on ``scmr/drivable/**`` (and ``robot_query`` keys);
+every robot        ingress ``query`` on ``scmr/drivable/**`` and the data tier's
+                   ``scmr/data/*/*/telemetry`` (telemetry batches) and
+                   ``scmr/data/*/*/buffer`` (data-buffer reads);
                    egress ``reply`` and ``declare_queryable`` on those keys (so the robot
                    learns the services and gets answers); egress ``declare_subscriber``
                    on the robot publication keys (so its puts are routed to the servers);
@@ -23,7 +25,13 @@ robot ``<id>``     ingress ``put``/``delete`` on its own ``scmr/telemetry/<id>``
 Everything else from a robot is dropped, in particular: publishing another robot's
 telemetry, declaring a queryable on ``scmr/drivable/**`` (a rogue service is never
 announced, and queries are never sent to a robot), replying on ``scmr/drivable/**``,
-subscribing to other robots' telemetry, and querying the data store (``scmr/data/**``).
+subscribing to other robots' telemetry, and reading the data store (the leader's
+``scmr/data/cloud/*/sync`` pull, and anything else under ``scmr/data/**``).
+
+Not covered by these rules: the *content* of a telemetry batch sent as a query to
+``scmr/data/<tier>/<node>/telemetry``.  Zenoh does not tell a queryable who sent a
+query, and the key does not name the robot, so a credentialed robot can put records
+claiming another robot id in a batch (docs/SECURITY.md, "Gaps").
 
 References
 ----------
@@ -59,7 +67,9 @@ class KeyLayout:
 
     root: str = f"{keys.ROOT}/**"
     services: tuple[str, ...] = (keys.DRIVABLE_ALL,)
-    robot_query: tuple[str, ...] = ()
+    robot_query: tuple[str, ...] = (
+        f"{keys.DATA}/*/*/telemetry", f"{keys.DATA}/*/*/buffer",
+    )
     robot_publish: tuple[str, ...] = (
         f"{keys.TELEMETRY}/{{id}}", f"{keys.RESULTS}/{{id}}", f"{keys.METRICS}/{{id}}",
     )
