@@ -308,6 +308,32 @@ def normalize_url(url: str | int) -> str:
     return text
 
 
+def check_reachable(url: str, *, timeout: float = 1.0) -> str:
+    """Return ``url`` if something listens at its host and port, else raise.
+
+    rerun's ``connect_grpc`` blocks about 5 s on an unreachable URL and then
+    drops the data, so every stream checks first.
+
+    Raises
+    ------
+    ViewerError
+        When nothing accepts a TCP connection at the URL's host and port.
+    """
+    m = re.match(r"^[a-z+]+://(\[[^\]]+\]|[^:/]+)(?::(\d+))?/", url)
+    if not m:
+        raise InputError(f"not a rerun gRPC URL: {url!r} (expected {DEFAULT_CONNECT_URL})")
+    host = m.group(1).strip("[]")
+    port = int(m.group(2) or (443 if url.startswith("rerun+https") else 80))
+    try:
+        with socket.create_connection((host, port), timeout=timeout):
+            return url
+    except OSError as exc:
+        raise ViewerError(
+            f"no rerun viewer listens at {url} ({exc.strerror or exc}); start one with "
+            "`rerun` (or use --spawn / --serve / --save instead of --connect)"
+        ) from exc
+
+
 @dataclass(frozen=True)
 class RerunOptions:
     """Where a process sends its rerun data (parsed rerun flags).
@@ -546,14 +572,14 @@ class _Stream:
         self.recording_id = recording_id or options.recording_id or uuid.uuid4().hex
         self.rec = rr.RecordingStream(APP_ID, recording_id=self.recording_id)
         if url is not None:
-            self.rec.connect_grpc(url)
+            self.rec.connect_grpc(check_reachable(url))
         elif options.mode == "save":
             out = Path(options.target).expanduser()
             if not out.parent.exists():
                 raise InputError(f"--rerun-save {options.target}: folder {out.parent} does not exist")
             self.rec.save(str(out))
         elif options.mode == "connect":
-            self.rec.connect_grpc(normalize_url(options.target or DEFAULT_CONNECT_URL))
+            self.rec.connect_grpc(check_reachable(normalize_url(options.target or DEFAULT_CONNECT_URL)))
         else:
             raise InputError(
                 f"a peer logs with --rerun-url or --rerun-save, not {options.mode!r}; "

@@ -1,0 +1,192 @@
+"""Recordings read back: a fleet process and two robot processes log into one
+recording through the --save sink; the file holds the expected entities and
+one frame per request per robot.  Also ``scmr view`` on it, and analytics off.
+
+Runs real processes (a ``rerun --save`` recorder and two robot loggers); about
+10 s on a 2-core machine.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scmr_mesh import cli, viz
+
+N = 8  # requests per robot; request 5 fails
+FAILED = {5}
+
+ROBOT = r"""
+import argparse, sys, time
+import numpy as np
+from scmr_mesh import viz
+p = argparse.ArgumentParser()
+p.add_argument("robot"); p.add_argument("n", type=int)
+viz.add_rerun_peer_args(p)
+a = p.parse_args()
+rv = viz.RobotViz(viz.RerunOptions.from_args(a), a.robot)
+rng = np.random.default_rng(len(a.robot))
+for i in range(a.n):
+    rgb = rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    mask = np.zeros((225, 300), np.uint8); mask[120:, 60:240] = 255
+    ok = i not in (5,)
+    now = time.time_ns()
+    rv.observe({"robot": a.robot, "seq": i, "ok": ok, "tier": "cloud" if i < 4 else "leader",
+                "tor_ms": 2.0 + i, "served_by": "c0", "sent_unix_ns": now - 2_000_000,
+                "received_unix_ns": now, "energy_j": 0.5, "battery": 1.0 - i / 100,
+                "error": None if ok else "timeout"}, rgb, mask, srm=rgb)
+rv.close()
+"""
+
+
+@pytest.fixture(scope="module")
+def isolated_env(tmp_path_factory):
+    """HOME and the rerun state dir in temporary folders (nothing in the real home)."""
+    root = tmp_path_factory.mktemp("rerun-env")
+    mp = pytest.MonkeyPatch()
+    mp.setenv("HOME", str(root / "home"))
+    mp.setenv("SCMR_RERUN_HOME", str(root / "state"))
+    for var in ("XDG_CONFIG_HOME", "XDG_DATA_HOME", "XDG_CACHE_HOME", "CI"):
+        mp.delenv(var, raising=False)
+    (root / "home").mkdir()
+    yield root
+    mp.undo()
+
+
+@pytest.fixture(scope="module")
+def fleet_recording(isolated_env):
+    out = isolated_env / "run.rrd"
+    fv = viz.FleetViz(viz.RerunOptions("save", str(out)), robots=["r0", "r1"])
+    procs = []
+    try:
+        t0 = time.time_ns()
+        fv.log_alive("cloud", "cloud0", True, t_unix_ns=t0)
+        fv.log_alive("leader", "leader0", True, t_unix_ns=t0)
+        procs = [
+            subprocess.Popen([sys.executable, "-c", ROBOT, r, str(N), *fv.child_args()], start_new_session=True)
+            for r in ("r0", "r1")
+        ]
+        fv.log_fault({"kind": "crash", "target": "cloud0", "tier": "cloud",
+                      "start_unix_ns": t0 + 10**8, "end_unix_ns": t0 + 3 * 10**8})
+        fv.log_alive("cloud", "cloud0", False, t_unix_ns=t0 + 10**8)
+        fv.log_alive("cloud", "cloud0", True, t_unix_ns=t0 + 4 * 10**8)
+        for i in range(2 * N):
+            fv.log_record({"ok": i % N not in FAILED, "received_unix_ns": t0 + i})
+        codes = [p.wait(timeout=120) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                os.killpg(p.pid, 9)
+                p.wait()
+        path = fv.close()
+    assert codes == [0, 0]
+    return fv, path
+
+
+def test_save_writes_one_finalised_file(fleet_recording):
+    fv, path = fleet_recording
+    assert path is not None and path.is_file()
+    assert not path.with_name(path.name + ".partial").exists()
+    res = viz.run_rerun_cli(["rrd", "verify", str(path)])
+    assert res.returncode == 0, res.stderr
+
+
+def test_all_processes_share_one_recording(fleet_recording):
+    fv, path = fleet_recording
+    text = viz.run_rerun_cli(["rrd", "print", str(path)]).stdout
+    recordings = set(re.findall(r'Recording,\s*"([^"]+)",\s*"([^"]+)"', text))
+    assert recordings == {(viz.APP_ID, fv.recording_id)}
+    assert re.search(r"Blueprint,\s*\"scmr-mesh\"", text), "the blueprint is saved with the recording"
+
+
+def test_expected_entities_and_frames_per_robot(fleet_recording):
+    _, path = fleet_recording
+    rows = viz.rrd_rows(path)
+    assert rows["/scmr/robot"]["AnnotationContext:context"] >= 1
+    ok = N - len(FAILED)
+    for r in ("r0", "r1"):
+        assert rows[f"/scmr/robot/{r}/camera"]["EncodedImage:blob"] == N
+        assert rows[f"/scmr/robot/{r}/camera/drivable"]["SegmentationImage:buffer"] == N
+        assert rows[f"/scmr/robot/{r}/srm"]["EncodedImage:blob"] == N
+        assert rows[f"/scmr/results/{r}/tor_ms"]["Scalars:scalars"] == ok  # failed requests have no ToR
+        assert rows[f"/scmr/results/{r}/tier"]["Scalars:scalars"] == N
+        assert rows[f"/scmr/results/{r}/ror"]["Scalars:scalars"] == N
+        assert rows[f"/scmr/results/{r}/log"]["TextLog:text"] == N
+        assert rows[f"/scmr/telemetry/{r}/battery"]["Scalars:scalars"] == N
+        assert rows[f"/scmr/telemetry/{r}/energy_j"]["Scalars:scalars"] == N
+    assert rows["/scmr/alive/cloud/cloud0"]["Scalars:scalars"] == 3
+    assert rows["/scmr/alive/leader/leader0"]["Scalars:scalars"] == 1
+    assert rows["/scmr/faults/cloud0"]["Scalars:scalars"] == 2  # start, end
+    assert rows["/scmr/faults/log"]["TextLog:text"] == 2
+    assert rows["/scmr/fleet/ror"]["Scalars:scalars"] == 2 * N
+
+
+def test_nothing_written_to_home(fleet_recording, isolated_env):
+    assert list((isolated_env / "home").rglob("*")) == []
+    cfg = json.loads((isolated_env / "state" / "config" / "rerun" / "analytics.json").read_text())
+    assert cfg["analytics_enabled"] is False
+
+
+def test_analytics_oracle_detects_a_plain_rerun_run(isolated_env, tmp_path):
+    """Control: the same CLI call without rerun_env() does write analytics to HOME."""
+    home = tmp_path / "home"
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("XDG_") and k != "CI"}
+    env["HOME"] = str(home)
+    subprocess.run([viz.rerun_executable(), "--version"], env=env, capture_output=True, timeout=60)
+    cfg = home / ".config" / "rerun" / "analytics.json"
+    assert cfg.is_file() and json.loads(cfg.read_text())["analytics_enabled"] is True
+    # ... and with rerun_env() the user's HOME stays empty
+    home2 = tmp_path / "home2"
+    home2.mkdir()
+    env2 = viz.rerun_env(dict(env, HOME=str(home2)))
+    subprocess.run([viz.rerun_executable(), "--version"], env=env2, capture_output=True, timeout=60)
+    assert list(home2.rglob("*")) == []
+
+
+def test_image_every_thins_images_not_scalars(isolated_env):
+    out = isolated_env / "r9.rrd"
+    rv = viz.RobotViz(viz.RerunOptions("save", str(out)), "r9", image_every=3)
+    for i in range(10):
+        rv.observe({"seq": i, "ok": True, "tier": "local", "tor_ms": 1.0}, np.zeros((10, 12, 3), np.uint8), np.ones((10, 12), bool))
+    rv.close()
+    rows = viz.rrd_rows(out)
+    assert rows["/scmr/robot/r9/camera"]["EncodedImage:blob"] == 4  # requests 0, 3, 6, 9
+    assert rows["/scmr/robot/r9/camera/drivable"]["SegmentationImage:buffer"] == 4
+    assert rows["/scmr/results/r9/tor_ms"]["Scalars:scalars"] == 10
+
+
+# -- scmr view --------------------------------------------------------------
+
+
+def test_view_summary_lists_entities(fleet_recording, capsys):
+    _, path = fleet_recording
+    assert cli.main(["view", str(path), "--summary"]) == 0
+    out = capsys.readouterr().out
+    assert "/scmr/robot/r0/camera/drivable" in out and f"SegmentationImage:buffer={N}" in out
+
+
+@pytest.mark.parametrize("content", [None, b"", b"not a recording"])
+def test_view_rejects_missing_or_invalid_file(tmp_path, capsys, content):
+    f = tmp_path / "x.rrd"
+    if content is not None:
+        f.write_bytes(content)
+    assert cli.main(["view", str(f)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("scmr: error:") and "x.rrd" in err[0]
+
+
+def test_view_without_display_says_what_to_do(fleet_recording, capsys, monkeypatch):
+    _, path = fleet_recording
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    assert cli.main(["view", str(path)]) == 1
+    assert "--web" in capsys.readouterr().err
