@@ -252,7 +252,13 @@ def run_scenario(
             dur = scenario.duration_s if remaining_s is None else max(0.5, remaining_s)
             argv += ["--rate", f"{r.rate_hz:g}", "--duration", f"{dur:g}",
                      "--out", str(out_dir / "robots" / f"{peer}{suffix}")]
-            if r.profile and "--profile" in robot_opts:
+            if r.energy_placement:
+                if "--profile" not in robot_opts:
+                    raise ConfigError(f"scenario {scenario.source}: robot {peer!r} asks for energy_placement but "
+                                      "this 'scmr robot' has no --profile option; remove energy_placement")
+                if not r.profile:
+                    raise ConfigError(f"scenario {scenario.source}: field 'fleet.robots' ({peer}): energy_placement "
+                                      "needs a profile; add profile = \"robot1\" (Table 4.3) or similar")
                 argv += ["--profile", r.profile]
             if r.deadline_ms is not None:
                 argv += ["--deadline-ms", str(r.deadline_ms)]

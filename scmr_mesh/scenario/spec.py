@@ -80,6 +80,7 @@ class RobotSpec:
     rate_hz: float = 2.0
     deadline_ms: int | None = None
     local_fallback: bool = True
+    energy_placement: bool = False
 
 
 @dataclass(frozen=True)
@@ -283,7 +284,8 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
                        f"use one of {sorted(image_sets) or '(none defined)'} or add it under [image_sets]")
         robots.append(RobotSpec(id=r["id"], profile=r.get("profile"), image_set=r.get("image_set"),
                                 synthetic=r.get("synthetic"), rate_hz=float(r.get("rate_hz", 2.0)),
-                                deadline_ms=r.get("deadline_ms"), local_fallback=bool(r.get("local_fallback", True))))
+                                deadline_ms=r.get("deadline_ms"), local_fallback=bool(r.get("local_fallback", True)),
+                                energy_placement=bool(r.get("energy_placement", False))))
     names = list(clouds) + [leader] + [r.id for r in robots]
     seen: set[str] = set()
     for n in names:
