@@ -245,6 +245,9 @@ def _robot_body(args, session, stop: threading.Event) -> int:
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
             log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
         robot.prepare()
+        info = session.info
+        log.info("robot %s zenoh links: peers=%s routers=%s", args.id,
+                 sorted(str(z) for z in info.peers_zid()), sorted(str(z) for z in info.routers_zid()))
         last = [0.0]
 
         def progress(rec):

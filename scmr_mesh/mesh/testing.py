@@ -75,8 +75,10 @@ STUB = "scmr_mesh.mesh.testing:stub_process"
 SLOW = "scmr_mesh.mesh.testing:slow_process"
 
 
-def spawn_peer(args: list[str], *, log_path, env: dict | None = None):
+def spawn_peer(args: list[str], *, log_path, env: dict | None = None, prefix: list[str] = ()):
     """Start ``python -m scmr_mesh ARGS`` in its own process group, logging to ``log_path``.
+
+    ``prefix`` is prepended to the command (e.g. ``["ip", "netns", "exec", NS]``).
 
     Returns the :class:`subprocess.Popen`; stop it with :func:`stop_peer`.
     """
@@ -88,7 +90,7 @@ def spawn_peer(args: list[str], *, log_path, env: dict | None = None):
     full_env.update(env or {})
     log = open(log_path, "ab")
     try:
-        return subprocess.Popen([sys.executable, "-m", "scmr_mesh", *args], stdout=log, stderr=subprocess.STDOUT,
+        return subprocess.Popen([*prefix, sys.executable, "-m", "scmr_mesh", *args], stdout=log, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env=full_env, start_new_session=True)
     finally:
         log.close()
