@@ -545,6 +545,9 @@ def service_setup(args, tier: str) -> Callable:
     """The ``setup`` hook for :func:`~scmr_mesh.mesh.peers.run_service`: installs the data tier."""
 
     def setup(svc) -> None:
+        if data_tier_off():
+            log.warning("%s %s: data tier off (SCMR_DATA_TIER=off): telemetry is not stored", tier, svc.node)
+            return
         run_dir = _run_dir_from(args)
         if tier == "cloud":
             from scmr_mesh.data.ods import default_db_path
@@ -580,8 +583,18 @@ def service_setup(args, tier: str) -> Callable:
     return setup
 
 
-def attach_robot(robot, args) -> TelemetryAgent:
-    """Wrap ``robot``'s telemetry with a :class:`TelemetryAgent` configured from ``args``."""
+def data_tier_off() -> bool:
+    """True when ``SCMR_DATA_TIER=off``: peers run without the data tier (to measure its cost)."""
+    return os.environ.get("SCMR_DATA_TIER", "").lower() in ("off", "0", "no")
+
+
+def attach_robot(robot, args) -> TelemetryAgent | None:
+    """Wrap ``robot``'s telemetry with a :class:`TelemetryAgent` configured from ``args``.
+
+    Returns None (nothing wrapped) when :func:`data_tier_off`.
+    """
+    if data_tier_off():
+        return None
     qdir = getattr(args, "telemetry_queue", None) or Path(args.out) / "telemetry-queue"
     return TelemetryAgent(robot, qdir, max_bytes=getattr(args, "telemetry_max_bytes", 16 << 20),
                           deadline_ms=getattr(args, "deadline_ms", 1000.0))
