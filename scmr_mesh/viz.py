@@ -80,13 +80,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from scmr_mesh import keys
 from scmr_mesh.errors import InputError, ScmrError
 
 if TYPE_CHECKING:  # pragma: no cover
-    import rerun as rr
+    import numpy as np
 
 log = logging.getLogger(__name__)
 
@@ -536,6 +534,8 @@ def _mask_to_classes(mask: np.ndarray) -> np.ndarray:
     Accepts an ``(H, W)`` bool/integer mask (non-zero = drivable) or an
     ``(H, W, 3)`` uint8 red/green map (green channel above red = drivable).
     """
+    import numpy as np
+
     m = np.asarray(mask)
     if m.ndim == 3 and m.shape[2] in (3, 4):
         drivable = m[..., 1].astype(np.int16) > m[..., 0].astype(np.int16)
@@ -547,6 +547,8 @@ def _mask_to_classes(mask: np.ndarray) -> np.ndarray:
 
 
 def _rgb(image: np.ndarray, shape: tuple[int, int] | None) -> np.ndarray:
+    import numpy as np
+
     a = np.asarray(image)
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=2)
@@ -594,6 +596,8 @@ class _Stream:
 
     def at(self, t_unix_ns: int | None, seq: int | None = None) -> None:
         """Set the time lines for the next log calls (``request`` only when given)."""
+        import numpy as np
+
         t = time.time_ns() if t_unix_ns is None else int(t_unix_ns)
         self.rec.set_time("wall_time", timestamp=np.datetime64(t, "ns"))
         if seq is None:
