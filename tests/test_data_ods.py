@@ -189,3 +189,24 @@ def test_telemetry_report_counts_lost_duplicates_and_unexpected(tmp_path):
     assert rep["per_robot"]["r3"]["lost"] == 1 and rep["per_robot"]["r3"]["missing"] == ["1"]
     rep2 = telemetry_report(tmp_path / "ods.sqlite", {"r1": 5})["telemetry"]
     assert rep2["per_robot"]["r1"]["unexpected"] == 2
+
+
+def test_run_telemetry_reads_the_fleet_layout(tmp_path):
+    from scmr_mesh.data.queue import TelemetryQueue
+    from scmr_mesh.data.report import run_telemetry
+
+    (tmp_path / "robots" / "r1").mkdir(parents=True)
+    (tmp_path / "robots" / "r1" / "telemetry.json").write_text(json.dumps({"sent": 3, "queued": 0}))
+    with TelemetryQueue(tmp_path / "robots" / "r2" / "telemetry-queue") as q:  # r2 crashed: no summary
+        for _ in range(4):
+            q.append(b"x")
+        q.ack(2)
+    rep = run_telemetry(tmp_path)["telemetry"]  # no cloud ever stored anything
+    assert rep["ods"] is None and (rep["sent"], rep["lost"]) == (7, 7)
+    assert rep["per_robot"]["r2"]["queued"] == 2
+    with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
+        ods.insert([make_record("r1", s) for s in (1, 2, 3)] + [make_record("r2", s) for s in (1, 2)],
+                   received_from="cloud")
+    rep = run_telemetry(tmp_path)["telemetry"]
+    assert (rep["sent"], rep["stored"], rep["lost"]) == (7, 5, 2)
+    assert rep["per_robot"]["r2"]["missing"] == ["3-4"] and rep["per_robot"]["r2"]["queued"] == 2

@@ -97,4 +97,88 @@ def telemetry_report(
     return {"telemetry": {**total, "per_robot": per_robot}}
 
 
-__all__ = ["telemetry_report"]
+def robot_sent(robot_dir: str | Path) -> tuple[int, int]:
+    """``(sent, queued)`` of one robot from its output folder.
+
+    Reads ``telemetry.json`` (written at a clean exit); after a crash it opens
+    the robot's on-disk queue instead (``telemetry-queue/``): ``sent`` is the
+    last seq handed out, ``queued`` what is still waiting for an ack.
+    Returns ``(0, 0)`` for a robot that never produced telemetry.
+    """
+    import json
+
+    from scmr_mesh.data.queue import TelemetryQueue
+
+    robot_dir = Path(robot_dir)
+    summary = robot_dir / "telemetry.json"
+    if summary.is_file():
+        try:
+            d = json.loads(summary.read_text())
+            return int(d["sent"]), int(d["queued"])
+        except (ValueError, KeyError, TypeError):
+            pass
+    qdir = robot_dir / "telemetry-queue"
+    if not qdir.is_dir():
+        return 0, 0
+    with TelemetryQueue(qdir, fsync="never") as q:
+        st = q.stats()
+    return st.next_seq - 1, st.depth
+
+
+def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
+                  ods_path: str | Path | None = None) -> dict[str, Any]:
+    """The ``{"telemetry": ...}`` block of a fleet run (the fleet layout of ``scmr up``).
+
+    Parameters
+    ----------
+    run_dir : path
+        Holds ``ods.sqlite`` (the cloud's default there) and ``robots/<id>/``.
+    robots : list of str, optional
+        Robot ids (default: every folder under ``robots/``).
+    ods_path : path, optional
+        The ODS file when it is not ``run_dir/ods.sqlite``.
+
+    Returns
+    -------
+    dict
+        As :func:`telemetry_report`, plus ``"ods"`` (the file, or None when no
+        cloud ever stored anything: then every sent message counts as lost).
+    """
+    run_dir = Path(run_dir)
+    if robots is None:
+        robots = sorted(p.name for p in (run_dir / "robots").iterdir() if p.is_dir()) \
+            if (run_dir / "robots").is_dir() else []
+    sent, queued = {}, {}
+    for rid in robots:
+        sent[rid], queued[rid] = robot_sent(run_dir / "robots" / rid)
+    ods = Path(ods_path) if ods_path is not None else run_dir / "ods.sqlite"
+    if ods.is_file():
+        rep = telemetry_report(ods, sent, queued=queued)
+        rep["telemetry"]["ods"] = str(ods)
+        return rep
+    per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "lost": sent[r],
+               "missing": _ranges(list(range(1, sent[r] + 1))), "unexpected": 0, "queued": queued[r]}
+           for r in robots}
+    tot = sum(sent.values())
+    return {"telemetry": {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "per_robot": per, "ods": None}}
+
+
+def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, timeout_s: float = 10.0,
+                     ods_path: str | Path | None = None) -> dict[str, Any]:
+    """:func:`run_telemetry`, polled until nothing is lost or ``timeout_s`` passes.
+
+    Call it after the robots stopped and before the cloud and leader stop:
+    the leader forwards what it relayed within a fraction of a second once a
+    cloud node is up.
+    """
+    import time
+
+    end = time.monotonic() + timeout_s
+    while True:
+        rep = run_telemetry(run_dir, robots, ods_path=ods_path)
+        if rep["telemetry"]["lost"] == 0 or time.monotonic() >= end:
+            return rep
+        time.sleep(0.2)
+
+
+__all__ = ["robot_sent", "run_telemetry", "settle_telemetry", "telemetry_report"]
