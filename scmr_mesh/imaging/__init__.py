@@ -6,7 +6,8 @@ Public API (re-exported here, imported lazily so ``scmr --help`` stays fast)::
     segment_drivable, DrivableResult, warm_up                 pipeline
     gaussian_blur_3x3, srm, roi, bottom_centre,
     dominant_channel, histogram, otsu_threshold,
-    sobel_magnitude, remove_sparse_pixels, red_green, overlay  the SPEC 1 steps
+    sobel_magnitude, remove_sparse_pixels, fill_columns,
+    red_green, overlay                                         the SPEC 1 steps
 
 Frames are ``(H, W, 3) uint8`` RGB; masks are ``(225, 300) uint8`` with
 255 = drivable.  See docs/PIPELINE.md.
@@ -38,6 +39,7 @@ _EXPORTS = {
     "otsu_threshold": "steps",
     "sobel_magnitude": "steps",
     "remove_sparse_pixels": "steps",
+    "fill_columns": "steps",
     "red_green": "steps",
     "overlay": "steps",
 }
@@ -65,6 +67,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from scmr_mesh.imaging.steps import (
         bottom_centre,
         dominant_channel,
+        fill_columns,
         gaussian_blur_3x3,
         histogram,
         otsu_threshold,

@@ -28,6 +28,7 @@ from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
     bottom_centre,
     dominant_channel,
+    fill_columns,
     gaussian_blur_3x3,
     histogram,
     otsu_threshold,
@@ -73,6 +74,19 @@ def _clock() -> float:
     return time.perf_counter() * 1000.0
 
 
+#: ``best`` runs SRM with ``BEST_Q_FACTOR * q`` (512 for the default q = 32):
+#: Q = 32 merges the road with dark buildings and verges (measured, docs/ACCURACY.md).
+BEST_Q_FACTOR = 16
+#: An SRM region is a seed when it covers at least this share of the bottom-centre cell.
+SEED_SHARE = 0.10
+#: Largest relative colour difference to a seed, ``max_c |m_c - s_c| / (mean(s) + 10)``.
+COLOUR_TOLERANCE = 0.15
+#: Rows above this fraction of the height are never drivable (horizon prior).
+HORIZON_FRACTION = 0.40
+#: Longest non-drivable run (pixels) bridged by the bottom-up column fill.
+COLUMN_GAP = 10
+
+
 def segment_drivable(
     rgb: np.ndarray, *, mode: str = "best", q: float = 32, stages: bool = False
 ) -> DrivableResult:
@@ -86,7 +100,8 @@ def segment_drivable(
     mode : {"best", "thesis"}, keyword-only
         ``"best"`` (most accurate) or ``"thesis"`` (the dissertation's rules).
     q : float, keyword-only
-        SRM complexity parameter Q.
+        SRM complexity parameter Q.  ``thesis`` uses it as given; ``best``
+        uses ``BEST_Q_FACTOR * q`` (finer regions, 512 by default).
     stages : bool, keyword-only
         Also return the intermediate images.
 
@@ -97,7 +112,7 @@ def segment_drivable(
     Raises
     ------
     InputError
-        Unknown mode, or an array that is not an RGB image.
+        Unknown mode, bad q, or an array that is not an RGB image.
 
     Examples
     --------
@@ -119,7 +134,7 @@ def segment_drivable(
     t2 = _clock()
     t["blur"] = t2 - t1
 
-    seg = srm(blurred, q=q)
+    seg = srm(blurred, q=q * BEST_Q_FACTOR if mode == "best" else q)
     srm_img = seg.image()
     t3 = _clock()
     t["srm"] = t3 - t2
@@ -132,7 +147,7 @@ def segment_drivable(
     t["otsu"] = t4 - t3
 
     grey = srm_img.sum(axis=2, dtype=np.int32) // 3
-    edges = sobel_magnitude(grey)
+    edges = sobel_magnitude(grey) if (mode == "thesis" or stages) else None
     t5 = _clock()
     t["edges"] = t5 - t4
 
@@ -140,17 +155,15 @@ def segment_drivable(
         otsu_bw = np.where(grey >= threshold, 255, 0).astype(np.uint8)
         t6 = _clock()
         t["classify"] = t6 - t5
-        inner = _inner_edges(edges)
-        mask = remove_sparse_pixels(otsu_bw, inner, edge_threshold=THESIS_EDGE_THRESHOLD)
-        t7 = _clock()
-        t["sparse"] = t7 - t6
+        mask = remove_sparse_pixels(otsu_bw, _inner_edges(edges), edge_threshold=THESIS_EDGE_THRESHOLD)
     else:
-        otsu_bw = _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold)
+        otsu_bw = _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold) if stages else None
+        candidate = _best_candidates(seg)
         t6 = _clock()
         t["classify"] = t6 - t5
-        mask = _best_mask(frame, blurred, seg, srm_img, otsu_bw, edges)
-        t7 = _clock()
-        t["sparse"] = t7 - t6
+        mask = fill_columns(candidate, max_gap=COLUMN_GAP)
+    t7 = _clock()
+    t["sparse"] = t7 - t6
     t["total"] = t7 - t1
 
     out_stages = None
@@ -184,23 +197,39 @@ def _inner_edges(edges: np.ndarray) -> np.ndarray:
 def _otsu_class_image(channel_img: np.ndarray, window_channel: np.ndarray, threshold: int) -> np.ndarray:
     """255 where a pixel is in the Otsu class that holds most bottom-centre pixels."""
     upper_in_window = int(np.count_nonzero(window_channel > threshold))
-    upper_is_road = upper_in_window * 2 > window_channel.size
-    if upper_is_road:
+    if upper_in_window * 2 > window_channel.size:
         return np.where(channel_img > threshold, 255, 0).astype(np.uint8)
     return np.where(channel_img <= threshold, 255, 0).astype(np.uint8)
 
 
-def _best_mask(frame, blurred, seg, srm_img, otsu_bw, edges) -> np.ndarray:
-    """Version 1: SRM regions in the road's Otsu class, connected to the bottom-centre."""
-    h, w = otsu_bw.shape
-    cand = (otsu_bw > 0).astype(np.uint8)
+def _best_candidates(seg) -> np.ndarray:
+    """Candidate drivable pixels of ``best``: (H, W) uint8, 1 = candidate.
+
+    1. Seeds: SRM regions covering >= SEED_SHARE of the bottom-centre cell
+       (several, because shading or puddles split the road).
+    2. A region is road-coloured when its mean is within COLOUR_TOLERANCE of
+       some seed, relative to that seed's brightness (a Weber-like rule, so a
+       dark road and a bright road get the same treatment).
+    3. Rows above HORIZON_FRACTION of the height are dropped (horizon prior).
+    4. Only road-coloured pixels 4-connected to the bottom-centre cell stay.
+    """
+    labels = seg.labels
+    h, w = labels.shape
+    cell = bottom_centre(roi(labels))
+    counts = np.bincount(cell.ravel(), minlength=seg.n_regions)
+    seeds = np.flatnonzero(counts >= SEED_SHARE * cell.size)
+    if seeds.size == 0:
+        seeds = np.array([int(np.argmax(counts))])
+    ref = seg.means[seeds]  # (s, 3)
+    scale = ref.mean(axis=1) + 10.0  # (s,)
+    diff = np.abs(seg.means[:, None, :] - ref[None, :, :]).max(axis=2) / scale[None, :]
+    road_like = (diff <= COLOUR_TOLERANCE).any(axis=1)
+    cand = road_like.astype(np.uint8)[labels]
+    cand[: int(HORIZON_FRACTION * h)] = 0
     n, comp = cv2.connectedComponents(cand, connectivity=4)
-    win = bottom_centre(roi(comp))
-    ids = np.bincount(win.ravel(), minlength=n)
-    ids[0] = 0
-    keep = ids > 0
-    mask = np.where(keep[comp], 255, 0).astype(np.uint8)
-    return mask
+    hits = np.bincount(bottom_centre(roi(comp)).ravel(), minlength=n)
+    hits[0] = 0
+    return (hits > 0).astype(np.uint8)[comp]
 
 
 def warm_up() -> None:

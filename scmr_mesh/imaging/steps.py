@@ -251,6 +251,37 @@ def remove_sparse_pixels(
     return remove_sparse_kernel(d, e, np.float32(edge_threshold))
 
 
+def fill_columns(candidate: np.ndarray, *, max_gap: int = 10) -> np.ndarray:
+    """Column-wise, bottom-up fill used by the ``best`` mode (a gap-tolerant Table 3.5).
+
+    Each column is walked from the bottom row up.  It is drivable from the
+    bottom up to the highest candidate pixel reached before a run of more than
+    ``max_gap`` non-candidate pixels; everything above is not.  Holes such as
+    lane markings are filled; a column whose bottom ``max_gap + 1`` pixels hold
+    no candidate is empty.
+
+    Parameters
+    ----------
+    candidate : (H, W) array
+        Non-zero = drivable candidate.
+    max_gap : int, keyword-only
+        Longest run of non-candidate pixels bridged (>= 0).
+
+    Returns
+    -------
+    mask : (H, W) uint8
+        255 = drivable, 0 = not.
+    """
+    from scmr_mesh.imaging._srm_kernels import column_fill_kernel
+
+    c = np.asarray(candidate)
+    if c.ndim != 2 or 0 in c.shape:
+        raise InputError(f"fill_columns needs a non-empty (H, W) mask, got shape {c.shape}")
+    if int(max_gap) < 0:
+        raise InputError(f"max_gap must be >= 0, got {max_gap}")
+    return column_fill_kernel(np.ascontiguousarray(c != 0, dtype=np.uint8), int(max_gap))
+
+
 # --------------------------------------------------------------------- step 9
 def _as_mask(mask: np.ndarray) -> np.ndarray:
     m = np.asarray(mask)
