@@ -147,6 +147,9 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                    help="before the first frame, wait up to MS for a cloud or leader to appear (default 2000)")
     g.add_argument("--seed", type=int, default=None, help="seed of synthetic frames (default: from the id)")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    from scmr_mesh.viz import add_rerun_peer_args  # light: rerun itself is imported only with a flag
+
+    add_rerun_peer_args(p)
 
 
 def _setup_logging(args) -> None:
@@ -234,7 +237,9 @@ def _robot_body(args, session, stop: threading.Event) -> int:
     robot = Robot(args.id, args.out, options=opts)
     placer = _energy_placer(args, robot, profile)
     agent = None
+    rerun_viz = None
     try:
+        rerun_viz = _robot_viz(args, robot)
         robot.attach(session)
         agent = _data_agent(robot, args)
         if opts.local_fallback:
@@ -266,9 +271,28 @@ def _robot_body(args, session, stop: threading.Event) -> int:
         if agent is not None:  # drain, write OUT/telemetry.json, keep the rest queued on disk
             agent.close(summary_path=Path(args.out) / "telemetry.json")
         robot.close()
+        if rerun_viz is not None:
+            rerun_viz.close()
     extra = {"energy": placer.summary()} if placer is not None else {}
     print(json.dumps({"robot": args.id, **stats, **extra}), flush=True)
     return 0
+
+
+def _robot_viz(args, robot):
+    """Log overlays, QoS and battery to rerun when given --rerun-url/--rerun-save (scmr_mesh.viz)."""
+    from scmr_mesh.viz import RerunOptions, robot_viz
+
+    rv = robot_viz(RerunOptions.from_args(args), robot.id)
+    if rv is not None:
+        robot.add_observer(rv.observe)
+        publish = robot.publish_telemetry
+
+        def publish_and_log(message):
+            rv.log_telemetry(battery=message.get("battery"))
+            publish(message)
+
+        robot.publish_telemetry = publish_and_log
+    return rv
 
 
 def _energy_profile(args):
