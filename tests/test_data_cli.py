@@ -87,3 +87,13 @@ def test_queue_inspection_reports_corruption(tmp_path, capsys):
     assert json.loads(captured.out)["lost_seqs"] == [3]
     assert "1 seq(s) lost" in captured.err
     assert main(["ods", "queue", str(tmp_path / "none")]) == 1
+
+
+def test_bench_data_reports_medians(tmp_path, capsys):
+    out = tmp_path / "b.json"
+    assert main(["bench", "data", "--n", "10", "--quiet", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())["results"]
+    for k in ("queue_append_fsync_always", "ods_insert_batch64", "buffer_delta10_merge", "zenoh_store_ack_batch1"):
+        assert res[k]["n"] == 10 and 0 < res[k]["median_ms"] <= res[k]["p99_ms"]
+    assert main(["bench", "data", "--n", "3"]) == 1
+    assert "--n must be >= 10, got 3" in capsys.readouterr().err

@@ -181,3 +181,129 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
                            "it found corruption.  Opening repairs a torn tail.")
     q.add_argument("dir", metavar="DIR", help="the robot's queue folder")
     q.set_defaults(func=_cmd_queue)
+
+    _register_bench(bench)
+
+
+# ------------------------------------------------------------------ bench
+def _stats(samples: list[float]) -> dict:
+    import numpy as np
+
+    a = np.asarray(samples, dtype=float)
+    return {"n": int(a.size), "median_ms": round(float(np.median(a)), 4),
+            "p99_ms": round(float(np.percentile(a, 99)), 4), "max_ms": round(float(a.max()), 4)}
+
+
+def run_bench(*, n: int = 200, mesh: bool = True, progress=None) -> dict:
+    """Data-tier benchmark: queue appends, ODS inserts, buffer delta/merge, Zenoh store round trip.
+
+    Every figure is a median and p99 over ``n`` samples measured in this run.
+    """
+    import tempfile
+    import time
+
+    from scmr_mesh.data.buffer import DataBuffer
+    from scmr_mesh.data.ods import OperationalDataStore
+    from scmr_mesh.data.queue import TelemetryQueue
+    from scmr_mesh.data.record import make_record
+
+    say = progress or (lambda msg: None)
+    out: dict = {"n": n, "results": {}}
+    payload = b"x" * 200  # about one telemetry record
+    with tempfile.TemporaryDirectory(prefix="scmr-bench-data-") as tmp:
+        for policy in ("always", "batch", "never"):
+            say(f"queue append, fsync={policy}")
+            with TelemetryQueue(Path(tmp) / f"q-{policy}", fsync=policy) as q:
+                samples = []
+                for _ in range(n):
+                    t0 = time.perf_counter()
+                    q.append(payload)
+                    samples.append((time.perf_counter() - t0) * 1e3)
+            out["results"][f"queue_append_fsync_{policy}"] = _stats(samples)
+        say("queue reopen (recovery scan) of n records")
+        t0 = time.perf_counter()
+        with TelemetryQueue(Path(tmp) / "q-always") as q:
+            assert len(q) == n
+        out["results"]["queue_reopen_ms"] = round((time.perf_counter() - t0) * 1e3, 3)
+        with OperationalDataStore(Path(tmp) / "ods.sqlite") as ods:
+            seq = 1
+            for batch in (1, 64):
+                say(f"ODS insert, batch {batch}")
+                samples = []
+                for _ in range(n):
+                    recs = [make_record("b", seq + k, pose=(1, 2, 3), battery=0.5, results={"requests": seq})
+                            for k in range(batch)]
+                    seq += batch
+                    t0 = time.perf_counter()
+                    ods.insert(recs, received_from="cloud")
+                    samples.append((time.perf_counter() - t0) * 1e3)
+                out["results"][f"ods_insert_batch{batch}"] = _stats(samples)
+                out["results"][f"ods_insert_batch{batch}"]["records_per_s_median"] = round(
+                    batch / (out["results"][f"ods_insert_batch{batch}"]["median_ms"] / 1e3), 1)
+            say("ODS duplicate batch of 64 (all ignored)")
+            recs = [make_record("b", k) for k in range(1, 65)]
+            samples = []
+            for _ in range(max(10, n // 10)):
+                t0 = time.perf_counter()
+                ods.insert(recs, received_from="leader")
+                samples.append((time.perf_counter() - t0) * 1e3)
+            out["results"]["ods_insert_duplicates64"] = _stats(samples)
+        say("buffer delta + merge (1000 entries, 10 changed)")
+        src, dst = DataBuffer("cloud"), DataBuffer("leader")
+        for i in range(1000):
+            src.put(f"state/r{i}", {"seq": i, "pose": [i, i, 0.0], "battery": 0.5})
+        dst.merge(src.snapshot())
+        samples = []
+        for k in range(n):
+            rev = src.rev
+            for j in range(10):
+                src.put(f"state/r{(k * 10 + j) % 1000}", {"seq": k, "pose": [0, 0, 0.0], "battery": 0.4})
+            t0 = time.perf_counter()
+            dst.merge(src.delta(rev, epoch=src.epoch))
+            samples.append((time.perf_counter() - t0) * 1e3)
+        out["results"]["buffer_delta10_merge"] = _stats(samples)
+        t0 = time.perf_counter()
+        snap = src.snapshot()
+        DataBuffer("x").merge(snap)
+        out["results"]["buffer_snapshot1000_merge_ms"] = round((time.perf_counter() - t0) * 1e3, 3)
+        out["results"]["buffer_snapshot1000_bytes"] = len(snap)
+        if mesh:
+            from scmr_mesh.mesh.data_service import bench_round_trip
+
+            for batch in (1, 64):
+                say(f"Zenoh telemetry round trip (query -> ODS commit -> ack), batch {batch}")
+                out["results"][f"zenoh_store_ack_batch{batch}"] = _stats(
+                    bench_round_trip(tmp, n=n, batch=batch))
+    return out
+
+
+def _cmd_bench(args) -> int:
+    import os
+
+    if args.n < 10:
+        raise InputError(f"--n must be >= 10, got {args.n}")
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(f"bench data: {msg} ...", file=sys.stderr, flush=True)
+
+    res = run_bench(n=args.n, mesh=not args.no_mesh, progress=say)
+    res["load_avg"] = list(os.getloadavg())
+    text = json.dumps(res, indent=1)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+    print(text)
+    return 0
+
+
+def _register_bench(bench: argparse._SubParsersAction) -> None:
+    b = bench.add_parser("data", help="data tier: queue appends, ODS inserts, buffer sync, store round trip",
+                         description="Measure the data tier in one run: on-disk queue append latency per "
+                         "fsync policy, ODS insert latency (batch 1 and 64, and a batch of duplicates), "
+                         "buffer delta+merge, and the telemetry store round trip over Zenoh (query -> "
+                         "ODS commit -> ack, two sessions on loopback).  Prints JSON with medians and p99s.")
+    b.add_argument("--n", type=int, default=200, help="samples per figure (default 200)")
+    b.add_argument("--json", metavar="FILE", help="also write the JSON here")
+    b.add_argument("--no-mesh", action="store_true", help="skip the Zenoh round trip")
+    b.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    b.set_defaults(func=_cmd_bench)

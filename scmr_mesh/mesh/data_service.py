@@ -604,3 +604,65 @@ __all__ = [
     "CloudData", "LeaderData", "TelemetryAgent", "add_arguments", "attach_robot", "buffer_key",
     "record_from_message", "service_setup", "sync_key", "telemetry_key",
 ]
+
+
+def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmup: int = 20) -> list[float]:
+    """Telemetry store round trips (ms) over Zenoh: robot query -> cloud ODS commit -> ack.
+
+    Two sessions in one process linked over ``tcp/127.0.0.1`` (multicast off):
+    a cloud session with :class:`CloudData`'s queryables, and a robot session
+    sending ``batch`` records per query.  Each sample is one query, from send
+    to the ack (so it includes the ODS commit with ``synchronous=FULL``).
+    """
+    import socket
+
+    from scmr_mesh.data.record import make_record
+    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ep = f"tcp/127.0.0.1:{port}"
+    cloud = CloudData("bench", Path(tmp_dir) / "bench-ods.sqlite")
+    cs = open_session(MeshConfig(listen=[ep]))
+    rs = None
+    decl = []
+    try:
+        for key, cb in cloud.queryables():
+            decl.append(cs.declare_queryable(key, cb, complete=True))
+        rs = open_session(MeshConfig(connect=[ep]))
+        q = rs.declare_querier(telemetry_key("cloud", "bench"), timeout=5.0)
+        end = time.monotonic() + 10
+        while not q.matching_status.matching:
+            if time.monotonic() > end:
+                raise MeshError("bench: the robot session never saw the cloud's telemetry queryable")
+            time.sleep(0.01)
+        out: list[float] = []
+        seq = 1
+        for i in range(warmup + n):
+            recs = [make_record("bench", seq + k, pose=(1.0, 2.0, 0.5), battery=0.9,
+                                results={"requests": seq, "succeeded": seq, "by_tier": {"cloud": seq}})
+                    for k in range(batch)]
+            seq += batch
+            payload = encode_records(recs)
+            t0 = time.perf_counter()
+            ok = False
+            for reply in q.get(payload=payload):
+                ok = reply.ok is not None
+            dt = (time.perf_counter() - t0) * 1e3
+            if not ok:
+                raise MeshError("bench: the cloud did not acknowledge a telemetry batch")
+            if i >= warmup:
+                out.append(dt)
+        q.undeclare()
+        return out
+    finally:
+        for d in decl:
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+        if rs is not None:
+            close_session(rs)
+        close_session(cs)
+        cloud.close()
