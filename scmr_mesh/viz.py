@@ -621,6 +621,8 @@ class _Viz:
 
     _stream: _Stream
     _alive: dict[str, bool]
+    _faults: dict[tuple, set]
+    _last_alive: dict[tuple[str, str], bool]
 
     def _step_series(self, entity: str, name: str) -> None:
         """Declare ``entity`` a step-shaped series (once per process)."""
@@ -646,21 +648,58 @@ class _Viz:
         """Log a scenario fault as a step (1 while on) and start/end markers.
 
         ``fault`` is a :mod:`scmr_mesh.metrics` fault dict: ``kind``,
-        ``target``, ``start_unix_ns`` and optionally ``end_unix_ns``, ``tier``.
+        ``target``, ``start_unix_ns`` and optionally ``end_unix_ns``.  Calling
+        it again for the same fault (same target and start) logs only what is
+        new, so a runner can call it when the fault starts and again when it
+        ends.
         """
         s, rr = self._stream, self._stream.rr
         target = keys.check_name(str(fault.get("target", "fleet")), what="fault target")
         kind = str(fault.get("kind", "fault"))
         entity = f"{FAULTS}/{target}"
+        ident = (target, fault.get("start_unix_ns"))
+        done = self._faults.setdefault(ident, set())
         with s._lock:
             self._step_series(entity, f"fault: {kind} {target}")
-            s.at(fault.get("start_unix_ns"))
-            s.rec.log(entity, rr.Scalars(1.0))
-            s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} starts", level="WARN"))
-            if fault.get("end_unix_ns") is not None:
+            if "start" not in done:
+                done.add("start")
+                s.at(fault.get("start_unix_ns"))
+                s.rec.log(entity, rr.Scalars(1.0))
+                s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} starts", level="WARN"))
+            if fault.get("end_unix_ns") is not None and "end" not in done:
+                done.add("end")
                 s.at(fault["end_unix_ns"])
                 s.rec.log(entity, rr.Scalars(0.0))
                 s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} ends", level="INFO"))
+
+    def update(
+        self,
+        *,
+        alive: Mapping[tuple[str, str], bool] | None = None,
+        records: Sequence[Mapping[str, Any]] = (),
+        faults: Sequence[Mapping[str, Any]] = (),
+        t_unix_ns: int | None = None,
+    ) -> None:
+        """One call per supervisor tick: log alive *changes*, new records, faults.
+
+        Parameters
+        ----------
+        alive : mapping, optional
+            ``{(role, node): is_alive}``; only changes since the last call are logged.
+        records : sequence of mapping
+            Records finished since the last call (for the fleet RoR).
+        faults : sequence of mapping
+            All faults so far (see :meth:`log_fault`; repeated calls log only news).
+        """
+        for (role, node), up in (alive or {}).items():
+            if self._last_alive.get((role, node)) != bool(up):
+                self._last_alive[(role, node)] = bool(up)
+                self.log_alive(role, node, bool(up), t_unix_ns=t_unix_ns)
+        for rec in records:
+            if hasattr(self, "log_record"):
+                self.log_record(rec)
+        for fault in faults:
+            self.log_fault(fault)
 
     def log_text(self, entity: str, text: str, *, level: str = "INFO", t_unix_ns: int | None = None) -> None:
         """Log one line of text at ``entity``."""
@@ -701,7 +740,7 @@ class RobotViz(_Viz):
         self.image_every = int(image_every)
         self.jpeg_quality = int(jpeg_quality)
         self._stream = _Stream(options)
-        self._alive = {}
+        self._alive, self._faults, self._last_alive = {}, {}, {}
         self._n = 0
         self._ok = 0
         self.camera = f"{ROBOT_ROOT}/{self.robot}/camera"
@@ -819,7 +858,7 @@ class FleetViz(_Viz):
             self._sink.close()
             raise
         self.robots = [keys.check_name(r, what="robot id") for r in robots]
-        self._alive = {}
+        self._alive, self._faults, self._last_alive = {}, {}, {}
         self._n = 0
         self._ok = 0
         rr = self._stream.rr

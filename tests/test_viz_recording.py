@@ -68,18 +68,20 @@ def fleet_recording(isolated_env):
     procs = []
     try:
         t0 = time.time_ns()
-        fv.log_alive("cloud", "cloud0", True, t_unix_ns=t0)
-        fv.log_alive("leader", "leader0", True, t_unix_ns=t0)
+        both = {("cloud", "cloud0"): True, ("leader", "leader0"): True}
+        fv.update(alive=both, t_unix_ns=t0)
         procs = [
             subprocess.Popen([sys.executable, "-c", ROBOT, r, str(N), *fv.child_args()], start_new_session=True)
             for r in ("r0", "r1")
         ]
-        fv.log_fault({"kind": "crash", "target": "cloud0", "tier": "cloud",
-                      "start_unix_ns": t0 + 10**8, "end_unix_ns": t0 + 3 * 10**8})
-        fv.log_alive("cloud", "cloud0", False, t_unix_ns=t0 + 10**8)
-        fv.log_alive("cloud", "cloud0", True, t_unix_ns=t0 + 4 * 10**8)
-        for i in range(2 * N):
-            fv.log_record({"ok": i % N not in FAILED, "received_unix_ns": t0 + i})
+        # a supervisor calls update() every tick: only changes and news are logged
+        fault = {"kind": "crash", "target": "cloud0", "tier": "cloud", "start_unix_ns": t0 + 10**8, "end_unix_ns": None}
+        fv.update(alive=both, faults=[fault], t_unix_ns=t0 + 10**7)
+        fv.update(alive={**both, ("cloud", "cloud0"): False}, faults=[fault], t_unix_ns=t0 + 10**8)
+        fault["end_unix_ns"] = t0 + 3 * 10**8
+        fv.update(alive={**both, ("cloud", "cloud0"): False}, faults=[fault], t_unix_ns=t0 + 3 * 10**8)
+        fv.update(alive=both, faults=[fault], t_unix_ns=t0 + 4 * 10**8)
+        fv.update(records=[{"ok": i % N not in FAILED, "received_unix_ns": t0 + i} for i in range(2 * N)])
         codes = [p.wait(timeout=120) for p in procs]
     finally:
         for p in procs:
