@@ -1,0 +1,395 @@
+"""Measure the zenoh facts the mesh relies on (numbers for docs/ZENOH.md).
+
+Run ``python -m scmr_mesh.mesh.probe <probe> [options]``; each probe starts
+real processes on loopback (multicast off), prints one JSON object per
+measurement on stdout and a summary line on stderr.
+
+Probes
+------
+``detect``     time until a liveliness DELETE (and querier matching=False) is
+               seen after the serving process is SIGKILLed, closes its session,
+               or its link is blackholed (a TCP proxy stops forwarding, sockets
+               stay open), for each ``--lease`` value.
+``stress``     false expiries: a client queries a server back to back for
+               ``--seconds`` while ``--busy`` Python threads hog the GIL in
+               both processes; counts liveliness DELETEs (should be 0).
+``reconnect``  time from a server restart (same port) until the client sees its
+               token again, with zenoh's default connect retry and scmr's.
+``latency``    request/reply round trip for payload sizes, first query and
+               median/p99, SHM on and off, FIFO channel vs Python callback.
+
+The probes are scripts for humans; tests do not call them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+
+KEY_TOKEN = "probe/alive/server"
+KEY_ECHO = "probe/echo"
+
+
+def _conf(*, listen=(), connect=(), lease=500, keep_alive=4, shm=True, retry=True):
+    from scmr_mesh.mesh.config import MeshConfig
+
+    cfg = [f"transport/shared_memory/enabled:{'true' if shm else 'false'}"]
+    if not retry:  # zenoh's own connect retry (1 s -> 4 s backoff)
+        cfg.append('connect/retry:{"period_init_ms":1000,"period_max_ms":4000,"period_increase_factor":2}')
+    return MeshConfig(listen=list(listen), connect=list(connect), lease_ms=lease, keep_alive=keep_alive, cfg=cfg)
+
+
+def _busy(stop: threading.Event) -> None:
+    x = 0
+    while not stop.is_set():
+        x += 1
+
+
+# ------------------------------------------------------------------ server
+def serve(args) -> int:
+    """Child process: token + echo queryable; prints 'ready'; runs until stdin closes."""
+    import zenoh
+
+    stop = threading.Event()
+    for _ in range(args.busy):
+        threading.Thread(target=_busy, args=(stop,), daemon=True).start()
+    conf = _conf(listen=[args.listen], lease=args.lease, shm=not args.no_shm).build()
+    with zenoh.open(conf) as s:
+        def echo(q):
+            q.reply(q.key_expr, b"r" * args.reply_bytes)
+            q.drop()
+
+        qa = s.declare_queryable(KEY_ECHO, echo, complete=True)
+        tok = s.liveliness().declare_token(KEY_TOKEN)
+        print("ready", flush=True)
+        if args.close_after is not None:
+            time.sleep(args.close_after)
+            print(f"closing {time.time_ns()}", flush=True)
+            tok.undeclare()
+            qa.undeclare()
+            return 0
+        sys.stdin.read()  # until the parent closes our stdin
+        stop.set()
+    return 0
+
+
+def _spawn_server(port: int, *, lease: int, busy: int = 0, no_shm: bool = False, close_after=None,
+                  reply_bytes: int = 100) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "scmr_mesh.mesh.probe", "_serve", "--listen", f"tcp/127.0.0.1:{port}",
+           "--lease", str(lease), "--busy", str(busy), "--reply-bytes", str(reply_bytes)]
+    if no_shm:
+        cmd.append("--no-shm")
+    if close_after is not None:
+        cmd += ["--close-after", str(close_after)]
+    env = dict(os.environ)
+    env.pop("RUST_LOG", None)
+    p = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                         start_new_session=True)
+    line = p.stdout.readline()
+    if line.strip() != "ready":
+        p.kill()
+        raise RuntimeError(f"probe server failed to start: {line!r}")
+    return p
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Proxy:
+    """A TCP proxy 127.0.0.1:port -> 127.0.0.1:target that can stop forwarding."""
+
+    def __init__(self, target: int) -> None:
+        self.target = target
+        self.sock = socket.socket()
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.port = self.sock.getsockname()[1]
+        self.holed = threading.Event()
+        self.conns: list[socket.socket] = []
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                c, _ = self.sock.accept()
+            except OSError:
+                return
+            u = socket.create_connection(("127.0.0.1", self.target))
+            self.conns += [c, u]
+            for a, b in ((c, u), (u, c)):
+                threading.Thread(target=self._pump, args=(a, b), daemon=True).start()
+
+    def _pump(self, a: socket.socket, b: socket.socket) -> None:
+        while True:
+            try:
+                data = a.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            if self.holed.is_set():
+                continue  # swallow: the link is silent, the sockets stay open
+            try:
+                b.sendall(data)
+            except OSError:
+                return
+
+    def close(self) -> None:
+        for s in [self.sock, *self.conns]:
+            try:
+                s.close()
+            except OSError:
+                pass
+
+
+# ------------------------------------------------------------------ probes
+def _watch(session, key: str):
+    """Liveliness subscriber recording (kind, t_ns) events."""
+    events: list[tuple[str, int]] = []
+    cond = threading.Condition()
+
+    def cb(sample):
+        with cond:
+            events.append(("PUT" if "PUT" in str(sample.kind) else "DELETE", time.time_ns()))
+            cond.notify_all()
+
+    sub = session.liveliness().declare_subscriber(key, cb, history=True)
+    return sub, events, cond
+
+
+def _wait_event(events, cond, kind: str, *, after: int = 0, timeout: float = 30.0) -> int | None:
+    end = time.monotonic() + timeout
+    with cond:
+        while True:
+            for k, t in events:
+                if k == kind and t >= after:
+                    return t
+            left = end - time.monotonic()
+            if left <= 0:
+                return None
+            cond.wait(left)
+
+
+def probe_detect(args) -> int:
+    import zenoh
+
+    out = []
+    for lease in args.lease:
+        for case in args.cases:
+            for rep in range(args.repeat):
+                port = _free_port()
+                srv = _spawn_server(port, lease=lease, close_after=1.0 if case == "close" else None)
+                proxy = Proxy(port) if case == "blackhole" else None
+                ep = f"tcp/127.0.0.1:{proxy.port if proxy else port}"
+                with zenoh.open(_conf(connect=[ep], lease=lease).build()) as s:
+                    sub, events, cond = _watch(s, KEY_TOKEN)
+                    querier = s.declare_querier(KEY_ECHO)
+                    unmatched: list[int] = []
+                    ml = querier.declare_matching_listener(
+                        lambda st: unmatched.append(time.time_ns()) if not st.matching else None)
+                    if _wait_event(events, cond, "PUT", timeout=10) is None:
+                        raise RuntimeError("server token never seen")
+                    time.sleep(0.3)
+                    if case == "sigkill":
+                        t0 = time.time_ns()
+                        os.killpg(srv.pid, signal.SIGKILL)
+                    elif case == "close":
+                        line = srv.stdout.readline()
+                        t0 = int(line.split()[1])
+                    else:
+                        t0 = time.time_ns()
+                        proxy.holed.set()
+                    t1 = _wait_event(events, cond, "DELETE", after=t0, timeout=max(30.0, 3 * lease / 1e3))
+                    time.sleep(0.05)
+                    rec = {"probe": "detect", "case": case, "lease_ms": lease, "keep_alive": 4, "rep": rep,
+                           "delete_ms": None if t1 is None else round((t1 - t0) / 1e6, 2),
+                           "matching_false_ms": round((unmatched[0] - t0) / 1e6, 2) if unmatched else None}
+                    print(json.dumps(rec), flush=True)
+                    out.append(rec)
+                    ml.undeclare()
+                    querier.undeclare()
+                    sub.undeclare()
+                if proxy:
+                    proxy.close()
+                srv.kill()
+                srv.wait()
+    for lease in args.lease:
+        for case in args.cases:
+            vals = [r["delete_ms"] for r in out if r["lease_ms"] == lease and r["case"] == case and r["delete_ms"]]
+            if vals:
+                print(f"detect {case:9s} lease {lease:5d} ms: median {statistics.median(vals):8.1f} ms "
+                      f"(min {min(vals):.1f}, max {max(vals):.1f}, n={len(vals)})", file=sys.stderr)
+    return 0
+
+
+def probe_stress(args) -> int:
+    import zenoh
+
+    for lease in args.lease:
+        port = _free_port()
+        srv = _spawn_server(port, lease=lease, busy=args.busy, reply_bytes=args.bytes)
+        stop = threading.Event()
+        for _ in range(args.busy):
+            threading.Thread(target=_busy, args=(stop,), daemon=True).start()
+        n = fails = 0
+        lat = []
+        with zenoh.open(_conf(connect=[f"tcp/127.0.0.1:{port}"], lease=lease).build()) as s:
+            sub, events, cond = _watch(s, KEY_TOKEN)
+            _wait_event(events, cond, "PUT", timeout=10)
+            q = s.declare_querier(KEY_ECHO, timeout=5.0)
+            payload = b"x" * args.bytes
+            end = time.monotonic() + args.seconds
+            while time.monotonic() < end:
+                t = time.perf_counter()
+                ok = any(r.ok is not None for r in q.get(payload=payload))
+                lat.append((time.perf_counter() - t) * 1e3)
+                n += 1
+                fails += not ok
+            deletes = sum(1 for k, _ in events if k == "DELETE")
+            q.undeclare()
+            sub.undeclare()
+        stop.set()
+        srv.stdin.close()
+        srv.wait(timeout=10)
+        lat.sort()
+        rec = {"probe": "stress", "lease_ms": lease, "keep_alive": 4, "busy_threads_per_process": args.busy,
+               "seconds": args.seconds, "bytes": args.bytes, "queries": n, "failed": fails,
+               "false_expiries": deletes, "p50_ms": round(lat[len(lat) // 2], 3),
+               "p99_ms": round(lat[int(len(lat) * 0.99)], 3)}
+        print(json.dumps(rec), flush=True)
+        print(f"stress lease {lease} ms, {args.busy} busy threads: {n} queries, {fails} failed, "
+              f"{deletes} false expiries, p50 {rec['p50_ms']} ms p99 {rec['p99_ms']} ms", file=sys.stderr)
+    return 0
+
+
+def probe_reconnect(args) -> int:
+    import zenoh
+
+    for fast in (False, True):
+        vals = []
+        for rep in range(args.repeat):
+            port = _free_port()
+            srv = _spawn_server(port, lease=500)
+            with zenoh.open(_conf(connect=[f"tcp/127.0.0.1:{port}"], retry=fast).build()) as s:
+                sub, events, cond = _watch(s, KEY_TOKEN)
+                _wait_event(events, cond, "PUT", timeout=10)
+                os.killpg(srv.pid, signal.SIGKILL)
+                srv.wait()
+                _wait_event(events, cond, "DELETE", timeout=10)
+                time.sleep(args.down)
+                t0 = time.time_ns()
+                srv = _spawn_server(port, lease=500)
+                t_ready = time.time_ns()
+                t1 = _wait_event(events, cond, "PUT", after=t0, timeout=30)
+                sub.undeclare()
+            srv.kill()
+            srv.wait()
+            rec = {"probe": "reconnect", "retry": "scmr {100,500,2}" if fast else "zenoh default-like {1000,4000,2}",
+                   "down_s": args.down, "rep": rep,
+                   "seen_after_restart_ms": None if t1 is None else round((t1 - t0) / 1e6, 1),
+                   "server_start_ms": round((t_ready - t0) / 1e6, 1)}
+            print(json.dumps(rec), flush=True)
+            if t1:
+                vals.append(rec["seen_after_restart_ms"] - rec["server_start_ms"])
+        if vals:
+            print(f"reconnect ({'scmr' if fast else 'slow'} retry): token seen {statistics.median(vals):.0f} ms "
+                  f"(median, max {max(vals):.0f}) after the restarted server was ready", file=sys.stderr)
+    return 0
+
+
+def probe_latency(args) -> int:
+    import queue
+
+    import zenoh
+
+    for shm in (True, False):
+        for size in args.sizes:
+            port = _free_port()
+            srv = _spawn_server(port, lease=500, no_shm=not shm, reply_bytes=args.reply_bytes)
+            with zenoh.open(_conf(connect=[f"tcp/127.0.0.1:{port}"], shm=shm).build()) as s:
+                q = s.declare_querier(KEY_ECHO, timeout=5.0)
+                deadline = time.monotonic() + 10
+                while not q.matching_status.matching and time.monotonic() < deadline:
+                    time.sleep(0.01)
+                payload = b"x" * size
+
+                def chan():
+                    for r in q.get(payload=payload):
+                        assert r.ok is not None
+
+                def cb():
+                    box: queue.Queue = queue.Queue()
+                    q.get(zenoh.handlers.Callback(box.put, lambda: box.put(None)), payload=payload)
+                    while box.get() is not None:
+                        pass
+
+                for name, fn in (("channel", chan), ("callback", cb)):
+                    ts = []
+                    for _ in range(args.n + 1):
+                        t = time.perf_counter()
+                        fn()
+                        ts.append((time.perf_counter() - t) * 1e3)
+                    first, rest = ts[0], sorted(ts[1:])
+                    rec = {"probe": "latency", "shm": shm, "bytes": size, "handler": name, "first_ms": round(first, 3),
+                           "p50_ms": round(rest[len(rest) // 2], 3), "p99_ms": round(rest[int(len(rest) * 0.99)], 3),
+                           "n": args.n}
+                    print(json.dumps(rec), flush=True)
+                    print(f"latency shm={shm!s:5s} {size:8d} B {name:8s}: first {first:7.2f} ms, "
+                          f"p50 {rec['p50_ms']:6.3f} ms, p99 {rec['p99_ms']:6.3f} ms", file=sys.stderr)
+                q.undeclare()
+            srv.stdin.close()
+            srv.wait(timeout=10)
+    return 0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m scmr_mesh.mesh.probe", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="probe", required=True)
+    s = sub.add_parser("_serve")
+    s.add_argument("--listen", required=True)
+    s.add_argument("--lease", type=int, default=500)
+    s.add_argument("--busy", type=int, default=0)
+    s.add_argument("--no-shm", action="store_true")
+    s.add_argument("--close-after", type=float, default=None)
+    s.add_argument("--reply-bytes", type=int, default=100)
+    s.set_defaults(func=serve)
+    d = sub.add_parser("detect", help="liveliness loss detection per lease")
+    d.add_argument("--lease", type=int, nargs="+", default=[500])
+    d.add_argument("--cases", nargs="+", default=["sigkill", "close", "blackhole"],
+                   choices=["sigkill", "close", "blackhole"])
+    d.add_argument("--repeat", type=int, default=3)
+    d.set_defaults(func=probe_detect)
+    st = sub.add_parser("stress", help="false expiries under GIL load")
+    st.add_argument("--lease", type=int, nargs="+", default=[500])
+    st.add_argument("--busy", type=int, default=2)
+    st.add_argument("--seconds", type=float, default=10.0)
+    st.add_argument("--bytes", type=int, default=200_000)
+    st.set_defaults(func=probe_stress)
+    r = sub.add_parser("reconnect", help="token seen again after a restart")
+    r.add_argument("--repeat", type=int, default=3)
+    r.add_argument("--down", type=float, default=1.0, help="seconds the server stays down")
+    r.set_defaults(func=probe_reconnect)
+    la = sub.add_parser("latency", help="query round trip")
+    la.add_argument("--sizes", type=int, nargs="+", default=[1000, 40_000, 260_000])
+    la.add_argument("--reply-bytes", type=int, default=1500)
+    la.add_argument("-n", type=int, default=200)
+    la.set_defaults(func=probe_latency)
+    args = p.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
