@@ -115,3 +115,27 @@ def test_bad_profiles_file_via_cli(tmp_path, capsys):
     assert main(["energy", "profiles", "--profiles-file", str(f)]) == 1
     err = capsys.readouterr().err
     assert str(f) in err and "profiles.x." in err
+
+
+def test_measured_inputs_report_uses_medians_and_marks_inputs():
+    from scmr_mesh.energy import PROFILES
+    from scmr_mesh.energy.experiments import measured_inputs_report
+
+    samples = [{"cpu_s": c, "bytes_up": u, "bytes_down": d}
+               for c, u, d in [(0.01, 1000, 10), (0.02, 3000, 30), (0.05, 2000, 20)]]
+    rep = measured_inputs_report(samples, [PROFILES["robot1"]], host_hz=2e9, host_hz_source="given",
+                                 up_Bps=1e6, down_Bps=1e6)
+    assert rep["cycles"]["median"] == pytest.approx(0.02 * 2e9)
+    assert rep["inputs"]["bytes_up"]["value"] == 2000 and rep["inputs"]["bytes_down"]["value"] == 20
+    assert rep["inputs"]["cycles"]["source"].startswith("measured")
+    assert rep["inputs"]["up_Bps"]["source"] == "assumed"
+    row = rep["rows"][0]
+    # E_proc = 47 W * 4e7 / 1e9 = 1.88 J; E_cloud = 25 * 4e7 / 3e11 + 83.54 * 2000/1e6 + 104.08 * 20/1e6
+    assert row["e_proc_j"] == pytest.approx(1.88)
+    assert row["e_cloud_j"] == pytest.approx(25 * 4e7 / 3e11 + 0.16708 + 0.0020816)
+    assert row["decision"] == "offload"
+
+
+def test_bench_energy_rejects_missing_data(tmp_path, capsys):
+    assert main(["bench", "energy", "--data", str(tmp_path / "nope")]) == 1
+    assert "--data" in capsys.readouterr().err

@@ -23,6 +23,7 @@ __all__ = [
     "numeric_break_even_up_Bps",
     "sweep",
     "plot_sweep",
+    "measured_inputs_report",
 ]
 
 #: The Eq 4.9 worked example: C, D (up and down), B_u, B_d, F.
@@ -299,3 +300,89 @@ def plot_sweep(result: dict[str, Any], path: str | Path, *, panel_w: int = 520, 
     if not ok:
         raise InputError(f"could not write the plot to {out}; give a writable path ending in .png")
     return out
+
+
+def _pct(values: Sequence[float], q: float) -> float:
+    xs = sorted(values)
+    if not xs:
+        return math.nan
+    k = (len(xs) - 1) * q / 100.0
+    lo, hi = math.floor(k), math.ceil(k)
+    return xs[lo] + (xs[hi] - xs[lo]) * (k - lo)
+
+
+def measured_inputs_report(
+    samples: Sequence[dict[str, float]],
+    profiles: Sequence[Profile],
+    *,
+    host_hz: float,
+    host_hz_source: str,
+    up_Bps: float = EQ49["up_Bps"],
+    down_Bps: float = EQ49["down_Bps"],
+    cloud_factor: float = THESIS_F,
+) -> dict[str, Any]:
+    """Eq 4.2-4.6 per profile with ``C``, ``D_up``, ``D_down`` measured on real frames.
+
+    Parameters
+    ----------
+    samples : sequence of dict
+        Per frame: ``cpu_s`` (pipeline thread CPU time here), ``bytes_up``
+        (encoded frame), ``bytes_down`` (mask PNG).
+    profiles : sequence of Profile
+    host_hz, host_hz_source : float, str
+        This host's clock and where it came from.
+    up_Bps, down_Bps : float
+        Link rates (assumed: Eq 4.9's 23 / 28 Mb/s unless given).
+
+    Returns
+    -------
+    dict
+        ``{"frames", "cpu_s", "cycles", "bytes_up", "bytes_down"`` (each with
+        median / p99), ``"inputs"`` (each marked measured/assumed), ``"rows"``
+        per profile at the median frame: e_proc_j, e_cloud_j, e_saved_j,
+        decision, local_s, remote_s, break_even_mbps``}``.
+    """
+    cpu = [s["cpu_s"] for s in samples]
+    up = [s["bytes_up"] for s in samples]
+    down = [s["bytes_down"] for s in samples]
+    stats = {
+        name: {"median": _pct(vals, 50), "p99": _pct(vals, 99), "min": min(vals), "max": max(vals)}
+        for name, vals in (("cpu_s", cpu), ("bytes_up", up), ("bytes_down", down))
+    }
+    cycles_med = stats["cpu_s"]["median"] * host_hz
+    stats["cycles"] = {k: v * host_hz for k, v in stats["cpu_s"].items()}
+    task = Task(cycles_med, int(round(stats["bytes_up"]["median"])), int(round(stats["bytes_down"]["median"])))
+    link = LinkEstimate(up_Bps, down_Bps)
+    rows = []
+    for p in profiles:
+        t = energy_terms(task, p, link, cloud_factor=cloud_factor)
+        be = break_even_up_Bps(
+            p, cycles=task.cycles, bytes_up=task.bytes_up, bytes_down=task.bytes_down,
+            down_up_ratio=down_Bps / up_Bps, cloud_factor=cloud_factor,
+        )
+        rows.append(
+            {
+                "profile": p.name,
+                "e_proc_j": t["e_proc_j"],
+                "e_cloud_j": t["e_cloud_j"],
+                "e_saved_j": t["e_saved_j"],
+                "decision": "offload" if t["e_saved_j"] > 0 else "local",
+                "local_s": t["local_s"],
+                "remote_s": t["remote_s"],
+                "break_even_mbps": be / THESIS_MBPS if math.isfinite(be) else None,
+            }
+        )
+    return {
+        "frames": len(samples),
+        **stats,
+        "inputs": {
+            "cycles": {"value": cycles_med, "source": f"measured: median pipeline CPU time x host clock ({host_hz_source})"},
+            "bytes_up": {"value": task.bytes_up, "source": "measured: median encoded frame size"},
+            "bytes_down": {"value": task.bytes_down, "source": "measured: median mask PNG size"},
+            "up_Bps": {"value": up_Bps, "source": "assumed"},
+            "down_Bps": {"value": down_Bps, "source": "assumed"},
+            "powers_and_clocks": {"value": "profiles", "source": "assumed (thesis Table 4.3 or user file)"},
+            "cloud_factor": {"value": cloud_factor, "source": "assumed"},
+        },
+        "rows": rows,
+    }
