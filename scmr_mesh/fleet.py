@@ -52,6 +52,8 @@ log = logging.getLogger(__name__)
 
 REPORT_SCHEMA = Path(__file__).resolve().parents[1] / "schemas" / "report.schema.json"
 CLOUD, LEADER = "cloud", "leader"
+#: File that marks a folder as an scmr run directory (``scmr demo`` only replaces such folders).
+RUN_MARKER = ".scmr-run"
 
 
 # --------------------------------------------------------------------------
@@ -87,6 +89,9 @@ class FleetConfig:
         Extra arguments for cloud+leader and for robots.
     ready_timeout_s : float
         How long a peer may take to write its ready file.
+    rerun : scmr_mesh.viz.RerunOptions or None
+        Show or record the run in rerun (``--save/--spawn/--serve/--connect``);
+        ``None``: nothing rerun-related happens.
     """
 
     robots: int = 4
@@ -103,6 +108,7 @@ class FleetConfig:
     robot_args: Sequence[str] = ()
     ready_timeout_s: float = 90.0
     python: str = sys.executable
+    rerun: Any = None
 
     def check(self) -> None:
         """Raise :class:`InputError` naming the bad value and the fix."""
@@ -343,6 +349,7 @@ def run_fleet(
                          "choose a new --run-dir or delete that one")
     for sub in ("logs", "ready", "robots"):
         (run_dir / sub).mkdir(parents=True, exist_ok=True)
+    (run_dir / RUN_MARKER).write_text("written by scmr up; this folder may be replaced by `scmr demo`\n")
     rids = robot_ids(config.robots)
     ports = _free_ports([CLOUD, LEADER, *rids])
     specs = plan_fleet(config, run_dir, ports)
@@ -352,6 +359,7 @@ def run_fleet(
     interrupted = False
     sup = Supervisor(term_timeout=10.0)
     t_ready = t_end = None
+    fviz = None  # scmr_mesh.viz.FleetViz with rerun flags
 
     def emit(phase: str, elapsed: float, alive: dict[str, bool]) -> None:
         if progress is None:
@@ -369,6 +377,8 @@ def run_fleet(
         return {n: sup.procs[n].alive() and sup.procs[n].is_ready() for n in (CLOUD, LEADER)}
 
     try:
+        if config.rerun is not None:
+            fviz = _start_viz(config.rerun, rids, specs)
         emit("starting cloud and leader", 0.0, {CLOUD: False, LEADER: False})
         t0 = time.monotonic()
         sup.start(specs[CLOUD])
@@ -401,8 +411,13 @@ def run_fleet(
             if fault is not None and fault["end_unix_ns"] is not None and fault["ready_unix_ns"] is None:
                 if sup.procs[CLOUD].is_ready():
                     fault["ready_unix_ns"] = sup.procs[CLOUD].ready_unix_ns
+            n_seen = len(records)
             for rid in rids:
                 records.extend(tails[rid].read_new())
+            if fviz is not None:
+                a = alive_tiers()
+                fviz.update(alive={("cloud", "cloud0"): a[CLOUD], ("leader", "leader0"): a[LEADER]},
+                            records=records[n_seen:], faults=faults)
             exited = sup.exited()
             for name, rc in exited.items():
                 expected = name in rids and rc == 0 or (name == CLOUD and fault is not None
@@ -434,6 +449,12 @@ def run_fleet(
             sup.stop_all()
         finally:
             _restore_interrupts(old)
+            if fviz is not None:  # after the peers: their data is in; --save finalises the file
+                try:
+                    fviz.update(faults=faults)
+                    fviz.close()
+                except Exception as exc:  # the run's report matters more than the recording
+                    log.warning("rerun: closing the recording failed: %s", exc)
         t_end = time.monotonic()
     if t_ready is None:  # interrupted during start-up
         raise KeyboardInterrupt
@@ -464,6 +485,19 @@ def run_fleet(
     validate_report(report)
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+def _start_viz(options, rids: Sequence[str], specs: dict) -> Any:
+    """Start the rerun sink (scmr_mesh.viz) and hand it to every robot's command line."""
+    import dataclasses
+
+    from scmr_mesh.viz import FleetViz
+
+    fviz = FleetViz(options, robots=rids)
+    for rid in rids:
+        specs[rid] = dataclasses.replace(specs[rid], argv=[*specs[rid].argv, *fviz.child_args()])
+    log.warning("rerun: %s", fviz.hint)
+    return fviz
 
 
 def _ignore_interrupts():
@@ -614,7 +648,15 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
         server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
+        rerun=_rerun_options(args),
     )
+
+
+def _rerun_options(args: argparse.Namespace):
+    """RerunOptions from --save/--spawn/--serve/--connect, or None (scmr_mesh.viz)."""
+    from scmr_mesh.viz import RerunOptions
+
+    return RerunOptions.from_args(args)
 
 
 UP_EPILOG = """\
@@ -649,6 +691,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--min-ror", type=float, default=1.0, metavar="R",
                    help="exit 1 when the RoR is below this (default: %(default)s; 0 never fails)")
     p.add_argument("--quiet", action="store_true", help="no live progress")
+    from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only with a flag
+
+    add_rerun_args(p)
     p.set_defaults(func=_cmd_up)
 
     b = bench.add_parser(
@@ -682,6 +727,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
     print(format_summary(report))
     print(f"\nreport: {Path(report['run_dir']) / 'report.json'}"
           + (f" and {args.json}" if args.json else "") + f"\nlogs:   {Path(report['run_dir']) / 'logs'}/")
+    if getattr(args, "save", None):
+        print(f"rerun:  {args.save} (open it with `scmr view {args.save}`)")
     if report.get("interrupted"):
         return 130
     return check_ror(report, args.min_ror)
