@@ -139,3 +139,12 @@ def test_measured_inputs_report_uses_medians_and_marks_inputs():
 def test_bench_energy_rejects_missing_data(tmp_path, capsys):
     assert main(["bench", "energy", "--data", str(tmp_path / "nope")]) == 1
     assert "--data" in capsys.readouterr().err
+
+
+def test_public_api_names():
+    import scmr_mesh.energy as energy
+
+    required = {"Profile", "PROFILES", "get_profile", "Task", "LinkEstimate", "Placement", "choose_placement",
+                "energy_terms", "cycles_from_cpu_time"}
+    assert required <= set(energy.__all__)
+    assert all(hasattr(energy, n) for n in energy.__all__)
