@@ -68,3 +68,19 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
     p.add_argument("--acl-json", metavar="FILE", help="also write the fleet's access-control JSON here")
     p.set_defaults(func=_certs)
+
+    from scmr_mesh.security.overload import add_overload_arguments
+
+    b = bench.add_parser(
+        "overload",
+        help="overload a cloud: served/busy counts, ToR of admitted requests, fairness, peak RSS",
+        description=(
+            "Start a cloud and more robots at a higher rate than it can serve, once with the "
+            "priority negotiator (--queue) and once with the default FIFO admission.  Reports "
+            "served and rejected ('busy') counts, ToR of admitted requests (p50/p99), time to a busy "
+            "answer, served share per priority class, Jain's fairness index across robots, and the "
+            "cloud's peak RSS.  Progress on stderr; JSON with --json."
+        ),
+    )
+    add_overload_arguments(b)
+    b.set_defaults(func=_overload)
