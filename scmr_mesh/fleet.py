@@ -446,6 +446,8 @@ def run_fleet(
                      alive_tiers() if CLOUD in sup.procs and LEADER in sup.procs else {})
             robots_running = [r for r in rids if r in sup.procs]
             sup.stop(robots_running)  # robots first: they finish and flush their records
+            from scmr_mesh.data.report import fleet_telemetry  # data tier: docs/DATA.md
+            telemetry = fleet_telemetry(run_dir, rids, wait=CLOUD in sup.procs and sup.procs[CLOUD].alive())
             sup.stop_all()
         finally:
             _restore_interrupts(old)
@@ -482,6 +484,8 @@ def run_fleet(
             f["restart_to_ready_ms"] = (f["ready_unix_ns"] - f["end_unix_ns"]) / 1e6
             f["failback_after_ready_ms"] = metrics.failback_gap_ms(
                 records, {**f, "end_unix_ns": f["ready_unix_ns"]})
+    if telemetry is not None:
+        report["telemetry"] = telemetry
     validate_report(report)
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
