@@ -181,4 +181,23 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
         time.sleep(0.2)
 
 
-__all__ = ["robot_sent", "run_telemetry", "settle_telemetry", "telemetry_report"]
+def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
+                    wait: bool = True, timeout_s: float = 5.0) -> dict[str, Any] | None:
+    """The report's ``"telemetry"`` value for a fleet run; never raises.
+
+    For ``scmr up`` / scenarios: call it after the robots stopped and, with
+    ``wait=True``, while the cloud still runs (it waits up to ``timeout_s``
+    for relayed telemetry to land).  Returns None, after logging why, when the
+    accounting fails.
+    """
+    import logging
+
+    try:
+        rep = settle_telemetry(run_dir, robots, timeout_s=timeout_s if wait else 0.0)
+        return rep["telemetry"]
+    except Exception as exc:  # a report must not fail over telemetry accounting
+        logging.getLogger(__name__).warning("telemetry accounting for %s failed: %s", run_dir, exc)
+        return None
+
+
+__all__ = ["fleet_telemetry", "robot_sent", "run_telemetry", "settle_telemetry", "telemetry_report"]
