@@ -84,7 +84,7 @@ COLOUR_TOLERANCE = 0.15
 #: Rows above this fraction of the height are never drivable (horizon prior).
 HORIZON_FRACTION = 0.40
 #: Longest non-drivable run (pixels) bridged by the bottom-up column fill.
-COLUMN_GAP = 10
+COLUMN_GAP = 15
 
 
 def segment_drivable(

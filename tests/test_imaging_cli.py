@@ -1,0 +1,135 @@
+"""End to end: `scmr segment`, `scmr eval` and `scmr bench pipeline` on the shared data."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from scmr_mesh.cli import main
+from scmr_mesh.imaging import decode_image
+
+
+def test_segment_writes_pictures_and_reports_bad_inputs(roads_dir, tmp_path, capsys):
+    good = sorted((roads_dir / "images").glob("*"))[:1] + sorted((roads_dir / "images").glob("orfd*"))[:1]
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    out = tmp_path / "out"
+    argv = ["segment", str(good[0]), str(bad), str(tmp_path / "missing.jpg"), str(good[1])]
+    argv += ["--synthetic", "tunnel:2", "--out", str(out), "--stages"]
+    assert main(argv) == 1  # two bad inputs, the others still processed
+    err = capsys.readouterr().err
+    assert err.count("scmr: error:") == 2
+    assert "broken.png" in err and "missing.jpg" in err and "Traceback" not in err
+    for stem in [good[0].stem, good[1].stem, "tunnel_2"]:
+        for kind in ("mask", "rg", "overlay", "srm", "otsu", "hist", "edges"):
+            assert (out / f"{stem}.{kind}.png").is_file(), (stem, kind)
+        mask = decode_image((out / f"{stem}.mask.png").read_bytes())
+        assert mask.shape == (225, 300, 3) and set(np.unique(mask)) <= {0, 255}
+        rg = decode_image((out / f"{stem}.rg.png").read_bytes())
+        drivable = mask[..., 0] == 255
+        assert np.all(rg[drivable] == [0, 255, 0]) and np.all(rg[~drivable] == [255, 0, 0])
+    assert not list(out.glob("broken*"))
+
+
+def test_segment_all_good_exits_zero_and_thesis_mode(tmp_path):
+    assert main(["segment", "--synthetic", "desert:1", "--mode", "thesis", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "desert_1.mask.png").is_file() and not (tmp_path / "desert_1.srm.png").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["segment", "--out", "{tmp}"], "no input"),
+        (["segment", "--synthetic", "moon", "--out", "{tmp}"], "unknown kind 'moon'"),
+        (["segment", "--synthetic", "tunnel:x", "--out", "{tmp}"], "seed must be an integer"),
+        (["eval", "{tmp}"], "no manifest.json"),
+        (["eval", "{tmp}/nope"], "data folder not found"),
+    ],
+)
+def test_command_errors_are_one_line(argv, match, tmp_path, capsys):
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("scmr: error:") and match in err[-1]
+
+
+def test_eval_on_the_shared_data(roads_dir, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    assert main(["eval", str(roads_dir), "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "bottom_half" in table and "thesis" in table
+    doc = json.loads(out.read_text())
+    manifest = json.loads((roads_dir / "manifest.json").read_text())
+    assert doc["mode"] == "best"
+    assert len(doc["images"]) == len(manifest["items"])
+    for row in doc["images"]:
+        assert {"image", "dataset", "iou", "f1", "precision", "recall"} <= set(row)
+        assert all(0.0 <= row[k] <= 1.0 for k in ("iou", "f1", "precision", "recall"))
+        assert row["iou"] <= row["f1"] + 1e-12  # IoU <= F1 always
+    assert doc["mean"]["iou"] == pytest.approx(np.mean([r["iou"] for r in doc["images"]]))
+    assert set(doc["per_dataset"]) == {it["dataset"] for it in manifest["items"]}
+    assert sum(v["n"] for v in doc["per_dataset"].values()) == len(doc["images"])
+    assert set(doc["baselines"]) == {"bottom_half", "thesis"}
+    assert 0.0 <= doc["baselines"]["bottom_half"]["iou"] <= 1.0
+
+
+def _write_manifest(folder, items):
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "manifest.json").write_text(json.dumps({"format": "scmr-roads-manifest/1", "items": items}))
+
+
+def test_eval_rgb_masks_ignore_values_and_a_perfect_score(tmp_path, roads_dir):
+    """A manifest whose 'mask' is the pipeline's own output scores exactly 1.0."""
+    from scmr_mesh.imaging import encode_png, load_image, segment_drivable
+
+    img_path = sorted((roads_dir / "images").glob("orfd*"))[0]
+    mask = segment_drivable(load_image(img_path)).mask
+    rgb_mask = np.zeros(mask.shape + (3,), np.uint8)
+    rgb_mask[mask > 0] = (255, 0, 255)
+    rgb_mask[:5] = (0, 0, 0)  # ignored rows
+    (tmp_path / "m.png").write_bytes(encode_png(rgb_mask))
+    _write_manifest(
+        tmp_path,
+        [{"image": str(img_path), "mask": "m.png", "dataset": "x", "mask_mode": "rgb",
+          "road": [[255, 0, 255]], "ignore": [[0, 0, 0]]}],
+    )
+    from scmr_mesh.imaging.evaluate import evaluate
+
+    res = evaluate(tmp_path, baselines=False)
+    assert res["images"][0]["iou"] == pytest.approx(1.0)
+    assert res["baselines"] == {}
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"items": []}', "non-empty 'items'"),
+        ('{"items": [{"image": "a.png"}]}', "missing field 'mask'"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "mask_mode": "hsv"}]}', "mask_mode"),
+    ],
+)
+def test_eval_invalid_manifest(tmp_path, capsys, text, match):
+    (tmp_path / "manifest.json").write_text(text)
+    assert main(["eval", str(tmp_path)]) == 1
+    assert match in capsys.readouterr().err
+
+
+def test_bench_pipeline_runs_in_its_own_process(tmp_path):
+    out = tmp_path / "bench.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "scmr_mesh", "bench", "pipeline", "--frames", "4", "--json", str(out)],
+        capture_output=True, text=True, timeout=240,
+    )
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    assert doc["frames"] == 4
+    for key in ("median_ms", "p99_ms"):
+        assert {"decode", "resize", "srm", "total"} <= set(doc[key])
+        assert all(v >= 0 for v in doc[key].values())
+    assert doc["p99_ms"]["total"] >= doc["median_ms"]["total"]
+    assert "timed 4/4" in r.stderr
