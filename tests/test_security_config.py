@@ -1,0 +1,198 @@
+"""Credentials, ACL rules and security profiles (mostly pure; zenoh only parses configs).
+
+About 3 s (openssl makes a few EC keys).
+"""
+
+from __future__ import annotations
+
+import json
+import stat
+import subprocess
+
+import pytest
+import zenoh
+from hypothesis import given
+from hypothesis import strategies as st
+
+from scmr_mesh.cli import main as scmr
+from scmr_mesh.errors import ConfigError, InputError
+from scmr_mesh.mesh.security import apply_security, secure_config
+from scmr_mesh.security.acl import ALL_MESSAGES, build_acl
+from scmr_mesh.security.credentials import (
+    Fleet, Peer, create_credentials, infer_role, load_fleet, parse_peers, peer_files,
+)
+from scmr_mesh.security.profile import SecurityProfile, load_profile, secure_endpoint, zenoh_settings
+
+
+@pytest.fixture(scope="module")
+def creds(tmp_path_factory):
+    d = tmp_path_factory.mktemp("c") / "certs"
+    create_credentials(d, "cloud,leader,robot1,robot2,edge=cloud")
+    return d
+
+
+def test_certificates_chain_to_the_ca_and_name_the_peer(creds):
+    for name in ("cloud", "robot1", "edge"):
+        f = peer_files(creds, name)
+        out = subprocess.run(["openssl", "verify", "-CAfile", str(f.ca), str(f.cert)],
+                             capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        text = subprocess.run(["openssl", "x509", "-in", str(f.cert), "-noout", "-subject", "-ext",
+                               "subjectAltName,extendedKeyUsage"], capture_output=True, text=True).stdout
+        assert f"CN = {name}" in text and "IP Address:127.0.0.1" in text
+        assert "TLS Web Server Authentication" in text and "TLS Web Client Authentication" in text
+        for secret in (f.key, f.password_file, f.dictionary):
+            assert stat.S_IMODE(secret.stat().st_mode) == 0o600
+    assert stat.S_IMODE((creds / "ca.key").stat().st_mode) == 0o600
+
+
+def test_fleet_roles_and_usrpwd_dictionaries(creds):
+    fleet = load_fleet(creds)
+    assert fleet.servers == ["cloud", "leader", "edge"] and fleet.robots == ["robot1", "robot2"]
+    users = lambda n: {line.split(":")[0] for line in (creds / n / "usrpwd.txt").read_text().splitlines()}  # noqa: E731
+    assert users("cloud") == {"cloud", "leader", "robot1", "robot2", "edge"}
+    # a robot accepts links from servers only and holds no other robot's password
+    assert users("robot1") == {"cloud", "leader", "edge", "robot1"}
+    pw = {n: (creds / n / "password").read_text().strip() for n in fleet.names()}
+    assert len(set(pw.values())) == len(pw)
+
+
+def test_existing_directory_is_not_overwritten(creds):
+    with pytest.raises(ConfigError, match="not empty.*--force"):
+        create_credentials(creds, "cloud")
+
+
+@pytest.mark.parametrize("spec,match", [
+    ("", "empty"), ("cloud,cloud", "twice"), ("bad name", "not allowed"), ("x=admin", "role 'admin'"),
+    ("robot/1", "not allowed"),
+])
+def test_bad_peer_lists_are_named(spec, match):
+    with pytest.raises(InputError, match=match):
+        parse_peers(spec)
+
+
+@given(st.text(max_size=12))
+def test_role_inference_is_total(name):
+    assert infer_role(name) in ("cloud", "leader", "robot")
+
+
+def test_fleet_file_errors_name_file_and_fix(tmp_path):
+    with pytest.raises(ConfigError, match="fleet.json not found.*scmr certs"):
+        load_fleet(tmp_path)
+    (tmp_path / "fleet.json").write_text('{"version": 1, "peers": [{"name": "a"}]}')
+    with pytest.raises(ConfigError, match=r"peers\[0\].*role"):
+        load_fleet(tmp_path)
+    (tmp_path / "fleet.json").write_text("{nope")
+    with pytest.raises(ConfigError, match="not valid JSON"):
+        load_fleet(tmp_path)
+
+
+def _who_may(acl, subject_name, flow, message, key):
+    """Evaluate our ACL for one (subject, flow, message, key) like zenoh does (allow-list)."""
+    subjects = {s["id"] for s in acl["subjects"]
+                if subject_name in s.get("cert_common_names", []) + s.get("usernames", [])}
+    rules = {r["id"]: r for r in acl["rules"]}
+    for pol in acl["policies"]:
+        if not subjects & set(pol["subjects"]):
+            continue
+        for rid in pol["rules"]:
+            r = rules[rid]
+            if flow in r["flows"] and message in r["messages"] and any(
+                    zenoh.KeyExpr(k).intersects(zenoh.KeyExpr(key)) for k in r["key_exprs"]):
+                return True
+    return acl["default_permission"] == "allow"
+
+
+def test_acl_policy_table():
+    fleet = Fleet((Peer("cloud", "cloud"), Peer("leader", "leader"), Peer("r1", "robot"), Peer("r2", "robot")))
+    acl = build_acl(fleet, kind="tls")
+    assert acl["default_permission"] == "deny"
+    may = lambda *a: _who_may(acl, *a)  # noqa: E731
+    # servers: everything under scmr/**
+    assert may("leader", "ingress", "declare_queryable", "scmr/drivable/leader/L")
+    assert may("cloud", "egress", "query", "scmr/data/cloud/c/sync")
+    # robots: query the service, get replies, publish their own telemetry only
+    assert may("r1", "ingress", "query", "scmr/drivable/cloud/c")
+    assert may("r1", "egress", "reply", "scmr/drivable/cloud/c")
+    assert may("r1", "ingress", "put", "scmr/telemetry/r1")
+    assert not may("r1", "ingress", "put", "scmr/telemetry/r2")
+    assert not may("r1", "ingress", "declare_queryable", "scmr/drivable/leader/L")
+    assert not may("r1", "egress", "query", "scmr/drivable/cloud/c")
+    assert not may("r1", "ingress", "reply", "scmr/drivable/cloud/c")
+    assert not may("r1", "ingress", "liveliness_token", "scmr/alive/cloud/fake")
+    assert may("r1", "ingress", "liveliness_token", "scmr/alive/robot/r1")
+    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/sync")
+    assert may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry")
+    assert not may("r1", "ingress", "declare_subscriber", "scmr/telemetry/r2")
+    assert not may("stranger", "ingress", "query", "scmr/drivable/cloud/c")
+    # only known message kinds
+    assert {m for r in acl["rules"] for m in r["messages"]} <= set(ALL_MESSAGES)
+
+
+def test_zenoh_accepts_the_generated_config(creds):
+    prof = SecurityProfile(kind="tls", credentials=creds, acl=True)
+    conf = secure_config(prof, identity="robot1", listen=["tcp/127.0.0.1:0"])
+    assert json.loads(conf.get_json("listen/endpoints")) == ["tls/127.0.0.1:0"]
+    assert json.loads(conf.get_json("transport/link/protocols")) == ["tls"]
+    with zenoh.open(conf) as s:  # zenoh validates the ACL when opening
+        assert s.info.zid() is not None
+
+
+def test_default_listen_becomes_tls(creds):
+    conf = zenoh.Config()
+    apply_security(conf, SecurityProfile(kind="tls", credentials=creds), identity="cloud")
+    assert json.loads(conf.get_json("listen/endpoints"))["peer"] == ["tls/[::]:0"]
+
+
+def test_usrpwd_settings_and_masking(creds):
+    s = zenoh_settings(SecurityProfile(kind="usrpwd", credentials=creds), "robot1",
+                       connect=["tcp/127.0.0.1:7447"])
+    assert s["transport/auth/usrpwd"]["user"] == "robot1"
+    assert s["connect/endpoints"] == ["tcp/127.0.0.1:7447"]
+    assert "access_control" not in s
+
+
+@pytest.mark.parametrize("text,match", [
+    ("[security]\nkind = 'ssh'\ncredentials = 'c'\n", "security.kind is 'ssh'"),
+    ("[security]\nkind = 'tls'\n", "security.credentials is missing"),
+    ("[security]\nkind = 'usrpwd'\ncredentials = 'c'\nacl = true\n", "only mutual TLS"),
+    ("[security]\nkind = 'tls'\ncredentials = 'c'\nacl = 'yes'\n", "security.acl must be true or false"),
+    ("[security]\nkind = 'tls'\ncredentials = 'c'\ncolour = 1\n", "unknown field.*security.colour"),
+    ("kind = 'tls'\n", r"table \[security\] is missing"),
+    ("[security\n", "not a valid TOML"),
+])
+def test_bad_profiles_name_file_field_and_fix(tmp_path, text, match, monkeypatch):
+    monkeypatch.delenv("SCMR_CREDENTIALS", raising=False)
+    p = tmp_path / "p.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=match) as info:
+        load_profile(p)
+    assert str(p) in str(info.value)
+
+
+def test_shipped_profiles_load(repo_root, monkeypatch):
+    monkeypatch.delenv("SCMR_CREDENTIALS", raising=False)
+    kinds = {p.stem: load_profile(p).kind for p in sorted((repo_root / "peers" / "secure").glob("*.toml"))}
+    assert kinds == {"mtls": "tls", "mtls-noacl": "tls", "usrpwd": "usrpwd"}
+
+
+def test_unknown_identity_is_named(creds):
+    with pytest.raises(ConfigError, match="no credentials for peer 'robot9'.*scmr certs"):
+        zenoh_settings(SecurityProfile(kind="tls", credentials=creds, acl=True), "robot9")
+
+
+def test_secure_endpoint():
+    assert secure_endpoint("tcp/1.2.3.4:5", "tls") == "tls/1.2.3.4:5"
+    assert secure_endpoint("tcp/1.2.3.4:5", "usrpwd") == "tcp/1.2.3.4:5"
+    assert secure_endpoint("udp/1.2.3.4:5", "tls") == "udp/1.2.3.4:5"
+
+
+def test_certs_command(tmp_path, capsys):
+    assert scmr(["certs", "--out", str(tmp_path / "c"), "--peers", "cloud,robot1",
+                 "--acl-json", str(tmp_path / "acl.json")]) == 0
+    assert "robot1\trobot" in capsys.readouterr().out
+    assert json.loads((tmp_path / "acl.json").read_text())["default_permission"] == "deny"
+    assert scmr(["certs", "--out", str(tmp_path / "c"), "--peers", "cloud"]) == 1
+    assert "not empty" in capsys.readouterr().err
+    assert scmr(["certs", "--out", str(tmp_path / "d"), "--peers", "cloud", "--days", "0"]) == 1
+    assert "--days must be at least 1, got 0" in capsys.readouterr().err
