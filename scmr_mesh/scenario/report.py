@@ -205,6 +205,7 @@ def build_report(
         "backend": backend,
         "duration_s": scenario.duration_s,
         "lease_ms": scenario.lease_ms,
+        "process": scenario.process or "drivable pipeline",
         "t0_unix_ns": t0_unix_ns,
         "summary": {
             "requests": summ["requests"], "succeeded": summ["succeeded"], "ror": summ["ror"],
@@ -239,6 +240,7 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     if report.get("description"):
         L += [report["description"], ""]
     L += [f"Seed {report['seed']}, duration {report['duration_s']:g} s, lease {report['lease_ms']} ms, "
+          f"process {report.get('process', '-')}, "
           f"file `{report['source']}`. Result: **{'PASSED' if report['passed'] else 'FAILED'}**.", ""]
     L += ["## Expectations", "", "| expectation | observed | held |", "|---|---|---|"]
     for e in report["expectations"]:
@@ -262,7 +264,7 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     L += ["", "## Faults", "", "| fault | applied at s | lifted at s | tier lost | failover gap ms | failback gap ms |",
           "|---|---|---|---|---|---|"]
     for f in report["faults"]:
-        L.append(f"| {f['label']} | {_fmt(f['started_at_s'], 3)} | {_fmt(f['ended_at_s'], 3)} | {_fmt(f['tier'])} | "
+        L.append(f"| {str(f['label']).replace('|', chr(92) + '|')} | {_fmt(f['started_at_s'], 3)} | {_fmt(f['ended_at_s'], 3)} | {_fmt(f['tier'])} | "
                  f"{_fmt(f['failover_gap_ms'])} | {_fmt(f['failback_gap_ms'])} |")
     if not report["faults"]:
         L.append("| (none) | | | | | |")
@@ -320,8 +322,12 @@ def _canvas(title: str):
     return img
 
 
+_T_MIN = [0.0]  # left edge of the time axis (requests sent before the robots were all ready are < 0)
+
+
 def _x(t: float, t_max: float) -> int:
-    return int(_ML + (_W - _ML - _MR) * (t / t_max if t_max > 0 else 0))
+    t0 = _T_MIN[0]
+    return int(_ML + (_W - _ML - _MR) * ((t - t0) / (t_max - t0) if t_max > t0 else 0))
 
 
 def _axes(img, t_max: float, faults: Sequence[Mapping[str, Any]]) -> None:
@@ -333,12 +339,12 @@ def _axes(img, t_max: float, faults: Sequence[Mapping[str, Any]]) -> None:
         if a is None:
             continue
         b = t_max if b is None else b
-        x0, x1 = _x(max(0.0, a), t_max), _x(min(t_max, b), t_max)
+        x0, x1 = _x(max(_T_MIN[0], a), t_max), _x(min(t_max, b), t_max)
         sub = img[_MT:_H - _MB, x0:max(x0 + 1, x1)]
         sub[:] = (sub * 0.85).astype(sub.dtype)
     cv2.rectangle(img, (_ML, _MT), (_W - _MR, _H - _MB), (0, 0, 0), 1)
-    step = max(1, int(math.ceil(t_max / 10)))
-    for s in range(0, int(t_max) + 1, step):
+    step = max(1, int(math.ceil((t_max - _T_MIN[0]) / 10)))
+    for s in range(int(math.ceil(_T_MIN[0])), int(t_max) + 1, step):
         x = _x(s, t_max)
         cv2.line(img, (x, _H - _MB), (x, _H - _MB + 5), (0, 0, 0), 1)
         cv2.putText(img, f"{s}", (x - 5, _H - _MB + 20), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
@@ -360,6 +366,7 @@ def _legend(img) -> None:
 
 def _t_max(report: Mapping[str, Any]) -> float:
     ts = [r.get("sent_s") or 0.0 for r in report["requests"]]
+    _T_MIN[0] = math.floor(min([0.0] + ts))
     return max([float(report["duration_s"])] + ts) * 1.02 + 0.1
 
 
