@@ -164,10 +164,19 @@ def test_robot_restarted_mid_outage_keeps_its_queue(peers, tmp_path):
     wait_for(lambda: len(_stored(ods_path, "r2")) >= sent, timeout=20, what="replayed telemetry in the ODS")
     rep = telemetry_report(ods_path, {"r2": sent})["telemetry"]
     assert (rep["lost"], rep["stored"]) == (0, sent)
+    # the restarted cloud's buffer (re-seeded from the ODS, then fed) serves the latest state
+    out = subprocess.run([sys.executable, "-m", "scmr_mesh", "ods", "fetch", "state/**", "--connect", _ep(pc),
+                          "--lease-ms", LEASE], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "answered by cloud/c1" in out.stderr
+    assert json.loads(out.stdout)["state/r2"]["seq"] == sent
 
 
 def test_full_and_corrupt_queues_are_reported(peers, tmp_path):
     dead = _ep(free_port())  # nothing listens: no tier stores anything
+    out = subprocess.run([sys.executable, "-m", "scmr_mesh", "ods", "fetch", "state/**", "--connect", dead,
+                          "--wait-ms", "300"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and out.stderr.startswith("scmr: error: no cloud or leader alive after 0.3 s")
     r = peers.robot("r3", [dead], "--rate", "200", "--count", "40", "--wait-ms", "0",
                     "--telemetry-max-bytes", "3000")
     assert r.wait(timeout=60) == 0, peers.log("r3")

@@ -19,7 +19,8 @@ per (robot, seq).
   scmr ods --db runs/ods.sqlite latest
   scmr ods --db runs/ods.sqlite range --since 2026-11-21T17:00:00Z --until 1795281200
   scmr ods --db runs/ods.sqlite export --format csv --out telemetry.csv
-  scmr ods queue runs/queues/robot1        (a robot's on-disk telemetry queue)
+  scmr ods queue runs/<run>/robots/r1/telemetry-queue   (a robot's on-disk queue)
+  scmr ods fetch 'state/**' --connect tcp/127.0.0.1:7447  (the mesh's data buffer)
 
 --db defaults to $SCMR_ODS, else $SCMR_RUN_DIR/ods.sqlite, else runs/ods.sqlite.
 """
@@ -140,6 +141,20 @@ def _cmd_queue(args) -> int:
     return 0
 
 
+def _cmd_fetch(args) -> int:
+    from scmr_mesh.mesh.config import from_args
+    from scmr_mesh.mesh.data_service import fetch_once
+
+    if not args.connect:
+        raise InputError("scmr ods fetch needs --connect ENDPOINT (a cloud or leader, e.g. tcp/127.0.0.1:7447)")
+    tier, node, items = fetch_once(args.selector, from_args(args, mode="peer"), wait_s=args.wait_ms / 1e3,
+                                   deadline_ms=args.deadline_ms)
+    print(f"answered by {tier}/{node}: {len(items)} item(s)", file=sys.stderr)
+    json.dump(items, sys.stdout, indent=1, default=str)
+    print()
+    return 0
+
+
 def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
     """Add ``scmr ods`` to the command line."""
     p = sub.add_parser("ods", help="query the operational data store (telemetry) and robot queues",
@@ -181,6 +196,21 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
                            "it found corruption.  Opening repairs a torn tail.")
     q.add_argument("dir", metavar="DIR", help="the robot's queue folder")
     q.set_defaults(func=_cmd_queue)
+
+    f = ods_sub.add_parser("fetch", help="ask the mesh's data buffer (cloud, else leader) for entries",
+                           description="Query the local data buffer over Zenoh, routed like a robot's data "
+                           "request: an alive cloud node first, else the leader's synced copy.  SELECTOR is "
+                           "a key (state/r1) or a pattern (state/**, maps/*, **).  Prints the items as JSON; "
+                           "stderr says which tier answered.")
+    f.add_argument("selector", metavar="SELECTOR", help="buffer key or pattern, e.g. state/**")
+    f.add_argument("--wait-ms", type=float, default=3000.0, metavar="MS",
+                   help="wait up to MS for a cloud or leader to be seen (default 3000)")
+    f.add_argument("--deadline-ms", type=float, default=1000.0, metavar="MS",
+                   help="per-tier deadline (default 1000)")
+    from scmr_mesh.mesh import config as _zconfig
+
+    _zconfig.add_arguments(f)
+    f.set_defaults(func=_cmd_fetch)
 
     _register_bench(bench)
 

@@ -606,6 +606,60 @@ __all__ = [
 ]
 
 
+def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float = 1000.0) -> tuple[str, str, dict]:
+    """One data-buffer request from a fresh session, routed like a robot's (cloud, else leader).
+
+    Parameters
+    ----------
+    selector : str
+        ``state/r1``, ``state/**``, ``maps/*``, ``**``.
+    mesh : scmr_mesh.mesh.config.MeshConfig
+        Where to connect.
+    wait_s : float
+        How long to wait for a cloud or leader liveliness token.
+
+    Returns
+    -------
+    (tier, node, items)
+
+    Raises
+    ------
+    MeshError
+        No tier alive after ``wait_s``, or none answered.
+    """
+    from scmr_mesh.mesh.config import close_session, open_session
+    from scmr_mesh.mesh.robot import LiveView
+
+    session = open_session(mesh)
+    sub = None
+    try:
+        view = LiveView()
+        sub = session.liveliness().declare_subscriber(keys.ALIVE_ALL, view.on_liveliness, history=True)
+        if not view.wait_for_tier(wait_s):
+            raise MeshError(f"no cloud or leader alive after {wait_s:g} s (connect={mesh.connect}); "
+                            "check --connect and that the peers run")
+        time.sleep(0.1)  # let the rest of the tokens' history arrive
+        snap = view.snapshot()
+        tried = []
+        for tier, node in [("cloud", n) for n in sorted(snap.cloud)] + [("leader", n) for n in sorted(snap.leader)]:
+            got = None
+            for reply in session.get(buffer_key(tier, node), payload=_pack({"sel": selector}),
+                                     timeout=deadline_ms / 1e3):
+                got = reply
+                break
+            if got is not None and got.ok is not None:
+                return tier, node, _unpack(got.ok.payload.to_bytes())["items"]
+            tried.append(f"{tier}/{node}={'no reply' if got is None else 'error'}")
+        raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier'})")
+    finally:
+        if sub is not None:
+            try:
+                sub.undeclare()
+            except Exception:
+                pass
+        close_session(session)
+
+
 def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmup: int = 20) -> list[float]:
     """Telemetry store round trips (ms) over Zenoh: robot query -> cloud ODS commit -> ack.
 
