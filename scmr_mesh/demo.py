@@ -49,6 +49,11 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--cloud-outage", default="6:10", metavar="START:END",
                    help="cloud SIGKILL and restart times in s (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no live progress")
+    from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only when used
+
+    add_rerun_args(p)
+    p.add_argument("--no-rerun", action="store_true",
+                   help="do not record the run for the rerun viewer (default: save OUT/demo.rrd)")
     p.set_defaults(func=run)
 
 
@@ -73,8 +78,9 @@ def run(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     _clear_previous(out)
+    rerun = _rerun_options(args, out)
     config = FleetConfig(robots=args.robots, duration_s=args.duration, rate_hz=args.rate,
-                         cloud_outage=parse_outage(args.cloud_outage), run_dir=out)
+                         cloud_outage=parse_outage(args.cloud_outage), run_dir=out, rerun=rerun)
     print(f"scmr demo: cloud, leader and {args.robots} robots on loopback for {args.duration:g} s; "
           f"the cloud is killed at {config.cloud_outage[0]:g} s and restarted at {config.cloud_outage[1]:g} s",
           file=sys.stderr)
@@ -91,9 +97,25 @@ logs:      {out / 'logs'}/  (one per peer: cloud, leader, r1..r{args.robots})
 masks:     {out / 'robots'}/<robot>/inbox/<seq>.mask.png  (255 = drivable); requests in records.jsonl
 pictures:  {pics / 'timeline.png'}  (ToR per request over time, by serving tier)
            {pics / 'overlays.png'}  (frames with red/green masks before, during, after the outage)""")
+    if rerun is not None and rerun.mode == "save":
+        print(f"rerun:     {rerun.target}  (open it with `scmr view {rerun.target}`; "
+              f"headless: `scmr view {rerun.target} --web`)")
     if report.get("interrupted"):
         return 130
     return check_ror(report, 1.0)
+
+
+def _rerun_options(args: argparse.Namespace, out: Path):
+    """The demo records OUT/demo.rrd unless another rerun flag or --no-rerun is given."""
+    from scmr_mesh.errors import InputError
+    from scmr_mesh.viz import RerunOptions
+
+    opts = RerunOptions.from_args(args)
+    if getattr(args, "no_rerun", False):
+        if opts is not None:
+            raise InputError("--no-rerun cannot be combined with --save/--spawn/--serve/--connect; drop one")
+        return None
+    return opts or RerunOptions("save", str(out / "demo.rrd"), getattr(args, "rerun_recording_id", None))
 
 
 def _load_records(out: Path) -> list[dict]:
