@@ -157,8 +157,12 @@ def zenoh_settings(
     if profile.kind == "none":
         return out
     assert profile.credentials is not None
-    fleet = load_fleet(profile.credentials)
-    fleet.get(identity)  # raises if the identity has no credentials
+    try:
+        fleet = load_fleet(profile.credentials)
+        fleet.get(identity)  # raises if the identity has no credentials
+    except ConfigError as exc:
+        where = f"{profile.source}: field security.credentials" if profile.source else "credentials"
+        raise ConfigError(f"{where} ({profile.credentials}, or --credentials / ${CREDENTIALS_ENV}): {exc}") from None
     if profile.kind == "tls":
         f = peer_files(profile.credentials, identity)
         tls = "transport/link/tls"
