@@ -241,14 +241,24 @@ class OperationalDataStore:
         finally:
             con.close()
 
-    def _submit(self, fn, *args) -> Any:
+    def _submit(self, fn, *args) -> concurrent.futures.Future:
         if self.readonly:
             raise StoreError(f"{str(self.path)!r} was opened read-only; it cannot be written")
         if self._closed:
             raise StoreError(f"the operational data store {str(self.path)!r} is closed")
         fut: concurrent.futures.Future = concurrent.futures.Future()
         self._queue.put((fn, args, fut))
-        return fut.result()
+        return fut
+
+    def insert_async(self, records: Iterable[TelemetryRecord], *, received_from: str) -> concurrent.futures.Future:
+        """:meth:`insert` without waiting: a Future of the :class:`InsertResult`.
+
+        Done callbacks run on the writer thread once the transaction has
+        committed (or failed), so keep them short (e.g. send an ack).
+        """
+        if received_from not in TIERS:
+            raise StoreError(f"received_from must be one of {TIERS}, got {received_from!r}")
+        return self._submit(self._insert, list(records), received_from)
 
     def insert(self, records: Iterable[TelemetryRecord], *, received_from: str) -> InsertResult:
         """Store records exactly once per ``(robot, seq)``; count the rest as duplicates.
@@ -265,9 +275,7 @@ class OperationalDataStore:
             Which pairs were new, which were duplicates, and the contiguous
             ``seq`` per robot after the insert (the acknowledgement).
         """
-        if received_from not in TIERS:
-            raise StoreError(f"received_from must be one of {TIERS}, got {received_from!r}")
-        return self._submit(self._insert, list(records), received_from)
+        return self.insert_async(records, received_from=received_from).result()
 
     @staticmethod
     def _insert(con: sqlite3.Connection, records: list[TelemetryRecord], received_from: str) -> InsertResult:

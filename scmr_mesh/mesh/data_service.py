@@ -36,6 +36,7 @@ Flow ("nothing lost"):
 from __future__ import annotations
 
 import atexit
+import concurrent.futures
 import json
 import logging
 import os
@@ -103,6 +104,14 @@ def _answer(query, obj: Any, *, error: bool = False) -> None:
         log.warning("data reply failed: %s", exc)
 
 
+def _drop(query) -> None:
+    """Finalise a query answered outside its callback (zenoh facts sheet, gotcha 4)."""
+    try:
+        query.drop()
+    except Exception:
+        pass
+
+
 def record_from_message(msg: dict, seq: int) -> TelemetryRecord:
     """A store record from a mesh telemetry message (``wire.make_telemetry``) and a telemetry seq.
 
@@ -164,18 +173,34 @@ class CloudData:
                 (sync_key(self.node), self._on_sync)]
 
     def _on_telemetry(self, query) -> None:
+        # zenoh's thread only decodes; the ODS writer thread commits and then acks,
+        # so a slow fsync never holds up the session's other traffic (frame queries)
         try:
             records, via = decode_batch(_payload(query))
-            res = self.ods.insert(records, received_from=via or "cloud")
+            fut = self.ods.insert_async(records, received_from=via or "cloud")
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
             _answer(query, {"error": str(exc)}, error=True)
+            _drop(query)
             return
-        for r in records:
-            self.buffer.record_telemetry(r.to_dict())
-        self.ingested += len(records)
-        _answer(query, {"acked": len(records), "stored": len(res.stored), "duplicates": len(res.duplicates),
-                        "contiguous": res.contiguous})
+        fut.add_done_callback(lambda f: self._ack(query, records, f))
+
+    def _ack(self, query, records: list[TelemetryRecord], fut) -> None:
+        try:
+            res = fut.result()
+        except Exception as exc:
+            log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
+            _answer(query, {"error": str(exc)}, error=True)
+            _drop(query)
+            return
+        try:
+            for r in records:
+                self.buffer.record_telemetry(r.to_dict())
+            self.ingested += len(records)
+        finally:
+            _answer(query, {"acked": len(records), "stored": len(res.stored), "duplicates": len(res.duplicates),
+                            "contiguous": res.contiguous})
+            _drop(query)
 
     def _on_sync(self, query) -> None:
         try:
@@ -221,12 +246,27 @@ class LeaderData:
         self._thread: threading.Thread | None = None
         self.forwarded = 0
         self.received = 0
+        self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="leader-relay")
 
     def queryables(self) -> list[tuple[str, Callable]]:
         return [(telemetry_key("leader", self.node), self._on_telemetry),
                 (buffer_key("leader", self.node), serve_buffer(self.buffer, "leader", self.node))]
 
     def _on_telemetry(self, query) -> None:
+        # the fsync'd append runs on the leader's own thread, never on zenoh's
+        try:
+            self._pool.submit(self._store, query)
+        except RuntimeError as exc:  # shutting down: no ack, the robot keeps its records
+            _answer(query, {"error": f"leader {self.node} is stopping ({exc})"}, error=True)
+            _drop(query)
+
+    def _store(self, query) -> None:
+        try:
+            self._store_and_ack(query)
+        finally:
+            _drop(query)
+
+    def _store_and_ack(self, query) -> None:
         try:
             records, _via = decode_batch(_payload(query))
             blobs = [_pack(r.to_dict()) for r in records]
@@ -318,6 +358,7 @@ class LeaderData:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=3)
+        self._pool.shutdown(wait=True)
         self.session = None
         self.relay.close()
 
