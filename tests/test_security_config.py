@@ -196,3 +196,11 @@ def test_certs_command(tmp_path, capsys):
     assert "not empty" in capsys.readouterr().err
     assert scmr(["certs", "--out", str(tmp_path / "d"), "--peers", "cloud", "--days", "0"]) == 1
     assert "--days must be at least 1, got 0" in capsys.readouterr().err
+
+
+def test_bench_tls_smoke():
+    from scmr_mesh.mesh.security import bench_link_latency
+
+    res = bench_link_latency(payload_bytes=1000, queries=5, warmup=1, kinds=("none", "tls+acl"))
+    assert [r["kind"] for r in res["runs"]] == ["none", "tls+acl"]
+    assert all(r["p50_ms"] > 0 for r in res["runs"])

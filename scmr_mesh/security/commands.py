@@ -41,6 +41,24 @@ def _certs(args: argparse.Namespace) -> int:
     return 0
 
 
+def _tls(args: argparse.Namespace) -> int:
+    from scmr_mesh.mesh.security import bench_link_latency
+
+    if args.queries < 1 or args.payload < 1:
+        from scmr_mesh.errors import InputError
+
+        raise InputError(f"--queries and --payload must be >= 1, got {args.queries} and {args.payload}")
+    res = bench_link_latency(payload_bytes=args.payload, queries=args.queries,
+                             progress=lambda m: print(m, file=sys.stderr, flush=True))
+    res["note"] = "two sessions in one process, loopback, shared memory off; shared, loaded 2-core machine"
+    for r in res["runs"]:
+        print(f"{r['kind']:>8}: p50 {r['p50_ms']:.3f} ms  p99 {r['p99_ms']:.3f} ms  mean {r['mean_ms']:.3f} ms")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(res, fh, indent=2)
+    return 0
+
+
 def _overload(args: argparse.Namespace) -> int:
     from scmr_mesh.security.overload import run_overload_cli
 
@@ -84,3 +102,17 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     )
     add_overload_arguments(b)
     b.set_defaults(func=_overload)
+
+    t = bench.add_parser(
+        "tls",
+        help="query round trip with no security, usrpwd, mutual TLS and TLS+ACL",
+        description=(
+            "Measure the cost of authentication: median and p99 round trip of a query carrying "
+            "--payload bytes between two zenoh sessions on loopback (shared memory off), with no "
+            "security, usrpwd, mutual TLS, and mutual TLS with the fleet ACL."
+        ),
+    )
+    t.add_argument("--payload", type=int, default=200_000, metavar="BYTES", help="query payload (default 200000)")
+    t.add_argument("--queries", type=int, default=300, metavar="N", help="timed queries per kind (default 300)")
+    t.add_argument("--json", metavar="FILE", help="write the results here")
+    t.set_defaults(func=_tls)
