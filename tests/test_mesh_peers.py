@@ -101,7 +101,7 @@ def test_normal_service_and_leader_crash_has_no_effect(fleet):
         assert [a["outcome"] for a in r["attempts"]] == ["ok"]
         assert (fleet.tmp / "r1" / "inbox" / f"{r['seq']}.mask.png").exists()
     assert list((fleet.tmp / "r1" / "outbox").iterdir()) == []
-    summary = json.loads(fleet.log("r1").strip().splitlines()[-1])
+    summary = [json.loads(x) for x in fleet.log("r1").splitlines() if x.startswith('{"robot"')][-1]
     assert summary["succeeded"] == 30 and summary["by_tier"]["cloud"] == 30
 
 
@@ -112,27 +112,29 @@ def test_cloud_sigkill_and_restart_every_request_answered(fleet):
     cloud = fleet.service("cloud", "c1", cp, process=SLOW, env=env)
     workers = json.loads((fleet.tmp / "c1.ready").read_text())["workers"]
     fleet.service("leader", "L1", lp, connect=[_ep(cp)])
-    robot = fleet.robot("r1", [_ep(cp), _ep(lp)], extra=["--count", "45", "--rate", "12", "--deadline-ms", "2000"])
+    robot = fleet.robot("r1", [_ep(cp), _ep(lp)], extra=["--rate", "12", "--deadline-ms", "2000"])
     wait_for(lambda: len(fleet.records("r1")) >= 8, what="8 records before the crash")
     os.kill(cloud.pid, signal.SIGKILL)  # the service process only: its workers must die with it
     cloud.wait(timeout=5)
     t_kill = time.time_ns()
     wait_for(lambda: not any(_pid_alive(p) for p in workers), timeout=5, what="cloud workers to exit")
-    wait_for(lambda: len(fleet.records("r1")) >= 20, what="records during the outage")
+    n_kill = len(fleet.records("r1"))
+    wait_for(lambda: len(fleet.records("r1")) >= n_kill + 8, what="records during the outage")
     (fleet.tmp / "c1.ready").unlink(missing_ok=True)
     fleet.service("cloud", "c1", cp, process=SLOW, env=env)
-    assert robot.wait(timeout=60) == 0, fleet.log("r1")
+    wait_for(lambda: [r["tier"] for r in fleet.records("r1")][-5:] == ["cloud"] * 5, timeout=30,
+             what="5 cloud answers after the restart")
+    assert stop_peer(robot) == 0, fleet.log("r1")
     recs = fleet.records("r1")
-    assert len(recs) == 45
     assert all(r["ok"] for r in recs), [r for r in recs if not r["ok"]]
     tiers = [r["tier"] for r in recs]
     assert set(tiers) <= {"cloud", "leader"}
     assert tiers[:5] == ["cloud"] * 5
     assert "leader" in tiers
-    assert tiers[-5:] == ["cloud"] * 5  # failback
     after = [r for r in recs if r["sent_unix_ns"] > t_kill + 50_000_000]
     first_cloud_again = next(i for i, r in enumerate(after) if r["tier"] == "cloud")
     assert all(r["tier"] == "leader" for r in after[:first_cloud_again])
+    assert all(r["tier"] == "cloud" for r in after[first_cloud_again:])  # failback sticks
     # no request after the crash waited for the deadline: failover is driven by liveliness
     assert all(a["outcome"] != "timeout" for r in recs for a in r["attempts"])
 

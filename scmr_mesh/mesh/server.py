@@ -159,6 +159,7 @@ class Service:
         self._load_pub = None
         self._stop = threading.Event()
         self._load_thread: threading.Thread | None = None
+        wire.warm()
         self.pool = WorkerPool(workers, process=process)
         self.worker_pids = self.pool.start()
         log.info("%s %s: %d workers ready %s", tier, node, workers, self.worker_pids)
