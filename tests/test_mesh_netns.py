@@ -17,74 +17,61 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 
 import pytest
 
 from conftest import free_port
+from scmr_mesh.errors import MeshError
+from scmr_mesh.mesh.netns import TwoSites, plan_two_sites, unavailable_reason
 from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
 
-pytestmark = pytest.mark.netns
-
-
-def _ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, timeout=10)
-
-
-def netns_plan(tag: str) -> tuple[list[str], list[list[str]], list[list[str]]]:
-    """Namespaces, set-up commands and tear-down commands (pure)."""
-    a, b = f"scmrm-{tag}-a", f"scmrm-{tag}-b"
-    va, vb = f"smA{tag}"[:15], f"smB{tag}"[:15]
-    up = [
-        ["netns", "add", a], ["netns", "add", b],
-        ["link", "add", va, "netns", a, "type", "veth", "peer", "name", vb, "netns", b],
-        ["-n", a, "addr", "add", "10.77.0.1/30", "dev", va],
-        ["-n", b, "addr", "add", "10.77.0.2/30", "dev", vb],
-        ["-n", a, "link", "set", "lo", "up"], ["-n", b, "link", "set", "lo", "up"],
-        ["-n", a, "link", "set", va, "up"], ["-n", b, "link", "set", vb, "up"],
-    ]
-    down = [["netns", "del", a], ["netns", "del", b]]
-    return [a, b], up, down
 
 
 def test_plan_has_no_default_route_and_cleans_up():
-    names, up, down = netns_plan("x1")
+    names, up, down = plan_two_sites("x1")
     assert all(n.startswith("scmrm-") for n in names)
     assert not any("route" in cmd for cmd in up)
     assert [c[-1] for c in down] == names
+    ran = []
+    sites = TwoSites("x1", executor=ran.append)
+    with sites as (a, b):
+        assert (a, b) == tuple(names)
+    assert ran == up + down  # torn down on exit
+
+
+def test_teardown_runs_when_setup_fails():
+    ran = []
+
+    def flaky(cmd):
+        ran.append(cmd)
+        if "veth" in cmd:
+            raise RuntimeError("no veth here")
+
+    with pytest.raises(RuntimeError):
+        with TwoSites("x2", executor=flaky):
+            pass
+    assert ran[-2:] == plan_two_sites("x2")[2]
 
 
 @pytest.fixture
 def two_sites():
-    if os.geteuid() != 0:
-        pytest.skip("needs root to create network namespaces")
-    if shutil.which("ip") is None:
-        pytest.skip("needs the `ip` command (iproute2)")
-    tag = str(os.getpid() % 100000)
-    names, up, down = netns_plan(tag)
+    reason = unavailable_reason()
+    if reason:
+        pytest.skip(reason)
+    sites = TwoSites()
     try:
-        try:
-            for cmd in up:
-                _ip(*cmd)
-        except subprocess.CalledProcessError as exc:
-            pytest.skip(f"cannot create network namespaces here: {exc.stderr.decode(errors='replace').strip()}")
-        yield names
+        with sites as names:
+            yield names
+    except MeshError as exc:
+        pytest.skip(f"cannot create network namespaces here: {exc}")
     finally:
-        for ns in names:
-            pids = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True).stdout.split()
-            for pid in pids:
-                try:
-                    os.kill(int(pid), signal.SIGKILL)
-                except (ProcessLookupError, ValueError):
-                    pass
-        for cmd in down:
-            subprocess.run(["ip", *cmd], capture_output=True)
         left = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
-        assert not any(n in left for n in names), left
+        assert not any(n in left for n in sites.names), left
 
 
+@pytest.mark.netns
 def test_robot_reaches_cloud_only_through_routers_and_fails_over(two_sites, tmp_path):
     ns_a, ns_b = two_sites
     pb, pb_lo, pa, pc, pl, pr = (free_port() for _ in range(6))

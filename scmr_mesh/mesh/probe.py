@@ -15,6 +15,9 @@ Probes
                both processes; counts liveliness DELETEs (should be 0).
 ``reconnect``  time from a server restart (same port) until the client sees its
                token again, with zenoh's default connect retry and scmr's.
+``routers``    (root) robot and cloud in two network namespaces, joined only
+               through zenoh routers: one router or one per site, ends in peer
+               or client mode; counts answered requests per set-up.
 ``latency``    request/reply round trip for payload sizes, first query and
                median/p99, SHM on and off, FIFO channel vs Python callback.
 
@@ -354,6 +357,63 @@ def probe_latency(args) -> int:
     return 0
 
 
+def probe_routers(args) -> int:
+    import tempfile
+    from pathlib import Path
+
+    from scmr_mesh.mesh import netns
+    from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+
+    reason = netns.unavailable_reason()
+    if reason:
+        print(f"routers probe: {reason}", file=sys.stderr)
+        return 1
+    for layout in ("one-router", "router-per-site"):
+        for mode in ("peer", "client"):
+            tmp = Path(tempfile.mkdtemp(prefix="scmr-probe-"))
+            procs = []
+            sites = netns.TwoSites()
+            try:
+                with sites as (ns_a, ns_b):
+                    def start(ns, name, argv):
+                        p = spawn_peer([*argv, "--ready-file", str(tmp / f"{name}.ready")], log_path=tmp / f"{name}.log",
+                                       prefix=sites.exec_prefix(ns))
+                        procs.append(p)
+                        wait_for(lambda: (tmp / f"{name}.ready").exists() or p.poll() is not None, timeout=60,
+                                 what=f"{name} ready")
+                        return p
+
+                    lo = "tcp/127.0.0.1:{}".format
+                    start(ns_b, "rb", ["router", "--listen", f"tcp/{netns.ADDR_B}:7449", "--listen", lo(7450)])
+                    if layout == "router-per-site":
+                        start(ns_a, "ra", ["router", "--listen", lo(7451), "--connect", f"tcp/{netns.ADDR_B}:7449"])
+                        robot_ep = lo(7451)
+                    else:
+                        robot_ep = f"tcp/{netns.ADDR_B}:7449"
+                    listen = lambda port: ["--listen", lo(port)] if mode == "peer" else []  # noqa: E731
+                    start(ns_b, "c1", ["cloud", "--node", "c1", "--zmode", mode, *listen(7460), "--connect", lo(7450),
+                                       "--workers", "1", "--process", STUB])
+                    t0 = time.monotonic()
+                    r = spawn_peer(["robot", "--id", "r1", "--zmode", mode, *listen(7461), "--connect", robot_ep,
+                                    "--synthetic", "stub", "--count", str(args.count), "--rate", "20",
+                                    "--no-local-fallback", "--wait-ms", "3000", "--out", str(tmp / "r1")],
+                                   log_path=tmp / "r1.log", prefix=sites.exec_prefix(ns_a))
+                    procs.append(r)
+                    r.wait(timeout=60)
+                    recs = read_records(tmp / "r1" / "records.jsonl")
+                    ok = sum(1 for x in recs if x["ok"])
+                    tor = sorted(x["tor_ms"] for x in recs if x["ok"])
+                    rec = {"probe": "routers", "layout": layout, "mode": mode, "requests": len(recs), "answered": ok,
+                           "tor_p50_ms": tor[len(tor) // 2] if tor else None,
+                           "run_s": round(time.monotonic() - t0, 1)}
+                    print(json.dumps(rec), flush=True)
+                    print(f"routers {layout:15s} {mode:6s}: {ok}/{len(recs)} answered", file=sys.stderr)
+            finally:
+                for p in procs:
+                    stop_peer(p, timeout=5)
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m scmr_mesh.mesh.probe", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -382,6 +442,9 @@ def main(argv=None) -> int:
     r.add_argument("--repeat", type=int, default=3)
     r.add_argument("--down", type=float, default=1.0, help="seconds the server stays down")
     r.set_defaults(func=probe_reconnect)
+    ro = sub.add_parser("routers", help="(root) cross-namespace routing set-ups")
+    ro.add_argument("--count", type=int, default=5)
+    ro.set_defaults(func=probe_routers)
     la = sub.add_parser("latency", help="query round trip")
     la.add_argument("--sizes", type=int, nargs="+", default=[1000, 40_000, 260_000])
     la.add_argument("--reply-bytes", type=int, default=1500)
