@@ -42,6 +42,7 @@ def cloud(tmp_path_factory):
                     "--ods", str(tmp / "ods.sqlite")],
                    log_path=tmp / "c.log")
     try:
+        p.ready_file = ready
         wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what="cloud ready")
         assert p.poll() is None, (tmp / "c.log").read_text()[-2000:]
         session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=500))
@@ -203,3 +204,25 @@ def test_oversized_payload(cloud):
 
 def test_deeply_nested_msgpack(cloud):
     _check_bad_then_good(cloud, b"\x91" * 200_000 + b"\x01", needles=("msgpack",))
+
+
+def test_service_survives_a_dead_worker(cloud):
+    """A worker killed (OOM killer, a crash in native code) must not end the service.
+
+    Runs last in this module: it kills the cloud's only worker process."""
+    import json
+    import os
+    import signal
+    import time
+
+    proc, q = cloud
+    worker = json.loads(proc.ready_file.read_text())["workers"][0]
+    os.kill(worker, signal.SIGKILL)
+    time.sleep(0.3)
+    outcomes = []
+    for seq in range(3):
+        kind, msg = _ask(q, wire.encode(_good(10_000 + seq)))
+        outcomes.append(kind if kind == "ok" else msg["code"])
+    assert proc.poll() is None
+    # at most the request caught in the crash fails (as "internal"); then it serves again
+    assert outcomes[-1] == "ok" and set(outcomes) <= {"ok", "internal"}, outcomes

@@ -184,6 +184,8 @@ class WorkerPool:
         warm(resolve(process))
         self.workers = int(workers)
         self.process = process
+        self.restarts = 0
+        self._respawn_lock = threading.Lock()
         self._executor = ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=mp.get_context("fork"),
@@ -208,8 +210,41 @@ class WorkerPool:
             raise MeshError(f"worker pool failed to start ({type(exc).__name__}: {exc})") from None
 
     def submit(self, image: bytes, *, encoding: str, shape, mode: str) -> Future:
-        """Queue one frame; the future yields the process function's dict."""
-        return self._executor.submit(_run, image, encoding, shape, mode)
+        """Queue one frame; the future yields the process function's dict.
+
+        A pool whose worker died (killed, out of memory, a crash in native code on a
+        hostile image) is broken for good in :mod:`concurrent.futures`: the request in
+        flight fails, and the next submit replaces the pool so the service keeps serving.
+        """
+        from concurrent.futures.process import BrokenProcessPool
+
+        try:
+            return self._executor.submit(_run, image, encoding, shape, mode)
+        except BrokenProcessPool:
+            self._respawn()
+            return self._executor.submit(_run, image, encoding, shape, mode)
+
+    def _respawn(self) -> None:
+        """Replace a broken pool.  New workers are *spawned* (not forked): zenoh's
+        threads exist by now and must not be forked."""
+        import multiprocessing as mp
+
+        with self._respawn_lock:
+            old = self._executor
+            if not getattr(old, "_broken", False):  # another thread already replaced it
+                return
+            self.restarts += 1
+            log.error("a worker process died; starting a new pool of %d (restart %d)", self.workers, self.restarts)
+            self._executor = ProcessPoolExecutor(
+                max_workers=self.workers,
+                mp_context=mp.get_context("spawn"),
+                initializer=_init_worker,
+                initargs=(self.process, os.getpid()),
+            )
+            try:
+                old.shutdown(wait=False, cancel_futures=True)
+            except Exception as exc:  # pragma: no cover
+                log.debug("broken pool shutdown: %s", exc)
 
     def shutdown(self) -> None:
         """Stop the workers (pending work is cancelled)."""
