@@ -64,6 +64,7 @@ the robot's request number) on per-request data.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -107,6 +108,12 @@ TIER_LEVEL: dict[str | None, int] = {"cloud": 2, "leader": 1, "local": 0, None: 
 ROBOT_ROOT = f"{keys.ROOT}/robot"
 FAULTS = f"{keys.ROOT}/faults"
 FLEET = f"{keys.ROOT}/fleet"
+
+#: Environment fallback for peers started by a runner that cannot pass flags
+#: (``scmr scenario run``): the sink URL, or a folder for one ``<peer>.rrd``
+#: each (peers in network namespaces cannot reach the host's loopback), and
+#: the shared recording id.
+ENV_URL, ENV_SAVE_DIR, ENV_RECORDING_ID = "SCMR_RERUN_URL", "SCMR_RERUN_SAVE_DIR", "SCMR_RERUN_RECORDING_ID"
 
 _URL_RE = re.compile(r"^(rerun|rerun\+http|rerun\+https)://[^/\s]+/proxy$")
 
@@ -383,9 +390,38 @@ class RerunOptions:
             return cls("connect", normalize_url(connect), rid)
         return None
 
+    @classmethod
+    def for_peer(cls, args: argparse.Namespace, name: str) -> RerunOptions | None:
+        """A peer's options: its flags, else ``$SCMR_RERUN_URL`` / ``$SCMR_RERUN_SAVE_DIR``.
+
+        With ``SCMR_RERUN_SAVE_DIR=DIR`` the peer saves ``DIR/<name>.rrd``.
+        ``None`` when neither flags nor environment ask for rerun.
+        """
+        opts = cls.from_args(args)
+        if opts is not None:
+            return opts
+        rid = os.environ.get(ENV_RECORDING_ID) or None
+        if os.environ.get(ENV_URL):
+            return cls("connect", normalize_url(os.environ[ENV_URL]), rid)
+        if os.environ.get(ENV_SAVE_DIR):
+            # one file per process: a restarted peer must not overwrite its first life
+            out = Path(os.environ[ENV_SAVE_DIR]) / f"{keys.check_name(name)}-{os.getpid()}.rrd"
+            return cls("save", str(out), rid)
+        return None
+
 
 # --------------------------------------------------------------------------
 # sinks (fleet process)
+
+
+def entity_name(text: str) -> str:
+    """``text`` as one entity-path/key chunk: runs of other characters become ``_``.
+
+    >>> entity_name("cloud | leader,robot1")
+    'cloud_leader_robot1'
+    """
+    name = re.sub(r"[^A-Za-z0-9_.\-]+", "_", text).strip("_")[:64]
+    return name or "_"
 
 
 def _free_port() -> int:
@@ -496,8 +532,8 @@ class _Sink:
             self.web_url = f"http://127.0.0.1:{web_port}/?url={self.url}"
             self.hint = f"rerun web viewer: {self.web_url}"
 
-    def close(self) -> Path | None:
-        """Stop the sink; for ``--save`` finalise the file and return its path."""
+    def close(self, *, extra: Sequence[Path] = ()) -> Path | None:
+        """Stop the sink; for ``--save`` finalise the file (merging ``extra`` in) and return its path."""
         mode = self.options.mode
         if self.proc is None or mode == "spawn":
             return None  # a spawned viewer stays open for the user
@@ -507,13 +543,22 @@ class _Sink:
         raw, out = self.raw_path, self.out_path
         if raw is None or not raw.exists():
             raise ViewerError(f"the rerun recorder wrote nothing to {raw}; no recording saved")
-        res = run_rerun_cli(["rrd", "merge", str(raw), "-o", str(out)])
+        res = run_rerun_cli(["rrd", "merge", str(raw), *map(str, extra), "-o", str(out)])
         if res.returncode != 0 or not out.exists():
             raw.replace(out)  # unfinalised but loadable
             log.warning("rerun rrd merge failed (%s); kept the raw stream as %s", res.stderr.strip()[-200:], out)
         else:
             raw.unlink(missing_ok=True)
         return out
+
+
+def _merge(paths: Sequence[Path], out: Path) -> Path | None:
+    """``rerun rrd merge PATHS -o OUT``; ``None`` (and a warning) when it fails."""
+    res = run_rerun_cli(["rrd", "merge", *map(str, paths), "-o", str(out)])
+    if res.returncode != 0 or not out.exists():
+        log.warning("rerun rrd merge of %d files failed: %s", len(paths), res.stderr.strip()[-200:])
+        return None
+    return out
 
 
 def _drain(stream) -> None:
@@ -654,7 +699,7 @@ class _Viz:
         ends.
         """
         s, rr = self._stream, self._stream.rr
-        target = keys.check_name(str(fault.get("target", "fleet")), what="fault target")
+        target = entity_name(str(fault.get("target") or "fleet"))
         kind = str(fault.get("kind", "fault"))
         entity = f"{FAULTS}/{target}"
         ident = (target, fault.get("start_unix_ns"))
@@ -663,7 +708,10 @@ class _Viz:
             self._step_series(entity, f"fault: {kind} {target}")
             if "start" not in done:
                 done.add("start")
-                s.at(fault.get("start_unix_ns"))
+                start = time.time_ns() if fault.get("start_unix_ns") is None else int(fault["start_unix_ns"])
+                s.at(start - 1_000_000)  # 0 just before: the step up shows
+                s.rec.log(entity, rr.Scalars(0.0))
+                s.at(start)
                 s.rec.log(entity, rr.Scalars(1.0))
                 s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} starts", level="WARN"))
             if fault.get("end_unix_ns") is not None and "end" not in done:
@@ -691,15 +739,18 @@ class _Viz:
         faults : sequence of mapping
             All faults so far (see :meth:`log_fault`; repeated calls log only news).
         """
-        for (role, node), up in (alive or {}).items():
-            if self._last_alive.get((role, node)) != bool(up):
-                self._last_alive[(role, node)] = bool(up)
-                self.log_alive(role, node, bool(up), t_unix_ns=t_unix_ns)
-        for rec in records:
-            if hasattr(self, "log_record"):
-                self.log_record(rec)
-        for fault in faults:
-            self.log_fault(fault)
+        try:
+            for (role, node), up in (alive or {}).items():
+                if self._last_alive.get((role, node)) != bool(up):
+                    self._last_alive[(role, node)] = bool(up)
+                    self.log_alive(role, node, bool(up), t_unix_ns=t_unix_ns)
+            for rec in records:
+                if hasattr(self, "log_record"):
+                    self.log_record(rec)
+            for fault in faults:
+                self.log_fault(fault)
+        except Exception as exc:  # the viewer must never stop a run
+            log.warning("rerun: could not log fleet state: %s: %s", type(exc).__name__, exc)
 
     def log_text(self, entity: str, text: str, *, level: str = "INFO", t_unix_ns: int | None = None) -> None:
         """Log one line of text at ``entity``."""
@@ -865,6 +916,8 @@ class FleetViz(_Viz):
         self._stream.rec.log(f"{FLEET}/ror", rr.SeriesLines(names="fleet RoR"), static=True)
         self.send_blueprint(self.robots)
         self.saved_path: Path | None = None
+        self.peers_path: Path | None = None
+        self._extra_files: list[Path] = []
 
     @property
     def url(self) -> str:
@@ -880,6 +933,34 @@ class FleetViz(_Viz):
         """Arguments to append to a peer's command line (see :func:`add_rerun_peer_args`)."""
         return ["--rerun-url", self.url, "--rerun-recording-id", self.recording_id]
 
+    def child_env(self, *, save_dir: str | os.PathLike | None = None) -> dict[str, str]:
+        """Environment for peers that take no rerun flags (see :meth:`RerunOptions.for_peer`).
+
+        Parameters
+        ----------
+        save_dir : path-like, optional
+            Make each peer save ``save_dir/<peer>.rrd`` instead of connecting to
+            the sink (for peers in network namespaces, which cannot reach the
+            host's loopback); pass the files to :meth:`add_files` afterwards.
+        """
+        env = {ENV_RECORDING_ID: self.recording_id}
+        if save_dir is not None:
+            Path(save_dir).mkdir(parents=True, exist_ok=True)
+            env[ENV_SAVE_DIR] = str(save_dir)
+        else:
+            env[ENV_URL] = self.url
+        return env
+
+    def add_files(self, paths: Sequence[str | os.PathLike]) -> None:
+        """Recordings written by peers on their own (``child_env(save_dir=...)``).
+
+        With ``--save`` they are merged into the saved file at :meth:`close`;
+        with a live viewer they are merged into ``<first file's folder>/peers.rrd``
+        (open it with ``scmr view``): they cannot be replayed into the live sink
+        in order.
+        """
+        self._extra_files.extend(Path(p) for p in paths if Path(p).is_file())
+
     def send_blueprint(self, robots: Sequence[str]) -> None:
         """Lay out the viewer: robot overlays in a grid, ToR and tier plots below."""
         import rerun.blueprint as rrb
@@ -893,6 +974,7 @@ class FleetViz(_Viz):
                 return [f"{keys.RESULTS}/{r}/{leaf}" for r in robots]
             return [f"{keys.RESULTS}/**"]
 
+        unit = rrb.ScalarAxis(range=(-0.1, 1.1))
         plots = rrb.Horizontal(
             rrb.TimeSeriesView(origin=keys.RESULTS, contents=per_robot("tor_ms"), name="ToR (ms)"),
             rrb.TimeSeriesView(
@@ -901,16 +983,20 @@ class FleetViz(_Viz):
                 name="tier (2 cloud, 1 leader, 0 local, -1 failed)",
                 axis_y=rrb.ScalarAxis(range=(-1.3, 2.3)),
             ),
-            rrb.TimeSeriesView(
-                origin=keys.ROOT,
-                contents=[f"{keys.ALIVE}/**", f"{FAULTS}/**", f"{FLEET}/ror"],
-                name="alive / faults / fleet RoR",
-                axis_y=rrb.ScalarAxis(range=(-0.1, 1.1)),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=keys.ALIVE, name="alive (1 up, 0 gone)", axis_y=unit),
+                rrb.TimeSeriesView(origin=FAULTS, name="faults (1 while on)", axis_y=unit),
             ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(
+                    origin=keys.ROOT, contents=[f"{FLEET}/ror", *per_robot("ror")], name="RoR so far", axis_y=unit
+                ),
+                rrb.TextLogView(origin=keys.ROOT, name="events"),
+            ),
+            column_shares=[3, 3, 2, 2],
         )
-        logs = rrb.TextLogView(origin=keys.ROOT, name="events")
         bp = rrb.Blueprint(
-            rrb.Vertical(rrb.Grid(*overlays), rrb.Horizontal(plots, logs, column_shares=[3, 1]), row_shares=[3, 2]),
+            rrb.Vertical(rrb.Grid(*overlays), plots, row_shares=[3, 2]),
             rrb.TimePanel(timeline="wall_time"),
             collapse_panels=False,
         )
@@ -933,7 +1019,9 @@ class FleetViz(_Viz):
         try:
             self._stream.close()
         finally:
-            self.saved_path = self._sink.close()
+            self.saved_path = self._sink.close(extra=self._extra_files)
+        if self._sink.options.mode != "save" and self._extra_files:
+            self.peers_path = _merge(self._extra_files, self._extra_files[0].parent / "peers.rrd")
         return self.saved_path
 
     def __enter__(self) -> FleetViz:
@@ -941,6 +1029,44 @@ class FleetViz(_Viz):
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@contextlib.contextmanager
+def peers_env_session(
+    options: RerunOptions | None, *, robots: Sequence[str] = (), save_dir: str | os.PathLike | None = None
+):
+    """A :class:`FleetViz` whose sink reaches peers through the environment.
+
+    For runners that start peers without rerun flags (``scmr scenario run``):
+    sets ``$SCMR_RERUN_*`` (:meth:`FleetViz.child_env`) in this process for the
+    duration, so every child inherits it, then restores it, adds the peers'
+    own files (``save_dir``) and closes.  Yields ``None`` when ``options`` is
+    ``None`` (then nothing happens).
+
+    Parameters
+    ----------
+    save_dir : path-like, optional
+        Peers save ``save_dir/<peer>-<pid>.rrd`` instead of connecting (use it
+        when they run in network namespaces).
+    """
+    if options is None:
+        yield None
+        return
+    fv = FleetViz(options, robots=robots)
+    env = fv.child_env(save_dir=save_dir)
+    before = {k: os.environ.get(k) for k in (ENV_URL, ENV_SAVE_DIR, ENV_RECORDING_ID)}
+    os.environ.update(env)
+    try:
+        yield fv
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+        if save_dir is not None:
+            fv.add_files(sorted(Path(save_dir).glob("*.rrd")))
+        fv.close()
 
 
 def robot_viz(options: RerunOptions | None, robot: str, **kw: Any) -> RobotViz | None:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -142,3 +144,35 @@ def test_mask_classes_partition(bits):
     c = viz._mask_to_classes(m)
     assert set(np.unique(c)) <= {1, 2}
     assert int((c == 1).sum()) == int(m.sum())
+
+
+# -- environment fallback for runners that pass no flags (scmr scenario run) ---
+
+
+def test_for_peer_prefers_flags_then_env(monkeypatch, tmp_path):
+    for k in (viz.ENV_URL, viz.ENV_SAVE_DIR, viz.ENV_RECORDING_ID):
+        monkeypatch.delenv(k, raising=False)
+    bare = peer_parser().parse_args([])
+    assert viz.RerunOptions.for_peer(bare, "r1") is None
+    monkeypatch.setenv(viz.ENV_RECORDING_ID, "rid")
+    monkeypatch.setenv(viz.ENV_SAVE_DIR, str(tmp_path))
+    opts = viz.RerunOptions.for_peer(bare, "r1")
+    assert opts.mode == "save" and opts.recording_id == "rid"
+    assert Path(opts.target).parent == tmp_path and Path(opts.target).name.startswith("r1-")
+    monkeypatch.setenv(viz.ENV_URL, "9001")
+    assert viz.RerunOptions.for_peer(bare, "r1") == viz.RerunOptions("connect", "rerun+http://127.0.0.1:9001/proxy", "rid")
+    flagged = peer_parser().parse_args(["--rerun-save", "x.rrd"])
+    assert viz.RerunOptions.for_peer(flagged, "r1") == viz.RerunOptions("save", "x.rrd", None)
+
+
+def test_peers_env_session_without_options_changes_nothing(monkeypatch):
+    monkeypatch.delenv(viz.ENV_URL, raising=False)
+    with viz.peers_env_session(None, robots=["r0"]) as fv:
+        assert fv is None
+        assert viz.ENV_URL not in os.environ
+
+
+@pytest.mark.parametrize(("raw", "name"), [("cloud0", "cloud0"), ("cloud | leader,r1", "cloud_leader_r1"), ("//", "_")])
+def test_entity_name(raw, name):
+    assert viz.entity_name(raw) == name
+    viz.keys.check_name(viz.entity_name(raw))

@@ -126,7 +126,7 @@ def test_expected_entities_and_frames_per_robot(fleet_recording):
         assert rows[f"/scmr/telemetry/{r}/energy_j"]["Scalars:scalars"] == N
     assert rows["/scmr/alive/cloud/cloud0"]["Scalars:scalars"] == 3
     assert rows["/scmr/alive/leader/leader0"]["Scalars:scalars"] == 1
-    assert rows["/scmr/faults/cloud0"]["Scalars:scalars"] == 2  # start, end
+    assert rows["/scmr/faults/cloud0"]["Scalars:scalars"] == 3  # 0 just before, 1 at start, 0 at end
     assert rows["/scmr/faults/log"]["TextLog:text"] == 2
     assert rows["/scmr/fleet/ror"]["Scalars:scalars"] == 2 * N
 
@@ -192,3 +192,30 @@ def test_view_without_display_says_what_to_do(fleet_recording, capsys, monkeypat
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     assert cli.main(["view", str(path)]) == 1
     assert "--web" in capsys.readouterr().err
+
+
+def test_peers_in_isolated_namespaces_save_files_that_are_merged(isolated_env):
+    """The scenario path: peers get only the environment, save their own file, merged at close."""
+    out = isolated_env / "scenario.rrd"
+    save_dir = isolated_env / "peer-files"
+    code = (
+        "import argparse, numpy as np\n"
+        "from scmr_mesh import viz\n"
+        "p = argparse.ArgumentParser(); viz.add_rerun_peer_args(p)\n"
+        "rv = viz.robot_viz(viz.RerunOptions.for_peer(p.parse_args([]), 'r7'), 'r7')\n"
+        "for i in range(3):\n"
+        "    rv.observe({'seq': i, 'ok': True, 'tier': 'leader', 'tor_ms': 1.0},"
+        " np.zeros((8, 8, 3), np.uint8), np.ones((8, 8), bool))\n"
+        "rv.close()\n"
+    )
+    with viz.peers_env_session(viz.RerunOptions("save", str(out)), robots=["r7"], save_dir=save_dir) as fv:
+        assert os.environ[viz.ENV_SAVE_DIR] == str(save_dir)
+        subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+        fv.update(faults=[{"kind": "partition", "target": "cloud | r7", "start_unix_ns": time.time_ns()}])
+    assert viz.ENV_SAVE_DIR not in os.environ
+    assert len(list(save_dir.glob("r7-*.rrd"))) == 1
+    rows = viz.rrd_rows(out)
+    assert rows["/scmr/robot/r7/camera/drivable"]["SegmentationImage:buffer"] == 3
+    assert "/scmr/faults/cloud_r7" in rows
+    text = viz.run_rerun_cli(["rrd", "print", str(out)]).stdout
+    assert set(re.findall(r'Recording,\s*"([^"]+)",\s*"([^"]+)"', text)) == {(viz.APP_ID, fv.recording_id)}

@@ -279,10 +279,10 @@ def _robot_body(args, session, stop: threading.Event) -> int:
 
 
 def _robot_viz(args, robot):
-    """Log overlays, QoS and battery to rerun when given --rerun-url/--rerun-save (scmr_mesh.viz)."""
+    """Log overlays, QoS and battery to rerun with --rerun-url/--rerun-save (or $SCMR_RERUN_*; scmr_mesh.viz)."""
     from scmr_mesh.viz import RerunOptions, robot_viz
 
-    rv = robot_viz(RerunOptions.from_args(args), robot.id)
+    rv = robot_viz(RerunOptions.for_peer(args, robot.id), robot.id)
     if rv is not None:
         robot.add_observer(rv.observe)
         publish = robot.publish_telemetry

@@ -176,8 +176,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
     backend = _auto_backend(args.backend)
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     out = Path(args.out) if args.out else Path("runs") / f"scenario-{sc.name}-{stamp}"
-    res = run_scenario(sc, backend=backend, out_dir=out, data_dir=args.data,
-                       progress=lambda m: _err(f"scenario: {m}"), ready_timeout=args.ready_timeout)
+    from scmr_mesh.viz import RerunOptions, peers_env_session
+
+    # rerun (--save/--spawn/--serve/--connect): robots in network namespaces cannot reach the
+    # host's loopback, so there each saves its own file, merged in at the end (docs/VIEWER.md)
+    rerun_dir = out / "rerun" if backend == "netns" else None
+    with peers_env_session(RerunOptions.from_args(args), robots=[r.id for r in sc.robots],
+                           save_dir=rerun_dir) as fviz:
+        res = run_scenario(sc, backend=backend, out_dir=out, data_dir=args.data,
+                           progress=lambda m: _err(f"scenario: {m}"), ready_timeout=args.ready_timeout)
+        if fviz is not None:
+            fviz.update(records=sorted(res.records, key=lambda r: r.get("received_unix_ns") or 0),
+                        faults=res.metric_faults())
+    if fviz is not None and fviz.saved_path is not None:
+        _err(f"scenario: rerun recording {fviz.saved_path} (open it with `scmr view {fviz.saved_path}`)")
+    if fviz is not None and fviz.peers_path is not None:
+        _err(f"scenario: the robots ran in network namespaces and could not stream live; their "
+             f"recording is {fviz.peers_path} (open it with `scmr view {fviz.peers_path}`)")
     thesis = Path(args.thesis_csv) if args.thesis_csv else None
     if thesis is None:
         from scmr_mesh.scenario.runner import default_data_dir
@@ -232,6 +247,9 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     run.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
                      help="seconds each peer may take to become ready (default 120)")
     _override_args(run)
+    from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only with a flag
+
+    add_rerun_args(run)
     run.set_defaults(func=_cmd_run)
 
     bs = bench.add_parser("scenario", help="failover/failback gaps of a scenario over N runs (median, p99)",
