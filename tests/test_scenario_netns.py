@@ -158,3 +158,88 @@ def test_real_cloud_link_drop_with_netns(tmp_path):
     assert all(r["received_unix_ns"] >= t_cut for r in rep["requests"] if r["tier"] == "leader")
     data = json.loads(paths["json"].read_text())
     assert data["seed"] == 11 and {"summary", "faults", "expectations", "requests"} <= set(data)
+
+
+def _run_cli(tmp_path):
+    """Start `scmr scenario run` (netns, stub pipeline) and wait until the robots run; return (proc, run id)."""
+    import re
+    import time
+
+    sc = tmp_path / "long.toml"
+    sc.write_text("""
+name = "interrupted"
+seed = 1
+duration_s = 60
+lease_ms = 200
+process = "scmr_mesh.mesh.testing:stub_process"
+[fleet]
+robots = [ { id = "robot1", synthetic = "stub", rate_hz = 4 } ]
+""")
+    p = subprocess.Popen([sys.executable, "-m", "scmr_mesh", "scenario", "run", str(sc), "--backend", "netns",
+                          "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True, start_new_session=True)
+    rid = None
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        line = p.stderr.readline()
+        if not line:
+            break
+        m = re.search(r"namespaces scmrs-([0-9a-f]+)-\*", line)
+        if m:
+            rid = m.group(1)
+        if "robots ready" in line:
+            return p, rid
+    p.kill()
+    pytest.fail(f"scenario run did not get going (run id {rid})")
+
+
+def _gone(prefix, timeout=15.0):
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if not list_namespaces(prefix):
+            return True
+        time.sleep(0.2)
+    return False
+
+
+def test_ctrl_c_cleans_up_namespaces_and_peers(tmp_path):
+    import signal
+
+    p, rid = _run_cli(tmp_path)
+    try:
+        assert rid and list_namespaces(f"scmrs-{rid}-")
+        pids = run_cmd(("ip", "netns", "pids", f"scmrs-{rid}-cloud")).split()
+        assert pids  # the cloud runs inside its namespace
+        p.send_signal(signal.SIGINT)
+        assert p.wait(timeout=60) == 130
+        assert _gone(f"scmrs-{rid}-")
+        for pid in pids:
+            assert not os.path.exists(f"/proc/{pid}") or open(f"/proc/{pid}/stat").read().split()[2] == "Z"
+    finally:
+        if p.poll() is None:
+            p.kill()
+        cleanup_stale(f"scmrs-{rid}-") if rid else None
+
+
+def test_sigkilled_runner_leaves_nothing_running_and_cleanup_removes_its_namespaces(tmp_path):
+    import signal
+    import time
+
+    p, rid = _run_cli(tmp_path)
+    try:
+        pids = run_cmd(("ip", "netns", "pids", f"scmrs-{rid}-cloud")).split()
+        os.killpg(p.pid, signal.SIGKILL)  # no finally, no handler: only PDEATHSIG and cleanup remain
+        p.wait(timeout=10)
+        end = time.monotonic() + 15
+        while time.monotonic() < end and any(os.path.exists(f"/proc/{x}") for x in pids):
+            time.sleep(0.2)
+        assert not any(os.path.exists(f"/proc/{x}") for x in pids)  # peers died with the runner
+        assert list_namespaces(f"scmrs-{rid}-")  # namespaces are left behind ...
+        assert len(cleanup_stale(f"scmrs-{rid}-")) == 4  # ... until `scmr scenario cleanup` (br, cloud, leader, robot1)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        cleanup_stale(f"scmrs-{rid}-") if rid else None
+    assert not list_namespaces(f"scmrs-{rid}-")

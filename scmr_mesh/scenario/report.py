@@ -181,14 +181,25 @@ def build_report(
 
     summ = summarize(records, faults, robots=len(scenario.robots))
     faults_out = []
+    robot_ids = {r.id for r in scenario.robots}
     for f in summ["faults"]:
+        # requests of the robots the fault touches, sent while it was active
+        who = set(f.get("robots") or []) or (set(f.get("link") or ()) & robot_ids) or robot_ids
+        a = int(f["start_unix_ns"])
+        b = int(f["end_unix_ns"]) if f.get("end_unix_ns") is not None else None
+        window = [r for r in records if str(r.get("robot")) in who and r.get("sent_unix_ns") is not None
+                  and int(r["sent_unix_ns"]) >= a and (b is None or int(r["sent_unix_ns"]) < b)]
+        from scmr_mesh.metrics import tier_counts, tor_summary
+
+        during = {"robots": sorted(who), "requests": len(window), "tor_ms": tor_summary(window),
+                  "by_tier": tier_counts(window)}
         faults_out.append({
             "kind": f.get("kind"), "label": f.get("label"), "at_s": f.get("at_s"), "for_s": f.get("for_s"),
             "tier": f.get("tier"), "robots": f.get("robots"),
             "started_at_s": (int(f["start_unix_ns"]) - t0_unix_ns) / 1e9,
             "ended_at_s": None if f.get("end_unix_ns") is None else (int(f["end_unix_ns"]) - t0_unix_ns) / 1e9,
             "failover_gap_ms": f.get("failover_gap_ms"), "failover_by_robot": f.get("failover_by_robot"),
-            "failback_gap_ms": f.get("failback_gap_ms"), "notes": f.get("notes", []),
+            "failback_gap_ms": f.get("failback_gap_ms"), "notes": f.get("notes", []), "during": during,
         })
     expectations = check_expectations(scenario, summ)
     requests = []
@@ -233,6 +244,13 @@ def _fmt(v: Any, nd: int = 1) -> str:
     return str(v)
 
 
+def _during(d: Mapping[str, Any] | None) -> str:
+    if not d:
+        return "-"
+    tiers = ", ".join(f"{k} {v}" for k, v in d["by_tier"].items() if v)
+    return f"{d['requests']} of {','.join(d['robots'])}, {_fmt(d['tor_ms'].get('p50'))}, {tiers or '-'}"
+
+
 def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     """The report as Markdown."""
     s = report["summary"]
@@ -261,13 +279,13 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
         L.append(f"| {rid} | {g['requests']} | {_fmt(g['ror'], 3)} | {_fmt(g['tor_ms'].get('p50'))} | "
                  f"{_fmt(g['tor_ms'].get('p99'))} | {bt.get('cloud', 0)} | {bt.get('leader', 0)} | "
                  f"{bt.get('local', 0)} | {bt.get('failed', 0)} |")
-    L += ["", "## Faults", "", "| fault | applied at s | lifted at s | tier lost | failover gap ms | failback gap ms |",
-          "|---|---|---|---|---|---|"]
+    L += ["", "## Faults", "", "| fault | applied at s | lifted at s | tier lost | failover gap ms | failback gap ms "
+          "| during: requests, ToR p50 ms, tiers |", "|---|---|---|---|---|---|---|"]
     for f in report["faults"]:
         L.append(f"| {str(f['label']).replace('|', chr(92) + '|')} | {_fmt(f['started_at_s'], 3)} | {_fmt(f['ended_at_s'], 3)} | {_fmt(f['tier'])} | "
-                 f"{_fmt(f['failover_gap_ms'])} | {_fmt(f['failback_gap_ms'])} |")
+                 f"{_fmt(f['failover_gap_ms'])} | {_fmt(f['failback_gap_ms'])} | {_during(f.get('during'))} |")
     if not report["faults"]:
-        L.append("| (none) | | | | | |")
+        L.append("| (none) | | | | | | |")
     L += ["", "Failover gap per robot: from the later of the fault and the sending of the robot's first request the "
           "lost tier failed to answer, to that robot's first fallback answer (largest per fault). Failback: from the "
           "link's return / the restart to the first answer of the restored tier (scmr_mesh.metrics).", ""]

@@ -96,6 +96,7 @@ class RunResult:
                       " | ".join(",".join(g) for g in af.fault.groups or ())))
             out.append({
                 "kind": af.fault.kind, "target": target, "label": af.fault.label, "tier": tier,
+                "link": list(af.fault.link) if af.fault.link else None,
                 "robots": robots, "at_s": af.fault.at_s, "for_s": af.fault.for_s,
                 "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
                 else self.t0_unix_ns + int(af.fault.at_s * 1e9),
@@ -278,7 +279,9 @@ def run_scenario(
     names: dict[str, str] = {}
     with _signals_to_interrupt():
         try:
-            say(f"[{backend}] setting up {len(scenario.peers)} peers, {len(scenario.links)} links")
+            rid = getattr(be, "run_id", "")
+            say(f"[{backend}] setting up {len(scenario.peers)} peers, {len(scenario.links)} links"
+                + (f" (namespaces scmrs-{rid}-*)" if rid else ""))
             be.setup()
             servers = [p.name for p in scenario.peers if p.role != "robot"]
             for p in servers:

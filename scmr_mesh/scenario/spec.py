@@ -318,7 +318,7 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
 
     duration = float(data["duration_s"])
     faults = []
-    crashed: dict[str, tuple[float, float]] = {}
+    crashed: dict[str, dict[int, tuple[float, float]]] = {}
     for i, f in enumerate(data.get("faults") or []):
         where = f"faults[{i}]"
         if f["at_s"] >= duration:
@@ -343,11 +343,11 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         if "peer" in f:
             check_peer(f"{where}.peer", f["peer"])
             end = f["at_s"] + f["for_s"] if "for_s" in f else float("inf")
-            prev = crashed.get(f["peer"])
-            if prev and prev[0] < end and f["at_s"] < prev[1]:
-                raise _err(source, where, f"peer {f['peer']!r} is crashed twice at once",
-                           "let the first crash end (for_s) before the next one starts")
-            crashed[f["peer"]] = (f["at_s"], end)
+            for other, (a, b) in crashed.get(f["peer"], {}).items():
+                if a < end and f["at_s"] < b or a == f["at_s"]:
+                    raise _err(source, where, f"peer {f['peer']!r} is crashed twice at once (see faults[{other}])",
+                               "let the first crash end (for_s) before the next one starts")
+            crashed.setdefault(f["peer"], {})[i] = (f["at_s"], end)
         faults.append(Fault(kind=f["kind"], at_s=float(f["at_s"]),
                             for_s=float(f["for_s"]) if "for_s" in f else None,
                             link=link, groups=groups, peer=f.get("peer"), rate_kbit=f.get("rate_kbit"),
