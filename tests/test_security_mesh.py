@@ -274,3 +274,36 @@ def test_usrpwd_keeps_out_peers_without_password(credentials, tmp_path):
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "agent":
     sys.exit(agent(sys.argv[2:]))
+
+
+def test_real_peers_with_security_profile(credentials, tmp_path, repo_root):
+    """`scmr cloud` / `scmr robot --security peers/secure/mtls.toml`: served; without it: not."""
+    from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+
+    creds, _ = credentials
+    profile = str(repo_root / "peers" / "secure" / "mtls.toml")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    env = {"SCMR_CREDENTIALS": str(creds)}
+    peers = []
+    try:
+        cloud = spawn_peer(["cloud", "--node", "cloud", "--listen", ep, "--workers", "1", "--process", STUB,
+                            "--security", profile, "--ready-file", str(tmp_path / "c.ready"),
+                            "--ods", str(tmp_path / "ods.sqlite")], log_path=tmp_path / "c.log", env=env)
+        peers.append(cloud)
+        wait_for(lambda: (tmp_path / "c.ready").exists() or cloud.poll() is not None, timeout=60, what="cloud")
+        assert cloud.poll() is None, (tmp_path / "c.log").read_text()[-1500:]
+        common = ["--connect", ep, "--synthetic", "stub", "--count", "3", "--rate", "10",
+                  "--no-local-fallback", "--quiet", "--wait-ms", "1500"]
+        good = spawn_peer(["robot", "--id", "robot1", "--security", profile, "--out", str(tmp_path / "r1"),
+                           *common], log_path=tmp_path / "r1.log", env=env)
+        bad = spawn_peer(["robot", "--id", "robot2", "--out", str(tmp_path / "r2"), *common],
+                         log_path=tmp_path / "r2.log", env=env)
+        peers += [good, bad]
+        wait_for(lambda: good.poll() is not None and bad.poll() is not None, timeout=40, what="robots")
+    finally:
+        for p in reversed(peers):
+            stop_peer(p, timeout=5)
+    ok1 = [r["ok"] for r in read_records(tmp_path / "r1" / "records.jsonl")]
+    ok2 = [r["ok"] for r in read_records(tmp_path / "r2" / "records.jsonl")]
+    assert ok1 == [True, True, True], (tmp_path / "r1.log").read_text()[-1500:]
+    assert ok2 and not any(ok2)
