@@ -46,6 +46,12 @@ _EXPORTS = {
 
 __all__ = sorted(_EXPORTS)
 
+# The function ``srm`` lives in the module ``srm``: import that (light) module now and
+# bind the name to the function, so no later submodule import can shadow it.
+from scmr_mesh.imaging import srm as _srm_module  # noqa: E402
+
+srm = _srm_module.srm
+
 
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)

@@ -16,14 +16,12 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def _find(parent, i):
-    root = i
-    while parent[root] != root:
-        root = parent[root]
-    while parent[i] != root:  # path compression
-        nxt = parent[i]
-        parent[i] = root
-        i = nxt
-    return root
+    # path halving: every visited node skips to its grandparent (one pass)
+    while parent[i] != i:
+        gp = parent[parent[i]]
+        parent[i] = gp
+        i = gp
+    return i
 
 
 @njit(cache=True, nogil=True)
@@ -130,6 +128,8 @@ def srm_kernel(img, q, min_size):
     # small-region rule: a second pass over the same pair order merges any
     # region smaller than min_size pixels into its neighbour
     if min_size > 1:
+        for p in range(n):  # flatten every path so the finds below are one step
+            parent[p] = _find(parent, p)
         for j in range(npairs):
             code = order[j]
             p = code >> 1

@@ -70,7 +70,9 @@ def bench_pipeline(
     dict
         ``{"frames", "mode", "core", "sources", "median_ms": {stage: ms, ...,
         "total": ms}, "p99_ms": {...}}``; stages include ``decode`` and
-        ``resize``, which are not part of ``total``.
+        ``resize``, which are not part of ``total``.  ``cpu_total_median_ms`` is
+    the thread CPU time of the same calls (robust to a busy machine) and
+    ``load_average`` the 1/5/15-minute load when the run ended.
     """
     import cv2
     import numba
@@ -92,6 +94,7 @@ def bench_pipeline(
         segment_drivable(f, mode=mode)
 
     samples: dict[str, list[float]] = {}
+    cpu: list[float] = []
     for i in range(frames):
         j = i % len(sources)
         t0 = time.perf_counter()
@@ -99,7 +102,9 @@ def bench_pipeline(
         t1 = time.perf_counter()
         resize_frame(rgb)
         t2 = time.perf_counter()
+        c0 = time.thread_time()
         res = segment_drivable(ready[j], mode=mode)
+        cpu.append((time.thread_time() - c0) * 1000)
         samples.setdefault("decode", []).append((t1 - t0) * 1000)
         samples.setdefault("resize", []).append((t2 - t1) * 1000)
         for k, v in res.timings_ms.items():
@@ -117,4 +122,16 @@ def bench_pipeline(
         "sources": {"n": len(sources), "from": str(images) if images else "synthetic 640x480 PNG", "first_size": [w, h]},
         "median_ms": median,
         "p99_ms": p99,
+        # CPU time of the whole segment_drivable call (this thread only): much less
+        # sensitive than wall time to other processes competing for the core
+        "cpu_total_median_ms": round(float(np.median(cpu)), 4),
+        "cpu_total_p99_ms": round(float(np.percentile(cpu, 99)), 4),
+        "load_average": _loadavg(),
     }
+
+
+def _loadavg() -> list[float] | None:
+    try:
+        return [round(v, 2) for v in os.getloadavg()]
+    except OSError:  # pragma: no cover
+        return None

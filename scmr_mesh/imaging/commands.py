@@ -230,6 +230,9 @@ def cmd_bench_pipeline(args: argparse.Namespace) -> int:
     print(f"{'stage':10s} {'median ms':>10s} {'p99 ms':>10s}")
     for k in med:
         print(f"{k:10s} {med[k]:10.3f} {p99[k]:10.3f}")
+    print(f"{'total CPU':10s} {result['cpu_total_median_ms']:10.3f} {result['cpu_total_p99_ms']:10.3f}")
+    if result.get("load_average"):
+        print(f"load average during the run: {result['load_average']} (wall-clock figures include waiting for the core)")
     if args.json:
         _write_json(args.json, result)
     return 0

@@ -135,19 +135,21 @@ def segment_drivable(
     t["blur"] = t2 - t1
 
     seg = srm(blurred, q=q * BEST_Q_FACTOR if mode == "best" else q)
-    srm_img = seg.image()
+    full = mode == "thesis" or stages  # best needs only the bottom-centre cell of the SRM image
+    palette = np.rint(seg.means).clip(0, 255).astype(np.uint8)
+    srm_img = palette[seg.labels] if full else None
     t3 = _clock()
     t["srm"] = t3 - t2
 
-    window = bottom_centre(roi(srm_img))
+    window = palette[bottom_centre(roi(seg.labels))]
     channel = dominant_channel(window)
     hist = histogram(np.ascontiguousarray(window[:, :, channel]))
     threshold = otsu_threshold(hist)
     t4 = _clock()
     t["otsu"] = t4 - t3
 
-    grey = srm_img.sum(axis=2, dtype=np.int32) // 3
-    edges = sobel_magnitude(grey) if (mode == "thesis" or stages) else None
+    grey = srm_img.sum(axis=2, dtype=np.int32) // 3 if full else None
+    edges = sobel_magnitude(grey) if full else None
     t5 = _clock()
     t["edges"] = t5 - t4
 

@@ -28,11 +28,16 @@ pp. 1452-1458, 2004.
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from scmr_mesh.errors import InputError
-from scmr_mesh.imaging.codec import as_rgb
+
+if TYPE_CHECKING:  # pragma: no cover
+    import numpy as np
+
+# This module imports nothing heavy at import time: ``scmr_mesh.imaging``
+# imports it eagerly so that the package attribute ``srm`` is the function
+# (a later ``import scmr_mesh.imaging.srm`` would otherwise rebind it to the module).
 
 
 @dataclass(frozen=True)
@@ -59,6 +64,8 @@ class SrmResult:
 
     def image(self) -> np.ndarray:
         """Each pixel's region mean colour, rounded: (H, W, 3) uint8 (the "SRM image")."""
+        import numpy as np
+
         palette = np.rint(self.means).clip(0, 255).astype(np.uint8)
         return palette[self.labels]
 
@@ -89,11 +96,15 @@ def srm(image: np.ndarray, *, q: float = 32, min_size: int | None = None) -> Srm
 
     Examples
     --------
+    >>> import numpy as np
     >>> img = np.zeros((4, 6, 3), np.uint8); img[:, 3:] = 200
     >>> srm(img, q=32).n_regions
     2
     """
+    import numpy as np
+
     from scmr_mesh.imaging._srm_kernels import srm_kernel
+    from scmr_mesh.imaging.codec import as_rgb
 
     rgb = as_rgb(image, name="image")
     try:
