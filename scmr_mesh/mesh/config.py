@@ -9,7 +9,7 @@ The defaults encode the measured facts (``docs/ZENOH.md``): multicast scouting
 off (peers are wired with explicit endpoints), gossip on (robots find each
 other through the leader), lease 500 ms with 4 keep-alives (silent link loss
 seen in ~400 ms, no false expiries), fast reconnect ``connect/retry
-{100, 500, 2}``, shared memory off and ``transport/unicast/open_timeout`` 1000 ms (bounds
+{50, 250, 2}``, shared memory off and ``transport/unicast/open_timeout`` 1000 ms (bounds
 ``close()``).  Zenoh itself does not validate the lease: ``keep_alive`` 0
 panics in Rust and lease 0 loops, so :func:`check` rejects both.
 """
@@ -38,7 +38,7 @@ DEFAULTS: dict[str, Any] = {
     "transport/link/tx/lease": DEFAULT_LEASE_MS,
     "transport/link/tx/keep_alive": DEFAULT_KEEP_ALIVE,
     "transport/unicast/open_timeout": 1000,
-    "connect/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
+    "connect/retry": {"period_init_ms": 50, "period_max_ms": 250, "period_increase_factor": 2},
     "listen/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
     # SHM: first large query pays 17-26 ms to set it up, SIGKILLed peers leave
     # /dev/shm files, and at our sizes the median gain is nil (docs/ZENOH.md)

@@ -18,6 +18,12 @@ Probes
 ``routers``    (root) robot and cloud in two network namespaces, joined only
                through zenoh routers: one router or one per site, ends in peer
                or client mode; counts answered requests per set-up.
+``failover``   cloud + leader + robot processes; the cloud is SIGKILLed and
+               restarted ``--repeat`` times; reports the failover gap (kill ->
+               first leader answer, or from the first request the cloud failed
+               if later), failback (restart command -> first cloud answer, and
+               cloud ready -> first cloud answer) and whether every request
+               was answered.
 ``latency``    request/reply round trip for payload sizes, first query and
                median/p99, SHM on and off, FIFO channel vs Python callback.
 
@@ -299,7 +305,7 @@ def probe_reconnect(args) -> int:
                 sub.undeclare()
             srv.kill()
             srv.wait()
-            rec = {"probe": "reconnect", "retry": "scmr {100,500,2}" if fast else "zenoh default-like {1000,4000,2}",
+            rec = {"probe": "reconnect", "retry": "scmr {50,250,2}" if fast else "zenoh default-like {1000,4000,2}",
                    "down_s": args.down, "rep": rep,
                    "seen_after_restart_ms": None if t1 is None else round((t1 - t0) / 1e6, 1),
                    "server_start_ms": round((t_ready - t0) / 1e6, 1)}
@@ -414,6 +420,83 @@ def probe_routers(args) -> int:
     return 0
 
 
+def probe_failover(args) -> int:
+    import tempfile
+    from pathlib import Path
+
+    from scmr_mesh.mesh.testing import read_records, spawn_peer, stop_peer, wait_for
+
+    tmp = Path(tempfile.mkdtemp(prefix="scmr-failover-"))
+    cp, lp = _free_port(), _free_port()
+    ep = "tcp/127.0.0.1:{}".format
+    svc = ["--workers", str(args.workers), "--lease-ms", "500"] + (["--process", args.process] if args.process else [])
+    procs = {}
+
+    def start_cloud():
+        ready = tmp / "c1.ready"
+        ready.unlink(missing_ok=True)
+        t = time.time_ns()
+        procs["c1"] = spawn_peer(["cloud", "--node", "c1", "--listen", ep(cp), "--ready-file", str(ready), *svc],
+                                 log_path=tmp / "c1.log")
+        wait_for(ready.exists, timeout=300, what="cloud ready")
+        return t, time.time_ns()
+
+    try:
+        start_cloud()
+        procs["L1"] = spawn_peer(["leader", "--node", "L1", "--listen", ep(lp), "--connect", ep(cp),
+                                  "--ready-file", str(tmp / "L1.ready"), *svc], log_path=tmp / "L1.log")
+        wait_for((tmp / "L1.ready").exists, timeout=300, what="leader ready")
+        src = ["--images", args.images] if args.images else ["--synthetic", "stub"]
+        procs["r1"] = spawn_peer(["robot", "--id", "r1", *src, "--rate", str(args.rate), "--out", str(tmp / "r1"),
+                                  "--connect", ep(cp), "--connect", ep(lp), "--no-local-fallback"] +
+                                 (["--process", args.process] if args.process else []), log_path=tmp / "r1.log")
+        recs = lambda: read_records(tmp / "r1" / "records.jsonl")  # noqa: E731
+        wait_for(lambda: len(recs()) >= 10, timeout=120, what="10 records")
+        events = []
+        for rep in range(args.repeat):
+            time.sleep(args.up)
+            t_kill = time.time_ns()
+            os.kill(procs["c1"].pid, signal.SIGKILL)
+            procs["c1"].wait()
+            time.sleep(args.down)
+            t_restart, t_ready = start_cloud()
+            n = len(recs())
+            wait_for(lambda: any(r["tier"] == "cloud" for r in recs()[n:]), timeout=60, what="cloud answers again")
+            events.append((t_kill, t_restart, t_ready))
+        stop_peer(procs.pop("r1"))
+        rs = recs()
+        for rep, (t_kill, t_restart, t_ready) in enumerate(events):
+            # the first request the fault touched: in flight at the kill (its cloud
+            # attempt failed) or the first one sent after it; the gap does not
+            # count the idle time before that request (the rate's share)
+            touched = [r for r in rs if r["received_unix_ns"] >= t_kill and (r["sent_unix_ns"] >= t_kill or any(
+                a["tier"] == "cloud" and a["outcome"] != "ok" for a in r["attempts"]))]
+            start = max(t_kill, touched[0]["sent_unix_ns"]) if touched else t_kill
+            leader = [r for r in rs if r["tier"] == "leader" and r["received_unix_ns"] >= t_kill]
+            cloud_again = [r for r in rs if r["tier"] == "cloud" and r["received_unix_ns"] >= t_restart]
+            rec = {"probe": "failover", "rep": rep, "rate_hz": args.rate, "images": bool(args.images),
+                   "failover_gap_ms": round((leader[0]["received_unix_ns"] - start) / 1e6, 1) if leader else None,
+                   "failback_from_restart_ms": round((cloud_again[0]["received_unix_ns"] - t_restart) / 1e6, 1)
+                   if cloud_again else None,
+                   "failback_from_ready_ms": round((cloud_again[0]["received_unix_ns"] - t_ready) / 1e6, 1)
+                   if cloud_again else None,
+                   "cloud_start_ms": round((t_ready - t_restart) / 1e6, 1)}
+            print(json.dumps(rec), flush=True)
+        ok = sum(1 for r in rs if r["ok"])
+        tor = sorted(r["tor_ms"] for r in rs if r["ok"])
+        summary = {"probe": "failover", "requests": len(rs), "answered": ok, "ror": round(ok / max(1, len(rs)), 4),
+                   "tor_p50_ms": tor[len(tor) // 2] if tor else None,
+                   "tor_p99_ms": tor[int(len(tor) * 0.99)] if tor else None,
+                   "tor_max_ms": tor[-1] if tor else None,
+                   "by_tier": {t: sum(1 for r in rs if r["tier"] == t) for t in ("cloud", "leader", "local")}}
+        print(json.dumps(summary), flush=True)
+        print(f"failover: {ok}/{len(rs)} answered; see JSON lines; logs in {tmp}", file=sys.stderr)
+    finally:
+        for p in procs.values():
+            stop_peer(p, timeout=10)
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m scmr_mesh.mesh.probe", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -445,6 +528,16 @@ def main(argv=None) -> int:
     ro = sub.add_parser("routers", help="(root) cross-namespace routing set-ups")
     ro.add_argument("--count", type=int, default=5)
     ro.set_defaults(func=probe_routers)
+    fo = sub.add_parser("failover", help="cloud SIGKILL/restart with a running robot")
+    fo.add_argument("--repeat", type=int, default=3)
+    fo.add_argument("--rate", type=float, default=10.0)
+    fo.add_argument("--up", type=float, default=2.0, help="seconds between recoveries and the next kill")
+    fo.add_argument("--down", type=float, default=2.0, help="seconds the cloud stays down")
+    fo.add_argument("--workers", type=int, default=1)
+    fo.add_argument("--images", default=None, help="folder of frames (default: stub frames)")
+    fo.add_argument("--process", default="scmr_mesh.mesh.testing:stub_process",
+                    help="process function ('' for the real pipeline)")
+    fo.set_defaults(func=probe_failover)
     la = sub.add_parser("latency", help="query round trip")
     la.add_argument("--sizes", type=int, nargs="+", default=[1000, 40_000, 260_000])
     la.add_argument("--reply-bytes", type=int, default=1500)
