@@ -377,10 +377,12 @@ class TelemetryAgent:
         Queue bound; when full, new telemetry is refused and counted.
     deadline_ms : float
         Per-attempt deadline of telemetry and data queries.
+    autostart : bool
+        Start the flusher thread (tests call :meth:`flush_once` themselves).
     """
 
     def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
-                 deadline_ms: float = 1000.0) -> None:
+                 deadline_ms: float = 1000.0, autostart: bool = True) -> None:
         self.robot = robot
         self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes)
         self.deadline_s = deadline_ms / 1e3
@@ -394,7 +396,8 @@ class TelemetryAgent:
         self._orig = robot.publish_telemetry
         robot.publish_telemetry = self.publish
         self._thread = threading.Thread(target=self._loop, name=f"telemetry-{robot.id}", daemon=True)
-        self._thread.start()
+        if autostart:  # tests drive flush_once() themselves
+            self._thread.start()
         st = self.queue.stats()
         if st.depth:
             log.info("robot %s: %d telemetry records queued from before; replaying", robot.id, st.depth)
@@ -520,12 +523,14 @@ class TelemetryAgent:
     def close(self, *, drain_s: float = 2.0, summary_path: str | Path | None = None) -> dict:
         """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
         end = time.monotonic() + drain_s
-        while len(self.queue) and time.monotonic() < end and self._targets():
+        started = self._thread.is_alive()
+        while started and len(self.queue) and time.monotonic() < end and self._targets():
             self._wake.set()
             time.sleep(0.05)
         self._stop.set()
         self._wake.set()
-        self._thread.join(timeout=5)
+        if started:
+            self._thread.join(timeout=5)
         for q in list(self._queriers.values()):
             try:
                 q.undeclare()
