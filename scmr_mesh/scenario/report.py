@@ -200,6 +200,8 @@ def build_report(
             "ended_at_s": None if f.get("end_unix_ns") is None else (int(f["end_unix_ns"]) - t0_unix_ns) / 1e9,
             "failover_gap_ms": f.get("failover_gap_ms"), "failover_by_robot": f.get("failover_by_robot"),
             "failback_gap_ms": f.get("failback_gap_ms"), "notes": f.get("notes", []), "during": during,
+            "restart_ready_after_ms": None if f.get("ready_unix_ns") is None or f.get("end_unix_ns") is None
+            else (int(f["ready_unix_ns"]) - int(f["end_unix_ns"])) / 1e6,
         })
     expectations = check_expectations(scenario, summ)
     requests = []
@@ -286,6 +288,10 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
                  f"{_fmt(f['failover_gap_ms'])} | {_fmt(f['failback_gap_ms'])} | {_during(f.get('during'))} |")
     if not report["faults"]:
         L.append("| (none) | | | | | | |")
+    for f in report["faults"]:
+        if f.get("restart_ready_after_ms") is not None:
+            L += ["", f"{f['label']}: the restarted peer was ready {f['restart_ready_after_ms']:.0f} ms after its "
+                  "restart (process start-up, part of the failback gap)."]
     L += ["", "Failover gap per robot: from the later of the fault and the sending of the robot's first request the "
           "lost tier failed to answer, to that robot's first fallback answer (largest per fault). Failback: from the "
           "link's return / the restart to the first answer of the restored tier (scmr_mesh.metrics).", ""]

@@ -70,6 +70,8 @@ class AppliedFault:
     fault: Fault
     start_unix_ns: int | None = None
     end_unix_ns: int | None = None
+    restarted: str | None = None  # supervisor name of the restarted process (crash faults)
+    ready_unix_ns: int | None = None  # when the restarted peer wrote its ready file
     notes: list[str] = field(default_factory=list)
 
 
@@ -100,7 +102,7 @@ class RunResult:
                 "robots": robots, "at_s": af.fault.at_s, "for_s": af.fault.for_s,
                 "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
                 else self.t0_unix_ns + int(af.fault.at_s * 1e9),
-                "end_unix_ns": af.end_unix_ns, "notes": af.notes,
+                "end_unix_ns": af.end_unix_ns, "notes": af.notes, "ready_unix_ns": af.ready_unix_ns,
             })
         return out
 
@@ -301,16 +303,16 @@ def run_scenario(
             for batch in _batches(events):
                 delay = t0_mono + batch[0].at_s - time.monotonic()
                 if delay > 0:
-                    time.sleep(delay)
+                    _sleep_watching(delay, sup, applied, names)
                 _apply_batch(batch, be, sup, names, applied, spec_for, scenario, t0_mono, say)
             left = t0_mono + scenario.duration_s - time.monotonic()
             if left > 0:
-                time.sleep(left)
+                _sleep_watching(left, sup, applied, names)
             say("duration over; waiting for robots to finish")
             deadline = time.monotonic() + 30.0 + 2.0 * scenario.lease_ms / 1000
             robot_procs = [sup.procs[names[r.id]] for r in scenario.robots]
             while time.monotonic() < deadline and any(p.alive() for p in robot_procs):
-                time.sleep(0.1)
+                _sleep_watching(0.1, sup, applied, names)
             late = [p.name for p in robot_procs if p.alive()]
             if late:
                 notes.append(f"robots still running 30 s after the end were stopped: {', '.join(late)}")
@@ -329,6 +331,21 @@ def run_scenario(
     return RunResult(scenario=scenario, backend=backend, out_dir=out_dir, t0_unix_ns=t0, records=records,
                      faults=applied, notes=notes, run_id=getattr(be, "run_id", ""),
                      peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()})
+
+
+def _sleep_watching(seconds: float, sup, applied: list[AppliedFault], names: dict[str, str]) -> None:
+    """Sleep, noting when restarted peers become ready (their ready file appears)."""
+    end = time.monotonic() + seconds
+    while True:
+        for af in applied:
+            if af.restarted and af.ready_unix_ns is None:
+                proc = sup.procs.get(af.restarted)
+                if proc is not None and proc.is_ready():
+                    af.ready_unix_ns = proc.ready_unix_ns
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.02))
 
 
 def _batches(events: list[Event]) -> list[list[Event]]:
@@ -363,6 +380,7 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
         spec = spec_for(peer, remaining_s=remaining)
         proc = sup.start(spec)
         names[peer] = spec.name
+        applied[ev0.fault].restarted = spec.name
         t_after = proc.started_unix_ns
         say(f"t={time.monotonic() - t0_mono:5.2f}s  restart {peer}")
     else:
