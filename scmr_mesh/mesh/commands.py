@@ -194,6 +194,7 @@ def _cmd_leader(args) -> int:
             raise InputError("the leader acts as a robot only with --out DIR; add --out")
         args.id = args.node
         args.mode = args.mode or "best"
+        _check_robot_args(args)
 
         def body(session, stop):
             return _robot_body(args, session, stop)
@@ -208,6 +209,7 @@ def _cmd_robot(args) -> int:
     from scmr_mesh.mesh.peers import StopFlag, clear_ready
 
     _setup_logging(args)
+    _check_robot_args(args)
     stop = StopFlag().install()
     clear_ready(args.ready_file)
     session = open_session(_mesh(args))
@@ -219,17 +221,29 @@ def _cmd_robot(args) -> int:
         stop.restore()
 
 
-def _robot_body(args, session, stop: threading.Event) -> int:
-    from scmr_mesh.mesh.peers import write_ready
-    from scmr_mesh.mesh.robot import Robot, RobotOptions, frames_from_args, pick_seed
-    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+def _check_robot_args(args):
+    """Validate the robot flags before anything starts; return the frame source."""
+    from scmr_mesh.mesh.robot import frames_from_args, pick_seed
 
     if args.rate is not None and args.rate <= 0:
         raise InputError(f"--rate must be > 0, got {args.rate}")
     if args.deadline_ms <= 0:
         raise InputError(f"--deadline-ms must be > 0, got {args.deadline_ms}")
-    frames = frames_from_args(args.images, args.synthetic,
-                              seed=args.seed if args.seed is not None else pick_seed(args.id))
+    if args.count is not None and args.count < 0:
+        raise InputError(f"--count must be >= 0, got {args.count}")
+    if args.duration is not None and args.duration < 0:
+        raise InputError(f"--duration must be >= 0, got {args.duration}")
+    args._frames = frames_from_args(args.images, args.synthetic,
+                                    seed=args.seed if args.seed is not None else pick_seed(args.id))
+    return args._frames
+
+
+def _robot_body(args, session, stop: threading.Event) -> int:
+    from scmr_mesh.mesh.peers import write_ready
+    from scmr_mesh.mesh.robot import Robot, RobotOptions, frames_from_args, pick_seed
+    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+
+    frames = getattr(args, "_frames", None) or _check_robot_args(args)
     opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
                         priority=args.priority, mode=args.mode or "best",
                         process=getattr(args, "process", None) or DEFAULT_PROCESS)

@@ -211,7 +211,8 @@ def image_frames(folder: str | Path) -> Iterator[Frame]:
     Raises
     ------
     InputError
-        When the folder is missing or holds no PNG/JPEG file.
+        At once (not at the first frame) when the folder is missing or holds
+        no PNG/JPEG file.
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -219,9 +220,13 @@ def image_frames(folder: str | Path) -> Iterator[Frame]:
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     if not files:
         raise InputError(f"--images {folder} holds no .png/.jpg/.jpeg file")
-    for p in itertools.cycle(files):
-        enc = "png" if p.suffix.lower() == ".png" else "jpeg"
-        yield Frame(p.name, p.read_bytes(), enc)
+
+    def gen() -> Iterator[Frame]:
+        for p in itertools.cycle(files):
+            enc = "png" if p.suffix.lower() == ".png" else "jpeg"
+            yield Frame(p.name, p.read_bytes(), enc)
+
+    return gen()
 
 
 def synthetic_frames(kind: str, *, seed: int = 0) -> Iterator[Frame]:
@@ -229,22 +234,34 @@ def synthetic_frames(kind: str, *, seed: int = 0) -> Iterator[Frame]:
 
     ``kind="stub"`` uses :func:`scmr_mesh.mesh.testing.synthetic_png` and needs no
     imaging module; other kinds come from ``scmr_mesh.imaging.synthetic``.
+
+    Raises
+    ------
+    InputError
+        At once when ``kind`` is unknown.
     """
     if kind == "stub":
         from scmr_mesh.mesh.testing import synthetic_png
 
-        for i in itertools.count():
-            yield Frame(f"stub-{seed + i}.png", synthetic_png(seed + i), "png")
+        def stub() -> Iterator[Frame]:
+            for i in itertools.count():
+                yield Frame(f"stub-{seed + i}.png", synthetic_png(seed + i), "png")
+
+        return stub()
     try:
         from scmr_mesh.imaging import encode_png
         from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
     except ImportError as exc:
         raise InputError(f"--synthetic {kind}: synthetic scenes unavailable ({exc}); use --synthetic stub") from None
     if kind not in SCENE_KINDS:
-        raise InputError(f"--synthetic must be one of {sorted(SCENE_KINDS)} or 'stub', got {kind!r}")
-    for i in itertools.count():
-        rgb, _truth = make_scene(kind, seed=seed + i)
-        yield Frame(f"{kind}-{seed + i}.png", encode_png(rgb), "png", rgb=rgb)
+        raise InputError(f"--synthetic must be one of {', '.join(SCENE_KINDS)} or stub, got {kind!r}")
+
+    def scenes() -> Iterator[Frame]:
+        for i in itertools.count():
+            rgb, _truth = make_scene(kind, seed=seed + i)
+            yield Frame(f"{kind}-{seed + i}.png", encode_png(rgb), "png", rgb=rgb)
+
+    return scenes()
 
 
 # ----------------------------------------------------------------- robot
