@@ -537,6 +537,8 @@ class _Sink:
         mode = self.options.mode
         if self.proc is None or mode == "spawn":
             return None  # a spawned viewer stays open for the user
+        if mode == "save" and self.raw_path is not None:
+            _wait_quiet(self.raw_path)  # the recorder may still be writing what peers sent last
         _stop(self.proc)
         if mode != "save":
             return None
@@ -550,6 +552,19 @@ class _Sink:
         else:
             raw.unlink(missing_ok=True)
         return out
+
+
+def _wait_quiet(path: Path, *, quiet: float = 0.3, limit: float = 3.0) -> None:
+    """Wait until ``path`` has not grown for ``quiet`` s (at most ``limit`` s)."""
+    deadline = time.monotonic() + limit
+    last, since = -1, time.monotonic()
+    while time.monotonic() < deadline:
+        size = path.stat().st_size if path.exists() else -1
+        if size != last:
+            last, since = size, time.monotonic()
+        elif time.monotonic() - since >= quiet:
+            return
+        time.sleep(0.05)
 
 
 def _merge(paths: Sequence[Path], out: Path) -> Path | None:
@@ -904,7 +919,15 @@ class FleetViz(_Viz):
         self.recording_id = options.recording_id or uuid.uuid4().hex
         self._sink = _Sink(options, port=port, web_port=web_port)
         try:
-            self._stream = _Stream(options, recording_id=self.recording_id, url=self._sink.url)
+            if options.mode == "save":
+                # the fleet's own data goes straight to a file (complete once flushed), merged at close;
+                # the recorder serves the peers only
+                self._own_file = self._sink.out_path.with_name(self._sink.out_path.stem + ".fleet.partial.rrd")
+                own = RerunOptions("save", str(self._own_file), self.recording_id)
+                self._stream = _Stream(own, recording_id=self.recording_id)
+            else:
+                self._own_file = None
+                self._stream = _Stream(options, recording_id=self.recording_id, url=self._sink.url)
         except BaseException:
             self._sink.close()
             raise
@@ -1019,7 +1042,10 @@ class FleetViz(_Viz):
         try:
             self._stream.close()
         finally:
-            self.saved_path = self._sink.close(extra=self._extra_files)
+            own = [self._own_file] if self._own_file is not None and self._own_file.exists() else []
+            self.saved_path = self._sink.close(extra=[*own, *self._extra_files])
+            for f in own:
+                f.unlink(missing_ok=True)
         if self._sink.options.mode != "save" and self._extra_files:
             self.peers_path = _merge(self._extra_files, self._extra_files[0].parent / "peers.rrd")
         return self.saved_path

@@ -96,7 +96,7 @@ def fleet_recording(isolated_env):
 def test_save_writes_one_finalised_file(fleet_recording):
     fv, path = fleet_recording
     assert path is not None and path.is_file()
-    assert not path.with_name(path.name + ".partial").exists()
+    assert sorted(p.name for p in path.parent.glob("run*")) == ["run.rrd"]  # no .partial left
     res = viz.run_rerun_cli(["rrd", "verify", str(path)])
     assert res.returncode == 0, res.stderr
 
