@@ -209,3 +209,28 @@ value = 0
             "served_by", "tier"} <= set(row)
     for name in ("report.md", "tor.png", "tiers.png"):
         assert (out / name).stat().st_size > 0
+
+
+def test_crash_and_restart_through_the_runner(tmp_path):
+    """SIGKILL the cloud, restart it: the leader answers meanwhile, the cloud again after. ~15 s."""
+    from scmr_mesh.scenario.report import build_report
+    from scmr_mesh.scenario.runner import run_scenario
+
+    sc = parse_scenario({
+        "name": "crash", "seed": 2, "duration_s": 9, "lease_ms": 200,
+        "process": "scmr_mesh.mesh.testing:stub_process",
+        "fleet": {"robots": [{"id": "robot1", "synthetic": "stub", "rate_hz": 8, "local_fallback": False}]},
+        "faults": [{"kind": "crash", "at_s": 2.0, "for_s": 1.0, "peer": "cloud"}],
+    })
+    res = run_scenario(sc, backend="proxy", out_dir=tmp_path, ready_timeout=90)
+    af = res.faults[0]
+    assert af.start_unix_ns is not None and af.end_unix_ns is not None and af.restarted == "cloud-2"
+    assert (tmp_path / "logs" / "cloud-2.log").is_file()
+    rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend="proxy")
+    f = rep["faults"][0]
+    assert f["tier"] == "cloud" and f["failover_gap_ms"] is not None
+    leader = [r for r in res.records if r["ok"] and r["tier"] == "leader"]
+    assert leader and all(r["received_unix_ns"] >= af.start_unix_ns for r in leader)
+    if af.ready_unix_ns is not None and af.ready_unix_ns < res.records[-1]["sent_unix_ns"]:
+        # the restarted cloud served again
+        assert f["failback_gap_ms"] is not None and f["restart_ready_after_ms"] > 0
