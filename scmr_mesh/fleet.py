@@ -359,6 +359,7 @@ def run_fleet(
     interrupted = False
     sup = Supervisor(term_timeout=10.0)
     t_ready = t_end = None
+    telemetry = None
     fviz = None  # scmr_mesh.viz.FleetViz with rerun flags
 
     def emit(phase: str, elapsed: float, alive: dict[str, bool]) -> None:
@@ -445,10 +446,16 @@ def run_fleet(
                 emit("stopping", (time.monotonic() - t_ready) if t_ready else 0.0,
                      alive_tiers() if CLOUD in sup.procs and LEADER in sup.procs else {})
             robots_running = [r for r in rids if r in sup.procs]
-            sup.stop(robots_running)  # robots first: they finish and flush their records
-            from scmr_mesh.data.report import fleet_telemetry  # data tier: docs/DATA.md
-            telemetry = fleet_telemetry(run_dir, rids, wait=CLOUD in sup.procs and sup.procs[CLOUD].alive())
-            sup.stop_all()
+            try:
+                sup.stop(robots_running)  # robots first: they finish and flush their records
+                # data tier (docs/DATA.md): count relayed telemetry while the cloud still runs
+                from scmr_mesh.data.report import fleet_telemetry
+
+                telemetry = fleet_telemetry(run_dir, rids, wait=CLOUD in sup.procs and sup.procs[CLOUD].alive())
+            except Exception as exc:  # the peers must be stopped whatever happens here
+                log.warning("telemetry accounting failed: %s", exc)
+            finally:
+                sup.stop_all()
         finally:
             _restore_interrupts(old)
             if fviz is not None:  # after the peers: their data is in; --save finalises the file

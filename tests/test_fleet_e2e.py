@@ -87,7 +87,7 @@ def test_up_with_cloud_outage(tmp_path):
             assert bt["cloud"] > 0 and bt["leader"] > 0, (rid, bt)
         (fault,) = rep["faults"]
         assert fault["kind"] == "crash" and fault["tier"] == "cloud"
-        assert 1.5e9 < fault["end_unix_ns"] - fault["start_unix_ns"] < 2.5e9  # restarted ~2 s later
+        assert 1.5e9 < fault["end_unix_ns"] - fault["start_unix_ns"] < 3.5e9  # restarted ~2 s later
         assert rep["failover_gaps_ms"] == [fault["failover_gap_ms"]] and fault["failover_gap_ms"] is not None
         assert rep["failback_gaps_ms"] == [fault["failback_gap_ms"]]
         # records after the outage came from the restarted cloud
@@ -116,20 +116,22 @@ def test_no_orphans_when_up_is_stopped(tmp_path, sig):
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
         ready = [run_dir / "ready" / f"{n}.ready" for n in ("cloud", "leader", "r1", "r2")]
-        assert wait_until(lambda: all(f.exists() for f in ready) or p.poll() is not None, 90), "fleet never ready"
-        assert p.poll() is None, p.communicate()
+        if not wait_until(lambda: all(f.exists() for f in ready) or p.poll() is not None, 90) or p.poll() is not None:
+            os.killpg(p.pid, signal.SIGKILL)
+            pytest.fail(f"fleet never ready: {p.communicate()}")
         peers = procs_mentioning(str(run_dir))
         assert len(peers) >= 4  # cloud, leader, 2 robots (+ service workers)
-        time.sleep(1.0)  # let a few requests finish
+        records = [run_dir / "robots" / r / "records.jsonl" for r in ("r1", "r2")]
+        assert wait_until(lambda: any(f.exists() and f.stat().st_size for f in records), 30)
         p.send_signal(sig)
         out, err = p.communicate(timeout=60)
         if sig == signal.SIGTERM:
-            assert p.returncode == 130, err
+            assert p.returncode == 130, (out, err)
             rep = json.loads((run_dir / "report.json").read_text())
-            assert rep["interrupted"] is True and rep["requests"] > 0
-            assert "interrupted" in out
+            assert rep["interrupted"] is True and rep["requests"] > 0, (out, err)
+            assert "interrupted" in out, (out, err)
         else:
-            assert p.returncode == -signal.SIGKILL
+            assert p.returncode == -signal.SIGKILL, (out, err)
         assert wait_until(lambda: all(gone(x) for x in peers), 10), [x for x in peers if not gone(x)]
         assert wait_until(lambda: not procs_mentioning(str(run_dir)), 5)
     finally:
