@@ -222,7 +222,7 @@ def cmd_bench_pipeline(args: argparse.Namespace) -> int:
     from scmr_mesh.imaging.bench import bench_pipeline
 
     def progress(i: int, n: int) -> None:
-        print(f"\rtimed {i}/{n} frames", end="" if i < n else "\n", file=sys.stderr)
+        print(f"\rtimed {i}/{n} runs (decode pass, then pipeline pass)", end="" if i < n else "\n", file=sys.stderr)
 
     print("warming up (numba JIT / cache) ...", file=sys.stderr)
     result = bench_pipeline(frames=args.frames, images=args.images, mode=args.mode, progress=progress)
