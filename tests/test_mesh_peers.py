@@ -200,3 +200,26 @@ def test_sigterm_stops_peers_cleanly(fleet):
     assert stop_peer(cloud) == 0
     assert not (fleet.tmp / "c1.ready").exists()
     assert "Traceback" not in fleet.log("c1") + fleet.log("r1")
+
+
+def test_dead_worker_costs_at_most_a_resend(fleet):
+    """A killed worker breaks the pool; the service replaces it and keeps serving
+    (work.WorkerPool._respawn); the request it died on goes to the leader."""
+    cp, lp = free_port(), free_port()
+    cloud = fleet.service("cloud", "c1", cp)
+    worker = json.loads((fleet.tmp / "c1.ready").read_text())["workers"][0]
+    fleet.service("leader", "L1", lp, connect=[_ep(cp)])
+    robot = fleet.robot("r1", [_ep(cp), _ep(lp)], extra=["--rate", "20", "--no-local-fallback"])
+    wait_for(lambda: len(fleet.records("r1")) >= 5, what="5 records")
+    os.kill(worker, signal.SIGKILL)
+    n = len(fleet.records("r1"))
+    wait_for(lambda: [r["tier"] for r in fleet.records("r1")[n:]][-5:] == ["cloud"] * 5, timeout=60,
+             what="5 cloud answers after the worker died")
+    assert stop_peer(robot) == 0
+    assert cloud.poll() is None
+    recs = fleet.records("r1")
+    assert all(r["ok"] for r in recs)
+    failed_on_cloud = [r for r in recs if r["tier"] != "cloud"]
+    assert len(failed_on_cloud) <= 2
+    for r in failed_on_cloud:
+        assert r["tier"] == "leader" and r["attempts"][0]["outcome"] in ("error:internal", "timeout")

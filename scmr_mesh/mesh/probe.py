@@ -24,6 +24,9 @@ Probes
                if later), failback (restart command -> first cloud answer, and
                cloud ready -> first cloud answer) and whether every request
                was answered.
+``redundant``  the same robots with and without ``--redundant`` against one
+               cloud and one leader: ToR p50/p90/p99/max, bytes sent per frame
+               and pipeline runs per frame (what redundancy costs and gains).
 ``latency``    request/reply round trip for payload sizes, first query and
                median/p99, SHM on and off, FIFO channel vs Python callback.
 
@@ -497,6 +500,57 @@ def probe_failover(args) -> int:
     return 0
 
 
+def probe_redundant(args) -> int:
+    import tempfile
+    from pathlib import Path
+
+    from scmr_mesh.mesh.testing import read_records, spawn_peer, stop_peer, wait_for
+
+    tmp = Path(tempfile.mkdtemp(prefix="scmr-redundant-"))
+    cp, lp = _free_port(), _free_port()
+    ep = "tcp/127.0.0.1:{}".format
+    proc = ["--process", args.process] if args.process else []
+    svc = ["--workers", str(args.workers), *proc]
+    procs = {}
+    try:
+        procs["c1"] = spawn_peer(["cloud", "--node", "c1", "--listen", ep(cp), "--ready-file", str(tmp / "c1.ready"),
+                                  *svc], log_path=tmp / "c1.log")
+        procs["L1"] = spawn_peer(["leader", "--node", "L1", "--listen", ep(lp), "--connect", ep(cp),
+                                  "--ready-file", str(tmp / "L1.ready"), *svc], log_path=tmp / "L1.log")
+        for n in ("c1", "L1"):
+            wait_for((tmp / f"{n}.ready").exists, timeout=300, what=f"{n} ready")
+        src = ["--images", args.images] if args.images else ["--synthetic", "stub"]
+        for mode in ("default", "redundant"):
+            robots = []
+            for i in range(args.robots):
+                rid = f"{mode[:3]}{i}"
+                robots.append((rid, spawn_peer(
+                    ["robot", "--id", rid, *src, "--rate", str(args.rate), "--count", str(args.count),
+                     "--out", str(tmp / rid), "--connect", ep(cp), "--connect", ep(lp), "--no-local-fallback", *proc,
+                     *(["--redundant"] if mode == "redundant" else [])], log_path=tmp / f"{rid}.log")))
+            for _, p in robots:
+                p.wait(timeout=600)
+            rs = [r for rid, _ in robots for r in read_records(tmp / rid / "records.jsonl")]
+            ok = [r for r in rs if r["ok"]]
+            tor = sorted(r["tor_ms"] for r in ok)
+            q = lambda f: tor[min(len(tor) - 1, int(len(tor) * f))] if tor else None  # noqa: E731
+            sends = sum(1 for r in rs for a in r["attempts"] if a["outcome"] not in ("unreachable",))
+            rec = {"probe": "redundant", "mode": mode, "robots": args.robots, "rate_hz": args.rate,
+                   "requests": len(rs), "answered": len(ok),
+                   "tor_ms": {"p50": q(0.5), "p90": q(0.9), "p99": q(0.99), "max": tor[-1] if tor else None},
+                   "bytes_up_per_frame": round(sum(r["bytes_up"] for r in rs) / max(1, len(rs))),
+                   "pipeline_runs_per_frame": round(sends / max(1, len(rs)), 2),
+                   "by_tier": {t: sum(1 for r in ok if r["tier"] == t) for t in ("cloud", "leader")}}
+            print(json.dumps(rec), flush=True)
+            print(f"redundant probe {mode:9s}: ToR p50 {rec['tor_ms']['p50']} p99 {rec['tor_ms']['p99']} ms, "
+                  f"{rec['bytes_up_per_frame']} B up/frame, {rec['pipeline_runs_per_frame']} runs/frame",
+                  file=sys.stderr)
+    finally:
+        for p in procs.values():
+            stop_peer(p, timeout=10)
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m scmr_mesh.mesh.probe", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -538,6 +592,15 @@ def main(argv=None) -> int:
     fo.add_argument("--process", default="scmr_mesh.mesh.testing:stub_process",
                     help="process function ('' for the real pipeline)")
     fo.set_defaults(func=probe_failover)
+    rd = sub.add_parser("redundant", help="--redundant vs default")
+    rd.add_argument("--robots", type=int, default=2)
+    rd.add_argument("--rate", type=float, default=5.0)
+    rd.add_argument("--count", type=int, default=40)
+    rd.add_argument("--workers", type=int, default=1)
+    rd.add_argument("--images", default=None, help="folder of frames (default: stub frames)")
+    rd.add_argument("--process", default="scmr_mesh.mesh.testing:stub_process",
+                    help="process function ('' for the real pipeline)")
+    rd.set_defaults(func=probe_redundant)
     la = sub.add_parser("latency", help="query round trip")
     la.add_argument("--sizes", type=int, nargs="+", default=[1000, 40_000, 260_000])
     la.add_argument("--reply-bytes", type=int, default=1500)
