@@ -424,6 +424,15 @@ def entity_name(text: str) -> str:
     return name or "_"
 
 
+def has_display() -> bool:
+    """Whether a native viewer window can open (always true off Linux)."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def _free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -495,6 +504,11 @@ class _Sink:
             what = "the rerun recorder (`rerun --save`)"
         elif mode == "spawn":
             port = port or DEFAULT_PORT
+            if not _port_open(port) and not has_display():
+                raise ViewerError(
+                    "--spawn needs a display for the native viewer (DISPLAY/WAYLAND_DISPLAY unset); "
+                    "use --serve for the web viewer or --save FILE.rrd"
+                )
             if _port_open(port):
                 self.url = f"rerun+http://127.0.0.1:{port}/proxy"
                 self.hint = f"a rerun viewer already listens on port {port}: streaming to it"

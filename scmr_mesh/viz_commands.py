@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 
@@ -130,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
         cmd = [exe, "--web-viewer", "--web-viewer-port", str(args.web_port), "--bind", "127.0.0.1", str(path)]
         print(f"serving the web viewer on http://127.0.0.1:{args.web_port} (Ctrl-C to stop)", file=sys.stderr)
     else:
-        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        if not viz.has_display():
             raise viz.ViewerError(
                 "no display (DISPLAY/WAYLAND_DISPLAY unset) for the native viewer; "
                 f"use `scmr view {args.file} --web` or --screenshot OUT.png"

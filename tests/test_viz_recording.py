@@ -219,3 +219,29 @@ def test_peers_in_isolated_namespaces_save_files_that_are_merged(isolated_env):
     assert "/scmr/faults/cloud_r7" in rows
     text = viz.run_rerun_cli(["rrd", "print", str(out)]).stdout
     assert set(re.findall(r'Recording,\s*"([^"]+)",\s*"([^"]+)"', text)) == {(viz.APP_ID, fv.recording_id)}
+
+
+def test_serve_starts_a_web_viewer_that_peers_reach_and_stops_it(isolated_env):
+    import urllib.request
+
+    from conftest import free_port
+
+    fv = viz.FleetViz(viz.RerunOptions("serve"), robots=["r0"], port=free_port(), web_port=free_port())
+    proc = fv._sink.proc
+    try:
+        assert fv.hint.startswith("rerun web viewer: http://127.0.0.1:")
+        with urllib.request.urlopen(fv._sink.web_url.split("?")[0], timeout=10) as resp:
+            assert resp.status == 200 and "html" in resp.headers.get("content-type", "")
+        rv = viz.RobotViz(viz.RerunOptions("connect", fv.url, fv.recording_id), "r0")
+        rv.close()
+    finally:
+        assert fv.close() is None
+    assert proc.poll() is not None  # the server does not outlive the command
+
+
+def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):
+    from conftest import free_port
+
+    monkeypatch.setattr(viz, "has_display", lambda: False)
+    with pytest.raises(viz.ViewerError, match="--serve"):
+        viz.FleetViz(viz.RerunOptions("spawn"), robots=["r0"], port=free_port())
