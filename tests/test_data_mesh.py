@@ -46,12 +46,13 @@ class Peers:
         assert p.poll() is None, self.log(node)
         return p
 
-    def robot(self, rid: str, connect, *extra):
-        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / rid), "--process", STUB,
+    def robot(self, rid: str, connect, *extra, name: str | None = None):
+        name = name or rid  # a restarted robot may get a new output folder (the scenario runner does)
+        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / name), "--process", STUB,
                 "--lease-ms", LEASE, "--quiet", *extra]
         for ep in connect:
             args += ["--connect", ep]
-        p = spawn_peer(args, log_path=self.tmp / f"{rid}.log")
+        p = spawn_peer(args, log_path=self.tmp / f"{name}.log")
         self.procs.append(p)
         return p
 
@@ -133,37 +134,45 @@ def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path)
 
 
 def test_robot_restarted_mid_outage_keeps_its_queue(peers, tmp_path):
+    """The scenario layout: ready files in RUN/ready/, a new --out per restart, the queue in RUN/queues/ID."""
+    from scmr_mesh.data.report import run_telemetry
+
     pc = free_port()
     ods_path = tmp_path / "ods.sqlite"
+
+    def robot(name: str, *extra):
+        return peers.robot("r2", [_ep(pc)], "--rate", "50", "--ready-file", str(tmp_path / "ready" / name),
+                           *extra, name=name)
+
     cloud = peers.service("cloud", "c1", pc, extra=["--ods", str(ods_path)])
-    r = peers.robot("r2", [_ep(pc)], "--rate", "50", "--count", "10")
+    r = robot("r2", "--count", "10")
     assert r.wait(timeout=30) == 0, peers.log("r2")
-    assert _summary(tmp_path, "r2")["queued"] == 0
+    qdir = tmp_path / "queues" / "r2"
+    assert _summary(tmp_path, "r2")["queued"] == 0 and qdir.is_dir()
     stop_peer(cloud, sig=signal.SIGKILL)
     # mid-outage: the robot queues telemetry on disk, then crashes (SIGKILL, no clean exit)
-    r = peers.robot("r2", [_ep(pc)], "--rate", "50", "--count", "100000", "--wait-ms", "0")
-    qdir = tmp_path / "r2" / "telemetry-queue"
+    r = robot("r2-2", "--count", "100000", "--wait-ms", "0")
 
     def depth() -> int:
-        st = TelemetryQueue(qdir, fsync="never")
+        q = TelemetryQueue(qdir, fsync="never")
         try:
-            return st.stats().depth
+            return q.stats().depth
         finally:
-            st.close()
+            q.close()
 
     wait_for(lambda: r.poll() is None and depth() >= 15, timeout=30, what="telemetry queued during the outage")
     stop_peer(r, sig=signal.SIGKILL)
     queued = depth()
     assert queued >= 15
     peers.service("cloud", "c1", pc, extra=["--ods", str(ods_path)])
-    r = peers.robot("r2", [_ep(pc)], "--rate", "50", "--count", "5")
-    assert r.wait(timeout=30) == 0, peers.log("r2")
-    summary = _summary(tmp_path, "r2")
+    r = robot("r2-3", "--count", "5")  # restarted again, with yet another --out
+    assert r.wait(timeout=30) == 0, peers.log("r2-3")
+    summary = _summary(tmp_path, "r2-3")
     sent = summary["sent"]
     assert sent >= 10 + queued + 5 and summary["queued"] == 0 and summary["replayed"] >= queued
     wait_for(lambda: len(_stored(ods_path, "r2")) >= sent, timeout=20, what="replayed telemetry in the ODS")
-    rep = telemetry_report(ods_path, {"r2": sent})["telemetry"]
-    assert (rep["lost"], rep["stored"]) == (0, sent)
+    rep = run_telemetry(tmp_path, ["r2"])["telemetry"]
+    assert (rep["sent"], rep["stored"], rep["lost"], rep["conflicts"]) == (sent, sent, 0, 0)
     # the restarted cloud's buffer (re-seeded from the ODS, then fed) serves the latest state
     out = subprocess.run([sys.executable, "-m", "scmr_mesh", "ods", "fetch", "state/**", "--connect", _ep(pc),
                           "--lease-ms", LEASE], capture_output=True, text=True, timeout=60)

@@ -53,6 +53,7 @@ def test_exactly_once_under_any_interleaving(msgs, cuts):
             assert counts[robot]["stored"] == len(seqs)
             assert counts[robot]["duplicates"] == len(sent) - len(seqs)
             assert counts[robot]["contiguous"] == _contiguous(seqs) == acks[robot] == ods.contiguous(robot)
+            assert counts[robot]["conflicts"] == 0  # replays carry the same content
     path.unlink()
 
 
@@ -70,7 +71,7 @@ def test_concurrent_writers_store_each_pair_once(tmp_path):
         def run(bs):
             try:
                 for b in bs:
-                    ods.insert([make_record(r, s) for r, s in b], received_from="leader")
+                    ods.insert([make_record(r, s, t_unix_ns=s) for r, s in b], received_from="leader")
             except Exception as exc:  # pragma: no cover - reported below
                 errors.append(exc)
 
@@ -81,8 +82,8 @@ def test_concurrent_writers_store_each_pair_once(tmp_path):
             t.join()
         assert errors == []
         counts = ods.counts()
-        assert {r: (c["stored"], c["duplicates"], c["contiguous"]) for r, c in counts.items()} == {
-            "r0": (100, 300, 100), "r1": (100, 300, 100), "r2": (100, 300, 100)}
+        assert {r: (c["stored"], c["duplicates"], c["contiguous"], c["conflicts"]) for r, c in counts.items()} == {
+            "r0": (100, 300, 100, 0), "r1": (100, 300, 100, 0), "r2": (100, 300, 100, 0)}
 
 
 def test_wal_schema_version_and_migration_from_v1(tmp_path):
@@ -92,11 +93,13 @@ def test_wal_schema_version_and_migration_from_v1(tmp_path):
         con.execute(stmt)
     con.execute("INSERT INTO telemetry (robot, seq, t_unix_ns, health, results, received_from, stored_unix_ns) "
                 "VALUES ('r1', 1, 5, 'ok', '{}', 'cloud', 6)")
+    con.execute("INSERT INTO robot_stats (robot, duplicates, contiguous) VALUES ('r1', 0, 1)")
     con.execute("PRAGMA user_version = 1")
     con.commit()
     con.close()
     with OperationalDataStore(path) as ods:
-        assert ods.schema_version() == SCHEMA_VERSION == 2
+        assert ods.schema_version() == SCHEMA_VERSION == 3
+        assert ods.counts()["r1"]["conflicts"] == 0  # v3 added the column to the existing row
         assert ods.seqs("r1") == [1]
     con = sqlite3.connect(path)
     assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
@@ -179,12 +182,12 @@ def test_records_round_trip_and_validation():
 
 def test_telemetry_report_counts_lost_duplicates_and_unexpected(tmp_path):
     with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
-        ods.insert([make_record("r1", s) for s in (1, 2, 3, 3, 5, 6, 7)], received_from="cloud")
-        ods.insert([make_record("r2", s) for s in (1, 2)], received_from="leader")
-        ods.insert([make_record("r2", 2)], received_from="cloud")
+        ods.insert([make_record("r1", s, t_unix_ns=s) for s in (1, 2, 3, 3, 5, 6, 7)], received_from="cloud")
+        ods.insert([make_record("r2", s, t_unix_ns=s) for s in (1, 2)], received_from="leader")
+        ods.insert([make_record("r2", 2, t_unix_ns=2)], received_from="cloud")
     rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 8, "r2": 2, "r3": 1}, queued={"r1": 1})["telemetry"]
     assert (rep["sent"], rep["stored"], rep["duplicates"], rep["lost"]) == (11, 8, 2, 3)
-    assert rep["per_robot"]["r1"] == {"sent": 8, "stored": 6, "duplicates": 1, "lost": 2,
+    assert rep["per_robot"]["r1"] == {"sent": 8, "stored": 6, "duplicates": 1, "conflicts": 0, "lost": 2,
                                       "missing": ["4", "8"], "unexpected": 0, "queued": 1}
     assert rep["per_robot"]["r3"]["lost"] == 1 and rep["per_robot"]["r3"]["missing"] == ["1"]
     rep2 = telemetry_report(tmp_path / "ods.sqlite", {"r1": 5})["telemetry"]
@@ -210,3 +213,31 @@ def test_run_telemetry_reads_the_fleet_layout(tmp_path):
     rep = run_telemetry(tmp_path)["telemetry"]
     assert (rep["sent"], rep["stored"], rep["lost"]) == (7, 5, 2)
     assert rep["per_robot"]["r2"]["missing"] == ["3-4"] and rep["per_robot"]["r2"]["queued"] == 2
+
+
+def test_a_reused_seq_with_other_content_is_a_conflict_not_a_silent_duplicate(tmp_path, caplog):
+    with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
+        ods.insert([make_record("r1", s, t_unix_ns=100 + s) for s in (1, 2)], received_from="cloud")
+        res = ods.insert([make_record("r1", 2, t_unix_ns=102), make_record("r1", 1, t_unix_ns=999)],
+                         received_from="cloud")
+        assert res.duplicates == (("r1", 2), ("r1", 1)) and res.conflicts == (("r1", 1),)
+        assert ods.counts()["r1"]["conflicts"] == 1 and ods.counts()["r1"]["duplicates"] == 2
+    assert "fresh telemetry queue" in caplog.text
+    rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 2})["telemetry"]
+    assert rep["conflicts"] == 1 and rep["per_robot"]["r1"]["conflicts"] == 1
+
+
+def test_run_telemetry_prefers_the_run_dirs_queues(tmp_path):
+    from scmr_mesh.data.queue import TelemetryQueue
+    from scmr_mesh.data.report import run_telemetry
+
+    # a scenario restarted r1 with a new --out (robots/r1-2) but the same queue (queues/r1)
+    for sub in ("robots/r1", "robots/r1-2"):
+        (tmp_path / sub).mkdir(parents=True)
+    (tmp_path / "robots" / "r1" / "telemetry.json").write_text(json.dumps({"sent": 2, "queued": 0}))
+    with TelemetryQueue(tmp_path / "queues" / "r1") as q:
+        for _ in range(5):
+            q.append(b"x")
+        q.ack(5)
+    rep = run_telemetry(tmp_path)["telemetry"]
+    assert list(rep["per_robot"]) == ["r1"] and rep["sent"] == 5 and rep["per_robot"]["r1"]["queued"] == 0

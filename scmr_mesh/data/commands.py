@@ -73,10 +73,10 @@ def _cmd_counts(args) -> int:
     if not counts:
         print("no telemetry stored yet", file=sys.stderr)
         return 0
-    print(f"{'robot':<16}{'stored':>8}{'dups':>7}{'min_seq':>9}{'max_seq':>9}{'contig':>8}")
+    print(f"{'robot':<16}{'stored':>8}{'dups':>7}{'min_seq':>9}{'max_seq':>9}{'contig':>8}{'conflicts':>10}")
     for robot, c in counts.items():
         print(f"{robot:<16}{c['stored']:>8}{c['duplicates']:>7}{c['min_seq']:>9}{c['max_seq']:>9}"
-              f"{c['contiguous']:>8}")
+              f"{c['contiguous']:>8}{c['conflicts']:>10}")
     tot = sum(c["stored"] for c in counts.values())
     dup = sum(c["duplicates"] for c in counts.values())
     print(f"{'total':<16}{tot:>8}{dup:>7}")
@@ -165,7 +165,8 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
 
     c = ods_sub.add_parser("counts", help="per-robot stored / duplicate counts and seq span",
                            description="Per robot: records stored, duplicates ignored, lowest and "
-                           "highest seq, highest contiguous seq (1..n all stored).")
+                           "highest seq, highest contiguous seq (1..n all stored), and conflicts (a seq "
+                           "sent again with other content: the robot started over with a fresh queue).")
     c.add_argument("--json", action="store_true", help="print JSON instead of a table")
     c.set_defaults(func=_cmd_counts)
 

@@ -68,6 +68,10 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
         "INSERT INTO meta (key, value) VALUES ('created_unix_ns', CAST(strftime('%s','now') AS INTEGER) * 1000000000)",
     ),
+    (
+        # a repeated (robot, seq) whose content differs: a robot reusing seqs (fresh queue)
+        "ALTER TABLE robot_stats ADD COLUMN conflicts INTEGER NOT NULL DEFAULT 0",
+    ),
 )
 SCHEMA_VERSION = len(MIGRATIONS)
 
@@ -92,11 +96,15 @@ class InsertResult:
 
     ``stored`` and ``duplicates`` are ``(robot, seq)`` pairs; ``contiguous``
     maps each robot touched to its highest contiguous stored ``seq`` after the call.
+    ``conflicts`` are the duplicates whose content (``t_unix_ns``) differs from
+    the stored row: a robot that reused seqs (it started over with a fresh
+    queue).  They are not stored; they are counted and logged.
     """
 
     stored: tuple[tuple[str, int], ...]
     duplicates: tuple[tuple[str, int], ...]
     contiguous: dict[str, int] = field(default_factory=dict)
+    conflicts: tuple[tuple[str, int], ...] = ()
 
 
 def _row_to_dict(row: Sequence[Any]) -> dict[str, Any]:
@@ -282,6 +290,7 @@ class OperationalDataStore:
         now = time.time_ns()
         stored: list[tuple[str, int]] = []
         dups: list[tuple[str, int]] = []
+        conflicts: list[tuple[str, int]] = []
         con.execute("BEGIN IMMEDIATE")
         for r in records:
             pose = r.pose if r.pose is not None else (None, None, None)
@@ -297,6 +306,11 @@ class OperationalDataStore:
             else:
                 dups.append((r.robot, r.seq))
                 con.execute("UPDATE robot_stats SET duplicates = duplicates + 1 WHERE robot = ?", (r.robot,))
+                (t_old,) = con.execute("SELECT t_unix_ns FROM telemetry WHERE robot = ? AND seq = ?",
+                                       (r.robot, r.seq)).fetchone()
+                if t_old != r.t_unix_ns:
+                    conflicts.append((r.robot, r.seq))
+                    con.execute("UPDATE robot_stats SET conflicts = conflicts + 1 WHERE robot = ?", (r.robot,))
         contiguous: dict[str, int] = {}
         for robot in sorted({r.robot for r in records}):
             (c,) = con.execute("SELECT contiguous FROM robot_stats WHERE robot = ?", (robot,)).fetchone()
@@ -314,7 +328,11 @@ class OperationalDataStore:
             con.execute("UPDATE robot_stats SET contiguous = ? WHERE robot = ?", (c, robot))
             contiguous[robot] = c
         con.execute("COMMIT")
-        return InsertResult(tuple(stored), tuple(dups), contiguous)
+        if conflicts:
+            log.error("ODS: %d record(s) reuse a stored (robot, seq) with different content, e.g. %s; "
+                      "not stored (a robot started over with a fresh telemetry queue: give it its old "
+                      "queue folder)", len(conflicts), conflicts[0])
+        return InsertResult(tuple(stored), tuple(dups), contiguous, tuple(conflicts))
 
     # ------------------------------------------------------------------ reads
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple]:
@@ -330,15 +348,16 @@ class OperationalDataStore:
             raise StoreError(f"cannot read the operational data store {str(self.path)!r}: {exc}") from None
 
     def counts(self) -> dict[str, dict[str, int]]:
-        """Per robot: ``stored``, ``duplicates``, ``min_seq``, ``max_seq``, ``contiguous``."""
+        """Per robot: ``stored``, ``duplicates``, ``conflicts``, ``min_seq``, ``max_seq``, ``contiguous``."""
         rows = self._read(
-            "SELECT s.robot, count(t.seq), s.duplicates, min(t.seq), max(t.seq), s.contiguous "
+            "SELECT s.robot, count(t.seq), s.duplicates, s.conflicts, min(t.seq), max(t.seq), s.contiguous "
             "FROM robot_stats s LEFT JOIN telemetry t ON t.robot = s.robot "
             "GROUP BY s.robot ORDER BY s.robot"
         )
         return {
-            robot: {"stored": n, "duplicates": d, "min_seq": lo or 0, "max_seq": hi or 0, "contiguous": c}
-            for robot, n, d, lo, hi, c in rows
+            robot: {"stored": n, "duplicates": d, "conflicts": k, "min_seq": lo or 0, "max_seq": hi or 0,
+                    "contiguous": c}
+            for robot, n, d, k, lo, hi, c in rows
         }
 
     def contiguous(self, robot: str) -> int:

@@ -51,12 +51,15 @@ def telemetry_report(
     Returns
     -------
     dict
-        ``{"telemetry": {"sent", "stored", "duplicates", "lost", "per_robot":
-        {robot: {"sent", "stored", "duplicates", "lost", "missing", "unexpected"
-        [, "queued"]}}}}`` where ``stored`` counts distinct ``(robot, seq)``
-        with ``1 <= seq <= sent``, ``lost = sent - stored``, ``missing`` lists
-        the missing seqs as ranges (at most 20), and ``unexpected`` counts
-        stored seqs beyond ``sent``.
+        ``{"telemetry": {"sent", "stored", "duplicates", "lost", "conflicts",
+        "per_robot": {robot: {"sent", "stored", "duplicates", "conflicts",
+        "lost", "missing", "unexpected" [, "queued"]}}}}`` where ``stored``
+        counts distinct ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost =
+        sent - stored``, ``missing`` lists the missing seqs as ranges (at most
+        20), ``unexpected`` counts stored seqs beyond ``sent``, and
+        ``conflicts`` counts messages refused because their ``(robot, seq)``
+        was already stored with other content (a robot that started over with
+        a fresh queue: those messages are lost even when ``lost`` is 0).
 
     Examples
     --------
@@ -83,6 +86,7 @@ def telemetry_report(
                 "sent": n_sent,
                 "stored": len(in_range),
                 "duplicates": counts.get(robot, {}).get("duplicates", 0),
+                "conflicts": counts.get(robot, {}).get("conflicts", 0),
                 "lost": n_sent - len(in_range),
                 "missing": _ranges(missing),
                 "unexpected": len(seqs) - len(in_range),
@@ -93,8 +97,17 @@ def telemetry_report(
     finally:
         if own:
             ods.close()
-    total = {k: sum(r[k] for r in per_robot.values()) for k in ("sent", "stored", "duplicates", "lost")}
+    total = {k: sum(r[k] for r in per_robot.values()) for k in ("sent", "stored", "duplicates", "lost", "conflicts")}
     return {"telemetry": {**total, "per_robot": per_robot}}
+
+
+def queue_sent(queue_dir: str | Path) -> tuple[int, int]:
+    """``(sent, queued)`` from a robot's on-disk telemetry queue (last seq handed out, unacked)."""
+    from scmr_mesh.data.queue import TelemetryQueue
+
+    with TelemetryQueue(queue_dir, fsync="never") as q:
+        st = q.stats()
+    return st.next_seq - 1, st.depth
 
 
 def robot_sent(robot_dir: str | Path) -> tuple[int, int]:
@@ -107,8 +120,6 @@ def robot_sent(robot_dir: str | Path) -> tuple[int, int]:
     """
     import json
 
-    from scmr_mesh.data.queue import TelemetryQueue
-
     robot_dir = Path(robot_dir)
     summary = robot_dir / "telemetry.json"
     if summary.is_file():
@@ -120,9 +131,7 @@ def robot_sent(robot_dir: str | Path) -> tuple[int, int]:
     qdir = robot_dir / "telemetry-queue"
     if not qdir.is_dir():
         return 0, 0
-    with TelemetryQueue(qdir, fsync="never") as q:
-        st = q.stats()
-    return st.next_seq - 1, st.depth
+    return queue_sent(qdir)
 
 
 def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
@@ -132,9 +141,11 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     Parameters
     ----------
     run_dir : path
-        Holds ``ods.sqlite`` (the cloud's default there) and ``robots/<id>/``.
+        Holds ``ods.sqlite`` (the cloud's default there), ``queues/<id>/`` (the
+        robots' telemetry queues when they run with a ready file in the run
+        dir) and ``robots/<id>/``.
     robots : list of str, optional
-        Robot ids (default: every folder under ``robots/``).
+        Robot ids (default: every folder under ``queues/``, else ``robots/``).
     ods_path : path, optional
         The ODS file when it is not ``run_dir/ods.sqlite``.
 
@@ -145,22 +156,27 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         cloud ever stored anything: then every sent message counts as lost).
     """
     run_dir = Path(run_dir)
+    queues = run_dir / "queues"
     if robots is None:
-        robots = sorted(p.name for p in (run_dir / "robots").iterdir() if p.is_dir()) \
-            if (run_dir / "robots").is_dir() else []
+        base = queues if queues.is_dir() else run_dir / "robots"
+        robots = sorted(p.name for p in base.iterdir() if p.is_dir()) if base.is_dir() else []
     sent, queued = {}, {}
     for rid in robots:
-        sent[rid], queued[rid] = robot_sent(run_dir / "robots" / rid)
+        if (queues / rid).is_dir():  # peers with a run dir keep the queue there, across restarts
+            sent[rid], queued[rid] = queue_sent(queues / rid)
+        else:
+            sent[rid], queued[rid] = robot_sent(run_dir / "robots" / rid)
     ods = Path(ods_path) if ods_path is not None else run_dir / "ods.sqlite"
     if ods.is_file():
         rep = telemetry_report(ods, sent, queued=queued)
         rep["telemetry"]["ods"] = str(ods)
         return rep
-    per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "lost": sent[r],
+    per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent[r],
                "missing": _ranges(list(range(1, sent[r] + 1))), "unexpected": 0, "queued": queued[r]}
            for r in robots}
     tot = sum(sent.values())
-    return {"telemetry": {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "per_robot": per, "ods": None}}
+    return {"telemetry": {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "conflicts": 0,
+                          "per_robot": per, "ods": None}}
 
 
 def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, timeout_s: float = 10.0,
@@ -200,4 +216,4 @@ def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         return None
 
 
-__all__ = ["fleet_telemetry", "robot_sent", "run_telemetry", "settle_telemetry", "telemetry_report"]
+__all__ = ["fleet_telemetry", "queue_sent", "robot_sent", "run_telemetry", "settle_telemetry", "telemetry_report"]

@@ -580,8 +580,9 @@ def add_arguments(parser, role: str) -> None:
                        help="on-disk queue of telemetry held for the cloud (default <run dir>/relay-NODE)")
     if role in ("robot", "leader"):
         g.add_argument("--telemetry-queue", metavar="DIR",
-                       help="the robot's on-disk telemetry queue (default OUT/telemetry-queue; kept "
-                            "across restarts)")
+                       help="the robot's on-disk telemetry queue, kept across restarts (default "
+                            "RUN/queues/ID when a run dir is known from $SCMR_RUN_DIR or --ready-file, "
+                            "else OUT/telemetry-queue)")
         g.add_argument("--telemetry-max-bytes", type=int, default=16 << 20, metavar="N",
                        help="bound of the telemetry queue; beyond it new telemetry is refused and "
                             "counted (default 16 MiB)")
@@ -641,7 +642,11 @@ def attach_robot(robot, args) -> TelemetryAgent | None:
     """
     if data_tier_off():
         return None
-    qdir = getattr(args, "telemetry_queue", None) or Path(args.out) / "telemetry-queue"
+    qdir = getattr(args, "telemetry_queue", None)
+    if not qdir:
+        run_dir = _run_dir_from(args)
+        # in a run dir the queue is per robot id, so a restarted robot (new --out) keeps it
+        qdir = run_dir / "queues" / robot.id if run_dir is not None else Path(args.out) / "telemetry-queue"
     return TelemetryAgent(robot, qdir, max_bytes=getattr(args, "telemetry_max_bytes", 16 << 20),
                           deadline_ms=getattr(args, "deadline_ms", 1000.0))
 
