@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 from scmr_mesh.cli import main as scmr
 from scmr_mesh.errors import ScmrError
 
-FUZZ = settings(max_examples=40, deadline=None, derandomize=True,
+FUZZ = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 toml_scalar = st.one_of(
