@@ -896,6 +896,22 @@ class RobotViz(_Viz):
             if ok:
                 s.rec.log(f"{ROBOT_ROOT}/{self.robot}/srm", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
 
+    def log_liveliness(self, role: str, node: str, alive: bool, *, t_unix_ns: int | None = None) -> None:
+        """Log what this robot's liveliness subscriber saw (cloud and leader tokens only).
+
+        Entity ``scmr/alive/<role>/<node>/<robot>``: 1 while the token is up, as
+        a step series, so each robot's view of each serving node is one line
+        ("cloud0 seen by r1").
+        """
+        if role not in ("cloud", "leader"):
+            return
+        s = self._stream
+        entity = f"{keys.alive(role, entity_name(node))}/{self.robot}"
+        with s._lock:
+            self._step_series(entity, f"{node} seen by {self.robot}")
+            s.at(t_unix_ns)
+            s.rec.log(entity, s.rr.Scalars(1.0 if alive else 0.0))
+
     def log_telemetry(self, *, battery: float | None = None, energy_j: float | None = None, t_unix_ns: int | None = None) -> None:
         """Log battery level and/or energy outside a request."""
         s, rr = self._stream, self._stream.rr

@@ -159,8 +159,13 @@ def test_image_every_thins_images_not_scalars(isolated_env):
     rv = viz.RobotViz(viz.RerunOptions("save", str(out)), "r9", image_every=3)
     for i in range(10):
         rv.observe({"seq": i, "ok": True, "tier": "local", "tor_ms": 1.0}, np.zeros((10, 12, 3), np.uint8), np.ones((10, 12), bool))
+    rv.log_liveliness("cloud", "c0", True)
+    rv.log_liveliness("cloud", "c0", False)
+    rv.log_liveliness("robot", "r2", True)  # other robots' tokens are not plotted
     rv.close()
     rows = viz.rrd_rows(out)
+    assert rows["/scmr/alive/cloud/c0/r9"]["Scalars:scalars"] == 2
+    assert not any(k.startswith("/scmr/alive/robot") for k in rows)
     assert rows["/scmr/robot/r9/camera"]["EncodedImage:blob"] == 4  # requests 0, 3, 6, 9
     assert rows["/scmr/robot/r9/camera/drivable"]["SegmentationImage:buffer"] == 4
     assert rows["/scmr/results/r9/tor_ms"]["Scalars:scalars"] == 10

@@ -294,6 +294,7 @@ def _robot_body(args, session, stop: threading.Event) -> int:
 
 def _robot_viz(args, robot):
     """Log overlays, QoS and battery to rerun with --rerun-url/--rerun-save (or $SCMR_RERUN_*; scmr_mesh.viz)."""
+    from scmr_mesh import keys
     from scmr_mesh.viz import RerunOptions, robot_viz
 
     rv = robot_viz(RerunOptions.for_peer(args, robot.id), robot.id)
@@ -306,6 +307,17 @@ def _robot_viz(args, robot):
             publish(message)
 
         robot.publish_telemetry = publish_and_log
+        view_cb = robot.view.on_liveliness  # bound before attach() subscribes with it
+
+        def on_liveliness(sample):
+            view_cb(sample)
+            try:
+                _, role, node = keys.parse(str(sample.key_expr))
+                rv.log_liveliness(role, node, str(sample.kind).endswith("PUT"))
+            except Exception as exc:  # the viewer never breaks routing
+                log.debug("rerun liveliness log failed: %s", exc)
+
+        robot.view.on_liveliness = on_liveliness
     return rv
 
 
