@@ -56,7 +56,7 @@ def test_busy_is_explicit_and_robots_fall_back_at_once(tmp_path):
         for k in range(3):
             robots.append(spawn_peer(
                 ["robot", "--id", f"r{k}", "--connect", cloud_ep, "--connect", leader_ep, "--synthetic", "stub",
-                 "--rate", "10", "--duration", "2.5", "--priority", str(10 * (k % 2)), "--no-local-fallback",
+                 "--rate", "10", "--duration", "1.5", "--priority", str(10 * (k % 2)), "--no-local-fallback",
                  "--quiet", "--out", str(tmp_path / f"r{k}")],
                 log_path=tmp_path / f"r{k}.log"))
         peers.extend(robots)
@@ -66,7 +66,7 @@ def test_busy_is_explicit_and_robots_fall_back_at_once(tmp_path):
         for p in reversed(peers):
             stop_peer(p, timeout=5)
     records = [r for k in range(3) for r in read_records(tmp_path / f"r{k}" / "records.jsonl")]
-    assert len(records) >= 15
+    assert len(records) >= 10
     # every request answered: busy at the cloud sends it to the leader within the same request
     assert all(r["ok"] for r in records), [r["error"] for r in records if not r["ok"]]
     fell_back = [r for r in records
