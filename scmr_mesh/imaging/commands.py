@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--mode", choices=MODES, default="best", help="best (default, most accurate) or thesis (the dissertation's rules)")
     p.add_argument("--stages", action="store_true", help="also write the intermediate images")
-    p.add_argument("--q", type=float, default=32.0, help="SRM complexity Q (default: %(default)s)")
+    p.add_argument("--q", type=float, default=32.0, help="SRM complexity Q (default: %(default)s; best mode runs SRM at 16 x Q)")
     p.set_defaults(func=cmd_segment)
 
     p = sub.add_parser(
