@@ -271,6 +271,7 @@ def _desert(rng, img, yy, xx, w, h):
     _paint(img, hills, [160, 130, 110], _texture(rng, h, w, [(10, 8)]))
     truth = ground.copy()
     # rocks: dark blobs standing on the ground, sized by distance
+    rock_tex = _texture(rng, h, w, [(18, 3)])
     for _ in range(int(rng.integers(3, 8))):
         d = rng.uniform(0.15, 0.85)
         ry = hz + d * (h - hz)
@@ -278,6 +279,6 @@ def _desert(rng, img, yy, xx, w, h):
         rr = 3 + 22 * d
         rock = ((xx - rx) / rr) ** 2 + ((yy - ry) / (rr * 0.6)) ** 2 < 1
         rock &= ground
-        _paint(img, rock, [95, 75, 60], _texture(rng, h, w, [(18, 3)]), 0.8 + 0.4 * np.clip((ry - yy) / rr, 0, 1))
+        _paint(img, rock, [95, 75, 60], rock_tex, 0.8 + 0.4 * np.clip((ry - yy) / rr, 0, 1))
         truth &= ~rock
     return truth
