@@ -727,6 +727,12 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     b.add_argument("--crash-outage", default="4:7", metavar="START:END",
                    help="cloud SIGKILL and restart in the crash run, s (default: %(default)s; the run "
                         "goes on after END so the restarted cloud's first answer is seen)")
+    b.add_argument("--overload-robots", type=int, default=8, metavar="N",
+                   help="robots in the overload run (0 skips it; default: %(default)s): a cloud with a "
+                        "40 ms service and 1 worker (~25 requests/s) against N robots at --overload-rate, "
+                        "once with the priority negotiator (--queue 2) and once FIFO; see `scmr bench overload`")
+    b.add_argument("--overload-rate", type=float, default=10.0, metavar="HZ",
+                   help="frames/s per robot in the overload run (default: %(default)s)")
     b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
     b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
     b.set_defaults(func=_cmd_bench_mesh)
@@ -815,9 +821,19 @@ def _cmd_bench_mesh(args: argparse.Namespace) -> int:
         crash = {**_run_entry(rep), "failover_gaps_ms": rep["failover_gaps_ms"],
                  "failback_gaps_ms": rep["failback_gaps_ms"], "faults": rep["faults"]}
         print(format_summary(rep), file=sys.stderr)
+    overload = None
+    if args.overload_robots > 0:  # served/busy, ToR of admitted, fairness, peak RSS (security area)
+        from scmr_mesh.security.overload import run_overload
+
+        overload = {"runs": [
+            run_overload(policy=pol, robots=args.overload_robots, rate_hz=args.overload_rate, duration_s=10.0,
+                         run_dir=root / f"overload-{pol}", progress=lambda m: print(m, file=sys.stderr))
+            for pol in ("negotiator", "fifo")
+        ]}
     result = {
         "runs": runs,
         "crash": crash,
+        "overload": overload,
         "targets": bench_targets(runs, crash),
         "machine": {"cpus": os.cpu_count(), "loadavg_at_end": list(os.getloadavg())},
         "measured_unix_ns": time.time_ns(),
@@ -833,6 +849,10 @@ def _cmd_bench_mesh(args: argparse.Namespace) -> int:
     if crash is not None:
         print(f"crash run: RoR {crash['ror']}, failover gaps {crash['failover_gaps_ms']} ms, "
               f"failback gaps {crash['failback_gaps_ms']} ms")
+    for r in (overload or {}).get("runs", []):
+        print(f"overload {r['policy']}: {r['requests']} requests, {r['served']} served, {r['rejected']} busy; "
+              f"ToR admitted p50 {r['tor_admitted_ms']['p50']} p99 {r['tor_admitted_ms']['p99']} ms; "
+              f"Jain {r['jain_all']}; cloud peak RSS {r['cloud_peak_rss_mb']['sum_sampled']} MB")
     print(f"targets: {json.dumps({k: v for k, v in result['targets'].items() if k != 'limits'})}")
     print(f"wrote {args.json}")
     return 0
