@@ -258,13 +258,14 @@ class Progress:
 
 
 def format_progress(p: Progress) -> str:
-    """One line: time, requests, RoR, ToR, tier mix, alive tiers."""
+    """One line: time, phase, alive tiers, requests, RoR, ToR (last 200), answers per tier."""
     ror = f"{p.succeeded / p.requests:.3f}" if p.requests else "-"
     tor = "-" if p.tor_p50_ms is None else f"{p.tor_p50_ms:.1f}/{p.tor_p99_ms:.1f}"
     tiers = " ".join(f"{k} {p.by_tier.get(k, 0)}" for k in ("cloud", "leader", "local", "failed"))
-    alive = " ".join(f"{k} {'up' if v else 'DOWN'}" for k, v in p.alive.items())
-    return (f"[{p.elapsed_s:5.1f}/{p.duration_s:g} s] {p.phase}: {p.requests} req, RoR {ror}, "
-            f"ToR p50/p99 {tor} ms | {tiers} | {alive}")
+    alive = ", ".join(f"{k} {'up' if v else 'DOWN'}" for k, v in p.alive.items())
+    phase = "" if p.phase == "running" else f"{p.phase} | "
+    return (f"[{p.elapsed_s:5.1f}/{p.duration_s:g} s] {phase}{alive} | {p.requests} req, RoR {ror}, "
+            f"ToR p50/p99 {tor} ms | {tiers}")
 
 
 # --------------------------------------------------------------------------
@@ -584,7 +585,10 @@ class _ProgressPrinter:
     def __call__(self, p: Progress) -> None:
         line = format_progress(p)
         if self.tty:
-            self.stream.write("\r" + line[:200] + "\x1b[K")
+            import shutil
+
+            width = max(20, shutil.get_terminal_size((120, 24)).columns - 1)  # no wrap: \r redraws one row
+            self.stream.write("\r" + line[:width] + "\x1b[K")
             self.stream.flush()
             return
         now = time.monotonic()

@@ -138,3 +138,13 @@ def test_schema_file_is_valid_json_schema(repo_root: Path):
 
     schema = json.loads((repo_root / "schemas" / "report.schema.json").read_text())
     jsonschema.Draft202012Validator.check_schema(schema)
+
+
+def test_progress_line_puts_alive_tiers_first():
+    from scmr_mesh.fleet import Progress, format_progress
+
+    line = format_progress(Progress(10.6, 20, 4, 3, 7.5, 40.0, {"cloud": 2, "leader": 1, "failed": 1},
+                                    {"cloud": False, "leader": True}))
+    assert line.startswith("[ 10.6/20 s] cloud DOWN, leader up | 4 req, RoR 0.750, ToR p50/p99 7.5/40.0 ms")
+    assert line.endswith("cloud 2 leader 1 local 0 failed 1")
+    assert "starting" in format_progress(Progress(0, 20, 0, 0, None, None, {}, {}, phase="starting"))
