@@ -10,8 +10,12 @@ Two modes:
     removal (a column stops at its first red pixel or strong edge).
 
 ``"best"`` (default)
-    The same building blocks arranged for accuracy; see :func:`_best_mask`
-    and docs/PIPELINE.md for the rules and what was measured to choose them.
+    The same building blocks arranged for accuracy: Gaussian -> SRM at
+    ``16 * q`` -> seed regions in the bottom-centre cell -> regions of a
+    similar colour (relative to the seed's brightness), below a horizon prior,
+    4-connected to the cell -> a gap-tolerant bottom-up column fill.  See
+    :func:`_best_candidates` and docs/PIPELINE.md for the rules, and
+    docs/ACCURACY.md for what was measured to choose them.
 """
 
 from __future__ import annotations
@@ -58,7 +62,7 @@ class DrivableResult:
         Milliseconds per stage, including ``"resize"`` and ``"total"``
         (``total`` excludes ``resize``: it is the 300x225 frame to the mask).
     stages : dict of str to ndarray, or None
-        With ``stages=True``: ``"frame"`` (225, 300, 3), ``"srm"`` (225, 300, 3)
+        With ``stages=True``: ``"frame"`` and ``"blur"`` (225, 300, 3), ``"srm"`` (225, 300, 3)
         region-mean image, ``"otsu"`` (225, 300) uint8 black/white image,
         ``"histogram"`` (256,) int64 counts, ``"edges"`` (225, 300) float32
         Sobel magnitude; plus ``"channel"`` (0-d int) the dominant channel.
