@@ -147,7 +147,9 @@ def build_config(mc: MeshConfig):
         from scmr_mesh.security.profile import load_profile
 
         if not mc.identity:
-            raise ConfigError(f"--security {mc.security} needs this peer's name (--node or --id)")
+            raise ConfigError(f"--security {mc.security} needs this peer's name (--node for cloud and leader, "
+                              "--id for robots); `scmr router` has no identity and cannot join a secured mesh "
+                              "yet (docs/SECURITY.md)")
         apply_security(conf, load_profile(mc.security, credentials=mc.credentials), identity=mc.identity,
                        listen=mc.listen, connect=mc.connect)
     check(conf)
