@@ -462,14 +462,20 @@ def _wait_port(proc: subprocess.Popen, port: int, *, timeout: float, what: str) 
 
 
 def _stop(proc: subprocess.Popen, *, grace: float = 5.0) -> int | None:
-    """SIGINT (rerun finishes its file), then SIGTERM, then SIGKILL."""
+    """SIGINT (rerun finishes its file), then SIGTERM, then SIGKILL, to its process group.
+
+    Every rerun process here is started in its own session, so the group is
+    exactly that process and whatever it started.
+    """
     if proc.poll() is not None:
         return proc.returncode
     for sig, wait in ((signal.SIGINT, grace), (signal.SIGTERM, 2.0), (signal.SIGKILL, 2.0)):
         try:
-            proc.send_signal(sig)
+            os.killpg(proc.pid, sig)
         except ProcessLookupError:
             break
+        except PermissionError:
+            proc.send_signal(sig)
         try:
             return proc.wait(wait)
         except subprocess.TimeoutExpired:

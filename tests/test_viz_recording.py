@@ -97,6 +97,7 @@ def test_save_writes_one_finalised_file(fleet_recording):
     fv, path = fleet_recording
     assert path is not None and path.is_file()
     assert sorted(p.name for p in path.parent.glob("run*")) == ["run.rrd"]  # no .partial left
+    assert fv._sink.proc.poll() is not None  # the recorder process is gone
     res = viz.run_rerun_cli(["rrd", "verify", str(path)])
     assert res.returncode == 0, res.stderr
 
