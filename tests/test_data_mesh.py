@@ -92,7 +92,9 @@ def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path)
 
     pc, pl = free_port(), free_port()
     ods_path = tmp_path / "ods.sqlite"
-    cloud_args = dict(extra=["--ods", str(ods_path)])
+    params = tmp_path / "params.json"
+    params.write_text(json.dumps({"params/speed_mps": 1.5, "maps/site": {"lanes": 2}}))
+    cloud_args = dict(extra=["--ods", str(ods_path), "--data-params", str(params)])
     cloud = peers.service("cloud", "c1", pc, **cloud_args)
     peers.service("leader", "L", pl, connect=[_ep(pc)], extra=["--sync-period", "0.3"])
     r1 = peers.robot("r1", [_ep(pc), _ep(pl)], "--rate", "20", "--duration", "7", "--deadline-ms", "400",
@@ -112,6 +114,7 @@ def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path)
         wait_for(lambda: not probe.view.snapshot().cloud, timeout=10, what="the probe to see the cloud go")
         tier, node, items = agent.fetch("state/r1")
         assert (tier, node) == ("leader", "L")  # same query, answered by the leader's copy
+        assert agent.fetch("maps/*")[2] == {"maps/site": {"lanes": 2}}  # shared data pulled in the sync
         seq_at_leader = items["state/r1"]["seq"]
         time.sleep(1.5)  # r1 keeps sending telemetry to the leader during the outage
         _, _, items = agent.fetch("state/r1")
@@ -179,6 +182,16 @@ def test_robot_restarted_mid_outage_keeps_its_queue(peers, tmp_path):
     assert out.returncode == 0, out.stderr
     assert "answered by cloud/c1" in out.stderr
     assert json.loads(out.stdout)["state/r2"]["seq"] == sent
+
+
+def test_bad_data_params_stop_the_cloud_with_one_line(tmp_path):
+    bad = tmp_path / "params.json"
+    bad.write_text("[1, 2]")
+    out = subprocess.run([sys.executable, "-m", "scmr_mesh", "cloud", "--node", "c9", "--workers", "1",
+                          "--process", STUB, "--listen", _ep(free_port()), "--ods", str(tmp_path / "o.sqlite"),
+                          "--data-params", str(bad)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1, out.stderr
+    assert "scmr: error: --data-params" in out.stderr and "must hold a JSON object, got list" in out.stderr
 
 
 def test_full_and_corrupt_queues_are_reported(peers, tmp_path):
