@@ -98,3 +98,16 @@ def test_bench_data_reports_medians(tmp_path, capsys):
         assert res[k]["n"] == 10 and 0 < res[k]["median_ms"] <= res[k]["p99_ms"]
     assert main(["bench", "data", "--n", "3"]) == 1
     assert "--n must be >= 10, got 3" in capsys.readouterr().err
+
+
+def test_public_names_resolve_and_import_stays_light():
+    import subprocess
+    import sys
+
+    import scmr_mesh.data as data
+
+    for name in data.__all__:
+        assert getattr(data, name).__name__ == name
+    code = "import sys, scmr_mesh.data; print('sqlite3' in sys.modules, 'msgpack' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.split() == ["False", "False"]

@@ -1,1 +1,40 @@
-"""data"""
+"""The data tier: operational data store, on-disk telemetry queue, data buffer, reports.
+
+Pure (no Zenoh; the mesh glue is :mod:`scmr_mesh.mesh.data_service`).  Public names are
+re-exported here and loaded on first use, so ``import scmr_mesh.data`` stays cheap::
+
+    from scmr_mesh.data import OperationalDataStore, TelemetryQueue, DataBuffer, telemetry_report
+
+See docs/DATA.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS: dict[str, str] = {
+    "OperationalDataStore": "ods", "InsertResult": "ods", "default_db_path": "ods",
+    "TelemetryQueue": "queue", "QueueStats": "queue",
+    "DataBuffer": "buffer", "BufferSync": "buffer", "MergeResult": "buffer",
+    "TelemetryRecord": "record", "make_record": "record", "encode_records": "record", "decode_records": "record",
+    "telemetry_report": "report", "run_telemetry": "report", "settle_telemetry": "report",
+    "fleet_telemetry": "report",
+    "StoreError": "errors", "QueueError": "errors", "QueueFullError": "errors", "QueueCorruptError": "errors",
+    "TelemetryError": "errors",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    mod = _EXPORTS.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'scmr_mesh.data' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"scmr_mesh.data.{mod}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
