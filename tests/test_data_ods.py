@@ -241,3 +241,21 @@ def test_run_telemetry_prefers_the_run_dirs_queues(tmp_path):
         q.ack(5)
     rep = run_telemetry(tmp_path)["telemetry"]
     assert list(rep["per_robot"]) == ["r1"] and rep["sent"] == 5 and rep["per_robot"]["r1"]["queued"] == 0
+
+
+def test_two_processes_opening_a_new_store_at_once_both_succeed(tmp_path):
+    """Two cloud nodes given the same fresh file race on the migrations; both must start."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "shared.sqlite"
+    code = ("import sys; from scmr_mesh.data.ods import OperationalDataStore as O; "
+            "from scmr_mesh.data.record import make_record as m; o = O(sys.argv[1]); "
+            "o.insert([m(sys.argv[2], s, t_unix_ns=s) for s in range(1, 51)], received_from='cloud'); o.close()")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(path), f"r{i}"], stderr=subprocess.PIPE, text=True)
+             for i in range(4)]
+    errs = [p.communicate(timeout=60)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0, 0], errs
+    with OperationalDataStore(path, readonly=True) as ods:
+        assert ods.schema_version() == SCHEMA_VERSION
+        assert {r: c["stored"] for r, c in ods.counts().items()} == {f"r{i}": 50 for i in range(4)}

@@ -206,15 +206,20 @@ class OperationalDataStore:
             if mode.lower() != "wal":
                 log.warning("ODS %s: journal mode is %s, not WAL", self.path, mode)
             con.execute("PRAGMA synchronous = FULL")  # an ack means the row survives power loss
-            version = con.execute("PRAGMA user_version").fetchone()[0]
-            self._check_version(version)
-            for v in range(version, SCHEMA_VERSION):
+            while True:
+                # each step re-reads the version inside its write lock: another process
+                # (a second cloud node on the same file) may have migrated meanwhile
                 con.execute("BEGIN IMMEDIATE")
-                for stmt in MIGRATIONS[v]:
+                version = con.execute("PRAGMA user_version").fetchone()[0]
+                if version >= SCHEMA_VERSION:
+                    con.execute("COMMIT")
+                    self._check_version(version)
+                    break
+                for stmt in MIGRATIONS[version]:
                     con.execute(stmt)
-                con.execute(f"PRAGMA user_version = {v + 1}")
+                con.execute(f"PRAGMA user_version = {version + 1}")
                 con.execute("COMMIT")
-                log.info("ODS %s: migrated schema to version %d", self.path, v + 1)
+                log.info("ODS %s: migrated schema to version %d", self.path, version + 1)
             return con
         except sqlite3.DatabaseError as exc:
             raise StoreError(
