@@ -3,9 +3,10 @@ problem, and the service keeps serving.  One real cloud process; ~3 s."""
 
 from __future__ import annotations
 
+import time
+
 import msgpack
 import pytest
-import zenoh
 
 from conftest import free_port
 from scmr_mesh import keys, wire
@@ -87,3 +88,53 @@ def test_no_payload_is_an_error_reply(cloud):
     replies = list(q.get())
     assert len(replies) == 1 and replies[0].err is not None
     assert wire.decode(replies[0].err.payload.to_bytes(), kind="error")["code"] == "malformed"
+
+
+def test_robot_publishes_valid_telemetry_results_and_load(cloud, tmp_path):
+    """Telemetry, results and load messages on the wire match their schemas and the records."""
+    import json
+    import threading
+
+    from scmr_mesh.mesh.testing import read_records
+
+    proc, q = cloud
+    ep = None
+    for arg_i, arg in enumerate(proc.args):
+        if arg == "--listen":
+            ep = proc.args[arg_i + 1]
+    got: dict[str, list] = {"telemetry": [], "results": [], "load": []}
+    lock = threading.Lock()
+
+    def keep(kind):
+        def cb(sample):
+            with lock:
+                got[kind].append(sample.payload.to_bytes())
+        return cb
+
+    session = open_session(MeshConfig(connect=[ep], lease_ms=300))
+    try:
+        subs = [session.declare_subscriber(keys.TELEMETRY_ALL, keep("telemetry")),
+                session.declare_subscriber(keys.RESULTS_ALL, keep("results")),
+                session.declare_subscriber(keys.LOAD_ALL, keep("load"))]
+        time.sleep(0.3)
+        r = spawn_peer(["robot", "--id", "tr1", "--synthetic", "stub", "--count", "4", "--rate", "20",
+                        "--out", str(tmp_path / "tr1"), "--connect", ep, "--no-local-fallback"],
+                       log_path=tmp_path / "tr1.log")
+        assert r.wait(timeout=60) == 0, (tmp_path / "tr1.log").read_text()
+        wait_for(lambda: len(got["telemetry"]) >= 4 and len(got["results"]) >= 4, timeout=10,
+                 what="4 telemetry and 4 results messages")
+        for s in subs:
+            s.undeclare()
+    finally:
+        close_session(session)
+    tele = [wire.decode(b, kind="telemetry") for b in got["telemetry"]]
+    assert [t["seq"] for t in tele] == [0, 1, 2, 3]
+    assert tele[-1]["results"]["succeeded"] == 4 and tele[-1]["results"]["by_tier"]["cloud"] == 4
+    assert all(0.0 <= t["battery"] <= 1.0 and t["health"] == "ok" for t in tele)
+    results = [json.loads(b) for b in got["results"]]
+    records = read_records(tmp_path / "tr1" / "records.jsonl")
+    assert [x["seq"] for x in results] == [x["seq"] for x in records]
+    assert [x["served_by"] for x in results] == ["c1"] * 4
+    loads = [wire.decode(b, kind="load") for b in got["load"]]
+    assert loads and all(ld["node"] == "c1" and ld["tier"] == "cloud" and ld["workers"] == 1 for ld in loads)
+    assert max(ld["served"] for ld in loads) >= 1
