@@ -76,7 +76,7 @@ def test_own_otsu_equals_opencv(seed, n, spread):
     np.testing.assert_array_equal(data > t, data > int(t_cv))
     # ... and the same threshold whenever no empty bin makes the choice ambiguous
     h = histogram(data)
-    if np.all(h[data.min() : data.max() + 1] > 0):
+    if np.all(h[int(data.min()) : int(data.max()) + 1] > 0):
         assert t == int(t_cv)
 
 
