@@ -96,6 +96,8 @@ def test_bench_data_reports_medians(tmp_path, capsys):
     res = json.loads(out.read_text())["results"]
     for k in ("queue_append_fsync_always", "ods_insert_batch64", "buffer_delta10_merge", "zenoh_store_ack_batch1"):
         assert res[k]["n"] == 10 and 0 < res[k]["median_ms"] <= res[k]["p99_ms"]
+    drain = json.loads(out.read_text())["results"]["backlog_drain"]
+    assert drain["stored"] == drain["backlog"] == 100 and drain["records_per_s"] > 0
     assert main(["bench", "data", "--n", "3"]) == 1
     assert "--n must be >= 10, got 3" in capsys.readouterr().err
 

@@ -272,7 +272,8 @@ def run_bench(*, n: int = 200, mesh: bool = True, progress=None) -> dict:
                 out["results"][f"ods_insert_batch{batch}"]["records_per_s_median"] = round(
                     batch / (out["results"][f"ods_insert_batch{batch}"]["median_ms"] / 1e3), 1)
             say("ODS duplicate batch of 64 (all ignored)")
-            recs = [make_record("b", k) for k in range(1, 65)]
+            recs = [make_record("dup", k) for k in range(1, 65)]
+            ods.insert(recs, received_from="cloud")  # stored once; every later insert is all duplicates
             samples = []
             for _ in range(max(10, n // 10)):
                 t0 = time.perf_counter()
@@ -305,6 +306,10 @@ def run_bench(*, n: int = 200, mesh: bool = True, progress=None) -> dict:
                 say(f"Zenoh telemetry round trip (query -> ODS commit -> ack), batch {batch}")
                 out["results"][f"zenoh_store_ack_batch{batch}"] = _stats(
                     bench_round_trip(tmp, n=n, batch=batch))
+            from scmr_mesh.mesh.data_service import bench_drain
+
+            say(f"backlog replay after an outage: {10 * n} queued records drained to the cloud")
+            out["results"]["backlog_drain"] = bench_drain(tmp, backlog=10 * n)
     return out
 
 
@@ -331,8 +336,10 @@ def _register_bench(bench: argparse._SubParsersAction) -> None:
     b = bench.add_parser("data", help="data tier: queue appends, ODS inserts, buffer sync, store round trip",
                          description="Measure the data tier in one run: on-disk queue append latency per "
                          "fsync policy, ODS insert latency (batch 1 and 64, and a batch of duplicates), "
-                         "buffer delta+merge, and the telemetry store round trip over Zenoh (query -> "
-                         "ODS commit -> ack, two sessions on loopback).  Prints JSON with medians and p99s.")
+                         "buffer delta+merge, the telemetry store round trip over Zenoh (query -> "
+                         "ODS commit -> ack, two sessions on loopback), and how fast a robot's backlog "
+                         "of 10*N queued records drains to the cloud after an outage.  Prints JSON "
+                         "with medians and p99s.")
     b.add_argument("--n", type=int, default=200, help="samples per figure (default 200)")
     b.add_argument("--json", metavar="FILE", help="also write the JSON here")
     b.add_argument("--no-mesh", action="store_true", help="skip the Zenoh round trip")

@@ -711,6 +711,73 @@ def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float =
         close_session(session)
 
 
+def bench_drain(tmp_dir: str | Path, *, backlog: int = 2000) -> dict:
+    """Replay a robot backlog to a cloud over Zenoh, as after an outage; return timings.
+
+    A :class:`TelemetryAgent` (real queue, real batching and acks) whose queue
+    holds ``backlog`` records drains them into a :class:`CloudData` ODS; two
+    sessions in one process over ``tcp/127.0.0.1``.
+
+    Returns
+    -------
+    dict
+        ``backlog``, ``drain_s``, ``records_per_s`` and ``stored`` (checked == backlog).
+    """
+    import socket
+    from types import SimpleNamespace
+
+    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ep = f"tcp/127.0.0.1:{port}"
+    tmp_dir = Path(tmp_dir)
+    cloud = CloudData("drain", tmp_dir / "drain-ods.sqlite")
+    cs = open_session(MeshConfig(listen=[ep]))
+    rs = None
+    agent = None
+    decl = []
+    try:
+        for key, cb in cloud.queryables():
+            decl.append(cs.declare_queryable(key, cb, complete=True))
+        rs = open_session(MeshConfig(connect=[ep]))
+        view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("drain",), leader=()))
+        robot = SimpleNamespace(id="bench", _session=rs, view=view, publish_telemetry=lambda m: None)
+        agent = TelemetryAgent(robot, tmp_dir / "drain-queue", autostart=False, deadline_ms=5000)
+        for i in range(1, backlog + 1):
+            agent.publish({"robot": "bench", "seq": i, "t_unix_ns": time.time_ns(),
+                           "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "battery": 0.5, "health": "ok",
+                           "results": {"requests": i, "succeeded": i, "by_tier": {"cloud": i}}})
+        q = rs.declare_querier(telemetry_key("cloud", "drain"))
+        end = time.monotonic() + 10
+        while not q.matching_status.matching:
+            if time.monotonic() > end:
+                raise MeshError("bench: the robot session never saw the cloud's telemetry queryable")
+            time.sleep(0.01)
+        q.undeclare()
+        t0 = time.perf_counter()
+        while len(agent.queue):
+            if not agent.flush_once():
+                raise MeshError("bench: the cloud stopped acknowledging telemetry during the drain")
+        dt = time.perf_counter() - t0
+        stored = cloud.ods.counts().get("bench", {}).get("stored", 0)
+        return {"backlog": backlog, "drain_s": round(dt, 4), "records_per_s": round(backlog / dt, 1),
+                "stored": stored}
+    finally:
+        if agent is not None:
+            agent.close(drain_s=0)
+        for d in decl:
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+        if rs is not None:
+            close_session(rs)
+        close_session(cs)
+        cloud.close()
+
+
 def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmup: int = 20) -> list[float]:
     """Telemetry store round trips (ms) over Zenoh: robot query -> cloud ODS commit -> ack.
 
@@ -745,7 +812,7 @@ def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmu
         out: list[float] = []
         seq = 1
         for i in range(warmup + n):
-            recs = [make_record("bench", seq + k, pose=(1.0, 2.0, 0.5), battery=0.9,
+            recs = [make_record(f"bench{batch}", seq + k, pose=(1.0, 2.0, 0.5), battery=0.9,
                                 results={"requests": seq, "succeeded": seq, "by_tier": {"cloud": seq}})
                     for k in range(batch)]
             seq += batch
