@@ -189,3 +189,23 @@ def test_unreadable_ack_file_replays_everything(tmp_path):
     (tmp_path / "ack").write_text("garbage")
     with TelemetryQueue(tmp_path) as q:
         assert [s for s, _ in q.pending()] == [1, 2] and q.next_seq == 3
+
+
+def test_readonly_inspection_never_touches_the_files(tmp_path):
+    with TelemetryQueue(tmp_path) as q:
+        for _ in range(3):
+            q.append(b"abc")
+    seg = _segments(tmp_path)[0]
+    with seg.open("ab") as fh:  # an append in progress in the robot
+        fh.write(encode_frame(4, b"abc")[:10])
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with TelemetryQueue(tmp_path, readonly=True) as q:
+        st_ = q.stats()
+        assert [s for s, _ in q.pending()] == [1, 2, 3] and st_.torn_bytes == 10 and q.next_seq == 4
+        with pytest.raises(ScmrError, match="read-only"):
+            q.append(b"x")
+        with pytest.raises(ScmrError, match="read-only"):
+            q.ack(1)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    with pytest.raises(ScmrError, match="no telemetry queue folder"):
+        TelemetryQueue(tmp_path / "absent", readonly=True)

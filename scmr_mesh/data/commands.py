@@ -130,7 +130,7 @@ def _cmd_queue(args) -> int:
     path = Path(args.dir)
     if not path.is_dir():
         raise InputError(f"no telemetry queue folder at {str(path)!r}; pass a robot's queue folder")
-    with TelemetryQueue(path, fsync="never") as q:
+    with TelemetryQueue(path, readonly=True) as q:  # the robot may be running: look only
         st = q.stats().to_dict()
     json.dump(st, sys.stdout, indent=1)
     print()
@@ -194,7 +194,8 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     q = ods_sub.add_parser("queue", help="inspect a robot's on-disk telemetry queue",
                            description="Print a telemetry queue's counters (depth, acked seq, "
                            "refused, torn bytes, corruptions, lost seqs) as JSON; exit 1 when "
-                           "it found corruption.  Opening repairs a torn tail.")
+                           "it found corruption.  Read-only: safe while the robot runs (the robot "
+                           "itself repairs a torn tail when it opens its queue).")
     q.add_argument("dir", metavar="DIR", help="the robot's queue folder")
     q.set_defaults(func=_cmd_queue)
 

@@ -199,6 +199,9 @@ class TelemetryQueue:
     strict : bool
         Raise :class:`QueueCorruptError` on a corrupt record instead of
         reporting and skipping it.
+    readonly : bool
+        Inspect only (another process may be appending): no repair, no
+        writes; :meth:`append` and :meth:`ack` raise :class:`QueueError`.
 
     Examples
     --------
@@ -214,7 +217,8 @@ class TelemetryQueue:
     """
 
     def __init__(self, path: str | Path, *, max_bytes: int = 16 << 20, segment_bytes: int = 1 << 20,
-                 fsync: str = "always", fsync_every: int = 32, strict: bool = False) -> None:
+                 fsync: str = "always", fsync_every: int = 32, strict: bool = False,
+                 readonly: bool = False) -> None:
         if fsync not in FSYNC_POLICIES:
             raise QueueError(f"fsync policy must be one of {FSYNC_POLICIES}, got {fsync!r}")
         if max_bytes < 1 or segment_bytes < 1:
@@ -230,10 +234,15 @@ class TelemetryQueue:
         self._fh = None
         self._unsynced = 0
         self.stats_ = QueueStats()
-        try:
-            self.path.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise QueueError(f"cannot create the queue folder {str(self.path)!r}: {exc}") from None
+        self.readonly = readonly
+        if readonly:
+            if not self.path.is_dir():
+                raise QueueError(f"no telemetry queue folder at {str(self.path)!r}")
+        else:
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise QueueError(f"cannot create the queue folder {str(self.path)!r}: {exc}") from None
         self._recover(strict)
 
     # ---------------------------------------------------------------- recovery
@@ -273,11 +282,15 @@ class TelemetryQueue:
                 st.corruptions.append(c)
             if torn_at < len(data):
                 st.torn_bytes += len(data) - torn_at
-                log.warning("queue %s: torn tail of %d bytes at offset %d (an append that never "
-                            "completed); truncated", seg, len(data) - torn_at, torn_at)
-                with seg.open("r+b") as fh:
-                    fh.truncate(torn_at)
-                    os.fsync(fh.fileno())
+                if self.readonly:  # maybe an append in progress in the robot: look, never touch
+                    log.info("queue %s: %d bytes at the tail are an incomplete record (torn, or being "
+                             "written)", seg, len(data) - torn_at)
+                else:
+                    log.warning("queue %s: torn tail of %d bytes at offset %d (an append that never "
+                                "completed); truncated", seg, len(data) - torn_at, torn_at)
+                    with seg.open("r+b") as fh:
+                        fh.truncate(torn_at)
+                        os.fsync(fh.fileno())
             seg_last = first - 1
             if expected is None:
                 expected = min(first, acked + 1)
@@ -313,6 +326,8 @@ class TelemetryQueue:
         st.acked_seq = acked
         st.next_seq = max(last_seq, acked) + 1
         st.depth = len(self._pending)
+        if self.readonly:
+            return
         if not self._segments or (st.corruptions and st.corruptions[-1].file == str(self._segments[-1][1])):
             self._new_segment(st.next_seq)  # never append behind a corrupt stretch
         else:
@@ -379,7 +394,7 @@ class TelemetryQueue:
         with self._lock:
             st = self.stats_
             if self._fh is None:
-                raise QueueError(f"queue {str(self.path)!r} is closed")
+                raise QueueError(f"queue {str(self.path)!r} is closed or read-only")
             if seq is not None and seq != st.next_seq:
                 raise QueueError(f"append seq must be the next seq {st.next_seq}, got {seq}")
             if st.pending_bytes + len(payload) > self.max_bytes:
@@ -424,6 +439,8 @@ class TelemetryQueue:
 
     def ack(self, upto_seq: int) -> int:
         """Acknowledge every record with ``seq <= upto_seq``; return how many left the queue."""
+        if self.readonly:
+            raise QueueError(f"queue {str(self.path)!r} was opened read-only; it cannot be acknowledged")
         with self._lock:
             st = self.stats_
             if upto_seq <= st.acked_seq:

@@ -105,7 +105,7 @@ def queue_sent(queue_dir: str | Path) -> tuple[int, int]:
     """``(sent, queued)`` from a robot's on-disk telemetry queue (last seq handed out, unacked)."""
     from scmr_mesh.data.queue import TelemetryQueue
 
-    with TelemetryQueue(queue_dir, fsync="never") as q:
+    with TelemetryQueue(queue_dir, readonly=True) as q:
         st = q.stats()
     return st.next_seq - 1, st.depth
 
