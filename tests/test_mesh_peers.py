@@ -223,3 +223,18 @@ def test_dead_worker_costs_at_most_a_resend(fleet):
     assert len(failed_on_cloud) <= 2
     for r in failed_on_cloud:
         assert r["tier"] == "leader" and r["attempts"][0]["outcome"] in ("error:internal", "timeout")
+
+
+def test_second_cloud_node_is_a_warm_standby(fleet):
+    c1, c2 = free_port(), free_port()
+    first = fleet.service("cloud", "c1", c1)
+    fleet.service("cloud", "c2", c2, connect=[_ep(c1)])
+    robot = fleet.robot("r1", [_ep(c1), _ep(c2)], extra=["--rate", "20", "--no-local-fallback"])
+    wait_for(lambda: {r["served_by"] for r in fleet.records("r1")} == {"c1", "c2"}, what="both clouds serving")
+    stop_peer(first, sig=signal.SIGKILL)
+    n = len(fleet.records("r1"))
+    wait_for(lambda: len(fleet.records("r1")) >= n + 8, what="8 records after the kill")
+    assert stop_peer(robot) == 0
+    recs = fleet.records("r1")
+    assert all(r["ok"] and r["tier"] == "cloud" for r in recs)
+    assert {r["served_by"] for r in recs[n + 1:]} == {"c2"}
