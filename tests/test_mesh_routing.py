@@ -1,0 +1,100 @@
+"""Robot routing logic without processes: live view, load spreading, placement (< 1 s)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from scmr_mesh import keys, wire
+from scmr_mesh.mesh.robot import FrameInfo, LiveView, Reachable, default_placement
+
+
+@dataclass
+class _Payload:
+    data: bytes
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+@dataclass
+class _Sample:
+    key_expr: str
+    kind: str
+    payload: _Payload | None = None
+
+
+def _up(view, role, node):
+    view.on_liveliness(_Sample(keys.alive(role, node), "SampleKind.PUT"))
+
+
+def _down(view, role, node):
+    view.on_liveliness(_Sample(keys.alive(role, node), "SampleKind.DELETE"))
+
+
+def _load(view, node, inflight, workers=2):
+    msg = wire.make_load(node, "cloud", workers=workers, inflight=inflight, served=0)
+    view.on_load(_Sample(keys.load("cloud", node), "SampleKind.PUT", _Payload(wire.encode(msg))))
+
+
+FRAME = FrameInfo("r1", 0, 1000, "png")
+
+
+def test_liveliness_put_and_delete():
+    v = LiveView()
+    _up(v, "cloud", "c1")
+    _up(v, "leader", "L")
+    _up(v, "robot", "r9")
+    snap = v.snapshot()
+    assert snap.cloud == ("c1",) and snap.leader == ("L",)
+    _down(v, "cloud", "c1")
+    assert v.snapshot().cloud == ()
+    assert v.wait_for_tier(0.01)  # the leader is still there
+    _down(v, "leader", "L")
+    assert not v.wait_for_tier(0.01)
+
+
+def test_foreign_keys_are_ignored():
+    v = LiveView()
+    v.on_liveliness(_Sample("scmr/alive/cloud/c1/extra", "SampleKind.PUT"))
+    v.on_liveliness(_Sample("other/alive/cloud/c1", "SampleKind.PUT"))
+    v.on_load(_Sample("scmr/load/cloud/c1", "SampleKind.PUT", _Payload(b"\xc1junk")))
+    assert v.snapshot().cloud == ()
+
+
+def test_least_loaded_cloud_first():
+    v = LiveView()
+    for n in ("c1", "c2", "c3"):
+        _up(v, "cloud", n)
+    _load(v, "c1", 6)
+    _load(v, "c2", 0)
+    _load(v, "c3", 2)
+    assert v.snapshot().cloud == ("c2", "c3", "c1")
+    _down(v, "cloud", "c2")
+    assert v.snapshot().cloud == ("c3", "c1")
+
+
+def test_equal_loads_rotate_so_robots_spread():
+    v = LiveView()
+    for n in ("c1", "c2", "c3"):
+        _up(v, "cloud", n)
+    firsts = [v.snapshot().cloud[0] for _ in range(6)]
+    assert sorted(set(firsts)) == ["c1", "c2", "c3"]
+
+
+def test_busy_marks_raise_the_estimate():
+    v = LiveView()
+    _up(v, "cloud", "c1")
+    _up(v, "cloud", "c2")
+    v.mark_busy("c1", 5)
+    assert all(v.snapshot().cloud[0] == "c2" for _ in range(4))
+
+
+@given(st.booleans(), st.booleans(), st.booleans())
+def test_default_placement_order(cloud, leader, local):
+    view = Reachable(("c1",) if cloud else (), ("L",) if leader else (), {}, local)
+    plan = default_placement(view, FRAME)
+    expected = [t for t, ok in (("cloud", cloud), ("leader", leader), ("local", local)) if ok]
+    assert plan == expected
