@@ -41,7 +41,7 @@ WIRE_VERSION = 1
 KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load")
 #: Codes of error replies.
 ERROR_CODES: tuple[str, ...] = (
-    "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable"
+    "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired"
 )
 #: Default largest request payload a service accepts (bytes): a 4K raw RGB
 #: frame is 24.9 MB, so 32 MiB admits any sane frame and bounds memory.
@@ -211,6 +211,7 @@ def make_request(
     mode: str = "best",
     sent_unix_ns: int | None = None,
     attempt: int = 0,
+    deadline_ms: float | None = None,
 ) -> dict:
     """Build a request message (see ``schemas/request.schema.json``).
 
@@ -224,8 +225,11 @@ def make_request(
         PNG/JPEG bytes, or raw RGB uint8 rows of ``shape`` (H, W, 3).
     encoding, shape, priority, mode, sent_unix_ns, attempt
         As in the schema; ``sent_unix_ns`` defaults to now.
+    deadline_ms : float, optional
+        How long the robot waits for this attempt; a service skips the work
+        when no worker got to it in time (error ``expired``).
     """
-    return {
+    msg = {
         "v": WIRE_VERSION,
         "kind": "request",
         "robot": robot,
@@ -238,6 +242,9 @@ def make_request(
         "attempt": int(attempt),
         "mode": mode,
     }
+    if deadline_ms is not None:
+        msg["deadline_ms"] = float(deadline_ms)
+    return msg
 
 
 def make_reply(

@@ -138,3 +138,35 @@ def test_robot_publishes_valid_telemetry_results_and_load(cloud, tmp_path):
     loads = [wire.decode(b, kind="load") for b in got["load"]]
     assert loads and all(ld["node"] == "c1" and ld["tier"] == "cloud" and ld["workers"] == 1 for ld in loads)
     assert max(ld["served"] for ld in loads) >= 1
+
+
+def test_requests_past_their_deadline_are_not_processed(tmp_path):
+    """With one slow worker, requests queued past their deadline get 'expired' without the work."""
+    from scmr_mesh.mesh.testing import SLOW
+
+    port = free_port()
+    ready = tmp_path / "slow.ready"
+    p = spawn_peer(["cloud", "--node", "slow", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+                    "--process", SLOW, "--ready-file", str(ready)], log_path=tmp_path / "slow.log",
+                   env={"SCMR_STUB_DELAY_MS": "400"})
+    try:
+        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what="slow cloud ready")
+        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
+        try:
+            q = session.declare_querier(keys.drivable("cloud", "slow"), timeout=10.0)
+            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
+            pending = [q.get(payload=wire.encode(wire.make_request("t1", i, synthetic_png(i), deadline_ms=150)))
+                       for i in range(3)]
+            out = {}
+            for i, h in enumerate(pending):
+                r = list(h)[0]
+                if r.ok is not None:
+                    out[i] = "ok"
+                else:
+                    out[i] = wire.decode(r.err.payload.to_bytes(), kind="error")["code"]
+        finally:
+            close_session(session)
+        # the first starts at once; the others wait >= 400 ms for the single worker
+        assert out == {0: "ok", 1: "expired", 2: "expired"}
+    finally:
+        assert stop_peer(p) == 0

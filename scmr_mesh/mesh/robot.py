@@ -547,7 +547,8 @@ class Robot:
         sent_ns = time.time_ns()
         t_start = time.perf_counter()
         req = wire.make_request(self.id, seq, frame.data, encoding=frame.encoding, shape=frame.shape,
-                                priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns)
+                                priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns,
+                                deadline_ms=opts.deadline_ms)
         payload = wire.encode(req)
         view = self.view.snapshot(local=self._local_available())
         info = FrameInfo(self.id, seq, len(frame.data), frame.encoding)

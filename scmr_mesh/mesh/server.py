@@ -49,7 +49,7 @@ from typing import Any, Callable
 
 from scmr_mesh import keys, wire
 from scmr_mesh.errors import ImageDecodeError, InputError
-from scmr_mesh.mesh.work import DEFAULT_PROCESS, WorkerPool
+from scmr_mesh.mesh.work import DEFAULT_PROCESS, Expired, WorkerPool
 
 log = logging.getLogger(__name__)
 
@@ -292,7 +292,8 @@ class Service:
             with self.state.lock:
                 self.state.inflight += 1
             t_sub = time.perf_counter()
-            fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"])
+            fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"],
+                                      expires_mono=_expiry(req, t_arrival))
         except Exception as exc:  # never let a query go unanswered
             log.exception("query handling failed")
             self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
@@ -329,7 +330,8 @@ class Service:
                 self.state.inflight += 1
             t_sub = time.perf_counter()
             try:
-                fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"])
+                fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"],
+                                      expires_mono=_expiry(req, t_arrival))
             except Exception as exc:
                 with self.state.lock:
                     self.state.inflight -= 1
@@ -350,6 +352,9 @@ class Service:
             out = fut.result()
         except (ImageDecodeError, InputError) as exc:
             self._reply_error(query, "malformed", f"image unusable: {exc}", req)
+            return
+        except Expired as exc:
+            self._reply_error(query, "expired", f"not processed: {exc} (deadline {req.get('deadline_ms')} ms)", req)
             return
         except Exception as exc:
             log.error("worker failed on %s/%s: %s: %s", req["robot"], req["seq"], type(exc).__name__, exc)
@@ -376,6 +381,19 @@ class Service:
             log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
         finally:
             _drop(query)
+
+
+def _expiry(req: dict, t_arrival: float) -> float | None:
+    """``time.monotonic()`` after which the robot no longer waits (from ``deadline_ms``).
+
+    Counted from the query's arrival here (``t_arrival`` is ``perf_counter``,
+    converted), so no clock sync between robot and service is needed; transit
+    time is ignored, which errs on the side of doing the work.
+    """
+    d = req.get("deadline_ms")
+    if not d:
+        return None
+    return time.monotonic() - (time.perf_counter() - t_arrival) + float(d) / 1e3
 
 
 def _drop(query) -> None:

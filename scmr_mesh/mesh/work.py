@@ -145,8 +145,16 @@ def _init_worker(spec: str, parent_pid: int) -> None:
     warm(_FN)
 
 
-def _run(image: bytes, encoding: str, shape, mode: str) -> dict:
+class Expired(Exception):
+    """The robot's deadline passed before a worker got to the request."""
+
+
+def _run(image: bytes, encoding: str, shape, mode: str, expires_mono: float | None = None) -> dict:
     assert _FN is not None
+    if expires_mono is not None and time.monotonic() > expires_mono:
+        # the robot has given up and re-sent elsewhere: skip the work (CLOCK_MONOTONIC
+        # is system-wide, so the service's arrival-based expiry is valid here)
+        raise Expired(f"deadline passed {1e3 * (time.monotonic() - expires_mono):.0f} ms before a worker was free")
     t0 = time.perf_counter()
     out = _FN(image, encoding=encoding, shape=shape, mode=mode)
     out["worker_ms"] = (time.perf_counter() - t0) * 1e3
@@ -209,8 +217,11 @@ class WorkerPool:
         except Exception as exc:
             raise MeshError(f"worker pool failed to start ({type(exc).__name__}: {exc})") from None
 
-    def submit(self, image: bytes, *, encoding: str, shape, mode: str) -> Future:
+    def submit(self, image: bytes, *, encoding: str, shape, mode: str, expires_mono: float | None = None) -> Future:
         """Queue one frame; the future yields the process function's dict.
+
+        ``expires_mono`` (``time.monotonic()`` seconds): a worker that reaches the
+        frame later raises :class:`Expired` instead of running the pipeline.
 
         A pool whose worker died (killed, out of memory, a crash in native code on a
         hostile image) is broken for good in :mod:`concurrent.futures`: the request in
@@ -219,10 +230,10 @@ class WorkerPool:
         from concurrent.futures.process import BrokenProcessPool
 
         try:
-            return self._executor.submit(_run, image, encoding, shape, mode)
+            return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
         except BrokenProcessPool:
             self._respawn()
-            return self._executor.submit(_run, image, encoding, shape, mode)
+            return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
 
     def _respawn(self) -> None:
         """Replace a broken pool.  New workers are *spawned* (not forked): zenoh's
