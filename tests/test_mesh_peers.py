@@ -191,13 +191,34 @@ def test_redundant_mode_and_two_cloud_nodes(fleet):
     assert all(r["bytes_up"] > 1.5 * single for r in fleet.records("r2"))
 
 
-def test_sigterm_stops_peers_cleanly(fleet):
+def test_sigterm_stops_peers_cleanly_and_drains_the_cloud(fleet):
     cp = free_port()
-    cloud = fleet.service("cloud", "c1", cp)
+    cloud = fleet.service("cloud", "c1", cp, process=SLOW, env={"SCMR_STUB_DELAY_MS": "300"})
     robot = fleet.robot("r1", [_ep(cp)], extra=["--rate", "10"])
     wait_for(lambda: len(fleet.records("r1")) >= 2, what="2 records")
+    outbox = fleet.tmp / "r1" / "outbox"
+
+    def fresh_request_in_flight():  # sent < 100 ms ago, so the 300 ms frame is far from done
+        files = list(outbox.iterdir())
+        try:
+            return any(time.time() - f.stat().st_mtime < 0.1 for f in files)
+        except FileNotFoundError:
+            return False
+
+    wait_for(fresh_request_in_flight, interval=0.01, what="a request just sent")
+    t_term = time.time_ns()
+    assert stop_peer(cloud) == 0  # SIGTERM (to its process group) while the cloud works on a frame
+    n = len(fleet.records("r1"))
+    wait_for(lambda: len(fleet.records("r1")) >= n + 2, what="2 records after the cloud stopped")
     assert stop_peer(robot) == 0
-    assert stop_peer(cloud) == 0
+    recs = fleet.records("r1")
+    assert all(r["ok"] for r in recs)
+    # the frame in flight was answered by the draining cloud, not re-sent
+    assert all(a["outcome"] != "no_reply" for r in recs for a in r["attempts"])
+    assert any(r["tier"] == "cloud" and r["received_unix_ns"] > t_term for r in recs)  # drained
+    tiers = [r["tier"] for r in recs]
+    k = tiers.index("local")
+    assert set(tiers[:k]) == {"cloud"} and set(tiers[k:]) == {"local"}
     assert not (fleet.tmp / "c1.ready").exists()
     assert "Traceback" not in fleet.log("c1") + fleet.log("r1")
 

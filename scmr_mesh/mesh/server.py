@@ -209,10 +209,23 @@ class Service:
         log.info("%s %s warm-up query %s in %.1f ms", self.tier, self.node, "ok" if ok else "FAILED",
                  (time.perf_counter() - t0) * 1e3)
 
-    def detach(self) -> None:
-        """Undeclare everything (token first, so robots stop sending here)."""
+    def detach(self, *, drain_s: float = 2.0) -> None:
+        """Undeclare everything: the token first (robots stop sending here), then
+        wait up to ``drain_s`` for admitted requests to be answered, then the rest."""
         self._stop.set()
-        for obj in [self._token, *self._declared, self._load_pub]:
+        tok, self._token = self._token, None
+        if tok is not None:
+            try:
+                tok.undeclare()
+            except Exception as exc:
+                log.debug("undeclare token: %s", exc)
+        end = time.monotonic() + drain_s
+        while time.monotonic() < end and (self.state.inflight > 0 or self._waiting() > 0):
+            time.sleep(0.01)
+        if self.state.inflight or self._waiting():
+            log.warning("%s %s: stopping with %d requests unanswered", self.tier, self.node,
+                        self.state.inflight + self._waiting())
+        for obj in [*self._declared, self._load_pub]:
             if obj is None:
                 continue
             try:
@@ -225,6 +238,13 @@ class Service:
         if self._load_thread is not None:
             self._load_thread.join(timeout=1.0)
         self.session = None
+
+    def _waiting(self) -> int:
+        neg = self.negotiator
+        try:
+            return int(getattr(neg, "waiting", 0) or 0) if neg is not None else 0
+        except Exception:
+            return 0
 
     def shutdown(self) -> None:
         """Stop the worker pool (and the negotiator, answering what still waits)."""

@@ -138,8 +138,11 @@ def _die_with_parent(parent_pid: int) -> None:
 
 def _init_worker(spec: str, parent_pid: int) -> None:
     global _FN
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent owns shutdown
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # the parent owns shutdown: a SIGTERM/Ctrl-C sent to the whole process group
+    # must not kill a worker in the middle of a frame the service is draining;
+    # workers still die with the parent (PR_SET_PDEATHSIG) and on pool shutdown
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _die_with_parent(parent_pid)
     _FN = resolve(spec)
     warm(_FN)
