@@ -61,6 +61,9 @@ CASES = [
     ("image not bytes", wire.encode({**_good(), "image": "abc"}), "malformed", "image"),
     ("oversized", wire.encode({**_good(), "image": b"\x00" * (LIMIT + 1)}), "oversized", str(LIMIT)),
     ("undecodable image", wire.encode({**_good(), "image": b"not an image at all"}), "malformed", "image"),
+    ("raw without shape", wire.encode({**_good(), "encoding": "raw"}), "malformed", "shape"),
+    ("raw of the wrong size", wire.encode(wire.make_request("t1", 1, bytes(10), encoding="raw", shape=(4, 4, 3))),
+     "malformed", "48"),
 ]
 
 
@@ -80,6 +83,9 @@ def test_bad_requests_get_error_replies_and_service_keeps_serving(cloud):
     for seq in range(2, 5):
         kind, rep = _ask(q, wire.encode(_good(seq)))
         assert kind == "ok" and rep["seq"] == seq
+    raw = wire.make_request("t1", 9, bytes(range(256)) * 9, encoding="raw", shape=(24, 32, 3))
+    kind, rep = _ask(q, wire.encode(raw))
+    assert kind == "ok" and rep["shape"] == [225, 300]
     assert proc.poll() is None
 
 

@@ -21,6 +21,10 @@ def stub_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> d
     t0 = time.perf_counter()
     if encoding == "raw":
         h, w = int(shape[0]), int(shape[1])
+        if len(image) != h * w * 3:
+            from scmr_mesh.errors import ImageDecodeError
+
+            raise ImageDecodeError(f"raw frame of shape {list(shape)} needs {h * w * 3} bytes, got {len(image)}")
         rgb = np.frombuffer(image, dtype=np.uint8).reshape(h, w, 3)
     else:
         arr = cv2.imdecode(np.frombuffer(image, dtype=np.uint8), cv2.IMREAD_COLOR)
