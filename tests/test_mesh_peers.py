@@ -41,7 +41,8 @@ class Fleet:
         return p
 
     def robot(self, rid: str, connect, *, extra=()):
-        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / rid), "--process", STUB,
+        source = [] if "--images" in extra else ["--synthetic", "stub"]
+        args = ["robot", "--id", rid, *source, "--out", str(self.tmp / rid), "--process", STUB,
                 "--lease-ms", LEASE, *extra]
         for ep in connect:
             args += ["--connect", ep]
@@ -259,3 +260,22 @@ def test_second_cloud_node_is_a_warm_standby(fleet):
     recs = fleet.records("r1")
     assert all(r["ok"] and r["tier"] == "cloud" for r in recs)
     assert {r["served_by"] for r in recs[n + 1:]} == {"c2"}
+
+
+def test_real_pipeline_end_to_end(fleet, roads_dir):
+    """The drivable pipeline (not the stub) behind the mesh, on real road frames."""
+    import cv2
+
+    cp = free_port()
+    fleet.service("cloud", "c1", cp, process="scmr_mesh.mesh.work:process_frame")
+    robot = fleet.robot("r1", [_ep(cp)], extra=["--images", str(roads_dir / "images"), "--count", "3",
+                                               "--rate", "10", "--no-local-fallback"])
+    assert robot.wait(timeout=120) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert [(r["ok"], r["tier"]) for r in recs] == [(True, "cloud")] * 3
+    names = sorted(p.name for p in (roads_dir / "images").iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    assert [r["image"] for r in recs] == names[:3]
+    for r in recs:
+        assert r["bytes_up"] > (roads_dir / "images" / r["image"]).stat().st_size
+        mask = cv2.imread(str(fleet.tmp / "r1" / "inbox" / f"{r['seq']}.mask.png"), cv2.IMREAD_UNCHANGED)
+        assert mask.shape == (225, 300) and set(map(int, set(mask.ravel().tolist()))) <= {0, 255}
