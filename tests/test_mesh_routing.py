@@ -98,3 +98,9 @@ def test_default_placement_order(cloud, leader, local):
     plan = default_placement(view, FRAME)
     expected = [t for t, ok in (("cloud", cloud), ("leader", leader), ("local", local)) if ok]
     assert plan == expected
+
+
+def test_public_names_resolve():
+    import scmr_mesh.mesh as mesh
+
+    assert all(getattr(mesh, name) is not None for name in mesh.__all__)
