@@ -126,7 +126,7 @@ def stop_peer(proc, *, sig: int | None = None, timeout: float = 10.0) -> int | N
             pass
 
 
-def wait_for(predicate, *, timeout: float = 20.0, interval: float = 0.05, what: str = "condition") -> None:
+def wait_for(predicate, *, timeout: float = 60.0, interval: float = 0.05, what: str = "condition") -> None:
     """Poll ``predicate()`` until true; raise TimeoutError naming ``what``."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
