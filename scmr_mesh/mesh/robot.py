@@ -229,8 +229,16 @@ def image_frames(folder: str | Path) -> Iterator[Frame]:
     return gen()
 
 
-def synthetic_frames(kind: str, *, seed: int = 0) -> Iterator[Frame]:
-    """Endless synthetic scenes of ``kind`` (seeded per frame), PNG-encoded.
+#: How many distinct synthetic scenes a robot cycles through (the thesis gave
+#: each robot an image set of 5; generating a scene costs 20-30 ms of CPU, so a
+#: fleet that drew a new one per frame would load the host more than the
+#: pipeline does).
+SYNTHETIC_SET = 8
+
+
+def synthetic_frames(kind: str, *, seed: int = 0, distinct: int = SYNTHETIC_SET) -> Iterator[Frame]:
+    """Endless synthetic scenes of ``kind``, PNG-encoded: ``distinct`` scenes
+    seeded ``seed .. seed+distinct-1``, each generated once and then cycled.
 
     ``kind="stub"`` uses :func:`scmr_mesh.mesh.testing.synthetic_png` and needs no
     imaging module; other kinds come from ``scmr_mesh.imaging.synthetic``.
@@ -257,9 +265,12 @@ def synthetic_frames(kind: str, *, seed: int = 0) -> Iterator[Frame]:
         raise InputError(f"--synthetic must be one of {', '.join(SCENE_KINDS)} or stub, got {kind!r}")
 
     def scenes() -> Iterator[Frame]:
+        made: list[Frame] = []
         for i in itertools.count():
-            rgb, _truth = make_scene(kind, seed=seed + i)
-            yield Frame(f"{kind}-{seed + i}.png", encode_png(rgb), "png", rgb=rgb)
+            if i < distinct:
+                rgb, _truth = make_scene(kind, seed=seed + i)
+                made.append(Frame(f"{kind}-{seed + i}.png", encode_png(rgb), "png", rgb=rgb))
+            yield made[i % distinct]
 
     return scenes()
 
