@@ -104,6 +104,29 @@ def test_eval_rgb_masks_ignore_values_and_a_perfect_score(tmp_path, roads_dir):
     assert res["baselines"] == {}
 
 
+def test_eval_skips_an_unreadable_item_and_scores_the_rest(tmp_path, roads_dir, capsys):
+    """A truncated image is reported and skipped; the good item is still scored; exit 1."""
+    from scmr_mesh.imaging import encode_png, load_image, segment_drivable
+
+    img_path = sorted((roads_dir / "images").glob("orfd*"))[0]
+    mask = segment_drivable(load_image(img_path)).mask
+    (tmp_path / "m.png").write_bytes(encode_png(mask))
+    (tmp_path / "broken.png").write_bytes(img_path.read_bytes()[:200])
+    _write_manifest(
+        tmp_path,
+        [{"image": str(img_path), "mask": "m.png", "dataset": "x", "mask_mode": "gray", "road": [255]},
+         {"image": "broken.png", "mask": "m.png", "dataset": "x", "mask_mode": "gray", "road": [255]}],
+    )
+    out = tmp_path / "eval.json"
+    assert main(["eval", str(tmp_path), "--json", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "skipped broken.png" in err and "Traceback" not in err
+    doc = json.loads(out.read_text())
+    assert [r["image"] for r in doc["images"]] == [img_path.name]
+    assert doc["images"][0]["iou"] == pytest.approx(1.0)
+    assert [s["image"] for s in doc["skipped"]] == ["broken.png"]
+
+
 @pytest.mark.parametrize(
     "text, match",
     [

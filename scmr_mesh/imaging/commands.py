@@ -203,7 +203,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(format_table(result))
     if args.json:
         _write_json(args.json, result)
-    return 0
+    for s in result["skipped"]:
+        print(f"scmr: error: skipped {s['image']}: {s['error']}", file=sys.stderr)
+    if result["skipped"]:
+        print(f"{len(result['skipped'])} item(s) skipped; the means cover the {len(result['images'])} scored",
+              file=sys.stderr)
+    return 1 if result["skipped"] else 0
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -221,8 +226,14 @@ def _write_json(path: Path, doc: dict) -> None:
 def cmd_bench_pipeline(args: argparse.Namespace) -> int:
     from scmr_mesh.imaging.bench import bench_pipeline
 
+    tty = sys.stderr.isatty()
+
     def progress(i: int, n: int) -> None:
-        print(f"\rtimed {i}/{n} runs (decode pass, then pipeline pass)", end="" if i < n else "\n", file=sys.stderr)
+        if tty:
+            print(f"\rtimed {i}/{n} runs (decode pass, then pipeline pass)", end="" if i < n else "\n",
+                  file=sys.stderr, flush=True)
+        elif i == n or i % max(1, n // 5) == 0:  # a few whole lines in logs and CI
+            print(f"timed {i}/{n} runs (decode pass, then pipeline pass)", file=sys.stderr)
 
     print("warming up (numba JIT / cache) ...", file=sys.stderr)
     result = bench_pipeline(frames=args.frames, images=args.images, mode=args.mode, progress=progress)

@@ -20,7 +20,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from scmr_mesh.errors import ConfigError, InputError
+from scmr_mesh.errors import ConfigError, InputError, ScmrError
 from scmr_mesh.imaging.codec import FRAME_HEIGHT, FRAME_WIDTH, load_image
 
 log = logging.getLogger(__name__)
@@ -221,11 +221,16 @@ def evaluate(
     others = [o for o in others if o != mode]
     rows: list[dict] = []
     base_rows: dict[str, list[dict]] = {o: [] for o in others}
+    skipped: list[dict] = []
     for i, item in enumerate(items):
         if progress:
             progress(i, len(items), item.image.name)
-        rgb = load_image(item.image)
-        road, valid = truth_at_frame(item)
+        try:
+            rgb = load_image(item.image)
+            road, valid = truth_at_frame(item)
+        except ScmrError as exc:  # one unreadable pair must not sink the whole evaluation
+            skipped.append({"image": item.image.name, "error": str(exc)})
+            continue
         res = segment_drivable(rgb, mode=mode)
         rows.append({"image": item.image.name, "dataset": item.dataset, **score(res.mask, road, valid)})
         for o in others:
@@ -233,8 +238,14 @@ def evaluate(
             base_rows[o].append({"image": item.image.name, "dataset": item.dataset, **score(pred, road, valid)})
     if progress:
         progress(len(items), len(items), "")
+    if not rows:
+        raise InputError(
+            f"{folder}: none of the {len(items)} manifest item(s) could be read "
+            f"(first problem: {skipped[0]['error'] if skipped else 'none'})"
+        )
     out = {
         "mode": mode,
+        "skipped": skipped,
         "images": rows,
         "mean": _mean(rows),
         "per_dataset": _per_dataset(rows),
