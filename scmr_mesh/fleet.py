@@ -381,6 +381,7 @@ def run_fleet(
     try:
         if config.rerun is not None:
             fviz = _start_viz(config.rerun, rids, specs)
+            emit(f"rerun: {fviz.hint}", 0.0, {CLOUD: False, LEADER: False})
         emit("starting cloud and leader", 0.0, {CLOUD: False, LEADER: False})
         t0 = time.monotonic()
         sup.start(specs[CLOUD])
@@ -508,7 +509,7 @@ def _start_viz(options, rids: Sequence[str], specs: dict) -> Any:
     fviz = FleetViz(options, robots=rids)
     for rid in rids:
         specs[rid] = dataclasses.replace(specs[rid], argv=[*specs[rid].argv, *fviz.child_args()])
-    log.warning("rerun: %s", fviz.hint)
+    log.info("rerun: %s", fviz.hint)
     return fviz
 
 
