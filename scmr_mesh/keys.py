@@ -20,6 +20,12 @@ key expression                              declared by                  carries
 ``scmr/data/<tier>/<node>/**``              services (extra queryables)  data-buffer queries
 ==========================================  ===========================  ============================
 
+Under ``scmr/data/<tier>/<node>/``: ``telemetry/<robot>`` carries one robot's
+telemetry batches (the robot id is in the key so that access control can bind
+it to the sender's identity; :func:`data_telemetry`), ``relay`` the leader's
+forwarded batches to the cloud (:func:`data_relay`), ``buffer`` and ``sync``
+data-buffer reads.
+
 Tiers are distinct key spaces on purpose: a query on one shared key would go
 to both cloud and leader (zenoh facts sheet, section 2).  Node and robot names
 must be single key chunks (no ``/``, ``*``, ``$``, ``?``, ``#``); use
@@ -141,6 +147,52 @@ def metrics(node: str) -> str:
 def data(tier: str, node: str, name: str = "**") -> str:
     """Key prefix for extra (data-buffer) queryables of a service."""
     return f"{DATA}/{_tier(tier)}/{check_name(node)}/{name}"
+
+
+def data_telemetry(tier: str, node: str, robot: str | None = None) -> str:
+    """Key of ``robot``'s telemetry batches to ``node`` of ``tier``.
+
+    The robot id is in the key so that access control can allow each robot
+    only its own key (docs/SECURITY.md); the service refuses a batch whose
+    records name another robot.  ``robot=None`` gives the queryable's key
+    expression (``.../telemetry/*``).
+
+    >>> data_telemetry("cloud", "c1", "r1")
+    'scmr/data/cloud/c1/telemetry/r1'
+    >>> data_telemetry("leader", "L")
+    'scmr/data/leader/L/telemetry/*'
+    """
+    who = "*" if robot is None else check_name(robot, what="robot id")
+    return data(tier, node, f"telemetry/{who}")
+
+
+def data_relay(node: str) -> str:
+    """Key on which a leader forwards relayed telemetry (any robots) to cloud ``node``.
+
+    Only server identities may query it (access control).
+
+    >>> data_relay("c1")
+    'scmr/data/cloud/c1/relay'
+    """
+    return data("cloud", node, "relay")
+
+
+def telemetry_robot(key: str) -> str | None:
+    """The robot named by a telemetry key ``scmr/data/<tier>/<node>/telemetry/<robot>``.
+
+    Returns None unless ``key`` has exactly that shape with a plain robot
+    chunk: a wildcard (``*``, ``**``, ``$*``) names no robot.
+
+    >>> telemetry_robot("scmr/data/cloud/c1/telemetry/r1")
+    'r1'
+    >>> telemetry_robot("scmr/data/cloud/c1/telemetry/*") is None
+    True
+    """
+    parts = str(key).split("/")
+    if (len(parts) != 6 or parts[0] != ROOT or f"{parts[0]}/{parts[1]}" != DATA
+            or parts[2] not in TIERS or parts[4] != "telemetry" or not _NAME_RE.match(parts[5])):
+        return None
+    return parts[5]
 
 
 def parse(key: str) -> tuple[str, str, str]:

@@ -28,9 +28,8 @@ from scmr_mesh.mesh.data_service import CloudData, LeaderData, TelemetryAgent
 class FakeQuery:
     """The parts of a zenoh Query the data services use."""
 
-    key_expr = "scmr/data/x"
-
-    def __init__(self, payload: bytes) -> None:
+    def __init__(self, payload: bytes, key_expr: str) -> None:
+        self.key_expr = key_expr
         self._p = payload
         self.done = threading.Event()
         self.result = None
@@ -73,9 +72,11 @@ class World:
         agent._ask = self._ask
         return agent
 
-    def _call(self, tier: str, payload: bytes):
-        q = FakeQuery(payload)
-        if tier == "cloud":
+    def _call(self, tier: str, payload: bytes, key: str):
+        q = FakeQuery(payload, key)
+        if key.endswith("/relay"):
+            self.cloud._on_relay(q)
+        elif tier == "cloud":
             self.cloud._on_telemetry(q)
         else:
             self.leader._store_and_ack(q)
@@ -86,7 +87,7 @@ class World:
         tier = key.split("/")[2]
         if not (self.cloud_up if tier == "cloud" else self.leader_up):
             return None  # no matching queryable
-        kind, data = self._call(tier, payload)
+        kind, data = self._call(tier, payload, key)
         if self.lose_next_ack:  # stored, but the reply never arrives
             self.lose_next_ack = False
             return None
@@ -95,7 +96,7 @@ class World:
     def _leader_query(self, key: str, payload: bytes):
         if not self.cloud_up:
             return None
-        kind, data = self._call("cloud", payload)
+        kind, data = self._call("cloud", payload, key)
         return data if kind == "ok" else None
 
     def publish(self) -> None:
@@ -178,3 +179,37 @@ def test_a_full_leader_relay_refuses_and_the_robot_keeps_its_records(tmp_path):
             assert ods.seqs("r1") == [1, 2, 3]
     finally:
         w.close()
+
+
+def test_a_batch_is_stored_only_under_its_robots_key(tmp_path):
+    """The service binds records to the key's robot (docs/SECURITY.md): others are refused whole."""
+    from scmr_mesh.data.record import encode_records, make_record
+
+    cloud = CloudData("c", tmp_path / "ods.sqlite")
+    leader = LeaderData("L", tmp_path / "relay")
+    try:
+        def send(handler, key, robots):
+            q = FakeQuery(encode_records([make_record(r, i + 1) for i, r in enumerate(robots)]), key)
+            handler(q)
+            assert q.done.wait(10)
+            return q.result[0], msgpack.unpackb(q.result[1])
+
+        good = "scmr/data/cloud/c/telemetry/r1"
+        kind, body = send(cloud._on_telemetry, "scmr/data/cloud/c/telemetry/r2", ["r2", "r1"])
+        assert kind == "err" and "['r1']" in body["error"] and "telemetry/r2" in body["error"]
+        for key in ("scmr/data/cloud/c/telemetry/*", "scmr/data/cloud/c/telemetry/**", "scmr/data/cloud/c/telemetry"):
+            kind, body = send(cloud._on_telemetry, key, ["r1"])
+            assert kind == "err" and "names no robot" in body["error"], key
+        kind, body = send(leader._store_and_ack, "scmr/data/leader/L/telemetry/r2", ["r1"])
+        assert kind == "err" and len(leader.relay) == 0
+        assert cloud.ods.counts() == {}
+        # the honest paths: a robot's own key; the leader's relay of several robots
+        assert send(cloud._on_telemetry, good, ["r1", "r1"])[0] == "ok"
+        assert send(leader._store_and_ack, "scmr/data/leader/L/telemetry/r3", ["r3"])[0] == "ok"
+        assert send(cloud._on_relay, "scmr/data/cloud/c/relay", ["r3", "r4"])[0] == "ok"
+        assert sorted(cloud.ods.counts()) == ["r1", "r3", "r4"]
+        assert {r["robot"]: r["received_from"] for r in cloud.ods.range()} == {"r1": "cloud", "r3": "leader",
+                                                                              "r4": "leader"}
+    finally:
+        leader.close()
+        cloud.close()

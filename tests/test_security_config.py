@@ -122,7 +122,17 @@ def test_acl_policy_table():
     assert not may("r1", "ingress", "liveliness_token", "scmr/alive/cloud/fake")
     assert may("r1", "ingress", "liveliness_token", "scmr/alive/robot/r1")
     assert not may("r1", "ingress", "query", "scmr/data/cloud/c/sync")
-    assert may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry")
+    # telemetry batches: only on the robot's own key (the service checks the records match it)
+    assert may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry/r1")
+    assert may("r1", "ingress", "query", "scmr/data/leader/L/telemetry/r1")
+    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry/r2")
+    assert not may("r2", "ingress", "query", "scmr/data/cloud/c/telemetry/r1")
+    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry")
+    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/relay")
+    assert may("cloud", "ingress", "query", "scmr/data/cloud/c/relay")  # only servers relay
+    assert may("r2", "egress", "declare_queryable", "scmr/data/cloud/c/telemetry/*")
+    assert may("r2", "egress", "reply", "scmr/data/cloud/c/telemetry/r2")
+    assert may("r1", "ingress", "query", "scmr/data/cloud/c/buffer")
     assert not may("r1", "ingress", "declare_subscriber", "scmr/telemetry/r2")
     assert not may("stranger", "ingress", "query", "scmr/drivable/cloud/c")
     # only known message kinds

@@ -6,11 +6,18 @@ this module puts them on the mesh.  Keys (all under :func:`scmr_mesh.keys.data`)
 ==============================================  ===================  =====================================
 key                                             queryable of         payload -> reply
 ==============================================  ===================  =====================================
-``scmr/data/cloud/<node>/telemetry``            cloud                records batch -> ack (stored in ODS)
-``scmr/data/leader/<node>/telemetry``           leader               records batch -> ack (relay queue)
+``scmr/data/cloud/<node>/telemetry/<robot>``    cloud                robot's batch -> ack (stored in ODS)
+``scmr/data/leader/<node>/telemetry/<robot>``   leader               robot's batch -> ack (relay queue)
+``scmr/data/cloud/<node>/relay``                cloud                leader's relayed batch -> ack (ODS)
 ``scmr/data/<tier>/<node>/buffer``              cloud and leader     ``{"sel": selector}`` -> items
 ``scmr/data/cloud/<node>/sync``                 cloud                ``{"epoch", "since"}`` -> delta
 ==============================================  ===================  =====================================
+
+Identity: the robot id is in the telemetry key, and a tier refuses (error
+reply) a batch holding records of any other robot, so the access-control rules
+(:mod:`scmr_mesh.security.acl`), which allow robot X only
+``.../telemetry/X``, bind stored records to the sender's certificate.  The
+relay key takes batches of any robots and is allowed to servers only.
 
 Flow ("nothing lost"):
 
@@ -63,9 +70,42 @@ BATCH = 64
 RETRY_PERIOD_S = 0.2
 
 
-def telemetry_key(tier: str, node: str) -> str:
-    """``scmr/data/<tier>/<node>/telemetry``."""
-    return keys.data(tier, node, "telemetry")
+def telemetry_key(tier: str, node: str, robot: str | None = None) -> str:
+    """``scmr/data/<tier>/<node>/telemetry/<robot>`` (``robot=None``: ``.../telemetry/*``, the queryable)."""
+    return keys.data_telemetry(tier, node, robot)
+
+
+def relay_key(node: str) -> str:
+    """``scmr/data/cloud/<node>/relay``: the leader's forwarded batches (servers only)."""
+    return keys.data_relay(node)
+
+
+def check_sender(key: Any, records: list[TelemetryRecord]) -> str:
+    """Return the robot named by telemetry ``key``; raise unless every record is that robot's.
+
+    Parameters
+    ----------
+    key : str or zenoh.KeyExpr
+        The query's key, ``scmr/data/<tier>/<node>/telemetry/<robot>``.
+    records : list of TelemetryRecord
+
+    Raises
+    ------
+    TelemetryError
+        The key names no single robot (a wildcard), or a record's ``robot``
+        differs from it.  Nothing of the batch is stored.
+    """
+    robot = keys.telemetry_robot(str(key))
+    if robot is None:
+        raise TelemetryError(
+            f"telemetry key {str(key)!r} names no robot; send a robot's batch on "
+            "scmr/data/<tier>/<node>/telemetry/<robot id>")
+    others = sorted({r.robot for r in records} - {robot})
+    if others:
+        raise TelemetryError(
+            f"telemetry batch on {str(key)!r} (robot {robot!r}) holds records of robot(s) {others}: "
+            f"a robot may store only its own telemetry; nothing of this batch was stored")
+    return robot
 
 
 def buffer_key(tier: str, node: str) -> str:
@@ -169,15 +209,29 @@ class CloudData:
 
     def queryables(self) -> list[tuple[str, Callable]]:
         return [(telemetry_key("cloud", self.node), self._on_telemetry),
+                (relay_key(self.node), self._on_relay),
                 (buffer_key("cloud", self.node), serve_buffer(self.buffer, "cloud", self.node)),
                 (sync_key(self.node), self._on_sync)]
 
     def _on_telemetry(self, query) -> None:
+        """A robot's own batch on ``.../telemetry/<robot>``: every record must be that robot's."""
+        self._ingest(query, relay=False)
+
+    def _on_relay(self, query) -> None:
+        """The leader's relayed batch (any robots) on ``.../relay``; the ACL admits servers only."""
+        self._ingest(query, relay=True)
+
+    def _ingest(self, query, *, relay: bool) -> None:
         # zenoh's thread only decodes; the ODS writer thread commits and then acks,
         # so a slow fsync never holds up the session's other traffic (frame queries)
         try:
             records, via = decode_batch(_payload(query))
-            fut = self.ods.insert_async(records, received_from=via or "cloud")
+            if relay:
+                source = via or "leader"
+            else:
+                check_sender(query.key_expr, records)
+                source = "cloud"  # a robot's batch came straight to the cloud, whatever it claims
+            fut = self.ods.insert_async(records, received_from=source)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
             _answer(query, {"error": str(exc)}, error=True)
@@ -269,6 +323,7 @@ class LeaderData:
     def _store_and_ack(self, query) -> None:
         try:
             records, _via = decode_batch(_payload(query))
+            check_sender(query.key_expr, records)
             blobs = [_pack(r.to_dict()) for r in records]
             with self._lock:
                 if sum(map(len, blobs)) > self.relay.free_bytes():
@@ -322,7 +377,7 @@ class LeaderData:
             return 0
         records = [TelemetryRecord.from_dict(_unpack(p)) for _, p in batch]
         for node in clouds:
-            raw = self._query(telemetry_key("cloud", node), encode_records(records, via="leader"))
+            raw = self._query(relay_key(node), encode_records(records, via="leader"))
             if raw is not None:
                 self.relay.ack(batch[-1][0])
                 self.forwarded += len(batch)
@@ -461,7 +516,7 @@ class TelemetryAgent:
         payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
         for tier, node in self._targets():
             try:
-                ans = self._ask(telemetry_key(tier, node), payload)
+                ans = self._ask(telemetry_key(tier, node, self.robot.id), payload)
             except Exception as exc:
                 log.debug("telemetry to %s/%s failed: %s", tier, node, exc)
                 continue
@@ -653,7 +708,7 @@ def attach_robot(robot, args) -> TelemetryAgent | None:
 
 __all__ = [
     "CloudData", "LeaderData", "TelemetryAgent", "add_arguments", "attach_robot", "buffer_key",
-    "record_from_message", "service_setup", "sync_key", "telemetry_key",
+    "check_sender", "record_from_message", "relay_key", "service_setup", "sync_key", "telemetry_key",
 ]
 
 
@@ -749,7 +804,7 @@ def bench_drain(tmp_dir: str | Path, *, backlog: int = 2000) -> dict:
             agent.publish({"robot": "bench", "seq": i, "t_unix_ns": time.time_ns(),
                            "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "battery": 0.5, "health": "ok",
                            "results": {"requests": i, "succeeded": i, "by_tier": {"cloud": i}}})
-        q = rs.declare_querier(telemetry_key("cloud", "drain"))
+        q = rs.declare_querier(telemetry_key("cloud", "drain", "bench"))
         end = time.monotonic() + 10
         while not q.matching_status.matching:
             if time.monotonic() > end:
@@ -803,7 +858,7 @@ def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmu
         for key, cb in cloud.queryables():
             decl.append(cs.declare_queryable(key, cb, complete=True))
         rs = open_session(MeshConfig(connect=[ep]))
-        q = rs.declare_querier(telemetry_key("cloud", "bench"), timeout=5.0)
+        q = rs.declare_querier(telemetry_key("cloud", "bench", f"bench{batch}"), timeout=5.0)
         end = time.monotonic() + 10
         while not q.matching_status.matching:
             if time.monotonic() > end:

@@ -9,29 +9,34 @@ subject            allowed (``flows`` as seen by the enforcing node)
 =================  ======================================================================
 cloud, leader      everything under ``scmr/**`` in both directions (they are the servers)
 every robot        ingress ``query`` on ``scmr/drivable/**`` and the data tier's
-                   ``scmr/data/*/*/telemetry`` (telemetry batches) and
                    ``scmr/data/*/*/buffer`` (data-buffer reads);
-                   egress ``reply`` and ``declare_queryable`` on those keys (so the robot
-                   learns the services and gets answers); egress ``declare_subscriber``
+                   egress ``reply`` and ``declare_queryable`` on those keys and on
+                   ``scmr/data/*/*/telemetry/*`` (so the robot learns the services and
+                   gets answers); egress ``declare_subscriber``
                    on the robot publication keys (so its puts are routed to the servers);
                    liveliness: ingress subscriber/query on ``scmr/alive/**``, egress tokens
                    and replies there; ingress ``declare_subscriber`` and egress ``put`` on
                    the load keys (load spreading)
 robot ``<id>``     ingress ``put``/``delete`` on its own ``scmr/telemetry/<id>``,
-                   ``scmr/results/<id>``, ``scmr/metrics/<id>``; ingress
+                   ``scmr/results/<id>``, ``scmr/metrics/<id>``; ingress ``query`` on
+                   its own ``scmr/data/*/*/telemetry/<id>`` (telemetry batches); ingress
                    ``liveliness_token`` on its own ``scmr/alive/robot/<id>``
 =================  ======================================================================
 
 Everything else from a robot is dropped, in particular: publishing another robot's
 telemetry, declaring a queryable on ``scmr/drivable/**`` (a rogue service is never
 announced, and queries are never sent to a robot), replying on ``scmr/drivable/**``,
-subscribing to other robots' telemetry, and reading the data store (the leader's
+subscribing to other robots' telemetry, storing telemetry batches on another robot's
+key ``scmr/data/*/*/telemetry/<other>`` (or on a wildcard), the leader's relay key
+``scmr/data/cloud/*/relay``, and reading the data store (the leader's
 ``scmr/data/cloud/*/sync`` pull, and anything else under ``scmr/data/**``).
 
-Not covered by these rules: the *content* of a telemetry batch sent as a query to
-``scmr/data/<tier>/<node>/telemetry``.  Zenoh does not tell a queryable who sent a
-query, and the key does not name the robot, so a credentialed robot can put records
-claiming another robot id in a batch (docs/SECURITY.md, "Gaps").
+Zenoh does not tell a queryable who sent a query; the robot id is in the telemetry key
+instead, these rules let robot X query only ``.../telemetry/X``, and the data tier
+refuses a batch whose records name another robot than the key
+(:func:`scmr_mesh.mesh.data_service.check_sender`).  Together they bind stored
+telemetry to the sender's certificate.  Frame requests (``scmr/drivable/**``) are not
+bound yet: their ``robot`` field is self-declared (docs/SECURITY.md, "Gaps").
 
 References
 ----------
@@ -67,9 +72,10 @@ class KeyLayout:
 
     root: str = f"{keys.ROOT}/**"
     services: tuple[str, ...] = (keys.DRIVABLE_ALL,)
-    robot_query: tuple[str, ...] = (
-        f"{keys.DATA}/*/*/telemetry", f"{keys.DATA}/*/*/buffer",
-    )
+    robot_query: tuple[str, ...] = (f"{keys.DATA}/*/*/buffer",)
+    #: Keys a robot may query only under its own id (``{id}``); replies and the
+    #: queryables' declarations go to every robot on the ``*`` form.
+    robot_own_query: tuple[str, ...] = (f"{keys.DATA}/*/*/telemetry/{{id}}",)
     robot_publish: tuple[str, ...] = (
         f"{keys.TELEMETRY}/{{id}}", f"{keys.RESULTS}/{{id}}", f"{keys.METRICS}/{{id}}",
     )
@@ -80,6 +86,10 @@ class KeyLayout:
     def publish_all(self) -> list[str]:
         """Every robot publication key, with ``{id}`` as a wildcard chunk."""
         return [p.replace("{id}", "*") for p in self.robot_publish]
+
+    def own_query_all(self) -> list[str]:
+        """Every robot's own query keys, with ``{id}`` as a wildcard chunk."""
+        return [p.replace("{id}", "*") for p in self.robot_own_query]
 
 
 def _rule(rid: str, messages: Sequence[str], flows: Sequence[str], key_exprs: Sequence[str]) -> dict[str, Any]:
@@ -136,7 +146,8 @@ def build_acl(fleet: Fleet, *, kind: AuthKind, layout: KeyLayout = KeyLayout()) 
     rules = [
         _rule("servers-all", ALL_MESSAGES, BOTH, [layout.root]),
         _rule("robots-query-services", ["query"], ["ingress"], served),
-        _rule("robots-get-replies", ["reply", "declare_queryable"], ["egress"], served),
+        _rule("robots-get-replies", ["reply", "declare_queryable"], ["egress"],
+              served + layout.own_query_all()),
         _rule("robots-reach-subscribers", ["declare_subscriber"], ["egress"], layout.publish_all()),
         _rule(
             "robots-watch-liveliness",
@@ -163,6 +174,8 @@ def build_acl(fleet: Fleet, *, kind: AuthKind, layout: KeyLayout = KeyLayout()) 
     for name in fleet.robots:
         own = [p.replace("{id}", name) for p in layout.robot_publish]
         rules.append(_rule(f"robot-{name}-own-data", ["put", "delete"], ["ingress"], own))
+        rules.append(_rule(f"robot-{name}-own-queries", ["query"], ["ingress"],
+                           [p.replace("{id}", name) for p in layout.robot_own_query]))
         rules.append(
             _rule(f"robot-{name}-own-token", ["liveliness_token"], ["ingress"],
                   [layout.robot_token.replace("{id}", name)])
@@ -171,7 +184,7 @@ def build_acl(fleet: Fleet, *, kind: AuthKind, layout: KeyLayout = KeyLayout()) 
         policies.append(
             {
                 "id": f"robot-{name}",
-                "rules": [f"robot-{name}-own-data", f"robot-{name}-own-token"],
+                "rules": [f"robot-{name}-own-data", f"robot-{name}-own-queries", f"robot-{name}-own-token"],
                 "subjects": [f"robot-{name}"],
             }
         )
