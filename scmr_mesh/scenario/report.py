@@ -151,6 +151,7 @@ def build_report(
     backend: str,
     notes: Sequence[str] = (),
     thesis_csv: Path | None = None,
+    telemetry: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The report as a JSON-able dict (pure).
 
@@ -169,13 +170,17 @@ def build_report(
         Backend notes (skipped faults...).
     thesis_csv : Path, keyword-only
         ``thesis_table_4_2.csv`` to put beside our figures.
+    telemetry : dict, keyword-only
+        The data tier's count (``RunResult.telemetry``: ``{"sent", "stored",
+        "duplicates", "lost", "per_robot"}``); when None, :func:`write_report`
+        takes it from the run's ``telemetry.json``.
 
     Returns
     -------
     dict
         ``{"scenario", "seed", "backend", "summary", "per_robot", "per_tier",
         "faults", "expectations", "passed", "energy", "thesis", "notes",
-        "requests"}``.
+        "telemetry", "requests"}``.
     """
     from scmr_mesh.metrics import summarize
 
@@ -232,6 +237,7 @@ def build_report(
         "energy": energy_per_robot(scenario, records),
         "thesis": thesis_table(thesis_csv),
         "notes": list(notes),
+        "telemetry": dict(telemetry) if telemetry is not None else None,
         "requests": requests,
     }
 
@@ -319,6 +325,16 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
             le = tor_summary([r for r in mine if r.get("tier") == "leader"])
             L.append(f"| {rid} | {t['images']} | {t['mean_bytes']:.0f} | {t['cloud_tor_p50_ms']:.0f} | "
                      f"{t['leader_p50_ms']:.0f} | {_fmt(ours.get('p50'))} | {_fmt(cl['p50'])} | {_fmt(le['p50'])} |")
+        L.append("")
+    tel = report.get("telemetry")
+    if tel:
+        L += ["## Telemetry (data tier)", "",
+              f"{tel.get('sent', 0)} sent, {tel.get('stored', 0)} stored, {tel.get('duplicates', 0)} duplicates, "
+              f"**{tel.get('lost', 0)} lost** (lost = sent - stored over seqs 1..sent; docs/DATA.md).", "",
+              "| robot | sent | stored | duplicates | lost | missing seqs | queued |", "|---|---|---|---|---|---|---|"]
+        for rid, t in (tel.get("per_robot") or {}).items():
+            L.append(f"| {rid} | {t.get('sent', 0)} | {t.get('stored', 0)} | {t.get('duplicates', 0)} | "
+                     f"{t.get('lost', 0)} | {', '.join(t.get('missing') or []) or '-'} | {_fmt(t.get('queued'))} |")
         L.append("")
     if report.get("notes"):
         L += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
@@ -457,10 +473,17 @@ def plot_tiers(report: Mapping[str, Any], path: Path) -> Path:
 def write_report(report: Mapping[str, Any], out_dir: Path, *, json_path: Path | None = None) -> dict[str, Path]:
     """Write ``report.json``, ``report.md``, ``tor.png`` and ``tiers.png`` into ``out_dir``.
 
-    Returns the paths written (``json`` is ``json_path`` when given).
+    Returns the paths written (``json`` is ``json_path`` when given).  A report
+    without telemetry gets the run's ``out_dir/telemetry.json`` (written by the
+    runner) when there is one.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if report.get("telemetry") is None and (out_dir / "telemetry.json").is_file():
+        try:
+            report = {**report, "telemetry": json.loads((out_dir / "telemetry.json").read_text())}
+        except ValueError as exc:
+            log.warning("%s is not JSON (%s): report without telemetry", out_dir / "telemetry.json", exc)
     paths = {"tor_png": out_dir / "tor.png", "tiers_png": out_dir / "tiers.png"}
     try:
         plot_tor(report, paths["tor_png"])

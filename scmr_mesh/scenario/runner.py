@@ -88,6 +88,9 @@ class RunResult:
     notes: list[str]
     run_id: str = ""
     peer_logs: dict[str, str] = field(default_factory=dict)
+    #: The data tier's count ({"sent", "stored", "duplicates", "lost", "per_robot"}), also in
+    #: ``out_dir/telemetry.json``; None when it could not be counted (docs/DATA.md).
+    telemetry: dict[str, Any] | None = None
 
     def metric_faults(self) -> list[dict[str, Any]]:
         """Faults as :func:`scmr_mesh.metrics.summarize` takes them."""
@@ -279,6 +282,7 @@ def run_scenario(
     t0 = time.time_ns()
     sup = Supervisor(term_timeout=5.0)
     names: dict[str, str] = {}
+    telemetry = None
     with _signals_to_interrupt():
         try:
             rid = getattr(be, "run_id", "")
@@ -316,6 +320,7 @@ def run_scenario(
             late = [p.name for p in robot_procs if p.alive()]
             if late:
                 notes.append(f"robots still running 30 s after the end were stopped: {', '.join(late)}")
+            telemetry = _count_telemetry(out_dir, scenario, sup, names, servers)
         except MeshError as exc:
             raise ScenarioError(f"scenario {scenario.name}: {exc}") from None
         finally:
@@ -330,7 +335,25 @@ def run_scenario(
     say(f"done: {len(records)} requests recorded")
     return RunResult(scenario=scenario, backend=backend, out_dir=out_dir, t0_unix_ns=t0, records=records,
                      faults=applied, notes=notes, run_id=getattr(be, "run_id", ""),
-                     peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()})
+                     peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()},
+                     telemetry=telemetry)
+
+
+def _count_telemetry(out_dir: Path, scenario: Scenario, sup, names: dict[str, str],
+                     servers: list[str]) -> dict[str, Any] | None:
+    """The data tier's telemetry count, taken while the servers still run; saved as ``telemetry.json``.
+
+    The peers' run dir is ``out_dir`` (their ready files are in ``out_dir/ready``), so the
+    cloud's store is ``out_dir/ods.sqlite`` and the robots' queues ``out_dir/queues/<id>``.
+    Waits up to 5 s for the leader's relayed records when a server is still alive.
+    """
+    from scmr_mesh.data.report import fleet_telemetry
+
+    alive = any(names.get(p) in sup.procs and sup.procs[names[p]].alive() for p in servers)
+    tel = fleet_telemetry(out_dir, [r.id for r in scenario.robots], wait=alive)
+    if tel is not None:
+        (out_dir / "telemetry.json").write_text(json.dumps(tel, indent=2) + "\n")
+    return tel
 
 
 def _sleep_watching(seconds: float, sup, applied: list[AppliedFault], names: dict[str, str]) -> None:
