@@ -32,7 +32,8 @@ Flow ("nothing lost"):
    queue.  No answer: the records stay queued and are replayed later, also
    after a robot restart (the queue is on disk).
 3. The leader relays what it stored to the cloud once a cloud node is alive
-   again (``via="leader"``), and acks its relay queue on the cloud's answer.
+   again (on ``scmr/data/cloud/<node>/relay``, ``via="leader"``), and acks its
+   relay queue on the cloud's answer.
 4. The ODS stores each ``(robot, seq)`` once (``INSERT OR IGNORE``); replays
    and relays are counted as duplicates, never stored twice.
 5. The leader pulls the cloud's data buffer every ``--sync-period`` seconds
