@@ -10,7 +10,10 @@ off (peers are wired with explicit endpoints), gossip on (robots find each
 other through the leader), lease 500 ms with 4 keep-alives (silent link loss
 seen in ~400 ms, no false expiries), fast reconnect ``connect/retry
 {50, 250, 2}``, shared memory off and ``transport/unicast/open_timeout`` 1000 ms (bounds
-``close()``).  Zenoh itself does not validate the lease: ``keep_alive`` 0
+``close()``), and ``wait_before_close`` (how long a reliable send may wait for
+queue space) equal to the lease, so a send on a silently dead link gives up
+after one lease instead of zenoh's 5 s, during which the whole process stopped
+sending (docs/ZENOH.md section 8).  Zenoh itself does not validate the lease: ``keep_alive`` 0
 panics in Rust and lease 0 loops, so :func:`check` rejects both.
 """
 
@@ -18,6 +21,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -46,6 +50,10 @@ DEFAULTS: dict[str, Any] = {
 }
 
 MODES = ("peer", "client", "router")
+
+#: Zenoh key (microseconds) bounding how long a reliable ("block") send waits
+#: for queue space before zenoh declares the link unresponsive and closes it.
+WAIT_BEFORE_CLOSE_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
 
 
 @dataclass
@@ -124,15 +132,13 @@ def build_config(mc: MeshConfig):
     else:
         conf = zenoh.Config()
     for key, value in DEFAULTS.items():
-        try:
-            untouched = conf.get_json(key) == pristine.get_json(key)
-        except Exception:
-            untouched = True
-        if untouched:
+        if _untouched(conf, pristine, key):
             _insert(conf, key, json.dumps(value), source="scmr defaults")
+    wbc_pinned = not _untouched(conf, pristine, WAIT_BEFORE_CLOSE_KEY)
     for item in mc.cfg:
         key, value = _parse_override(item)
         _insert(conf, key, value, source="--cfg")
+        wbc_pinned = wbc_pinned or key.strip("/") == WAIT_BEFORE_CLOSE_KEY
     _insert(conf, "mode", json.dumps(mc.mode), source="mode")
     if mc.listen:
         _insert(conf, "listen/endpoints", json.dumps(list(mc.listen)), source="--listen")
@@ -142,6 +148,14 @@ def build_config(mc: MeshConfig):
         _insert(conf, "transport/link/tx/lease", json.dumps(int(mc.lease_ms)), source="--lease-ms")
     if mc.keep_alive is not None:
         _insert(conf, "transport/link/tx/keep_alive", json.dumps(int(mc.keep_alive)), source="keep_alive")
+    if not wbc_pinned:
+        # A send blocked on a silently dead link holds zenoh's pipeline lock: the
+        # link cannot be torn down and zenoh's single TX thread stalls, so every
+        # other link of the process goes quiet too (docs/ZENOH.md section 8).
+        # Give up on a link that takes no data for one lease, as the lease does.
+        lease = _get(conf, "transport/link/tx/lease")
+        if isinstance(lease, int) and lease > 0:
+            _insert(conf, WAIT_BEFORE_CLOSE_KEY, json.dumps(lease * 1000), source="lease")
     if mc.security:
         from scmr_mesh.mesh.security import apply_security
         from scmr_mesh.security.profile import load_profile
@@ -154,6 +168,14 @@ def build_config(mc: MeshConfig):
                        listen=mc.listen, connect=mc.connect)
     check(conf)
     return conf
+
+
+def _untouched(conf, pristine, key: str) -> bool:
+    """Whether ``conf`` still holds zenoh's built-in value for ``key``."""
+    try:
+        return conf.get_json(key) == pristine.get_json(key)
+    except Exception:
+        return True
 
 
 def _insert(conf, key: str, value: str, *, source: str) -> None:
@@ -249,6 +271,7 @@ def open_session(mc: MeshConfig):
     from scmr_mesh.errors import MeshError
 
     conf = mc.build()
+    _zenoh_logging()
     try:
         return zenoh.open(conf)
     except Exception as exc:
@@ -256,6 +279,25 @@ def open_session(mc: MeshConfig):
             f"cannot open a zenoh session (listen={mc.listen}, connect={mc.connect}): {exc}; "
             "check that the listen port is free and the endpoints are well formed"
         ) from None
+
+
+#: Environment variable that turns on zenoh's own (Rust) log, e.g.
+#: ``SCMR_ZENOH_LOG=zenoh::net::routing=debug,info``; it goes to stdout, which
+#: ``scmr up`` and ``scmr scenario run`` keep in each peer's log file.
+ZENOH_LOG_ENV = "SCMR_ZENOH_LOG"
+
+
+def _zenoh_logging() -> None:
+    """Start zenoh's Rust log when ``$SCMR_ZENOH_LOG`` asks for it (once per process)."""
+    spec = os.environ.get(ZENOH_LOG_ENV, "").strip()
+    if not spec:
+        return
+    import zenoh
+
+    try:
+        zenoh.init_log_from_env_or(spec)
+    except Exception as exc:  # already initialised, or a bad filter
+        log.debug("zenoh log not started (%s=%r): %s", ZENOH_LOG_ENV, spec, exc)
 
 
 def close_session(session) -> None:

@@ -1,0 +1,142 @@
+"""Regression test: a send on a silently dead link must not stall the robot's other links.
+
+Issue 3/4 (cloud-link-drop with netns): when the cloud's link is blackholed while
+a robot pushes a large frame to it, zenoh's reliable ("block") send waits for
+queue space while holding the link's pipeline lock, by default for 5 s
+(``wait_before_close``).  Meanwhile the dead link cannot be torn down and
+zenoh's single TX thread stalls, so the robot stops sending keep-alives on
+*every* link: the leader expires it, every query to the leader times out, and
+the robot runs locally for ~5 s although the leader is up.  scmr now ties
+``wait_before_close`` to the lease (``scmr_mesh.mesh.config``); docs/ZENOH.md
+section 8 has the measurements.
+
+Three namespaces (cloud, leader, robot), real zenoh peers built with scmr's
+config, lease 150 ms.  The robot blackholes its route to the cloud itself (so
+the push is sure to happen before the lease notices), pushes an 8 MB query to
+the cloud (more than the socket and zenoh queue can hold), then queries the
+leader until it answers.  Before the fix the 8 MB push blocked for 5 s and no
+leader answer came inside the 4 s window.  About 10 s, root only.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytestmark = [
+    pytest.mark.netns,
+    pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="needs root (network namespaces)"),
+    pytest.mark.skipif(shutil.which("ip") is None or shutil.which("tc") is None, reason="needs iproute2 (ip, tc)"),
+]
+
+LEASE_MS = 150
+WINDOW_S = 4.0  # below zenoh's default 5 s wait_before_close
+
+PEER = r"""
+import json, subprocess, sys, time
+import zenoh
+from scmr_mesh.mesh.config import MeshConfig
+role, listen, connect, lease, cloud_addr, window = sys.argv[1:7]
+conf = MeshConfig(listen=[listen], connect=[c for c in connect.split(",") if c], lease_ms=int(lease)).build()
+with zenoh.open(conf) as s:
+    if role != "robot":
+        qa = s.declare_queryable(f"scmr/drivable/{role}/{role}", lambda q: q.reply(q.key_expr, b"ok"), complete=True)
+        tok = s.liveliness().declare_token(f"scmr/alive/{role}/{role}")
+        print("ready", flush=True)
+        sys.stdin.read()
+        sys.exit(0)
+    events = []
+    listener = s.info.declare_link_events_listener(
+        lambda e: events.append((time.monotonic(), str(e.kind), str(e.link.dst))), history=False)
+    qc = s.declare_querier("scmr/drivable/cloud/cloud", timeout=1.0)
+    ql = s.declare_querier("scmr/drivable/leader/leader", timeout=1.0)
+    end = time.monotonic() + 20
+    while time.monotonic() < end and not (qc.matching_status.matching and ql.matching_status.matching):
+        time.sleep(0.05)
+    for _ in range(5):  # warm both paths
+        for q in (qc, ql):
+            list(q.get(payload=b"x" * 200_000))
+    subprocess.run(["ip", "route", "add", "blackhole", f"{cloud_addr}/32"], check=True)
+    t_block = time.monotonic()
+    list(qc.get(payload=b"y" * 8_000_000))  # fills the socket and zenoh's queue
+    push_s = time.monotonic() - t_block
+    first_ok = None
+    attempts = 0
+    while time.monotonic() - t_block < float(window):
+        attempts += 1
+        if any(r.ok is not None for r in ql.get(payload=b"z" * 100_000)):
+            first_ok = time.monotonic() - t_block
+            break
+        time.sleep(0.05)
+    dropped = [dst for t, kind, dst in events if t >= t_block and "DELETE" in kind and cloud_addr not in dst]
+    print(json.dumps({"push_s": push_s, "first_leader_ok_s": first_ok, "attempts": attempts,
+                      "other_links_dropped": dropped}), flush=True)
+"""
+
+
+def _run(*argv: str) -> None:
+    subprocess.run(argv, check=True, capture_output=True, timeout=20)
+
+
+def test_blackholed_cloud_send_does_not_stall_the_leader_path(repo_root):
+    tag = secrets.token_hex(2)
+    names = {p: f"scmrs-{tag}-{p}" for p in ("br", "cloud", "leader", "robot")}
+    addr = {"cloud": "198.18.0.10", "leader": "198.18.0.11", "robot": "198.18.0.12"}
+    procs: list[subprocess.Popen] = []
+    try:
+        _run("ip", "netns", "add", names["br"])
+        _run("ip", "-n", names["br"], "link", "add", "br0", "type", "bridge")
+        _run("ip", "-n", names["br"], "link", "set", "br0", "up")
+        for i, p in enumerate(("cloud", "leader", "robot")):
+            ns = names[p]
+            _run("ip", "netns", "add", ns)
+            _run("ip", "-n", ns, "link", "set", "lo", "up")
+            _run("ip", "-n", names["br"], "link", "add", f"v{i}", "type", "veth", "peer", "name", "eth0", "netns", ns)
+            _run("ip", "-n", names["br"], "link", "set", f"v{i}", "master", "br0")
+            _run("ip", "-n", names["br"], "link", "set", f"v{i}", "up")
+            _run("ip", "-n", ns, "addr", "add", f"{addr[p]}/24", "dev", "eth0")
+            _run("ip", "-n", ns, "link", "set", "eth0", "up")
+        ep = {p: f"tcp/{a}:7447" for p, a in addr.items()}
+        env = dict(os.environ, PYTHONPATH=str(repo_root))
+        env.pop("RUST_LOG", None)
+        env.pop("SCMR_ZENOH_LOG", None)
+
+        def start(role: str, connect: list[str]) -> subprocess.Popen:
+            argv = ["ip", "netns", "exec", names[role], sys.executable, "-c", PEER, role, ep[role],
+                    ",".join(connect), str(LEASE_MS), addr["cloud"], str(WINDOW_S)]
+            p = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True, env=env, start_new_session=True)
+            procs.append(p)
+            return p
+
+        servers = [start("cloud", []), start("leader", [ep["cloud"]])]
+        for s in servers:
+            assert s.stdout.readline().strip() == "ready", s.stderr.read()
+        robot = start("robot", [ep["cloud"], ep["leader"]])
+        out, err = robot.communicate(timeout=60)
+        assert robot.returncode == 0, err[-2000:]
+        res = json.loads(out.strip().splitlines()[-1])
+        # the leader answered while the cloud was still silently gone ...
+        assert res["first_leader_ok_s"] is not None, (
+            f"no leader answer within {WINDOW_S} s of the cloud's blackhole: {res}")
+        # ... because the send to the dead cloud gave up within a few leases, not zenoh's default 5 s
+        assert res["push_s"] < WINDOW_S, res
+        # and the robot never went quiet on its other links (the leader did not expire it)
+        assert res["other_links_dropped"] == [], res
+    finally:
+        for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            p.wait(timeout=10)
+        for ns in names.values():
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
