@@ -44,6 +44,10 @@ DEFAULTS: dict[str, Any] = {
     "transport/unicast/open_timeout": 1000,
     "connect/retry": {"period_init_ms": 50, "period_max_ms": 250, "period_increase_factor": 2},
     "listen/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
+    # one link per pair of peers: with zenoh's "always" both ends of a gossip
+    # pair dial each other and keep 2 links; when a peer's link dies silently,
+    # closing each dead link ties up one of zenoh's RX threads (docs/ZENOH.md section 8)
+    "scouting/gossip/autoconnect_strategy": {"peer": {"to_router": "always", "to_peer": "greater-zid"}},
     # SHM: first large query pays 17-26 ms to set it up, SIGKILLed peers leave
     # /dev/shm files, and at our sizes the median gain is nil (docs/ZENOH.md)
     "transport/shared_memory/enabled": False,
@@ -271,6 +275,7 @@ def open_session(mc: MeshConfig):
     from scmr_mesh.errors import MeshError
 
     conf = mc.build()
+    os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT)
     _zenoh_logging()
     try:
         return zenoh.open(conf)
@@ -280,6 +285,13 @@ def open_session(mc: MeshConfig):
             "check that the listen port is free and the endpoints are well formed"
         ) from None
 
+
+#: zenoh's runtime threads (read once per process from ``$ZENOH_RUNTIME`` at the
+#: first ``zenoh.open``).  Zenoh's defaults are 1 TX and 2 RX workers; closing a
+#: silently dead link can block a worker until the kernel gives up on the
+#: socket (at worst until the route comes back), and with 2 RX workers two dead
+#: links stopped the peer from receiving anything (docs/ZENOH.md section 8).
+ZENOH_RUNTIME_DEFAULT = "(rx: (worker_threads: 4), tx: (worker_threads: 2))"
 
 #: Environment variable that turns on zenoh's own (Rust) log, e.g.
 #: ``SCMR_ZENOH_LOG=zenoh::net::routing=debug,info``; it goes to stdout, which
