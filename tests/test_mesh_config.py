@@ -80,3 +80,16 @@ def test_example_peer_configs_load(repo_root):
     assert files, "peers/*.json5 examples missing"
     for f in files:
         build_config(MeshConfig(config_file=str(f)))
+
+
+def test_wait_before_close_follows_the_lease_unless_pinned(tmp_path):
+    from scmr_mesh.mesh.config import WAIT_BEFORE_CLOSE_KEY as key
+
+    # default lease 500 ms -> 500 ms; --lease-ms wins over the default (both in microseconds)
+    assert _get(build_config(MeshConfig()), key) == 500_000
+    assert _get(build_config(MeshConfig(lease_ms=150)), key) == 150_000
+    # an explicit --cfg or a config file keeps its own value
+    assert _get(build_config(MeshConfig(lease_ms=150, cfg=[f"{key}:2000000"])), key) == 2_000_000
+    f = tmp_path / "z.json5"
+    f.write_text("{ transport: { link: { tx: { queue: { congestion_control: { block: { wait_before_close: 3000000 } } } } } } }")
+    assert _get(build_config(MeshConfig(config_file=str(f), lease_ms=150)), key) == 3_000_000
