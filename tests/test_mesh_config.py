@@ -93,3 +93,16 @@ def test_wait_before_close_follows_the_lease_unless_pinned(tmp_path):
     f = tmp_path / "z.json5"
     f.write_text("{ transport: { link: { tx: { queue: { congestion_control: { block: { wait_before_close: 3000000 } } } } } } }")
     assert _get(build_config(MeshConfig(config_file=str(f), lease_ms=150)), key) == 3_000_000
+
+
+def test_bad_setting_fails_before_the_service_starts(tmp_path):
+    """`scmr cloud --lease-ms 0` is refused before workers are forked or a store is created."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "scmr_mesh", "cloud", "--node", "c", "--lease-ms", "0"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1
+    assert "lease must be an integer >= 10 ms, got 0" in r.stderr
+    assert "workers ready" not in r.stderr and "Traceback" not in r.stderr
+    assert list(tmp_path.iterdir()) == []  # no run dir, no operational data store

@@ -117,6 +117,9 @@ def run_service(
     from scmr_mesh.mesh.server import Service
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
 
+    # a bad setting (lease 0, unknown key, ...) fails here, before workers are
+    # forked or any file is created; building a zenoh.Config starts no thread
+    mesh.build()
     stop = stop or StopFlag().install()
     clear_ready(ready_file)
     # workers first: they are forked before zenoh starts any thread
