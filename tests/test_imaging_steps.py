@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from scmr_mesh.errors import InputError
@@ -64,6 +64,7 @@ def _otsu_brute_force(hist):
 
 @settings(max_examples=60, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(2, 400), st.integers(2, 256))
+@example(8156127, 3, 3)  # [106, 107, 108]: an exact tie, found by Hypothesis
 def test_own_otsu_equals_opencv(seed, n, spread):
     rng = np.random.default_rng(seed)
     lo = int(rng.integers(0, 256 - min(spread, 255)))
@@ -71,13 +72,38 @@ def test_own_otsu_equals_opencv(seed, n, spread):
     if np.unique(data).size < 2:
         return
     t_cv, _ = cv2.threshold(data.reshape(1, -1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    t = otsu_threshold(histogram(data))
-    # the same split of the data (thresholds inside an empty gap split identically) ...
-    np.testing.assert_array_equal(data > t, data > int(t_cv))
-    # ... and the same threshold whenever no empty bin makes the choice ambiguous
     h = histogram(data)
+    t = otsu_threshold(h)
+    if not np.array_equal(data > t, data > int(t_cv)):
+        # a different split is allowed only when both are optimal: an exact tie of
+        # Eq 3.5's criterion (e.g. [106, 107, 108]: {106}|{107,108} and
+        # {106,107}|{108} are mirror images), which OpenCV's float sums break the
+        # other way; ours keeps the first minimum
+        assert _within_class_variance(h, t) == pytest.approx(
+            _within_class_variance(h, int(t_cv)), rel=1e-9, abs=1e-12)
+        return
+    # the same split of the data (thresholds inside an empty gap split identically),
+    # and the same threshold whenever no empty bin makes the choice ambiguous
     if np.all(h[int(data.min()) : int(data.max()) + 1] > 0):
         assert t == int(t_cv)
+
+
+def _within_class_variance(hist, t):
+    """q1*var1 + q2*var2 of Eq 3.5 for threshold ``t`` (class 1 = levels <= t)."""
+    h = np.asarray(hist, np.float64)
+    p = h / h.sum()
+    i = np.arange(h.size)
+    q1, q2 = p[: t + 1].sum(), p[t + 1 :].sum()
+    mu1 = (i[: t + 1] * p[: t + 1]).sum() / q1
+    mu2 = (i[t + 1 :] * p[t + 1 :]).sum() / q2
+    return (((i[: t + 1] - mu1) ** 2) * p[: t + 1]).sum() + (((i[t + 1 :] - mu2) ** 2) * p[t + 1 :]).sum()
+
+
+def test_otsu_tie_keeps_the_first_minimum():
+    """Three equally spaced, equally frequent levels: both splits are optimal."""
+    h = histogram(np.array([106, 107, 108], np.uint8))
+    assert _within_class_variance(h, 106) == pytest.approx(_within_class_variance(h, 107))
+    assert otsu_threshold(h) == 106
 
 
 @settings(max_examples=25, deadline=None)
