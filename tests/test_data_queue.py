@@ -209,3 +209,11 @@ def test_readonly_inspection_never_touches_the_files(tmp_path):
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
     with pytest.raises(ScmrError, match="no telemetry queue folder"):
         TelemetryQueue(tmp_path / "absent", readonly=True)
+
+
+def test_seq_ranges_compresses_runs_and_limits():
+    from scmr_mesh.data.queue import seq_ranges
+
+    assert seq_ranges([9, 1, 2, 3, 5, 6]) == ["1-3", "5-6", "9"]
+    assert seq_ranges([]) == []
+    assert seq_ranges([1, 3, 5, 7], limit=2) == ["1", "3"]

@@ -322,7 +322,7 @@ class TelemetryQueue:
             last_seq = max(last_seq, seg_last, first - 1)
         if st.lost_seqs:
             log.error("queue %s: %d seq(s) lost to corruption: %s", self.path, len(st.lost_seqs),
-                      _ranges(st.lost_seqs))
+                      ",".join(seq_ranges(st.lost_seqs)))
         st.acked_seq = acked
         st.next_seq = max(last_seq, acked) + 1
         st.depth = len(self._pending)
@@ -516,8 +516,13 @@ def _tail_seqs(data: bytes, off: int, nbytes: int, last_good: int) -> list[int]:
     return list(range(last_good + 1, hi + 1))
 
 
-def _ranges(seqs: list[int]) -> str:
-    out, start, prev = [], None, None
+def seq_ranges(seqs: list[int], *, limit: int | None = None) -> list[str]:
+    """Compress sequence numbers into ranges: ``[1, 2, 3, 7]`` -> ``["1-3", "7"]``.
+
+    ``limit`` keeps only the first that many ranges (for reports).
+    """
+    out: list[str] = []
+    start = prev = None
     for s in sorted(seqs):
         if start is None:
             start = prev = s
@@ -528,7 +533,7 @@ def _ranges(seqs: list[int]) -> str:
             start = prev = s
     if start is not None:
         out.append(f"{start}-{prev}" if start != prev else str(start))
-    return ",".join(out)
+    return out if limit is None else out[:limit]
 
 
 __all__ = ["MAX_RECORD_BYTES", "Corruption", "QueueStats", "TelemetryQueue", "encode_frame", "scan_segment"]

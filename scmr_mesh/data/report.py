@@ -11,22 +11,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from scmr_mesh.data.ods import OperationalDataStore
-
-
-def _ranges(seqs: list[int], *, limit: int = 20) -> list[str]:
-    out: list[str] = []
-    start = prev = None
-    for s in seqs:
-        if start is None:
-            start = prev = s
-        elif s == prev + 1:
-            prev = s
-        else:
-            out.append(f"{start}-{prev}" if start != prev else str(start))
-            start = prev = s
-    if start is not None:
-        out.append(f"{start}-{prev}" if start != prev else str(start))
-    return out[:limit]
+from scmr_mesh.data.queue import seq_ranges
 
 
 def telemetry_report(
@@ -88,7 +73,7 @@ def telemetry_report(
                 "duplicates": counts.get(robot, {}).get("duplicates", 0),
                 "conflicts": counts.get(robot, {}).get("conflicts", 0),
                 "lost": n_sent - len(in_range),
-                "missing": _ranges(missing),
+                "missing": seq_ranges(missing, limit=20),
                 "unexpected": len(seqs) - len(in_range),
             }
             if queued is not None:
@@ -172,7 +157,7 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         rep["telemetry"]["ods"] = str(ods)
         return rep
     per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent[r],
-               "missing": _ranges(list(range(1, sent[r] + 1))), "unexpected": 0, "queued": queued[r]}
+               "missing": seq_ranges(list(range(1, sent[r] + 1)), limit=20), "unexpected": 0, "queued": queued[r]}
            for r in robots}
     tot = sum(sent.values())
     return {"telemetry": {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "conflicts": 0,
