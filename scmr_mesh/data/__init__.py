@@ -10,8 +10,7 @@ See docs/DATA.md.
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from scmr_mesh._lazy import lazy_exports
 
 _EXPORTS: dict[str, str] = {
     "OperationalDataStore": "ods", "InsertResult": "ods", "default_db_path": "ods",
@@ -27,14 +26,4 @@ _EXPORTS: dict[str, str] = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str) -> Any:
-    mod = _EXPORTS.get(name)
-    if mod is None:
-        raise AttributeError(f"module 'scmr_mesh.data' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"scmr_mesh.data.{mod}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())

@@ -15,8 +15,8 @@ Frames are ``(H, W, 3) uint8`` RGB; masks are ``(225, 300) uint8`` with
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from scmr_mesh._lazy import lazy_exports
+from typing import TYPE_CHECKING
 
 _EXPORTS = {
     "decode_image": "codec",
@@ -53,17 +53,7 @@ from scmr_mesh.imaging import srm as _srm_module  # noqa: E402
 srm = _srm_module.srm
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -20,8 +20,7 @@ catalog is docs/protocol.md.  Public names are imported lazily::
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from scmr_mesh._lazy import lazy_exports
 
 _EXPORTS = {
     "MeshConfig": "config",
@@ -46,14 +45,4 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
