@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import atexit
 import concurrent.futures
+import contextlib
 import json
 import logging
 import os
@@ -767,6 +768,47 @@ def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float =
         close_session(session)
 
 
+@contextlib.contextmanager
+def _bench_pair(store: Path, node: str, robot: str):
+    """A cloud session serving :class:`CloudData` ``node`` (ODS at ``store``) and a
+    robot session linked to it over ``tcp/127.0.0.1``, in this process; yields
+    ``(cloud, robot_session)`` once the robot sees ``robot``'s telemetry queryable."""
+    import socket
+
+    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    ep = f"tcp/127.0.0.1:{port}"
+    cloud = CloudData(node, store)
+    cs = open_session(MeshConfig(listen=[ep]))
+    rs = None
+    decl = []
+    try:
+        for key, cb in cloud.queryables():
+            decl.append(cs.declare_queryable(key, cb, complete=True))
+        rs = open_session(MeshConfig(connect=[ep]))
+        q = rs.declare_querier(telemetry_key("cloud", node, robot))
+        end = time.monotonic() + 10
+        while not q.matching_status.matching:
+            if time.monotonic() > end:
+                raise MeshError("bench: the robot session never saw the cloud's telemetry queryable")
+            time.sleep(0.01)
+        q.undeclare()
+        yield cloud, rs
+    finally:
+        for d in decl:
+            try:
+                d.undeclare()
+            except Exception:
+                pass
+        if rs is not None:
+            close_session(rs)
+        close_session(cs)
+        cloud.close()
+
+
 def bench_drain(tmp_dir: str | Path, *, backlog: int = 2000) -> dict:
     """Replay a robot backlog to a cloud over Zenoh, as after an outage; return timings.
 
@@ -779,59 +821,28 @@ def bench_drain(tmp_dir: str | Path, *, backlog: int = 2000) -> dict:
     dict
         ``backlog``, ``drain_s``, ``records_per_s`` and ``stored`` (checked == backlog).
     """
-    import socket
     from types import SimpleNamespace
 
-    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    ep = f"tcp/127.0.0.1:{port}"
     tmp_dir = Path(tmp_dir)
-    cloud = CloudData("drain", tmp_dir / "drain-ods.sqlite")
-    cs = open_session(MeshConfig(listen=[ep]))
-    rs = None
-    agent = None
-    decl = []
-    try:
-        for key, cb in cloud.queryables():
-            decl.append(cs.declare_queryable(key, cb, complete=True))
-        rs = open_session(MeshConfig(connect=[ep]))
+    with _bench_pair(tmp_dir / "drain-ods.sqlite", "drain", "bench") as (cloud, rs):
         view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("drain",), leader=()))
         robot = SimpleNamespace(id="bench", _session=rs, view=view, publish_telemetry=lambda m: None)
         agent = TelemetryAgent(robot, tmp_dir / "drain-queue", autostart=False, deadline_ms=5000)
-        for i in range(1, backlog + 1):
-            agent.publish({"robot": "bench", "seq": i, "t_unix_ns": time.time_ns(),
-                           "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "battery": 0.5, "health": "ok",
-                           "results": {"requests": i, "succeeded": i, "by_tier": {"cloud": i}}})
-        q = rs.declare_querier(telemetry_key("cloud", "drain", "bench"))
-        end = time.monotonic() + 10
-        while not q.matching_status.matching:
-            if time.monotonic() > end:
-                raise MeshError("bench: the robot session never saw the cloud's telemetry queryable")
-            time.sleep(0.01)
-        q.undeclare()
-        t0 = time.perf_counter()
-        while len(agent.queue):
-            if not agent.flush_once():
-                raise MeshError("bench: the cloud stopped acknowledging telemetry during the drain")
-        dt = time.perf_counter() - t0
-        stored = cloud.ods.counts().get("bench", {}).get("stored", 0)
-        return {"backlog": backlog, "drain_s": round(dt, 4), "records_per_s": round(backlog / dt, 1),
-                "stored": stored}
-    finally:
-        if agent is not None:
+        try:
+            for i in range(1, backlog + 1):
+                agent.publish({"robot": "bench", "seq": i, "t_unix_ns": time.time_ns(),
+                               "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "battery": 0.5, "health": "ok",
+                               "results": {"requests": i, "succeeded": i, "by_tier": {"cloud": i}}})
+            t0 = time.perf_counter()
+            while len(agent.queue):
+                if not agent.flush_once():
+                    raise MeshError("bench: the cloud stopped acknowledging telemetry during the drain")
+            dt = time.perf_counter() - t0
+            stored = cloud.ods.counts().get("bench", {}).get("stored", 0)
+            return {"backlog": backlog, "drain_s": round(dt, 4), "records_per_s": round(backlog / dt, 1),
+                    "stored": stored}
+        finally:
             agent.close(drain_s=0)
-        for d in decl:
-            try:
-                d.undeclare()
-            except Exception:
-                pass
-        if rs is not None:
-            close_session(rs)
-        close_session(cs)
-        cloud.close()
 
 
 def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmup: int = 20) -> list[float]:
@@ -842,33 +853,15 @@ def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmu
     sending ``batch`` records per query.  Each sample is one query, from send
     to the ack (so it includes the ODS commit with ``synchronous=FULL``).
     """
-    import socket
-
     from scmr_mesh.data.record import make_record
-    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    ep = f"tcp/127.0.0.1:{port}"
-    cloud = CloudData("bench", Path(tmp_dir) / "bench-ods.sqlite")
-    cs = open_session(MeshConfig(listen=[ep]))
-    rs = None
-    decl = []
-    try:
-        for key, cb in cloud.queryables():
-            decl.append(cs.declare_queryable(key, cb, complete=True))
-        rs = open_session(MeshConfig(connect=[ep]))
-        q = rs.declare_querier(telemetry_key("cloud", "bench", f"bench{batch}"), timeout=5.0)
-        end = time.monotonic() + 10
-        while not q.matching_status.matching:
-            if time.monotonic() > end:
-                raise MeshError("bench: the robot session never saw the cloud's telemetry queryable")
-            time.sleep(0.01)
+    robot = f"bench{batch}"
+    with _bench_pair(Path(tmp_dir) / "bench-ods.sqlite", "bench", robot) as (_cloud, rs):
+        q = rs.declare_querier(telemetry_key("cloud", "bench", robot), timeout=5.0)
         out: list[float] = []
         seq = 1
         for i in range(warmup + n):
-            recs = [make_record(f"bench{batch}", seq + k, pose=(1.0, 2.0, 0.5), battery=0.9,
+            recs = [make_record(robot, seq + k, pose=(1.0, 2.0, 0.5), battery=0.9,
                                 results={"requests": seq, "succeeded": seq, "by_tier": {"cloud": seq}})
                     for k in range(batch)]
             seq += batch
@@ -884,13 +877,3 @@ def bench_round_trip(tmp_dir: str | Path, *, n: int = 200, batch: int = 1, warmu
                 out.append(dt)
         q.undeclare()
         return out
-    finally:
-        for d in decl:
-            try:
-                d.undeclare()
-            except Exception:
-                pass
-        if rs is not None:
-            close_session(rs)
-        close_session(cs)
-        cloud.close()
