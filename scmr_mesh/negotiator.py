@@ -379,10 +379,11 @@ def jain_index(values) -> float:
     0.25
     """
     xs = [float(v) for v in values]
-    sq = sum(x * x for x in xs)
-    if not xs or sq == 0:
+    top = max((abs(x) for x in xs), default=0.0)
+    if top == 0:
         return 1.0
-    return sum(xs) ** 2 / (len(xs) * sq)
+    xs = [x / top for x in xs]  # scale-free; tiny values would underflow x * x
+    return min(1.0, sum(xs) ** 2 / (len(xs) * sum(x * x for x in xs)))
 
 
 # --------------------------------------------------------------------------- CLI glue

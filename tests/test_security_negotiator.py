@@ -9,7 +9,7 @@ import random
 import threading
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
@@ -99,6 +99,7 @@ def test_jain_index_cases():
 
 
 @given(st.lists(st.floats(0, 1e6, allow_nan=False), min_size=1, max_size=30))
+@example([2.596206522714877e-161, 2.596206522714877e-161])  # x * x underflowed: index 1.0037
 def test_jain_index_is_between_one_over_n_and_one(xs):
     j = jain_index(xs)
     assert 1.0 / len(xs) - 1e-9 <= j <= 1.0 + 1e-9
