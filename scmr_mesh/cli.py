@@ -2,9 +2,10 @@
 
 Each area of the project contributes its sub-commands through a ``register``
 function in its own ``commands`` module (listed in :data:`COMMAND_MODULES`), so
-this file never needs to know the details.  A ``register(sub, bench)`` call
-receives the top-level sub-parser action and the ``scmr bench`` sub-parser
-action; each sub-command sets ``func`` to a handler ``handler(args) -> int``.
+this file never needs to know the details.  A ``register(sub)`` call receives
+the top-level sub-parser action; each sub-command sets ``func`` to a handler
+``handler(args) -> int``.  Every ``scmr bench`` target comes from
+:mod:`scmr_mesh.bench.commands` (the only import of the bench layer).
 
 Exit status: 0 success, 1 expected failure (bad input, failed expectation,
 unreachable tier: an :class:`~scmr_mesh.errors.ScmrError`), 2 usage error or
@@ -26,15 +27,15 @@ from scmr_mesh.errors import ScmrError
 
 #: Modules that contribute sub-commands, in the order ``--help`` lists them.
 COMMAND_MODULES: tuple[str, ...] = (
-    "scmr_mesh.demo",
+    "scmr_mesh.fleet.demo",
     "scmr_mesh.imaging.commands",
     "scmr_mesh.mesh.commands",
-    "scmr_mesh.fleet",
+    "scmr_mesh.fleet.commands",
     "scmr_mesh.scenario.commands",
     "scmr_mesh.energy.commands",
     "scmr_mesh.data.commands",
     "scmr_mesh.security.commands",
-    "scmr_mesh.viz_commands",
+    "scmr_mesh.viz.commands",
 )
 
 EPILOG = """\
@@ -70,8 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench = bench_parser.add_subparsers(dest="bench_command", metavar="BENCH")
     bench_parser.set_defaults(func=lambda args: _missing_sub(bench_parser))
     for name in COMMAND_MODULES:
-        module = importlib.import_module(name)
-        module.register(sub, bench)
+        importlib.import_module(name).register(sub)
+    from scmr_mesh.bench.commands import register as register_bench
+
+    register_bench(bench)
     return parser
 
 

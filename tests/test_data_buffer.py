@@ -8,7 +8,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scmr_mesh.data.buffer import BufferSync, DataBuffer, decode_batch, results_key, state_key
+from scmr_mesh.data.buffer import (
+    BufferSync,
+    DataBuffer,
+    decode_batch,
+    results_key,
+    state_key,
+)
 from scmr_mesh.errors import WireError
 
 ops_st = st.lists(

@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import free_port
+
 from scmr_mesh.data.ods import OperationalDataStore
 from scmr_mesh.data.queue import TelemetryQueue
 from scmr_mesh.data.report import telemetry_report

@@ -16,7 +16,12 @@ from hypothesis import strategies as st
 
 from scmr_mesh.data.errors import StoreError
 from scmr_mesh.data.ods import MIGRATIONS, SCHEMA_VERSION, OperationalDataStore
-from scmr_mesh.data.record import TelemetryRecord, decode_records, encode_records, make_record
+from scmr_mesh.data.record import (
+    TelemetryRecord,
+    decode_records,
+    encode_records,
+    make_record,
+)
 from scmr_mesh.data.report import telemetry_report
 from scmr_mesh.errors import WireError
 

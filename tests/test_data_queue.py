@@ -11,7 +11,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from scmr_mesh.data.errors import QueueCorruptError, QueueFullError
-from scmr_mesh.data.queue import HEADER, MAGIC, TelemetryQueue, encode_frame, scan_segment
+from scmr_mesh.data.queue import (
+    HEADER,
+    MAGIC,
+    TelemetryQueue,
+    encode_frame,
+    scan_segment,
+)
 from scmr_mesh.errors import ScmrError
 
 # payloads that cannot contain the frame magic by accident

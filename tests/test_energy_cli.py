@@ -7,7 +7,12 @@ import json
 import pytest
 
 from scmr_mesh.cli import main
-from scmr_mesh.energy import EnergyLedger, LinkEstimator, Placement, cycles_from_cpu_time
+from scmr_mesh.energy import (
+    EnergyLedger,
+    LinkEstimator,
+    Placement,
+    cycles_from_cpu_time,
+)
 from scmr_mesh.energy.commands import parse_rate, parse_size
 from scmr_mesh.energy.experiments import eq49_table
 from scmr_mesh.energy.measure import _parse_cpuinfo

@@ -6,8 +6,8 @@ import json
 from dataclasses import dataclass
 
 import pytest
-
 from conftest import free_port
+
 from scmr_mesh.energy import PROFILES, Profile
 from scmr_mesh.energy.live import ASSUMED_LINK, EnergyPlacer
 from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for

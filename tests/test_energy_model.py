@@ -8,8 +8,20 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scmr_mesh.energy import PROFILES, LinkEstimate, Profile, Task, break_even_up_Bps, energy_terms
-from scmr_mesh.energy.experiments import eq49_table, numeric_break_even_up_Bps, sweep, thesis_literal_eq49
+from scmr_mesh.energy import (
+    PROFILES,
+    LinkEstimate,
+    Profile,
+    Task,
+    break_even_up_Bps,
+    energy_terms,
+)
+from scmr_mesh.energy.experiments import (
+    eq49_table,
+    numeric_break_even_up_Bps,
+    sweep,
+    thesis_literal_eq49,
+)
 from scmr_mesh.energy.model import e_idle, e_proc, e_trans
 
 # Eq 4.9 by hand: D/B_u = 1048576/3014656 = 8/23, D/B_d = 1048576/3670016 = 2/7.

@@ -6,7 +6,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scmr_mesh.energy import PROFILES, LinkEstimate, Profile, Task, choose_placement, energy_terms
+from scmr_mesh.energy import (
+    PROFILES,
+    LinkEstimate,
+    Profile,
+    Task,
+    choose_placement,
+    energy_terms,
+)
 from scmr_mesh.errors import InputError
 
 EQ49_LINK = LinkEstimate(3014656, 3670016)

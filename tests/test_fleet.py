@@ -7,12 +7,18 @@ from pathlib import Path
 
 import pytest
 
-from scmr_mesh import metrics
+from scmr_mesh.bench.mesh import bench_targets
 from scmr_mesh.errors import InputError, MeshError
 from scmr_mesh.fleet import (
-    FleetConfig, RecordTail, bench_targets, check_ror, format_summary, parse_outage, plan_fleet,
+    FleetConfig,
+    RecordTail,
+    check_ror,
+    format_summary,
+    parse_outage,
+    plan_fleet,
     validate_report,
 )
+from scmr_mesh.qos import metrics
 
 
 def test_plan_wires_robots_to_cloud_and_leader(tmp_path):

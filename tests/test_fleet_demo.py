@@ -6,9 +6,14 @@ import cv2
 import numpy as np
 import pytest
 
-from scmr_mesh.demo import TIER_BGR, _clear_previous, render_overlays, render_timeline
 from scmr_mesh.errors import InputError
 from scmr_mesh.fleet import RUN_MARKER
+from scmr_mesh.fleet.demo import (
+    TIER_BGR,
+    _clear_previous,
+    render_overlays,
+    render_timeline,
+)
 
 T0 = 1_700_000_000_000_000_000
 S = 1_000_000_000

@@ -18,10 +18,10 @@ import zlib
 
 import msgpack
 import pytest
+from conftest import free_port
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import free_port
 from scmr_mesh import keys, wire
 from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
 from scmr_mesh.mesh.testing import spawn_peer, stop_peer, synthetic_png, wait_for

@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from scmr_mesh.errors import ImageDecodeError, InputError
-from scmr_mesh.imaging import MAX_PIXELS, decode_image, encode_png, load_image, resize_frame
+from scmr_mesh.imaging import (
+    MAX_PIXELS,
+    decode_image,
+    encode_png,
+    load_image,
+    resize_frame,
+)
 
 
 def _rgb(h=7, w=9, seed=0):

@@ -1,47 +1,144 @@
-"""Dependencies point inward: the pure core imports neither Zenoh nor rerun,
-Zenoh is imported only under scmr_mesh/mesh/, rerun only in scmr_mesh/viz.py."""
+"""The import rules of the layout (README "Layout"): dependencies point inward.
+
+Layers, lowest first; a module may import its own layer and the ones below:
+
+=========  ==================================================================
+base       ``errors``, ``_lazy``, ``wire``, ``keys``
+core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, and the
+           pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``
+mesh       ``mesh/``: every Zenoh import of the running system
+viz        ``viz/``: every rerun import
+procs      ``fleet/``, ``scenario/`` (processes and faults); may use mesh and viz
+commands   every ``*/commands.py`` (CLI wiring): anything but the bench layer
+bench      ``bench/``: every ``scmr bench`` target; imports whatever it measures
+cli        ``cli.py``, ``__main__.py``: the only importers of ``bench``
+=========  ==================================================================
+
+Imports inside functions count too (a lazy import is still a dependency).
+"""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
+import pytest
+
 PKG = Path(__file__).resolve().parents[1] / "scmr_mesh"
 
+RANK = {"base": 0, "core": 1, "mesh": 2, "viz": 2, "procs": 3, "commands": 4, "bench": 5, "cli": 6}
+CORE = ("imaging", "energy", "data", "qos", "security")
 
-def _imports(path: Path) -> set[str]:
+
+def layer(rel: Path) -> str:
+    """The layer of a module path relative to the package."""
+    parts = rel.parts
+    if rel.name == "commands.py":
+        return "commands"
+    if len(parts) == 1:
+        stem = rel.stem
+        if stem in ("cli", "__main__"):
+            return "cli"
+        if stem in ("errors", "_lazy", "wire", "keys", "__init__"):
+            return "base"
+        raise AssertionError(f"top-level module {rel} has no layer; add it to tests/test_layers.py")
+    top = parts[0]
+    if top in CORE:
+        return "core"
+    if top == "scenario" and rel.name in ("spec.py", "plan.py", "__init__.py"):
+        return "core"
+    if top in ("mesh", "viz", "bench"):
+        return top
+    if top in ("fleet", "scenario"):
+        return "procs"
+    raise AssertionError(f"package {top}/ has no layer; add it to tests/test_layers.py")
+
+
+def module_path(name: str) -> Path | None:
+    """``scmr_mesh.a.b`` -> path relative to the package (module or package ``__init__``)."""
+    parts = name.split(".")[1:]
+    if not parts:
+        return Path("__init__.py")
+    base = PKG.joinpath(*parts)
+    if base.with_suffix(".py").is_file():
+        return base.with_suffix(".py").relative_to(PKG)
+    if (base / "__init__.py").is_file():
+        return (base / "__init__.py").relative_to(PKG)
+    return None
+
+
+def imports(path: Path) -> list[tuple[str, int]]:
+    """Absolute module names imported anywhere in ``path``, with line numbers."""
     tree = ast.parse(path.read_text(), filename=str(path))
-    names: set[str] = set()
+    out: list[tuple[str, int]] = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            names.update(a.name.split(".")[0] for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
-    return names
+            out.extend((a.name, node.lineno) for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.append((node.module, node.lineno))
+            if node.module == "scmr_mesh" or node.module.startswith("scmr_mesh."):
+                # `from scmr_mesh.fleet import procs` imports the submodule procs
+                for a in node.names:
+                    sub = f"{node.module}.{a.name}"
+                    if module_path(sub) is not None:
+                        out.append((sub, node.lineno))
+    return out
 
 
-def _files():
-    return sorted(p for p in PKG.rglob("*.py"))
+FILES = sorted(p for p in PKG.rglob("*.py"))
 
 
-def test_zenoh_only_in_mesh_package():
-    offenders = [
-        str(p.relative_to(PKG)) for p in _files()
-        if "zenoh" in _imports(p) and "mesh" not in p.relative_to(PKG).parts[:1]
-    ]
+def test_every_module_has_a_layer():
+    for f in FILES:
+        layer(f.relative_to(PKG))
+
+
+@pytest.mark.parametrize("path", FILES, ids=lambda p: str(p.relative_to(PKG)))
+def test_dependencies_point_inward(path):
+    rel = path.relative_to(PKG)
+    mine = layer(rel)
+    bad = []
+    for name, line in imports(path):
+        if not name.startswith("scmr_mesh"):
+            continue
+        target = module_path(name)
+        if target is None:
+            continue
+        theirs = layer(target)
+        if theirs == "bench" and mine not in ("bench", "cli"):
+            bad.append(f"line {line}: {name} (only the CLI imports the bench layer)")
+        elif RANK[theirs] > RANK[mine] or (RANK[theirs] == RANK[mine] and theirs != mine):
+            bad.append(f"line {line}: {name} ({mine} may not import {theirs})")
+    assert not bad, f"{rel} ({mine}) imports upward: " + "; ".join(bad)
+
+
+def _importers(module: str) -> list[str]:
+    return [str(p.relative_to(PKG)) for p in FILES
+            if any(n.split(".")[0] == module for n, _ in imports(p))]
+
+
+def test_zenoh_only_in_mesh_and_bench():
+    offenders = [f for f in _importers("zenoh") if Path(f).parts[0] not in ("mesh", "bench")]
     assert offenders == []
 
 
-def test_rerun_only_in_viz_module():
-    offenders = [str(p.relative_to(PKG)) for p in _files() if "rerun" in _imports(p) and p.name != "viz.py"]
+def test_rerun_only_in_viz():
+    offenders = [f for f in _importers("rerun") if Path(f).parts[0] != "viz"]
     assert offenders == []
 
 
 def test_pure_core_has_no_middleware():
-    core = [PKG / "imaging", PKG / "energy", PKG / "wire.py", PKG / "scenario" / "spec.py"]
-    for root in core:
-        files = [root] if root.suffix == ".py" else list(root.rglob("*.py"))
-        for f in files:
-            if f.exists():
-                bad = _imports(f) & {"zenoh", "rerun"}
-                assert not bad, f"{f.relative_to(PKG)} imports {bad}"
+    for f in FILES:
+        rel = f.relative_to(PKG)
+        if layer(rel) in ("base", "core"):
+            bad = {n.split(".")[0] for n, _ in imports(f)} & {"zenoh", "rerun"}
+            assert not bad, f"{rel} imports {bad}"
+
+
+def test_the_rules_catch_an_upward_import(tmp_path):
+    """The checker itself: a core module importing the mesh is reported."""
+    bad = tmp_path / "x.py"
+    bad.write_text("from scmr_mesh.mesh.robot import Robot\n")
+    names = [n for n, _ in imports(bad)]
+    assert "scmr_mesh.mesh.robot" in names
+    assert RANK[layer(module_path("scmr_mesh.mesh.robot"))] > RANK[layer(Path("data/queue.py"))]

@@ -7,8 +7,8 @@ import time
 
 import msgpack
 import pytest
-
 from conftest import free_port
+
 from scmr_mesh import keys, wire
 from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
 from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, synthetic_png, wait_for

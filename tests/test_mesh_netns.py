@@ -21,12 +21,11 @@ import signal
 import subprocess
 
 import pytest
-
 from conftest import free_port
-from scmr_mesh.errors import MeshError
-from scmr_mesh.mesh.netns import TwoSites, plan_two_sites, unavailable_reason
-from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
 
+from scmr_mesh.errors import MeshError
+from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+from scmr_mesh.scenario.sites import TwoSites, plan_two_sites, unavailable_reason
 
 
 def test_plan_has_no_default_route_and_cleans_up():

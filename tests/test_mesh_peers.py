@@ -13,9 +13,16 @@ import time
 from pathlib import Path
 
 import pytest
-
 from conftest import free_port
-from scmr_mesh.mesh.testing import SLOW, STUB, read_records, spawn_peer, stop_peer, wait_for
+
+from scmr_mesh.mesh.testing import (
+    SLOW,
+    STUB,
+    read_records,
+    spawn_peer,
+    stop_peer,
+    wait_for,
+)
 
 LEASE = "300"
 
@@ -194,19 +201,19 @@ def test_redundant_mode_and_two_cloud_nodes(fleet):
 
 def test_sigterm_stops_peers_cleanly_and_drains_the_cloud(fleet):
     cp = free_port()
-    cloud = fleet.service("cloud", "c1", cp, process=SLOW, env={"SCMR_STUB_DELAY_MS": "300"})
+    marks = fleet.tmp / "marks"
+    marks.mkdir()
+    cloud = fleet.service("cloud", "c1", cp, process=SLOW,
+                          env={"SCMR_STUB_DELAY_MS": "300", "SCMR_STUB_MARK_DIR": str(marks)})
     robot = fleet.robot("r1", [_ep(cp)], extra=["--rate", "10"])
     wait_for(lambda: len(fleet.records("r1")) >= 2, what="2 records")
-    outbox = fleet.tmp / "r1" / "outbox"
+    seen = {p.name for p in marks.iterdir()}
 
-    def fresh_request_in_flight():  # sent < 100 ms ago, so the 300 ms frame is far from done
-        files = list(outbox.iterdir())
-        try:
-            return any(time.time() - f.stat().st_mtime < 0.1 for f in files)
-        except FileNotFoundError:
-            return False
+    def frame_in_the_works():  # the cloud began a 300 ms frame < 100 ms ago (not a record yet)
+        new = [p.name for p in marks.iterdir() if p.name not in seen]
+        return any(time.time_ns() - int(n.split(".")[0]) < 100e6 for n in new)
 
-    wait_for(fresh_request_in_flight, interval=0.01, what="a request just sent")
+    wait_for(frame_in_the_works, interval=0.005, what="the cloud working on a frame")
     t_term = time.time_ns()
     assert stop_peer(cloud) == 0  # SIGTERM (to its process group) while the cloud works on a frame
     n = len(fleet.records("r1"))

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scmr_mesh import metrics
+from scmr_mesh.qos import metrics
 
 MS = 1_000_000  # ns per ms
 T0 = 1_700_000_000_000_000_000

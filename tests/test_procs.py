@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from scmr_mesh.errors import MeshError
-from scmr_mesh.procs import PeerSpec, Supervisor, log_tail
+from scmr_mesh.fleet.procs import PeerSpec, Supervisor, log_tail
 
 # A dummy peer: optional grandchild, prints its pid, writes the ready file, obeys SIGTERM.
 DUMMY = textwrap.dedent("""
@@ -156,7 +156,7 @@ def test_no_orphans_when_the_supervisor_is_sigkilled(tmp_path):
         from pathlib import Path
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_procs import spec
-        from scmr_mesh.procs import Supervisor
+        from scmr_mesh.fleet.procs import Supervisor
         tmp = Path({str(tmp_path)!r})
         sup = Supervisor()
         for n in ("cloud", "leader", "r0"):

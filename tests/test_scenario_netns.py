@@ -15,7 +15,13 @@ import textwrap
 
 import pytest
 
-from scmr_mesh.scenario.netns import NetnsBackend, cleanup_stale, list_namespaces, netem_available, run_cmd
+from scmr_mesh.scenario.netns import (
+    NetnsBackend,
+    cleanup_stale,
+    list_namespaces,
+    netem_available,
+    run_cmd,
+)
 from scmr_mesh.scenario.plan import Event
 from scmr_mesh.scenario.spec import parse_scenario
 

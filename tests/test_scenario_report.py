@@ -9,7 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from scmr_mesh.scenario.report import build_report, energy_per_robot, thesis_table, write_report
+from scmr_mesh.scenario.report import (
+    build_report,
+    energy_per_robot,
+    thesis_table,
+    write_report,
+)
 from scmr_mesh.scenario.spec import parse_scenario
 
 S = 1_000_000_000

@@ -19,9 +19,20 @@ from scmr_mesh.errors import ConfigError, InputError
 from scmr_mesh.mesh.security import apply_security, secure_config
 from scmr_mesh.security.acl import ALL_MESSAGES, build_acl
 from scmr_mesh.security.credentials import (
-    Fleet, Peer, create_credentials, infer_role, load_fleet, parse_peers, peer_files,
+    Fleet,
+    Peer,
+    create_credentials,
+    infer_role,
+    load_fleet,
+    parse_peers,
+    peer_files,
 )
-from scmr_mesh.security.profile import SecurityProfile, load_profile, secure_endpoint, zenoh_settings
+from scmr_mesh.security.profile import (
+    SecurityProfile,
+    load_profile,
+    secure_endpoint,
+    zenoh_settings,
+)
 
 
 @pytest.fixture(scope="module")
@@ -209,7 +220,7 @@ def test_certs_command(tmp_path, capsys):
 
 
 def test_bench_tls_smoke():
-    from scmr_mesh.mesh.security import bench_link_latency
+    from scmr_mesh.bench.tls import bench_link_latency
 
     res = bench_link_latency(payload_bytes=1000, queries=5, warmup=1, kinds=("none", "tls+acl"))
     assert [r["kind"] for r in res["runs"]] == ["none", "tls+acl"]

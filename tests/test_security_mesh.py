@@ -278,7 +278,13 @@ if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "agent":
 
 def test_real_peers_with_security_profile(credentials, tmp_path, repo_root):
     """`scmr cloud` / `scmr robot --security peers/secure/mtls.toml`: served; without it: not."""
-    from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+    from scmr_mesh.mesh.testing import (
+        STUB,
+        read_records,
+        spawn_peer,
+        stop_peer,
+        wait_for,
+    )
 
     creds, _ = credentials
     profile = str(repo_root / "peers" / "secure" / "mtls.toml")

@@ -11,9 +11,15 @@ import threading
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
-from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    initialize,
+    invariant,
+    precondition,
+    rule,
+)
 
-from scmr_mesh.negotiator import (
+from scmr_mesh.qos.negotiator import (
     REASON_DISPLACED,
     REASON_FULL,
     REASON_MINIMUM,

@@ -10,10 +10,17 @@ from __future__ import annotations
 import re
 
 import pytest
-
 from conftest import free_port
-from scmr_mesh.mesh.testing import SLOW, STUB, read_records, spawn_peer, stop_peer, wait_for
-from scmr_mesh.security.overload import summarize
+
+from scmr_mesh.bench.overload import summarize
+from scmr_mesh.mesh.testing import (
+    SLOW,
+    STUB,
+    read_records,
+    spawn_peer,
+    stop_peer,
+    wait_for,
+)
 
 
 def _rec(ok, tor, outcomes):

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from scmr_mesh import viz
+from scmr_mesh import keys, viz
 from scmr_mesh.errors import InputError
 
 
@@ -175,4 +175,4 @@ def test_peers_env_session_without_options_changes_nothing(monkeypatch):
 @pytest.mark.parametrize(("raw", "name"), [("cloud0", "cloud0"), ("cloud | leader,r1", "cloud_leader_r1"), ("//", "_")])
 def test_entity_name(raw, name):
     assert viz.entity_name(raw) == name
-    viz.keys.check_name(viz.entity_name(raw))
+    keys.check_name(viz.entity_name(raw))

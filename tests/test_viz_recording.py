@@ -14,7 +14,6 @@ import re
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -248,6 +247,6 @@ def test_serve_starts_a_web_viewer_that_peers_reach_and_stops_it(isolated_env):
 def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):
     from conftest import free_port
 
-    monkeypatch.setattr(viz, "has_display", lambda: False)
+    monkeypatch.setattr("scmr_mesh.viz.sink.has_display", lambda: False)
     with pytest.raises(viz.ViewerError, match="--serve"):
         viz.FleetViz(viz.RerunOptions("spawn"), robots=["r0"], port=free_port())

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import logging
-import statistics
 import sys
 import tempfile
 import time
@@ -39,24 +38,6 @@ from typing import Any, Sequence
 from scmr_mesh.errors import InputError, MeshError
 
 log = logging.getLogger(__name__)
-
-
-def add_overload_arguments(p) -> None:
-    """Flags of ``scmr bench overload``."""
-    p.add_argument("--robots", type=int, default=8, metavar="N", help="robot processes (default 8)")
-    p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames/s per robot (default 10)")
-    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds per run (default 10)")
-    p.add_argument("--workers", type=int, default=1, metavar="N", help="cloud worker processes (default 1)")
-    p.add_argument("--service-ms", type=float, default=40.0, metavar="MS",
-                   help="fixed service time per frame (slow_process stub); 0 = the real pipeline (default 40)")
-    p.add_argument("--queue", type=int, default=2, metavar="Q", help="negotiator queue size (default 2)")
-    p.add_argument("--per-robot", type=int, default=None, metavar="N", help="negotiator per-robot quota")
-    p.add_argument("--levels", type=int, default=2, metavar="L",
-                   help="priority classes: robot k pays 10 * (k mod L) (default 2)")
-    p.add_argument("--policies", default="negotiator,fifo", metavar="LIST",
-                   help="runs to make, in order (default negotiator,fifo)")
-    p.add_argument("--json", metavar="FILE", help="write the results here")
-    p.add_argument("--run-dir", type=Path, metavar="DIR", help="keep logs and records here (default: a temp dir)")
 
 
 def _pct(xs: Sequence[float], q: float) -> float | None:
@@ -135,7 +116,7 @@ def summarize(records_by_robot: dict[str, list[dict]], priorities: dict[str, int
     dict
         See the module docstring.
     """
-    from scmr_mesh.negotiator import jain_index
+    from scmr_mesh.qos.negotiator import jain_index
 
     served_tor: list[float] = []
     busy_tor: list[float] = []
@@ -211,7 +192,13 @@ def run_overload(
     """
     import socket
 
-    from scmr_mesh.mesh.testing import SLOW, read_records, spawn_peer, stop_peer, wait_for
+    from scmr_mesh.mesh.testing import (
+        SLOW,
+        read_records,
+        spawn_peer,
+        stop_peer,
+        wait_for,
+    )
 
     if policy not in ("negotiator", "fifo"):
         raise InputError(f"policy must be 'negotiator' or 'fifo', got {policy!r}")

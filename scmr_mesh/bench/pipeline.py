@@ -8,8 +8,10 @@ from a 300x225 RGB array to the mask; ``decode`` (PNG bytes to RGB) and
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Callable
@@ -141,3 +143,30 @@ def _loadavg() -> list[float] | None:
         return [round(v, 2) for v in os.getloadavg()]
     except OSError:  # pragma: no cover
         return None
+
+
+# ------------------------------------------------------------------ CLI
+def cmd_bench_pipeline(args: argparse.Namespace) -> int:
+    from scmr_mesh.imaging.commands import _write_json
+
+    tty = sys.stderr.isatty()
+
+    def progress(i: int, n: int) -> None:
+        if tty:
+            print(f"\rtimed {i}/{n} runs (decode pass, then pipeline pass)", end="" if i < n else "\n",
+                  file=sys.stderr, flush=True)
+        elif i == n or i % max(1, n // 5) == 0:  # a few whole lines in logs and CI
+            print(f"timed {i}/{n} runs (decode pass, then pipeline pass)", file=sys.stderr)
+
+    print("warming up (numba JIT / cache) ...", file=sys.stderr)
+    result = bench_pipeline(frames=args.frames, images=args.images, mode=args.mode, progress=progress)
+    med, p99 = result["median_ms"], result["p99_ms"]
+    print(f"{'stage':10s} {'median ms':>10s} {'p99 ms':>10s}")
+    for k in med:
+        print(f"{k:10s} {med[k]:10.3f} {p99[k]:10.3f}")
+    print(f"{'total CPU':10s} {result['cpu_total_median_ms']:10.3f} {result['cpu_total_p99_ms']:10.3f}")
+    if result.get("load_average"):
+        print(f"load average during the run: {result['load_average']} (wall-clock figures include waiting for the core)")
+    if args.json:
+        _write_json(args.json, result)
+    return 0

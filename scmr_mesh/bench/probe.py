@@ -1,6 +1,6 @@
 """Measure the zenoh facts the mesh relies on (numbers for docs/ZENOH.md).
 
-Run ``python -m scmr_mesh.mesh.probe <probe> [options]``; each probe starts
+Run ``python -m scmr_mesh.bench.probe <probe> [options]``; each probe starts
 real processes on loopback (multicast off), prints one JSON object per
 measurement on stdout and a summary line on stderr.
 
@@ -95,7 +95,7 @@ def serve(args) -> int:
 
 def _spawn_server(port: int, *, lease: int, busy: int = 0, no_shm: bool = False, close_after=None,
                   reply_bytes: int = 100) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "scmr_mesh.mesh.probe", "_serve", "--listen", f"tcp/127.0.0.1:{port}",
+    cmd = [sys.executable, "-m", "scmr_mesh.bench.probe", "_serve", "--listen", f"tcp/127.0.0.1:{port}",
            "--lease", str(lease), "--busy", str(busy), "--reply-bytes", str(reply_bytes)]
     if no_shm:
         cmd.append("--no-shm")
@@ -371,7 +371,13 @@ def probe_routers(args) -> int:
     from pathlib import Path
 
     from scmr_mesh.mesh import netns
-    from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+    from scmr_mesh.mesh.testing import (
+        STUB,
+        read_records,
+        spawn_peer,
+        stop_peer,
+        wait_for,
+    )
 
     reason = netns.unavailable_reason()
     if reason:
@@ -552,7 +558,7 @@ def probe_redundant(args) -> int:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m scmr_mesh.mesh.probe", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m scmr_mesh.bench.probe", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="probe", required=True)
     s = sub.add_parser("_serve")

@@ -12,10 +12,10 @@ and how many of its other links dropped during the fault.
 
 Usage::
 
-    python -m scmr_mesh.scenario.txstall --runs 3
-    python -m scmr_mesh.scenario.txstall --runs 3 \\
+    python -m scmr_mesh.bench.txstall --runs 3
+    python -m scmr_mesh.bench.txstall --runs 3 \\
         --cfg transport/link/tx/queue/congestion_control/block/wait_before_close:5000000
-    ZENOH_RUNTIME='(rx: (worker_threads: 2), tx: (worker_threads: 1))' python -m scmr_mesh.scenario.txstall
+    ZENOH_RUNTIME='(rx: (worker_threads: 2), tx: (worker_threads: 1))' python -m scmr_mesh.bench.txstall
 
 ``--cfg`` overrides go to every peer after scmr's defaults (so the second line
 restores zenoh's 5 s default and shows the stall).  Namespaces are deleted and
@@ -170,7 +170,7 @@ def run_once(*, at_s: float = 3.0, for_s: float = 4.0, lease_ms: int = 150, payl
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m scmr_mesh.scenario.txstall", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m scmr_mesh.bench.txstall", description=__doc__.split("\n\n")[0])
     p.add_argument("--runs", type=int, default=1, help="repetitions (default 1, about 12 s each)")
     p.add_argument("--at", type=float, default=3.0, help="blackhole the cloud after this many seconds (default 3)")
     p.add_argument("--for", dest="for_s", type=float, default=4.0, help="for this many seconds (default 4)")

@@ -14,9 +14,28 @@ cycles_from_cpu_time, host_clock_hz, LinkEstimator, EnergyLedger
     Measured inputs and per-tier energy accounting.
 """
 
-from scmr_mesh.energy.measure import EnergyLedger, LinkEstimator, cycles_from_cpu_time, host_clock_hz
-from scmr_mesh.energy.model import MIB, PROFILES, THESIS_CYCLES, THESIS_F, THESIS_MBPS, Profile, break_even_up_Bps
-from scmr_mesh.energy.placement import LinkEstimate, Placement, Task, choose_placement, energy_terms
+from scmr_mesh.energy.measure import (
+    EnergyLedger,
+    LinkEstimator,
+    cycles_from_cpu_time,
+    host_clock_hz,
+)
+from scmr_mesh.energy.model import (
+    MIB,
+    PROFILES,
+    THESIS_CYCLES,
+    THESIS_F,
+    THESIS_MBPS,
+    Profile,
+    break_even_up_Bps,
+)
+from scmr_mesh.energy.placement import (
+    LinkEstimate,
+    Placement,
+    Task,
+    choose_placement,
+    energy_terms,
+)
 from scmr_mesh.energy.profiles import get_profile, load_profiles
 
 __all__ = [

@@ -12,7 +12,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from scmr_mesh.energy.model import MIB, PROFILES, THESIS_CYCLES, THESIS_F, THESIS_MBPS, Profile, break_even_up_Bps
+from scmr_mesh.energy.model import (
+    MIB,
+    PROFILES,
+    THESIS_CYCLES,
+    THESIS_F,
+    THESIS_MBPS,
+    Profile,
+    break_even_up_Bps,
+)
 from scmr_mesh.energy.placement import LinkEstimate, Task, energy_terms
 
 __all__ = [

@@ -37,7 +37,14 @@ from typing import Any
 
 from scmr_mesh.energy.measure import EnergyLedger, LinkEstimator, host_clock_hz
 from scmr_mesh.energy.model import THESIS_CYCLES, THESIS_F, Profile, e_proc, e_trans
-from scmr_mesh.energy.placement import REMOTE_TIERS, LinkEstimate, Placement, Task, choose_placement, energy_terms
+from scmr_mesh.energy.placement import (
+    REMOTE_TIERS,
+    LinkEstimate,
+    Placement,
+    Task,
+    choose_placement,
+    energy_terms,
+)
 
 __all__ = ["ASSUMED_LINK", "EnergyPlacer"]
 

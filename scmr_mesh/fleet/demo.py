@@ -29,7 +29,7 @@ __all__ = ["register", "render_overlays", "render_timeline"]
 TIER_BGR = {"cloud": (200, 120, 20), "leader": (0, 140, 255), "local": (170, 40, 170), None: (0, 0, 230)}
 
 
-def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
         help="the fleet demo on one host (what `make demo` runs)",
@@ -60,7 +60,7 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
 def _clear_previous(out: Path) -> None:
     """Remove a previous run in ``out`` (only folders marked by ``scmr up`` as run directories)."""
     from scmr_mesh.errors import InputError
-    from scmr_mesh.fleet import RUN_MARKER
+    from scmr_mesh.fleet.plan import RUN_MARKER
 
     if not out.exists():
         return
@@ -74,7 +74,8 @@ def _clear_previous(out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scmr_mesh.fleet import FleetConfig, check_ror, format_summary, parse_outage, run_with_output
+    from scmr_mesh.fleet.output import check_ror, format_summary, run_with_output
+    from scmr_mesh.fleet.plan import FleetConfig, parse_outage
 
     out = Path(args.out)
     _clear_previous(out)
@@ -145,7 +146,7 @@ def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, A
     import cv2
     import numpy as np
 
-    from scmr_mesh import metrics
+    from scmr_mesh.qos import metrics
 
     img = np.full((height, width, 3), 255, np.uint8)
     left, right, top, bottom = 60, 20, 40, 50

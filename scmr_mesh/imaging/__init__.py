@@ -15,8 +15,9 @@ Frames are ``(H, W, 3) uint8`` RGB; masks are ``(225, 300) uint8`` with
 
 from __future__ import annotations
 
-from scmr_mesh._lazy import lazy_exports
 from typing import TYPE_CHECKING
+
+from scmr_mesh._lazy import lazy_exports
 
 _EXPORTS = {
     "decode_image": "codec",
@@ -57,8 +58,20 @@ __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS, globals())
 
 
 if TYPE_CHECKING:  # pragma: no cover
-    from scmr_mesh.imaging.codec import FRAME_SHAPE, MAX_PIXELS, decode_image, encode_png, load_image, resize_frame
-    from scmr_mesh.imaging.pipeline import MODES, DrivableResult, segment_drivable, warm_up
+    from scmr_mesh.imaging.codec import (
+        FRAME_SHAPE,
+        MAX_PIXELS,
+        decode_image,
+        encode_png,
+        load_image,
+        resize_frame,
+    )
+    from scmr_mesh.imaging.pipeline import (
+        MODES,
+        DrivableResult,
+        segment_drivable,
+        warm_up,
+    )
     from scmr_mesh.imaging.srm import SrmResult, srm
     from scmr_mesh.imaging.steps import (
         bottom_centre,

@@ -1,4 +1,4 @@
-"""Sub-commands of the imaging area: ``scmr segment``, ``scmr eval``, ``scmr bench pipeline``.
+"""Sub-commands of the imaging area: ``scmr segment`` and ``scmr eval``.
 
 Heavy imports (numpy, OpenCV, numba) happen inside the handlers so that
 ``scmr --help`` stays fast.
@@ -14,8 +14,8 @@ from pathlib import Path
 MODES = ("best", "thesis")
 
 
-def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add ``segment``, ``eval`` and ``bench pipeline`` to ``scmr``."""
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``segment`` and ``eval`` to ``scmr``."""
     p = sub.add_parser(
         "segment",
         help="drivable-region masks, red/green maps and overlays for images",
@@ -58,20 +58,6 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--json", type=Path, metavar="FILE", help="write the full result as JSON here")
     p.set_defaults(func=cmd_eval)
 
-    p = bench.add_parser(
-        "pipeline",
-        help="per-stage median/p99 ms of the drivable-region pipeline",
-        description=(
-            "Time the pipeline on one core (sched_setaffinity, numba and OpenCV at 1 thread) after "
-            "JIT warm-up.  'total' = 300x225 RGB array to mask; 'decode' and 'resize' are reported "
-            "separately.  Frames come from --images (PNG/JPEG folder) or built-in synthetic scenes."
-        ),
-    )
-    p.add_argument("--frames", type=int, default=300, help="frames to time (default: %(default)s)")
-    p.add_argument("--images", type=Path, metavar="DIR", help="folder of PNG/JPEG frames (default: synthetic)")
-    p.add_argument("--mode", choices=MODES, default="best", help="pipeline mode (default: %(default)s)")
-    p.add_argument("--json", type=Path, metavar="FILE", help="write the result as JSON here")
-    p.set_defaults(func=cmd_bench_pipeline)
 
 
 # ------------------------------------------------------------------ segment
@@ -222,28 +208,3 @@ def _write_json(path: Path, doc: dict) -> None:
     print(f"wrote {path}", file=sys.stderr)
 
 
-# -------------------------------------------------------------------- bench
-def cmd_bench_pipeline(args: argparse.Namespace) -> int:
-    from scmr_mesh.imaging.bench import bench_pipeline
-
-    tty = sys.stderr.isatty()
-
-    def progress(i: int, n: int) -> None:
-        if tty:
-            print(f"\rtimed {i}/{n} runs (decode pass, then pipeline pass)", end="" if i < n else "\n",
-                  file=sys.stderr, flush=True)
-        elif i == n or i % max(1, n // 5) == 0:  # a few whole lines in logs and CI
-            print(f"timed {i}/{n} runs (decode pass, then pipeline pass)", file=sys.stderr)
-
-    print("warming up (numba JIT / cache) ...", file=sys.stderr)
-    result = bench_pipeline(frames=args.frames, images=args.images, mode=args.mode, progress=progress)
-    med, p99 = result["median_ms"], result["p99_ms"]
-    print(f"{'stage':10s} {'median ms':>10s} {'p99 ms':>10s}")
-    for k in med:
-        print(f"{k:10s} {med[k]:10.3f} {p99[k]:10.3f}")
-    print(f"{'total CPU':10s} {result['cpu_total_median_ms']:10.3f} {result['cpu_total_p99_ms']:10.3f}")
-    if result.get("load_average"):
-        print(f"load average during the run: {result['load_average']} (wall-clock figures include waiting for the core)")
-    if args.json:
-        _write_json(args.json, result)
-    return 0

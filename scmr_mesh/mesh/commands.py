@@ -38,22 +38,9 @@ e.g. cloud --listen tcp/127.0.0.1:7447, robots --connect tcp/127.0.0.1:7447.
 """
 
 
-def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add ``cloud``, ``leader``, ``robot``, ``router`` and ``bench zenoh`` to ``scmr``."""
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``cloud``, ``leader``, ``robot`` and ``router`` to ``scmr``."""
     from scmr_mesh.mesh import config
-
-    b = bench.add_parser(
-        "zenoh", help="zenoh/mesh probes: loss detection, false expiries, reconnect, failover, redundancy",
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-        description="Run one probe of scmr_mesh/mesh/probe.py (real processes on loopback; the "
-                    "figures in docs/ZENOH.md come from these).  PROBE is one of: detect, stress, "
-                    "reconnect, failover, redundant, latency, routers (root).  Options after PROBE "
-                    "go to the probe; `scmr bench zenoh PROBE -h` lists them.",
-        epilog="example: scmr bench zenoh failover --repeat 3 --json failover.json")
-    b.add_argument("--json", metavar="FILE", help="also write the measurements as a JSON list")
-    b.add_argument("probe", choices=("detect", "stress", "reconnect", "failover", "redundant", "latency", "routers"))
-    b.add_argument("probe_args", nargs=argparse.REMAINDER, help="options of the probe")
-    b.set_defaults(func=_cmd_bench_zenoh)
 
     fmt = argparse.RawDescriptionHelpFormatter
     p = sub.add_parser(
@@ -121,7 +108,7 @@ def _service_args(p: argparse.ArgumentParser) -> None:
                         "use scmr_mesh.mesh.testing:stub_process)")
     p.add_argument("--ready-file", metavar="PATH", help="written once the service is serving")
     p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
-    from scmr_mesh import negotiator
+    from scmr_mesh.qos import negotiator
 
     negotiator.add_arguments(p)
 
@@ -160,7 +147,9 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                    help="before the first frame, wait up to MS for a cloud or leader to appear (default 2000)")
     g.add_argument("--seed", type=int, default=None, help="seed of synthetic frames (default: from the id)")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    from scmr_mesh.viz import add_rerun_peer_args  # light: rerun itself is imported only with a flag
+    from scmr_mesh.viz import (
+        add_rerun_peer_args,  # light: rerun itself is imported only with a flag
+    )
 
     add_rerun_peer_args(p)
 
@@ -253,7 +242,7 @@ def _check_robot_args(args):
 
 def _robot_body(args, session, stop: threading.Event) -> int:
     from scmr_mesh.mesh.peers import write_ready
-    from scmr_mesh.mesh.robot import Robot, RobotOptions, frames_from_args, pick_seed
+    from scmr_mesh.mesh.robot import Robot, RobotOptions
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
 
     frames = getattr(args, "_frames", None) or _check_robot_args(args)
@@ -366,7 +355,7 @@ def _data_args(p: argparse.ArgumentParser, role: str) -> None:
 
 def _setup(args, tier: str):
     """Service setup hooks: the data tier, then the priority negotiator (--queue)."""
-    from scmr_mesh import negotiator
+    from scmr_mesh.qos import negotiator
 
     return negotiator.chain(_data_setup(args, tier), negotiator.service_setup(args))
 
@@ -383,46 +372,6 @@ def _data_agent(robot, args):
     from scmr_mesh.mesh.data_service import attach_robot
 
     return attach_robot(robot, args)
-
-
-def _cmd_bench_zenoh(args) -> int:
-    import contextlib
-    import io
-
-    from scmr_mesh.mesh import probe
-
-    rest = list(args.probe_args)
-    json_path = args.json
-    if "--json" in rest:  # also accepted after PROBE
-        i = rest.index("--json")
-        if i + 1 >= len(rest):
-            raise InputError("--json needs a FILE")
-        json_path = rest[i + 1]
-        del rest[i:i + 2]
-    buf = io.StringIO()
-    real = sys.stdout
-
-    class Tee(io.TextIOBase):
-        def write(self, text):
-            buf.write(text)
-            return real.write(text)
-
-        def flush(self):
-            real.flush()
-
-    with contextlib.redirect_stdout(Tee()):
-        try:
-            rc = probe.main([args.probe, *rest])
-        except SystemExit as exc:  # the probe's argparse: -h or a usage error
-            return int(exc.code or 0) if isinstance(exc.code, int) else 2
-    if json_path:
-        rows = [json.loads(line) for line in buf.getvalue().splitlines() if line.startswith("{")]
-        try:
-            with open(json_path, "w", encoding="utf-8") as f:
-                json.dump(rows, f, indent=1)
-        except OSError as exc:
-            raise InputError(f"--json {json_path}: cannot write ({exc})") from None
-    return rc
 
 
 def _cmd_router(args) -> int:

@@ -57,7 +57,6 @@ import itertools
 import json
 import logging
 import math
-import os
 import queue
 import threading
 import time

@@ -30,7 +30,7 @@ Hooks for other areas
   engineer's priority negotiator plugs in here; :func:`default_admission` is
   the default.
 * ``Service.use_negotiator(negotiator)``: rank admitted requests by priority
-  in a bounded queue (:class:`scmr_mesh.negotiator.Negotiator`): a dispatcher
+  in a bounded queue (:class:`scmr_mesh.qos.negotiator.Negotiator`): a dispatcher
   thread feeds the pool highest priority first, at most ``negotiator.workers``
   at a time; requests refused or displaced get a ``busy`` error reply at once.
 * ``Service.add_queryable(key, callback, complete=False)``: extra queryables
@@ -322,7 +322,7 @@ class Service:
 
     # ------------------------------------------------- priority negotiator
     def use_negotiator(self, negotiator) -> None:
-        """Rank requests with ``negotiator`` (see :mod:`scmr_mesh.negotiator`); before attach."""
+        """Rank requests with ``negotiator`` (see :mod:`scmr_mesh.qos.negotiator`); before attach."""
         self.negotiator = negotiator
         threading.Thread(target=self._dispatch, name="scmr-dispatch", daemon=True).start()
 

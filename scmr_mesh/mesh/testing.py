@@ -54,7 +54,14 @@ stub_process.warm_up = _warm_stub  # type: ignore[attr-defined]
 
 
 def slow_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> dict:
-    """:func:`stub_process` after a sleep of ``SCMR_STUB_DELAY_MS`` ms (default 200)."""
+    """:func:`stub_process` after a sleep of ``SCMR_STUB_DELAY_MS`` ms (default 200).
+
+    With ``SCMR_STUB_MARK_DIR`` set, first writes an empty file
+    ``<dir>/<time_ns>.start`` so a test can wait until a frame is being worked on.
+    """
+    mark_dir = os.environ.get("SCMR_STUB_MARK_DIR")
+    if mark_dir:
+        open(os.path.join(mark_dir, f"{time.time_ns()}.start"), "wb").close()
     time.sleep(float(os.environ.get("SCMR_STUB_DELAY_MS", "200")) / 1e3)
     return stub_process(image, encoding=encoding, shape=shape, mode=mode)
 

@@ -111,62 +111,6 @@ def _auto_backend(backend: str) -> str:
     return backend
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
-    """Run a scenario N times; report medians and p99 of the failover/failback gaps and RoR."""
-    import json as _json
-
-    from scmr_mesh.metrics import percentile
-    from scmr_mesh.scenario.report import build_report, write_report
-    from scmr_mesh.scenario.runner import run_scenario
-    from scmr_mesh.scenario.spec import load_scenario
-
-    sc = _with_overrides(load_scenario(args.file), args)
-    backend = _auto_backend(args.backend)
-    if args.runs < 1:
-        raise ConfigError(f"--runs must be at least 1, got {args.runs}")
-    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-    base = Path(args.out) if args.out else Path("runs") / f"bench-scenario-{sc.name}-{stamp}"
-    runs = []
-    for i in range(args.runs):
-        _err(f"bench scenario: run {i + 1}/{args.runs} of {sc.name} ({backend})")
-        res = run_scenario(sc, backend=backend, out_dir=base / f"run{i + 1}", data_dir=args.data,
-                           progress=lambda m: _err(f"  {m}"), ready_timeout=args.ready_timeout)
-        rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
-                           notes=res.notes)
-        write_report(rep, base / f"run{i + 1}")
-        runs.append(rep)
-    over = [g for r in runs for f in r["faults"] for g in (f["failover_by_robot"] or {}).values() if g is not None]
-    over_max = [f["failover_gap_ms"] for r in runs for f in r["faults"] if f["failover_by_robot"]]
-    back = [f["failback_gap_ms"] for r in runs for f in r["faults"] if f["tier"] and f["ended_at_s"] is not None]
-    tors = [q["tor_ms"] for r in runs for q in r["requests"] if q["ok"] and q["tor_ms"] is not None]
-
-    def stats(xs):
-        xs = [x for x in xs if x is not None]
-        return {"n": len(xs), "median": percentile(xs, 50) if xs else None, "p99": percentile(xs, 99) if xs else None,
-                "max": max(xs) if xs else None}
-
-    out = {
-        "benchmark": "scenario", "scenario": sc.name, "backend": backend, "runs": args.runs, "seed": sc.seed,
-        "lease_ms": sc.lease_ms, "process": sc.process or "drivable pipeline",
-        "ror": [r["summary"]["ror"] for r in runs],
-        "requests": [r["summary"]["requests"] for r in runs],
-        "failover_gap_ms_per_robot": stats(over),
-        "failover_gap_ms_per_fault_max": stats(over_max),
-        "failover_never_answered": sum(1 for r in runs for f in r["faults"]
-                                       if f["failover_by_robot"] and f["failover_gap_ms"] is None),
-        "failback_gap_ms": stats(back),
-        "tor_ms": stats(tors),
-        "expectations_held": [all(e["held"] for e in r["expectations"]) for r in runs],
-        "out": str(base),
-        "note": "measured on a shared, busy 2-core machine" if (os.cpu_count() or 0) <= 2 else "",
-    }
-    text = _json.dumps(out, indent=2)
-    if args.json:
-        Path(args.json).write_text(text + "\n")
-    _out(text)
-    return 0
-
-
 def _cmd_run(args: argparse.Namespace) -> int:
     from scmr_mesh.scenario.report import build_report, write_report
     from scmr_mesh.scenario.runner import run_scenario
@@ -224,7 +168,7 @@ def _override_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lease-ms", type=int, metavar="MS", help="override the scenario's zenoh lease")
 
 
-def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr scenario ...``."""
     p = sub.add_parser("scenario", help="scripted link-drop / crash / partition scenarios with reports",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -247,24 +191,12 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     run.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
                      help="seconds each peer may take to become ready (default 120)")
     _override_args(run)
-    from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only with a flag
+    from scmr_mesh.viz import (
+        add_rerun_args,  # light: rerun is imported only with a flag
+    )
 
     add_rerun_args(run)
     run.set_defaults(func=_cmd_run)
-
-    bs = bench.add_parser("scenario", help="failover/failback gaps of a scenario over N runs (median, p99)",
-                          description="Run a scenario N times (default peers/scenarios/cloud-link-drop.toml) and "
-                          "print JSON with the median, p99 and max of the per-robot failover gaps, the failback "
-                          "gaps and ToR, and the RoR of each run.")
-    bs.add_argument("file", nargs="?", default="peers/scenarios/cloud-link-drop.toml", help="scenario TOML file")
-    bs.add_argument("--runs", type=int, default=3, help="number of runs (default 3)")
-    bs.add_argument("--backend", choices=["auto", "netns", "proxy"], default="auto", help="as for scenario run")
-    bs.add_argument("--out", metavar="DIR", help="run folders go here (default runs/bench-scenario-...)")
-    bs.add_argument("--json", metavar="FILE", help="also write the JSON here")
-    bs.add_argument("--data", metavar="DIR", type=Path, default=None, help="image folder (as for scenario run)")
-    bs.add_argument("--ready-timeout", type=float, default=120.0, metavar="S", help="peer start timeout (s)")
-    _override_args(bs)
-    bs.set_defaults(func=_cmd_bench)
 
     chk = ssub.add_parser("check", help="validate scenario files",
                           description="Validate scenario files against schemas/scenario.schema.json and the "

@@ -1,7 +1,7 @@
 """Scenario reports: JSON, Markdown and two PNG plots (OpenCV), from a run's records.
 
 :func:`build_report` is pure (records and fault times in, a dict out): the
-summary comes from :func:`scmr_mesh.metrics.summarize` (the same definitions
+summary comes from :func:`scmr_mesh.qos.metrics.summarize` (the same definitions
 as ``scmr up``), expectations are checked against it, energy per robot comes
 from the energy model, and the thesis's Table 4.2 is put beside our figures.
 :func:`write_report` writes ``report.json``, ``report.md``, ``tor.png`` and
@@ -135,7 +135,7 @@ def thesis_table(path: Path | None) -> dict[str, Any] | None:
         d["cloud_tor_ms"].append(float(row["download_end_ms"]) - float(row["upload_start_ms"]))
         d["leader_ms"].append(float(row["r2r_leader_processing_ms"]))
         d["bytes"].append(float(row["original_bytes"]))
-    from scmr_mesh.metrics import percentile
+    from scmr_mesh.qos.metrics import percentile
 
     return {k: {"images": len(v["bytes"]), "mean_bytes": sum(v["bytes"]) / len(v["bytes"]),
                 "cloud_tor_p50_ms": percentile(v["cloud_tor_ms"], 50),
@@ -161,7 +161,7 @@ def build_report(
     records : sequence of dict
         The robots' ``records.jsonl`` rows.
     faults : sequence of dict
-        Faults as :func:`scmr_mesh.metrics.summarize` takes them, plus
+        Faults as :func:`scmr_mesh.qos.metrics.summarize` takes them, plus
         ``kind``, ``label``, ``at_s``.
     t0_unix_ns : int, keyword-only
         When the robots started (time 0 of the timeline).
@@ -182,7 +182,7 @@ def build_report(
         "faults", "expectations", "passed", "energy", "thesis", "notes",
         "telemetry", "requests"}``.
     """
-    from scmr_mesh.metrics import summarize
+    from scmr_mesh.qos.metrics import summarize
 
     summ = summarize(records, faults, robots=len(scenario.robots))
     faults_out = []
@@ -194,7 +194,7 @@ def build_report(
         b = int(f["end_unix_ns"]) if f.get("end_unix_ns") is not None else None
         window = [r for r in records if str(r.get("robot")) in who and r.get("sent_unix_ns") is not None
                   and int(r["sent_unix_ns"]) >= a and (b is None or int(r["sent_unix_ns"]) < b)]
-        from scmr_mesh.metrics import tier_counts, tor_summary
+        from scmr_mesh.qos.metrics import tier_counts, tor_summary
 
         during = {"robots": sorted(who), "requests": len(window), "tor_ms": tor_summary(window),
                   "by_tier": tier_counts(window)}
@@ -300,7 +300,7 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
                   "restart (process start-up, part of the failback gap)."]
     L += ["", "Failover gap per robot: from the later of the fault and the sending of the robot's first request the "
           "lost tier failed to answer, to that robot's first fallback answer (largest per fault). Failback: from the "
-          "link's return / the restart to the first answer of the restored tier (scmr_mesh.metrics).", ""]
+          "link's return / the restart to the first answer of the restored tier (scmr_mesh.qos.metrics).", ""]
     if report.get("energy"):
         L += ["## Energy per robot", "", "| robot | profile | total J | per tier J | source |", "|---|---|---|---|---|"]
         for rid, e in report["energy"].items():
@@ -316,7 +316,7 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
               "| robot | thesis images | thesis mean bytes | thesis cloud ToR p50 ms | thesis leader p50 ms | "
               "our ToR p50 ms | our cloud p50 ms | our leader p50 ms |", "|---|---|---|---|---|---|---|---|"]
         recs = report["requests"]
-        from scmr_mesh.metrics import tor_summary
+        from scmr_mesh.qos.metrics import tor_summary
 
         for rid, t in report["thesis"].items():
             mine = [r for r in recs if str(r.get("robot")) == rid]
@@ -354,8 +354,8 @@ _W, _H, _ML, _MR, _MT, _MB = 1000, 420, 70, 20, 40, 50
 
 
 def _canvas(title: str):
-    import numpy as np
     import cv2
+    import numpy as np
 
     img = np.full((_H, _W, 3), 255, np.uint8)
     cv2.putText(img, title, (_ML, 25), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)

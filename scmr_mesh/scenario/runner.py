@@ -2,7 +2,7 @@
 
 The runner is the only impure part of the scenario package besides the
 backends: it starts real ``scmr cloud|leader|robot`` processes through the
-shared :class:`scmr_mesh.procs.Supervisor`, sleeps until each event of
+shared :class:`scmr_mesh.fleet.procs.Supervisor`, sleeps until each event of
 :func:`scmr_mesh.scenario.plan.compile_timeline` is due, applies it (network
 events through the backend, crash/restart through the supervisor) and records
 when each fault really took effect.  Everything is undone in ``finally`` and
@@ -45,7 +45,7 @@ def default_data_dir() -> Path:
 def fault_tier(scenario: Scenario, fault: Fault) -> tuple[str | None, list[str] | None]:
     """Which serving tier ``fault`` takes away, and from which robots (pure).
 
-    Returns ``(tier, robots)`` in the form :mod:`scmr_mesh.metrics` expects:
+    Returns ``(tier, robots)`` in the form :mod:`scmr_mesh.qos.metrics` expects:
     ``tier`` is ``"cloud"``, ``"leader"`` or ``None``; ``robots`` ``None``
     means every robot.
     """
@@ -93,7 +93,7 @@ class RunResult:
     telemetry: dict[str, Any] | None = None
 
     def metric_faults(self) -> list[dict[str, Any]]:
-        """Faults as :func:`scmr_mesh.metrics.summarize` takes them."""
+        """Faults as :func:`scmr_mesh.qos.metrics.summarize` takes them."""
         out = []
         for af in self.faults:
             tier, robots = fault_tier(self.scenario, af.fault)
@@ -108,21 +108,6 @@ class RunResult:
                 "end_unix_ns": af.end_unix_ns, "notes": af.notes, "ready_unix_ns": af.ready_unix_ns,
             })
         return out
-
-
-def _peer_options(command: str) -> set[str]:
-    """Option strings the installed ``scmr <command>`` accepts (empty if it does not exist)."""
-    from scmr_mesh.cli import build_parser
-
-    parser = build_parser()
-    for action in parser._subparsers._group_actions:  # type: ignore[union-attr]
-        choices = getattr(action, "choices", None) or {}
-        if command in choices:
-            opts: set[str] = set()
-            for a in choices[command]._actions:
-                opts.update(a.option_strings)
-            return opts
-    return set()
 
 
 def _image_dir(scenario: Scenario, robot_set: str, data_dir: Path, out_dir: Path, robot: str) -> Path:
@@ -204,17 +189,12 @@ def run_scenario(
         Setup failed or a peer did not start (message names it, with its log tail).
     """
     from scmr_mesh.errors import MeshError
-    from scmr_mesh.procs import PeerSpec, Supervisor
+    from scmr_mesh.fleet.procs import PeerSpec, Supervisor
 
     say = progress or (lambda m: log.info("%s", m))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
-    robot_opts = _peer_options("robot")
-    server_opts = _peer_options("cloud")
-    if not robot_opts or not server_opts:
-        raise ScenarioError("this installation has no 'scmr robot' / 'scmr cloud' peers yet "
-                            "(the mesh area provides them); cannot run a scenario")
     images = {r.id: _image_dir(scenario, r.image_set, data_dir, out_dir, r.id)
               for r in scenario.robots if r.image_set}
     events = compile_timeline(scenario)
@@ -224,21 +204,15 @@ def run_scenario(
     base = [python, "-m", "scmr_mesh"]
     starts: dict[str, int] = {}
 
-    def common(peer: str, opts: set[str]) -> list[str]:
+    def common(peer: str) -> list[str]:
         a: list[str] = []
         for ep in be.listen(peer):
             a += ["--listen", ep]
         for ep in be.connect(peer):
             a += ["--connect", ep]
-        if "--lease-ms" in opts:
-            a += ["--lease-ms", str(scenario.lease_ms)]
-        if "--cfg" in opts:
-            for c in be.extra_cfg(peer):
-                a += ["--cfg", c]
-        elif be.extra_cfg(peer):
-            note = f"peers take no --cfg: could not set {be.extra_cfg(peer)} (gossip may bypass proxies)"
-            if note not in notes:
-                notes.append(note)
+        a += ["--lease-ms", str(scenario.lease_ms)]
+        for c in be.extra_cfg(peer):
+            a += ["--cfg", c]
         return a
 
     def spec_for(peer: str, *, remaining_s: float | None = None) -> PeerSpec:
@@ -248,7 +222,7 @@ def run_scenario(
         ready = out_dir / "ready" / f"{peer}{suffix}"
         ready.parent.mkdir(parents=True, exist_ok=True)
         if role in ("cloud", "leader"):
-            argv = base + [role, "--node", peer] + common(peer, server_opts)
+            argv = base + [role, "--node", peer] + common(peer)
             if scenario.process:
                 argv += ["--process", scenario.process]
         else:
@@ -259,9 +233,6 @@ def run_scenario(
             argv += ["--rate", f"{r.rate_hz:g}", "--duration", f"{dur:g}",
                      "--out", str(out_dir / "robots" / f"{peer}{suffix}")]
             if r.energy_placement:
-                if "--profile" not in robot_opts:
-                    raise ConfigError(f"scenario {scenario.source}: robot {peer!r} asks for energy_placement but "
-                                      "this 'scmr robot' has no --profile option; remove energy_placement")
                 if not r.profile:
                     raise ConfigError(f"scenario {scenario.source}: field 'fleet.robots' ({peer}): energy_placement "
                                       "needs a profile; add profile = \"robot1\" (Table 4.3) or similar")
@@ -273,7 +244,7 @@ def run_scenario(
             if scenario.process:
                 argv += ["--process", scenario.process]
             argv += ["--seed", str(scenario.seed), "--quiet"]
-            argv += common(peer, robot_opts)
+            argv += common(peer)
         argv += ["--ready-file", str(ready)]
         env = {"SCMR_SCENARIO_SEED": str(scenario.seed)}
         return PeerSpec(peer + suffix, be.wrap(peer, argv), log_path=out_dir / "logs" / f"{peer}{suffix}.log",

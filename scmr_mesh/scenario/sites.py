@@ -1,7 +1,7 @@
 """Two "hosts" on one machine: Linux network namespaces joined by a veth pair.
 
 Used by the cross-host test (tests/test_mesh_netns.py) and the router probe
-(``python -m scmr_mesh.mesh.probe routers``).  The commands are computed by a
+(``python -m scmr_mesh.bench.probe routers``).  The commands are computed by a
 pure function (:func:`plan_two_sites`) and run by an executor you can replace,
 so the plan is testable without root.  Namespaces are named ``scmrm-<tag>-a``
 and ``scmrm-<tag>-b``, have no default route, and are always deleted on exit

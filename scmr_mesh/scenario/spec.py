@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import json
 import operator
-import tomllib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Mapping
+
+import tomllib
 
 from scmr_mesh.errors import ConfigError
 

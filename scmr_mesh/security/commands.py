@@ -1,4 +1,4 @@
-"""Sub-commands of the security area: ``scmr certs`` and ``scmr bench overload``."""
+"""Sub-commands of the security area: ``scmr certs``."""
 
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ Use them with a security profile, e.g. peers/secure/mtls.toml:
 
 
 def _certs(args: argparse.Namespace) -> int:
-    from scmr_mesh.security.credentials import create_credentials
     from scmr_mesh.security.acl import build_acl
+    from scmr_mesh.security.credentials import create_credentials
 
     fleet = create_credentials(
         args.out,
@@ -41,32 +41,8 @@ def _certs(args: argparse.Namespace) -> int:
     return 0
 
 
-def _tls(args: argparse.Namespace) -> int:
-    from scmr_mesh.mesh.security import bench_link_latency
-
-    if args.queries < 1 or args.payload < 1:
-        from scmr_mesh.errors import InputError
-
-        raise InputError(f"--queries and --payload must be >= 1, got {args.queries} and {args.payload}")
-    res = bench_link_latency(payload_bytes=args.payload, queries=args.queries,
-                             progress=lambda m: print(m, file=sys.stderr, flush=True))
-    res["note"] = "two sessions in one process, loopback, shared memory off; shared, loaded 2-core machine"
-    for r in res["runs"]:
-        print(f"{r['kind']:>8}: p50 {r['p50_ms']:.3f} ms  p99 {r['p99_ms']:.3f} ms  mean {r['mean_ms']:.3f} ms")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(res, fh, indent=2)
-    return 0
-
-
-def _overload(args: argparse.Namespace) -> int:
-    from scmr_mesh.security.overload import run_overload_cli
-
-    return run_overload_cli(args)
-
-
-def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction) -> None:
-    """Add ``scmr certs`` and ``scmr bench overload``."""
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``scmr certs``."""
     p = sub.add_parser(
         "certs",
         help="create a development CA, per-peer certificates and passwords",
@@ -87,32 +63,3 @@ def register(sub: argparse._SubParsersAction, bench: argparse._SubParsersAction)
     p.add_argument("--acl-json", metavar="FILE", help="also write the fleet's access-control JSON here")
     p.set_defaults(func=_certs)
 
-    from scmr_mesh.security.overload import add_overload_arguments
-
-    b = bench.add_parser(
-        "overload",
-        help="overload a cloud: served/busy counts, ToR of admitted requests, fairness, peak RSS",
-        description=(
-            "Start a cloud and more robots at a higher rate than it can serve, once with the "
-            "priority negotiator (--queue) and once with the default FIFO admission.  Reports "
-            "served and rejected ('busy') counts, ToR of admitted requests (p50/p99), time to a busy "
-            "answer, served share per priority class, Jain's fairness index across robots, and the "
-            "cloud's peak RSS.  Progress on stderr; JSON with --json."
-        ),
-    )
-    add_overload_arguments(b)
-    b.set_defaults(func=_overload)
-
-    t = bench.add_parser(
-        "tls",
-        help="query round trip with no security, usrpwd, mutual TLS and TLS+ACL",
-        description=(
-            "Measure the cost of authentication: median and p99 round trip of a query carrying "
-            "--payload bytes between two zenoh sessions on loopback (shared memory off), with no "
-            "security, usrpwd, mutual TLS, and mutual TLS with the fleet ACL."
-        ),
-    )
-    t.add_argument("--payload", type=int, default=200_000, metavar="BYTES", help="query payload (default 200000)")
-    t.add_argument("--queries", type=int, default=300, metavar="N", help="timed queries per kind (default 300)")
-    t.add_argument("--json", metavar="FILE", help="write the results here")
-    t.set_defaults(func=_tls)

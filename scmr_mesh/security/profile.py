@@ -16,10 +16,11 @@ TLS peers accept only the ``tls`` protocol.
 from __future__ import annotations
 
 import os
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+
+import tomllib
 
 from scmr_mesh.errors import ConfigError
 from scmr_mesh.security.acl import KeyLayout, build_acl

@@ -1,14 +1,15 @@
-"""Record a small fleet run from real road images and screenshot it headless.
+"""Screenshots of recordings; and: record a small fleet run from real road images and screenshot it headless.
 
-Check-by-looking tool for the rerun viewer (issue 5), not part of the test
-suite.  It logs N robots through the same code path the fleet uses (a
+:func:`screenshot` renders any ``.rrd`` headless (``scmr view --screenshot``).
+:func:`main` is a check-by-looking tool for the rerun viewer, not part of the
+test suite.  It logs N robots through the same code path the fleet uses (a
 :class:`scmr_mesh.viz.FleetViz` sink in --save mode, one :class:`RobotViz`
 per robot connected with the child arguments), with drivability maps from
 ``scmr_mesh.imaging.pipeline.segment_drivable`` on the images in
 ``--data`` (read in place), a cloud outage in the middle (tier drops from
 cloud to leader), then renders the recording in rerun's headless viewer.
 
-    .venv/bin/python scripts/viz_screenshot.py --data ../shared/data/roads \
+    .venv/bin/python -m scmr_mesh.viz.screenshot --data ../shared/data/roads \
         --rrd /tmp/viz-shot.rrd --png docs/img/viewer.png
 
 Needs ``apt-get install -y mesa-vulkan-drivers`` for the headless viewer.
@@ -18,11 +19,100 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from scmr_mesh.errors import InputError
+from scmr_mesh.viz.common import ViewerError
+from scmr_mesh.viz.rerun_cli import check_rrd, rerun_env, rerun_executable
+from scmr_mesh.viz.sink import _free_port
+
+
+def _use_rerun_env_here() -> None:
+    """Point this process's XDG dirs at :func:`state_dir` (for viewers rerun spawns itself)."""
+    env = rerun_env()
+    os.environ["XDG_CONFIG_HOME"] = env["XDG_CONFIG_HOME"]
+    os.environ["XDG_DATA_HOME"] = env["XDG_DATA_HOME"]
+
+
+def screenshot(
+    path: str | os.PathLike,
+    out: str | os.PathLike,
+    *,
+    settle: float = 6.0,
+    max_size: int | None = None,
+    port: int | None = None,
+) -> Path:
+    """Render a ``.rrd`` in rerun's headless native viewer and save a PNG.
+
+    Needs a Vulkan driver (Debian: ``apt-get install -y mesa-vulkan-drivers``,
+    the lavapipe software renderer); without one the viewer panics with
+    "Failed to get render context".  Meant for the CLI (``scmr view
+    --screenshot``): it points this process's XDG dirs at :func:`state_dir`.
+
+    Parameters
+    ----------
+    path : path-like
+        The recording.
+    out : path-like
+        PNG to write.
+    settle : float
+        Seconds to wait after opening (chunks load lazily).
+    max_size : int, optional
+        Longest side of the PNG in pixels (default: the viewer's 1920x1080).
+    port : int, optional
+        Port of the headless viewer (default: a free one).
+
+    Returns
+    -------
+    Path
+        ``out``.
+    """
+    rrd = check_rrd(path)
+    out = Path(out)
+    if not out.parent.exists():
+        raise InputError(f"--screenshot {out}: folder {out.parent} does not exist")
+    _use_rerun_env_here()
+    from rerun.experimental import ViewerClient
+
+    port = port or _free_port()
+    try:
+        client = ViewerClient.spawn(
+            headless=True, port=port, executable_path=rerun_executable(), hide_welcome_screen=True
+        )
+    except Exception as exc:  # the bindings raise plain exceptions
+        raise ViewerError(
+            f"the headless rerun viewer did not start ({exc}); it needs a Vulkan driver: "
+            "apt-get install -y mesa-vulkan-drivers"
+        ) from exc
+    try:
+        client.open(str(rrd.resolve()))
+        time.sleep(settle)
+        png = client.take_screenshot(max_size=max_size)
+    except Exception as exc:
+        raise ViewerError(
+            f"the headless rerun viewer could not render {rrd} ({type(exc).__name__}: {exc}); "
+            "a Vulkan driver is needed: apt-get install -y mesa-vulkan-drivers"
+        ) from exc
+    finally:
+        for closer in ("quit", "close"):
+            try:
+                getattr(client, closer)()
+            except Exception:  # already gone
+                pass
+        pid = getattr(client, "_pid", None)
+        if pid:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except (ProcessLookupError, PermissionError):
+                pass
+    out.write_bytes(png)
+    return out
 
 
 def main(argv=None) -> int:

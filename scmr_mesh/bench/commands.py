@@ -1,0 +1,256 @@
+"""``scmr bench ...``: every benchmark target's parser (light: no heavy import).
+
+Each target's code is in its own module of this package and is imported only
+when that target runs (``scmr --help`` stays fast):
+
+===========  ====================================  =================================
+target       module                                measures
+===========  ====================================  =================================
+pipeline     :mod:`scmr_mesh.bench.pipeline`       per-stage ms of the vision pipeline
+mesh         :mod:`scmr_mesh.bench.mesh`           ToR/RoR of fleets, a cloud crash, overload
+scenario     :mod:`scmr_mesh.bench.scenario`       failover/failback of a scenario over N runs
+energy       :mod:`scmr_mesh.bench.energy`         measured energy-model inputs
+data         :mod:`scmr_mesh.bench.data`           queue, ODS, buffer, store round trip
+overload     :mod:`scmr_mesh.bench.overload`       the negotiator against FIFO under overload
+tls          :mod:`scmr_mesh.bench.tls`            the cost of authentication per query
+viz          :mod:`scmr_mesh.bench.viz`            rerun logging per request
+zenoh        :mod:`scmr_mesh.bench.zenoh`          the probes behind docs/ZENOH.md
+===========  ====================================  =================================
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+from typing import Callable
+
+
+def _handler(module: str, func: str) -> Callable[[argparse.Namespace], int]:
+    """A handler that imports ``scmr_mesh.bench.<module>`` only when the target runs."""
+
+    def run(args: argparse.Namespace) -> int:
+        return getattr(importlib.import_module(f"scmr_mesh.bench.{module}"), func)(args)
+
+    run.__name__ = f"{module}.{func}"
+    return run
+
+
+def register(bench: argparse._SubParsersAction) -> None:
+    """Add every ``scmr bench`` target."""
+    add_pipeline(bench)
+    add_mesh(bench)
+    add_scenario(bench)
+    add_energy(bench)
+    add_data(bench)
+    add_overload(bench)
+    add_tls(bench)
+    add_viz(bench)
+    add_zenoh(bench)
+
+
+def add_pipeline(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench pipeline``."""
+    from scmr_mesh.imaging.commands import MODES
+
+    p = bench.add_parser(
+        "pipeline",
+        help="per-stage median/p99 ms of the drivable-region pipeline",
+        description=(
+            "Time the pipeline on one core (sched_setaffinity, numba and OpenCV at 1 thread) after "
+            "JIT warm-up.  'total' = 300x225 RGB array to mask; 'decode' and 'resize' are reported "
+            "separately.  Frames come from --images (PNG/JPEG folder) or built-in synthetic scenes."
+        ),
+    )
+    p.add_argument("--frames", type=int, default=300, help="frames to time (default: %(default)s)")
+    p.add_argument("--images", type=Path, metavar="DIR", help="folder of PNG/JPEG frames (default: synthetic)")
+    p.add_argument("--mode", choices=MODES, default="best", help="pipeline mode (default: %(default)s)")
+    p.add_argument("--json", type=Path, metavar="FILE", help="write the result as JSON here")
+    p.set_defaults(func=_handler("pipeline", "cmd_bench_pipeline"))
+
+
+def add_mesh(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench mesh``."""
+    from scmr_mesh.fleet.commands import _add_fleet_args
+
+    b = bench.add_parser(
+        "mesh", help="ToR/RoR of fleets of 1, 4, 16 robots and a cloud-crash run",
+        description=(
+            "Run fleets of each size in --robots (no faults), then a crash run (4 robots for 16 s, "
+            "cloud SIGKILLed at 4 s and restarted at 7 s), and write "
+            '{"runs": [{"robots", "rate_hz", "requests", "ror", "tor_ms"}], "crash": {...}, '
+            '"targets": {...}}. Targets: ToR p50 <= 15 ms and p99 <= 50 ms with 4 robots at 5 Hz; '
+            "RoR 1.0 through a cloud crash; failover gap <= 50 ms; failback gap <= 1 s."
+        ),
+    )
+    b.add_argument("--robots", default="1,4,16", metavar="LIST",
+                   help="comma-separated fleet sizes (default: %(default)s)")
+    _add_fleet_args(b)
+    b.add_argument("--crash-robots", type=int, default=4, metavar="N",
+                   help="robots in the crash run (0 skips it; default: %(default)s)")
+    b.add_argument("--crash-duration", type=float, default=16.0, metavar="S",
+                   help="length of the crash run (default: %(default)s)")
+    b.add_argument("--crash-outage", default="4:7", metavar="START:END",
+                   help="cloud SIGKILL and restart in the crash run, s (default: %(default)s; the run "
+                        "goes on after END so the restarted cloud's first answer is seen)")
+    b.add_argument("--overload-robots", type=int, default=8, metavar="N",
+                   help="robots in the overload run (0 skips it; default: %(default)s): a cloud with a "
+                        "40 ms service and 1 worker (~25 requests/s) against N robots at --overload-rate, "
+                        "once with the priority negotiator (--queue 2) and once FIFO; see `scmr bench overload`")
+    b.add_argument("--overload-rate", type=float, default=10.0, metavar="HZ",
+                   help="frames/s per robot in the overload run (default: %(default)s)")
+    b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
+    b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
+    b.set_defaults(func=_handler("mesh", "cmd_bench_mesh"))
+
+
+def add_scenario(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench scenario``."""
+    from scmr_mesh.scenario.commands import _override_args
+
+    bs = bench.add_parser("scenario", help="failover/failback gaps of a scenario over N runs (median, p99)",
+                          description="Run a scenario N times (default peers/scenarios/cloud-link-drop.toml) and "
+                          "print JSON with the median, p99 and max of the per-robot failover gaps, the failback "
+                          "gaps and ToR, and the RoR of each run.")
+    bs.add_argument("file", nargs="?", default="peers/scenarios/cloud-link-drop.toml", help="scenario TOML file")
+    bs.add_argument("--runs", type=int, default=3, help="number of runs (default 3)")
+    bs.add_argument("--backend", choices=["auto", "netns", "proxy"], default="auto", help="as for scenario run")
+    bs.add_argument("--out", metavar="DIR", help="run folders go here (default runs/bench-scenario-...)")
+    bs.add_argument("--json", metavar="FILE", help="also write the JSON here")
+    bs.add_argument("--data", metavar="DIR", type=Path, default=None, help="image folder (as for scenario run)")
+    bs.add_argument("--ready-timeout", type=float, default=120.0, metavar="S", help="peer start timeout (s)")
+    _override_args(bs)
+    bs.set_defaults(func=_handler("scenario", "cmd_bench_scenario"))
+
+
+def add_energy(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench energy``."""
+    from scmr_mesh.energy import commands as energy_commands
+    from scmr_mesh.energy.commands import _common
+
+    fmt = argparse.RawDescriptionHelpFormatter
+    b = bench.add_parser(
+        "energy",
+        help="measured energy-model inputs on real frames (C, D) and placement decision latency",
+        description=(
+            "Run the drivable-region pipeline on the frames of --data and measure, per frame, its "
+            "thread CPU time (C = CPU time x host clock), the encoded frame size (D_up) and the mask "
+            "PNG size (D_down); report medians/p99 and, per profile, E_proc, E_cloud, E_saved and the "
+            "break-even bandwidth at the median frame, plus the median/p99 time of one placement "
+            "decision.  Link rates and powers are assumed and marked so."
+        ),
+        epilog=energy_commands.__doc__.split("\n\n", 1)[1],
+        formatter_class=fmt,
+    )
+    b.add_argument("--data", required=True, metavar="DIR",
+                   help="roads folder with manifest.json (read in place) or a folder of PNG/JPEG frames")
+    b.add_argument("--count", type=int, default=None, help="frames to run (default: each file once)")
+    b.add_argument("--mode", choices=("best", "thesis"), default="best", help="pipeline mode (default best)")
+    b.add_argument("--profile", metavar="NAMES", help="comma-separated profile names (default: all)")
+    b.add_argument("--bandwidth-up", default="23Mb/s", help="assumed upload rate (default 23Mb/s, Eq 4.9)")
+    b.add_argument("--bandwidth-down", default="28Mb/s", help="assumed download rate (default 28Mb/s, Eq 4.9)")
+    b.add_argument("--decisions", type=int, default=5000, help="placement decisions to time (default 5000)")
+    _common(b, json_help="write the report to FILE")
+    b.set_defaults(func=_handler("energy", "cmd_bench_energy"))
+
+
+def add_data(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench data``."""
+    b = bench.add_parser("data", help="data tier: queue appends, ODS inserts, buffer sync, store round trip",
+                         description="Measure the data tier in one run: on-disk queue append latency per "
+                         "fsync policy, ODS insert latency (batch 1 and 64, and a batch of duplicates), "
+                         "buffer delta+merge, the telemetry store round trip over Zenoh (query -> "
+                         "ODS commit -> ack, two sessions on loopback), and how fast a robot's backlog "
+                         "of 10*N queued records drains to the cloud after an outage.  Prints JSON "
+                         "with medians and p99s.")
+    b.add_argument("--n", type=int, default=200, help="samples per figure (default 200)")
+    b.add_argument("--json", metavar="FILE", help="also write the JSON here")
+    b.add_argument("--no-mesh", action="store_true", help="skip the Zenoh round trip")
+    b.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    b.set_defaults(func=_handler("data", "cmd_bench_data"))
+
+
+def add_overload(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench overload``."""
+
+    b = bench.add_parser(
+        "overload",
+        help="overload a cloud: served/busy counts, ToR of admitted requests, fairness, peak RSS",
+        description=(
+            "Start a cloud and more robots at a higher rate than it can serve, once with the "
+            "priority negotiator (--queue) and once with the default FIFO admission.  Reports "
+            "served and rejected ('busy') counts, ToR of admitted requests (p50/p99), time to a busy "
+            "answer, served share per priority class, Jain's fairness index across robots, and the "
+            "cloud's peak RSS.  Progress on stderr; JSON with --json."
+        ),
+    )
+    _add_overload_arguments(b)
+    b.set_defaults(func=_handler("overload", "run_overload_cli"))
+
+
+def _add_overload_arguments(p) -> None:
+    """Flags of ``scmr bench overload``."""
+    p.add_argument("--robots", type=int, default=8, metavar="N", help="robot processes (default 8)")
+    p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames/s per robot (default 10)")
+    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds per run (default 10)")
+    p.add_argument("--workers", type=int, default=1, metavar="N", help="cloud worker processes (default 1)")
+    p.add_argument("--service-ms", type=float, default=40.0, metavar="MS",
+                   help="fixed service time per frame (slow_process stub); 0 = the real pipeline (default 40)")
+    p.add_argument("--queue", type=int, default=2, metavar="Q", help="negotiator queue size (default 2)")
+    p.add_argument("--per-robot", type=int, default=None, metavar="N", help="negotiator per-robot quota")
+    p.add_argument("--levels", type=int, default=2, metavar="L",
+                   help="priority classes: robot k pays 10 * (k mod L) (default 2)")
+    p.add_argument("--policies", default="negotiator,fifo", metavar="LIST",
+                   help="runs to make, in order (default negotiator,fifo)")
+    p.add_argument("--json", metavar="FILE", help="write the results here")
+    p.add_argument("--run-dir", type=Path, metavar="DIR", help="keep logs and records here (default: a temp dir)")
+
+
+def add_tls(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench tls``."""
+    t = bench.add_parser(
+        "tls",
+        help="query round trip with no security, usrpwd, mutual TLS and TLS+ACL",
+        description=(
+            "Measure the cost of authentication: median and p99 round trip of a query carrying "
+            "--payload bytes between two zenoh sessions on loopback (shared memory off), with no "
+            "security, usrpwd, mutual TLS, and mutual TLS with the fleet ACL."
+        ),
+    )
+    t.add_argument("--payload", type=int, default=200_000, metavar="BYTES", help="query payload (default 200000)")
+    t.add_argument("--queries", type=int, default=300, metavar="N", help="timed queries per kind (default 300)")
+    t.add_argument("--json", metavar="FILE", help="write the results here")
+    t.set_defaults(func=_handler("tls", "cmd_bench_tls"))
+
+
+def add_viz(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench viz``."""
+    b = bench.add_parser(
+        "viz",
+        help="cost of rerun logging per robot request (median/p99 ms, bytes per frame)",
+        description=(
+            "Time RobotViz.observe() (camera JPEG + drivability map + scalars) into a "
+            "--save sink started as in a fleet run, and the sink's start and finalise "
+            "times.  Synthetic frames; reports medians and p99s measured in one run."
+        ),
+    )
+    b.add_argument("--frames", type=int, default=200, help="requests to log (default: %(default)s)")
+    b.add_argument("--size", default="640x480", help="camera frame WxH (default: %(default)s)")
+    b.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    b.set_defaults(func=_handler("viz", "cmd_bench_viz"))
+
+
+def add_zenoh(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench zenoh``."""
+    b = bench.add_parser(
+        "zenoh", help="zenoh/mesh probes: loss detection, false expiries, reconnect, failover, redundancy",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run one probe of scmr_mesh/bench/probe.py (real processes on loopback; the "
+                    "figures in docs/ZENOH.md come from these).  PROBE is one of: detect, stress, "
+                    "reconnect, failover, redundant, latency, routers (root).  Options after PROBE "
+                    "go to the probe; `scmr bench zenoh PROBE -h` lists them.",
+        epilog="example: scmr bench zenoh failover --repeat 3 --json failover.json")
+    b.add_argument("--json", metavar="FILE", help="also write the measurements as a JSON list")
+    b.add_argument("probe", choices=("detect", "stress", "reconnect", "failover", "redundant", "latency", "routers"))
+    b.add_argument("probe_args", nargs=argparse.REMAINDER, help="options of the probe")
+    b.set_defaults(func=_handler("zenoh", "cmd_bench_zenoh"))

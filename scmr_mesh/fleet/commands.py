@@ -1,0 +1,104 @@
+"""``scmr up``: a whole fleet on loopback (the CLI side of :mod:`scmr_mesh.fleet`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from scmr_mesh.fleet.output import check_ror, format_summary, run_with_output
+from scmr_mesh.fleet.plan import FleetConfig, parse_outage
+
+
+def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> None:
+    p.add_argument("--duration", type=float, default=10.0, metavar="S",
+                   help="seconds each robot sends frames (default: %(default)s)")
+    p.add_argument("--rate", type=float, default=5.0, metavar="HZ",
+                   help="frames per second per robot (default: %(default)s)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--images", type=Path, metavar="DIR", help="a folder of images the robots send")
+    src.add_argument("--synthetic", metavar="KINDS",
+                     help="comma-separated synthetic scene kinds dealt to the robots (default: all kinds)")
+    p.add_argument("--workers", type=int, metavar="N", help="worker processes of cloud and leader")
+    p.add_argument("--lease-ms", type=int, metavar="MS", help="zenoh lease of every peer")
+    p.add_argument("--deadline-ms", type=int, metavar="MS", help="robots' per-request deadline")
+    p.add_argument("--ready-timeout", type=float, default=90.0, metavar="S",
+                   help="seconds a peer may take to start (default: %(default)s)")
+    p.add_argument("--server-arg", action="append", default=[], metavar="ARG",
+                   help="extra argument for cloud and leader (repeatable, e.g. --server-arg=--process "
+                        "--server-arg=scmr_mesh.mesh.testing:stub_process)")
+    p.add_argument("--robot-arg", action="append", default=[], metavar="ARG",
+                   help="extra argument for every robot (repeatable)")
+
+
+def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | None) -> FleetConfig:
+    kinds = [k for k in (args.synthetic or "").split(",") if k]
+    return FleetConfig(
+        robots=robots, duration_s=args.duration, rate_hz=args.rate,
+        cloud_outage=parse_outage(args.cloud_outage) if getattr(args, "cloud_outage", None) else None,
+        images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
+        lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
+        server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
+        rerun=_rerun_options(args),
+    )
+
+
+def _rerun_options(args: argparse.Namespace):
+    """RerunOptions from --save/--spawn/--serve/--connect, or None (scmr_mesh.viz)."""
+    from scmr_mesh.viz import RerunOptions
+
+    return RerunOptions.from_args(args)
+
+
+UP_EPILOG = """\
+Exit status: 0 when every request was answered (RoR >= --min-ror, default 1.0),
+1 when fewer were (the report is still written) or a peer failed to start
+(the error ends with the tail of its log), 130 on Ctrl-C (report written,
+"interrupted": true).
+
+Example:
+  scmr up --robots 4 --duration 20 --cloud-outage 8:14 --json report.json
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``scmr up``."""
+    p = sub.add_parser(
+        "up", help="cloud, leader and N robots on loopback, with an optional cloud outage",
+        description=(
+            "Start a cloud, a leader and N robots as separate processes on loopback, show live "
+            "progress on stderr, optionally SIGKILL the cloud at START and restart it at END, stop "
+            "everything cleanly at the end or on Ctrl-C, and write a report (ToR percentiles, RoR, "
+            "tiers, failover/failback gaps). Logs, records and masks go to the run directory."
+        ),
+        epilog=UP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robots", type=int, default=4, metavar="N", help="robots (default: %(default)s)")
+    _add_fleet_args(p)
+    p.add_argument("--cloud-outage", metavar="START:END",
+                   help="SIGKILL the cloud START s after the fleet is ready, restart it at END s")
+    p.add_argument("--json", metavar="FILE", help="also write the report here")
+    p.add_argument("--run-dir", type=Path, metavar="DIR", help="run directory (default: runs/<UTC timestamp>)")
+    p.add_argument("--min-ror", type=float, default=1.0, metavar="R",
+                   help="exit 1 when the RoR is below this (default: %(default)s; 0 never fails)")
+    p.add_argument("--quiet", action="store_true", help="no live progress")
+    from scmr_mesh.viz import (
+        add_rerun_args,  # light: rerun is imported only with a flag
+    )
+
+    add_rerun_args(p)
+    p.set_defaults(func=_cmd_up)
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    config = _config_from_args(args, args.robots, args.run_dir)
+    report = run_with_output(config, json_path=args.json, quiet=args.quiet)
+    print(format_summary(report))
+    print(f"\nreport: {Path(report['run_dir']) / 'report.json'}"
+          + (f" and {args.json}" if args.json else "") + f"\nlogs:   {Path(report['run_dir']) / 'logs'}/")
+    if getattr(args, "save", None):
+        print(f"rerun:  {args.save} (open it with `scmr view {args.save}`)")
+    if report.get("interrupted"):
+        return 130
+    return check_ror(report, args.min_ror)
+
+

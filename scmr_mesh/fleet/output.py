@@ -1,0 +1,139 @@
+"""What a fleet run shows: the live progress line, the summary table, the exit status."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from scmr_mesh.errors import MeshError
+from scmr_mesh.fleet.plan import FleetConfig
+from scmr_mesh.fleet.run import Progress, run_fleet
+
+
+def format_progress(p: Progress) -> str:
+    """One line: time, phase, alive tiers, requests, RoR, ToR (last 200), answers per tier."""
+    ror = f"{p.succeeded / p.requests:.3f}" if p.requests else "-"
+    tor = "-" if p.tor_p50_ms is None else f"{p.tor_p50_ms:.1f}/{p.tor_p99_ms:.1f}"
+    tiers = " ".join(f"{k} {p.by_tier.get(k, 0)}" for k in ("cloud", "leader", "local", "failed"))
+    alive = ", ".join(f"{k} {'up' if v else 'DOWN'}" for k, v in p.alive.items())
+    phase = "" if p.phase == "running" else f"{p.phase} | "
+    return (f"[{p.elapsed_s:5.1f}/{p.duration_s:g} s] {phase}{alive} | {p.requests} req, RoR {ror}, "
+            f"ToR p50/p99 {tor} ms | {tiers}")
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{x:.1f}"
+
+
+def format_summary(report: Mapping[str, Any]) -> str:
+    """A readable table of a report."""
+    ror = "-" if report["ror"] is None else f"{report['ror']:.3f}"
+    lines = [
+        f"fleet: {report['robots']} robots, {report.get('duration_s', 0):g} s at {report.get('rate_hz', 0):g} Hz"
+        + (" (interrupted)" if report.get("interrupted") else ""),
+        "",
+        f"  {'robot':<8}{'requests':>9}{'ok':>7}{'RoR':>7}{'p50':>8}{'p90':>8}{'p99':>8}{'max':>8}"
+        f"{'cloud':>7}{'leader':>7}{'local':>7}{'failed':>7}",
+    ]
+
+    def row(name: str, s: Mapping[str, Any]) -> str:
+        r = "-" if s["ror"] is None else f"{s['ror']:.3f}"
+        tt, b = s["tor_ms"], s["by_tier"]
+        return (f"  {name:<8}{s['requests']:>9}{s['succeeded']:>7}{r:>7}{_ms(tt['p50']):>8}{_ms(tt['p90']):>8}"
+                f"{_ms(tt['p99']):>8}{_ms(tt['max']):>8}{b['cloud']:>7}{b['leader']:>7}{b['local']:>7}"
+                f"{b.get('failed', 0):>7}")
+
+    for rid, s in report.get("per_robot", {}).items():
+        lines.append(row(rid, s))
+    lines.append(row("all", report))
+    lines.append(f"  (ToR in ms over succeeded requests; RoR {ror})")
+    for f in report.get("faults", []):
+        start = (f["start_unix_ns"] - report.get("started_unix_ns", f["start_unix_ns"])) / 1e9
+        end = "never" if f.get("end_unix_ns") is None else \
+            f"{(f['end_unix_ns'] - report.get('started_unix_ns', 0)) / 1e9:.2f} s"
+        lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, restored {end}; "
+                     f"failover gap {_ms(f.get('failover_gap_ms'))} ms (largest robot), "
+                     f"failback gap {_ms(f.get('failback_gap_ms'))} ms"
+                     + (f" = restart to ready {f['restart_to_ready_ms']:.0f} ms"
+                        f" + ready to first answer {_ms(f.get('failback_after_ready_ms'))} ms"
+                        if f.get("restart_to_ready_ms") is not None else ""))
+    if not report.get("faults"):
+        lines.append("  no faults injected")
+    return "\n".join(lines)
+
+
+class _ProgressPrinter:
+    """A single updating line on a TTY, a line every few seconds otherwise."""
+
+    def __init__(self, stream=sys.stderr, every_s: float = 2.0) -> None:
+        self.stream = stream
+        self.tty = hasattr(stream, "isatty") and stream.isatty()
+        self.every_s = every_s
+        self._last = -1e9
+        self._phase = None
+
+    def __call__(self, p: Progress) -> None:
+        line = format_progress(p)
+        if self.tty:
+            import shutil
+
+            width = max(20, shutil.get_terminal_size((120, 24)).columns - 1)  # no wrap: \r redraws one row
+            self.stream.write("\r" + line[:width] + "\x1b[K")
+            self.stream.flush()
+            return
+        now = time.monotonic()
+        if p.phase != self._phase or now - self._last >= self.every_s:
+            self._last, self._phase = now, p.phase
+            print(line, file=self.stream, flush=True)
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+class _TermAsInterrupt:
+    """While active, SIGTERM raises KeyboardInterrupt in the main thread."""
+
+    def __enter__(self):
+        def handler(signum, frame):
+            raise KeyboardInterrupt
+
+        self._old = signal.signal(signal.SIGTERM, handler)
+        return self
+
+    def __exit__(self, *exc):
+        signal.signal(signal.SIGTERM, self._old)
+
+
+def run_with_output(config: FleetConfig, *, json_path: str | None = None, quiet: bool = False) -> dict:
+    """:func:`run_fleet` with progress on stderr; writes ``json_path`` if given."""
+    printer = _ProgressPrinter() if not quiet else None
+    try:
+        with _TermAsInterrupt():
+            report = run_fleet(config, progress=printer)
+    finally:
+        if printer is not None:
+            printer.close()
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def check_ror(report: Mapping[str, Any], min_ror: float) -> int:
+    """0 if the run met ``min_ror``; raise :class:`MeshError` otherwise."""
+    n, ok = report["requests"], report["succeeded"]
+    if n == 0 and min_ror > 0:
+        raise MeshError(f"no request finished (see the robots' logs in {report['run_dir']}/logs)")
+    if n and ok / n < min_ror:
+        raise MeshError(f"{n - ok} of {n} requests failed (RoR {ok / n:.3f} < --min-ror {min_ror:g}); "
+                        f"report in {report['run_dir']}/report.json")
+    return 0
+
+

@@ -1,0 +1,173 @@
+"""What a fleet run starts: :class:`FleetConfig` and :func:`plan_fleet` (pure: starts nothing).
+
+A topology declared first and turned into processes later (STYLE.md, from
+mininet): :func:`plan_fleet` maps a config and ports to one
+:class:`~scmr_mesh.fleet.procs.PeerSpec` per peer.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from scmr_mesh.errors import InputError
+
+log = logging.getLogger(__name__)
+
+CLOUD, LEADER = "cloud", "leader"
+#: File that marks a folder as an scmr run directory (``scmr demo`` only replaces such folders).
+RUN_MARKER = ".scmr-run"
+
+
+
+@dataclass
+class FleetConfig:
+    """What to run.
+
+    Attributes
+    ----------
+    robots : int
+        Number of robot peers (besides the leader).
+    duration_s : float
+        How long each robot sends frames.
+    rate_hz : float
+        Frames per second per robot.
+    cloud_outage : (float, float) or None
+        Seconds after the fleet is ready at which the cloud is SIGKILLed and
+        restarted.
+    images : Path or None
+        A folder of images every robot sends (else synthetic scenes).
+    synthetic : sequence of str
+        Synthetic scene kinds, dealt to the robots round-robin (empty: all
+        kinds the imaging package offers).
+    run_dir : Path or None
+        Where logs, records and the report go (default ``runs/<timestamp>``).
+    workers : int or None
+        Worker processes of the cloud and the leader (default: theirs).
+    lease_ms, deadline_ms : int or None
+        Passed to the peers when set.
+    server_args, robot_args : sequence of str
+        Extra arguments for cloud+leader and for robots.
+    ready_timeout_s : float
+        How long a peer may take to write its ready file.
+    rerun : scmr_mesh.viz.RerunOptions or None
+        Show or record the run in rerun (``--save/--spawn/--serve/--connect``);
+        ``None``: nothing rerun-related happens.
+    """
+
+    robots: int = 4
+    duration_s: float = 10.0
+    rate_hz: float = 5.0
+    cloud_outage: tuple[float, float] | None = None
+    images: Path | None = None
+    synthetic: Sequence[str] = ()
+    run_dir: Path | None = None
+    workers: int | None = None
+    lease_ms: int | None = None
+    deadline_ms: int | None = None
+    server_args: Sequence[str] = ()
+    robot_args: Sequence[str] = ()
+    ready_timeout_s: float = 90.0
+    python: str = sys.executable
+    rerun: Any = None
+
+    def check(self) -> None:
+        """Raise :class:`InputError` naming the bad value and the fix."""
+        if self.robots < 1:
+            raise InputError(f"--robots must be at least 1, got {self.robots}")
+        if not self.duration_s > 0:
+            raise InputError(f"--duration must be positive (seconds), got {self.duration_s}")
+        if not self.rate_hz > 0:
+            raise InputError(f"--rate must be positive (Hz), got {self.rate_hz}")
+        if self.cloud_outage is not None:
+            start, end = self.cloud_outage
+            if not 0 <= start < end <= self.duration_s:
+                raise InputError(
+                    f"--cloud-outage must satisfy 0 <= START < END <= --duration ({self.duration_s:g}), "
+                    f"got {start:g}:{end:g}"
+                )
+        if self.images is not None and not Path(self.images).is_dir():
+            raise InputError(f"--images must be a folder of images, got {self.images} (not a folder)")
+
+
+def parse_outage(text: str) -> tuple[float, float]:
+    """``"8:14"`` -> ``(8.0, 14.0)`` (seconds after the fleet is ready)."""
+    try:
+        a, b = str(text).split(":")
+        start, end = float(a), float(b)
+    except ValueError:
+        raise InputError(f"--cloud-outage must be START:END in seconds such as 8:14, got {text!r}") from None
+    if not 0 <= start < end:
+        raise InputError(f"--cloud-outage needs 0 <= START < END, got {text!r}")
+    return start, end
+
+
+def _default_kinds() -> list[str]:
+    try:
+        from scmr_mesh.imaging.synthetic import SCENE_KINDS
+    except ImportError:  # pragma: no cover - imaging not built yet
+        return ["road"]
+    return list(SCENE_KINDS)
+
+
+def robot_ids(n: int) -> list[str]:
+    """Robot ids of a fleet of ``n``: ``r1`` ... ``rn``."""
+    return [f"r{i}" for i in range(1, n + 1)]
+
+
+def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
+    """The peers of a fleet as :class:`~scmr_mesh.fleet.procs.PeerSpec` (pure: starts nothing).
+
+    Parameters
+    ----------
+    config : FleetConfig
+    run_dir : Path
+    ports : mapping
+        Loopback port per peer name (``cloud``, ``leader``, ``r1``...).
+
+    Returns
+    -------
+    dict
+        ``{name: PeerSpec}``, servers first.
+    """
+    from scmr_mesh.fleet.procs import PeerSpec
+
+    def ep(name: str) -> str:
+        return f"tcp/127.0.0.1:{ports[name]}"
+
+    common: list[str] = []
+    if config.lease_ms is not None:
+        common += ["--lease-ms", str(config.lease_ms)]
+    base = [config.python, "-m", "scmr_mesh", "-v"]
+    specs = {}
+    for name, cmd, node, connect in ((CLOUD, "cloud", "cloud0", []), (LEADER, "leader", "leader0", [CLOUD])):
+        argv = [*base, cmd, "--node", node, "--listen", ep(name)]
+        for c in connect:
+            argv += ["--connect", ep(c)]
+        if config.workers is not None:
+            argv += ["--workers", str(config.workers)]
+        argv += [*common, "--ready-file", str(run_dir / "ready" / f"{name}.ready"), *config.server_args]
+        specs[name] = PeerSpec(name, argv, log_path=run_dir / "logs" / f"{name}.log",
+                               ready_file=run_dir / "ready" / f"{name}.ready")
+    kinds = list(config.synthetic) or _default_kinds()
+    for i, rid in enumerate(robot_ids(config.robots)):
+        argv = [*base, "robot", "--id", rid]
+        if config.images is not None:
+            argv += ["--images", str(config.images)]
+        else:
+            argv += ["--synthetic", kinds[i % len(kinds)]]
+        argv += ["--rate", f"{config.rate_hz:g}", "--duration", f"{config.duration_s:g}",
+                 "--out", str(run_dir / "robots" / rid),
+                 "--listen", ep(rid), "--connect", ep(CLOUD), "--connect", ep(LEADER)]
+        if config.deadline_ms is not None:
+            argv += ["--deadline-ms", str(config.deadline_ms)]
+        argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"), *config.robot_args]
+        specs[rid] = PeerSpec(rid, argv, log_path=run_dir / "logs" / f"{rid}.log",
+                              ready_file=run_dir / "ready" / f"{rid}.ready")
+    return specs
+
+
