@@ -44,6 +44,30 @@ def test_plan_wires_robots_to_cloud_and_leader(tmp_path):
     assert len(eps) == 5
 
 
+def test_plan_with_several_clouds(tmp_path):
+    cfg = FleetConfig(robots=2, clouds=3)
+    ports = {"cloud": 7001, "cloud1": 7002, "cloud2": 7003, "leader": 7004, "r1": 7005, "r2": 7006}
+    specs = plan_fleet(cfg, tmp_path, ports)
+    assert list(specs) == ["cloud", "cloud1", "cloud2", "leader", "r1", "r2"]
+    nodes = [specs[n].argv[specs[n].argv.index("--node") + 1] for n in ("cloud", "cloud1", "cloud2", "leader")]
+    assert nodes == ["cloud0", "cloud1", "cloud2", "leader0"]
+    assert specs["cloud2"].log_path == tmp_path / "logs" / "cloud2.log"
+
+    def connects(argv):
+        return [argv[i + 1] for i, a in enumerate(argv) if a == "--connect"]
+
+    clouds = ["tcp/127.0.0.1:7001", "tcp/127.0.0.1:7002", "tcp/127.0.0.1:7003"]
+    assert connects(specs["leader"].argv) == clouds  # the leader syncs from and relays to any cloud
+    assert connects(specs["r2"].argv) == [*clouds, "tcp/127.0.0.1:7004"]
+    assert connects(specs["cloud1"].argv) == []
+
+
+@pytest.mark.parametrize("n", [0, 17])
+def test_config_rejects_cloud_count(n):
+    with pytest.raises(InputError, match=f"--clouds must be between 1 and 16, got {n}"):
+        FleetConfig(clouds=n).check()
+
+
 def test_plan_with_images(tmp_path):
     specs = plan_fleet(FleetConfig(robots=1, images=tmp_path), tmp_path, {"cloud": 1, "leader": 2, "r1": 3})
     argv = specs["r1"].argv

@@ -33,7 +33,7 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
 def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | None) -> FleetConfig:
     kinds = [k for k in (args.synthetic or "").split(",") if k]
     return FleetConfig(
-        robots=robots, duration_s=args.duration, rate_hz=args.rate,
+        robots=robots, clouds=getattr(args, "clouds", 1), duration_s=args.duration, rate_hz=args.rate,
         cloud_outage=parse_outage(args.cloud_outage) if getattr(args, "cloud_outage", None) else None,
         images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
@@ -57,25 +57,29 @@ Exit status: 0 when every request was answered (RoR >= --min-ror, default 1.0),
 
 Example:
   scmr up --robots 4 --duration 20 --cloud-outage 8:14 --json report.json
+  scmr up --robots 8 --clouds 2 --duration 20
 """
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr up``."""
     p = sub.add_parser(
-        "up", help="cloud, leader and N robots on loopback, with an optional cloud outage",
+        "up", help="cloud(s), leader and N robots on loopback, with an optional cloud outage",
         description=(
-            "Start a cloud, a leader and N robots as separate processes on loopback, show live "
-            "progress on stderr, optionally SIGKILL the cloud at START and restart it at END, stop "
+            "Start one or more cloud nodes, a leader and N robots as separate processes on loopback, "
+            "show live progress on stderr, optionally SIGKILL the cloud tier at START and restart it at END, stop "
             "everything cleanly at the end or on Ctrl-C, and write a report (ToR percentiles, RoR, "
             "tiers, failover/failback gaps). Logs, records and masks go to the run directory."
         ),
         epilog=UP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--robots", type=int, default=4, metavar="N", help="robots (default: %(default)s)")
+    p.add_argument("--clouds", type=int, default=1, metavar="N",
+                   help="cloud nodes cloud0..cloud<N-1>; robots spread frames over them by load "
+                        "(default: %(default)s)")
     _add_fleet_args(p)
     p.add_argument("--cloud-outage", metavar="START:END",
-                   help="SIGKILL the cloud START s after the fleet is ready, restart it at END s")
+                   help="SIGKILL every cloud node START s after the fleet is ready, restart them at END s")
     p.add_argument("--json", metavar="FILE", help="also write the report here")
     p.add_argument("--run-dir", type=Path, metavar="DIR", help="run directory (default: runs/<UTC timestamp>)")
     p.add_argument("--min-ror", type=float, default=1.0, metavar="R",

@@ -19,6 +19,8 @@ from scmr_mesh.errors import InputError
 log = logging.getLogger(__name__)
 
 CLOUD, LEADER = "cloud", "leader"
+#: Most cloud nodes ``scmr up --clouds`` starts on one host.
+MAX_CLOUDS = 16
 #: File that marks a folder as an scmr run directory (``scmr demo`` only replaces such folders).
 RUN_MARKER = ".scmr-run"
 
@@ -32,13 +34,16 @@ class FleetConfig:
     ----------
     robots : int
         Number of robot peers (besides the leader).
+    clouds : int
+        Number of cloud nodes (``cloud0`` ... ``cloud<N-1>``); robots spread
+        their frames over them by published load.
     duration_s : float
         How long each robot sends frames.
     rate_hz : float
         Frames per second per robot.
     cloud_outage : (float, float) or None
-        Seconds after the fleet is ready at which the cloud is SIGKILLed and
-        restarted.
+        Seconds after the fleet is ready at which the cloud tier (every cloud
+        node) is SIGKILLed and restarted.
     images : Path or None
         A folder of images every robot sends (else synthetic scenes).
     synthetic : sequence of str
@@ -60,6 +65,7 @@ class FleetConfig:
     """
 
     robots: int = 4
+    clouds: int = 1
     duration_s: float = 10.0
     rate_hz: float = 5.0
     cloud_outage: tuple[float, float] | None = None
@@ -79,6 +85,8 @@ class FleetConfig:
         """Raise :class:`InputError` naming the bad value and the fix."""
         if self.robots < 1:
             raise InputError(f"--robots must be at least 1, got {self.robots}")
+        if not 1 <= self.clouds <= MAX_CLOUDS:
+            raise InputError(f"--clouds must be between 1 and {MAX_CLOUDS}, got {self.clouds}")
         if not self.duration_s > 0:
             raise InputError(f"--duration must be positive (seconds), got {self.duration_s}")
         if not self.rate_hz > 0:
@@ -119,6 +127,15 @@ def robot_ids(n: int) -> list[str]:
     return [f"r{i}" for i in range(1, n + 1)]
 
 
+def cloud_peers(n: int) -> list[tuple[str, str]]:
+    """``(peer name, node name)`` of ``n`` cloud nodes: ``("cloud", "cloud0")``, ``("cloud1", "cloud1")``...
+
+    The first keeps the peer name ``cloud`` (``logs/cloud.log``, ``ready/cloud.ready``)
+    that one-cloud fleets always had.
+    """
+    return [(CLOUD if i == 0 else f"cloud{i}", f"cloud{i}") for i in range(n)]
+
+
 def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
     """The peers of a fleet as :class:`~scmr_mesh.fleet.procs.PeerSpec` (pure: starts nothing).
 
@@ -127,12 +144,13 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
     config : FleetConfig
     run_dir : Path
     ports : mapping
-        Loopback port per peer name (``cloud``, ``leader``, ``r1``...).
+        Loopback port per peer name (``cloud``, ``cloud1``..., ``leader``, ``r1``...).
 
     Returns
     -------
     dict
-        ``{name: PeerSpec}``, servers first.
+        ``{name: PeerSpec}``, servers first (clouds, then the leader).  The
+        leader and every robot connect to every cloud node and to the leader.
     """
     from scmr_mesh.fleet.procs import PeerSpec
 
@@ -144,7 +162,10 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
         common += ["--lease-ms", str(config.lease_ms)]
     base = [config.python, "-m", "scmr_mesh", "-v"]
     specs = {}
-    for name, cmd, node, connect in ((CLOUD, "cloud", "cloud0", []), (LEADER, "leader", "leader0", [CLOUD])):
+    clouds = [name for name, _ in cloud_peers(config.clouds)]
+    servers = [(name, "cloud", node, []) for name, node in cloud_peers(config.clouds)]
+    servers.append((LEADER, "leader", "leader0", clouds))
+    for name, cmd, node, connect in servers:
         argv = [*base, cmd, "--node", node, "--listen", ep(name)]
         for c in connect:
             argv += ["--connect", ep(c)]
@@ -162,7 +183,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
             argv += ["--synthetic", kinds[i % len(kinds)]]
         argv += ["--rate", f"{config.rate_hz:g}", "--duration", f"{config.duration_s:g}",
                  "--out", str(run_dir / "robots" / rid),
-                 "--listen", ep(rid), "--connect", ep(CLOUD), "--connect", ep(LEADER)]
+                 "--listen", ep(rid)]
+        for c in [*clouds, LEADER]:
+            argv += ["--connect", ep(c)]
         if config.deadline_ms is not None:
             argv += ["--deadline-ms", str(config.deadline_ms)]
         argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"), *config.robot_args]

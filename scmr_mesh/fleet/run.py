@@ -1,9 +1,10 @@
 """A whole fleet on one host: ``scmr up`` and ``scmr bench mesh``.
 
-:func:`run_fleet` starts a cloud, a leader and N robots as separate OS
-processes on loopback (each robot listens and connects to the cloud and the
-leader; gossip lets the robots mesh), injects a cloud outage when asked
-(SIGKILL at START, restart at END, exact times recorded), follows the robots'
+:func:`run_fleet` starts one or more cloud nodes, a leader and N robots as
+separate OS processes on loopback (each robot listens and connects to every
+cloud node and the leader; gossip lets the robots mesh), injects a cloud
+outage when asked (every cloud node SIGKILLed at START, restarted at END,
+exact times recorded), follows the robots'
 ``records.jsonl`` for live progress, stops everything (SIGTERM, wait,
 SIGKILL, per process group; no orphans even if ``scmr up`` itself is
 SIGKILLed, see :mod:`scmr_mesh.fleet.procs`) and returns the report of
@@ -14,7 +15,7 @@ Run directory layout::
 
     runs/<UTC timestamp>/
         report.json
-        logs/<peer>.log             stdout+stderr of cloud, leader, r1..rN
+        logs/<peer>.log             stdout+stderr of cloud, cloud1.., leader, r1..rN
         robots/<id>/records.jsonl   one JSON record per finished request
         robots/<id>/inbox/*.png     the masks each robot received
         ready/<peer>.ready          readiness files
@@ -37,6 +38,7 @@ from scmr_mesh.fleet.plan import (
     LEADER,
     RUN_MARKER,
     FleetConfig,
+    cloud_peers,
     plan_fleet,
     robot_ids,
 )
@@ -203,6 +205,8 @@ class FleetRun:
         self.progress_every_s = progress_every_s
         self.run_dir = Path(config.run_dir) if config.run_dir is not None else default_run_dir()
         self.rids = robot_ids(config.robots)
+        self.clouds = [name for name, _ in cloud_peers(config.clouds)]
+        self.cloud_nodes = dict(cloud_peers(config.clouds))
         self.sup = Supervisor(term_timeout=10.0)
         self.records: list[dict] = []
         self.faults: list[dict] = []
@@ -225,16 +229,17 @@ class FleetRun:
         for sub in ("logs", "ready", "robots"):
             (run_dir / sub).mkdir(parents=True, exist_ok=True)
         (run_dir / RUN_MARKER).write_text("written by scmr up; this folder may be replaced by `scmr demo`\n")
-        self.specs = plan_fleet(config, run_dir, _free_ports([CLOUD, LEADER, *self.rids]))
+        self.specs = plan_fleet(config, run_dir, _free_ports([*self.clouds, LEADER, *self.rids]))
         self.tails = {rid: RecordTail(run_dir / "robots" / rid / "records.jsonl") for rid in self.rids}
         if config.rerun is not None:
             self.fviz = _start_viz(config.rerun, self.rids, self.specs)
             self._emit(f"rerun: {self.fviz.hint}", 0.0, {CLOUD: False, LEADER: False})
-        self._emit("starting cloud and leader", 0.0, {CLOUD: False, LEADER: False})
+        clouds = "cloud" if config.clouds == 1 else f"{config.clouds} cloud nodes"
+        self._emit(f"starting {clouds} and leader", 0.0, {CLOUD: False, LEADER: False})
         t0 = time.monotonic()
-        for name in (CLOUD, LEADER):
+        for name in (*self.clouds, LEADER):
             self.sup.start(self.specs[name])
-        self.sup.wait_ready([CLOUD, LEADER], timeout=config.ready_timeout_s)
+        self.sup.wait_ready([*self.clouds, LEADER], timeout=config.ready_timeout_s)
         log.info("servers ready after %.2f s", time.monotonic() - t0)
         self._emit(f"starting {config.robots} robots", 0.0, self._alive_tiers())
         for rid in self.rids:
@@ -255,9 +260,9 @@ class FleetRun:
             n_seen = len(self.records)
             self._read_records()
             if self.fviz is not None:
-                a = self._alive_tiers()
-                self.fviz.update(alive={("cloud", "cloud0"): a[CLOUD], ("leader", "leader0"): a[LEADER]},
-                                 records=self.records[n_seen:], faults=self.faults)
+                alive = {("cloud", node): self._up(name) for name, node in self.cloud_nodes.items()}
+                alive[("leader", "leader0")] = self._up(LEADER)
+                self.fviz.update(alive=alive, records=self.records[n_seen:], faults=self.faults)
             exited = self.sup.exited()
             for name, rc in exited.items():
                 if not self._expected_exit(name, rc) and name not in warned:
@@ -280,14 +285,15 @@ class FleetRun:
             sup = self.sup
             if sup.procs:
                 self._emit("stopping", (time.monotonic() - self.t_ready) if self.t_ready else 0.0,
-                           self._alive_tiers() if CLOUD in sup.procs and LEADER in sup.procs else {})
+                           self._alive_tiers() if all(n in sup.procs for n in (*self.clouds, LEADER)) else {})
             try:
                 sup.stop([r for r in self.rids if r in sup.procs])
                 # data tier (docs/DATA.md): count relayed telemetry while the cloud still runs
                 from scmr_mesh.data.report import fleet_telemetry
 
                 self.telemetry = fleet_telemetry(self.run_dir, self.rids,
-                                                 wait=CLOUD in sup.procs and sup.procs[CLOUD].alive())
+                                                 wait=any(c in sup.procs and sup.procs[c].alive()
+                                                          for c in self.clouds))
             except Exception as exc:  # the peers must be stopped whatever happens here
                 log.warning("telemetry accounting failed: %s", exc)
             finally:
@@ -311,6 +317,7 @@ class FleetRun:
         report: dict[str, Any] = {"v": 1, "kind": "report"}
         report.update(metrics.summarize(records, self.faults, robots=config.robots))
         report.update({
+            "clouds": config.clouds,
             "rate_hz": config.rate_hz,
             "duration_s": config.duration_s,
             "started_unix_ns": self.started_unix_ns,
@@ -338,37 +345,44 @@ class FleetRun:
 
     # ---------------------------------------------------------- helpers
     def _outage_step(self, now: float) -> None:
-        """SIGKILL the cloud at the outage's start, restart it at its end, note when it is ready."""
+        """SIGKILL every cloud node at the outage's start, restart them at its end, note when the first is ready."""
         outage = self.config.cloud_outage
         if outage is None:
             return
         fault = self.faults[0] if self.faults else None
         if fault is None and now >= outage[0]:
-            t_kill = self.sup.kill(CLOUD)
-            self.faults.append({"kind": "crash", "target": "cloud0", "tier": "cloud", "start_unix_ns": t_kill,
-                                "end_unix_ns": None, "ready_unix_ns": None, "robots": None})
-            log.info("cloud SIGKILLed at %.3f s", now)
+            t_kill = min(self.sup.kill(c) for c in self.clouds)
+            self.faults.append({"kind": "crash", "target": fault_target(self.cloud_nodes), "tier": "cloud",
+                                "start_unix_ns": t_kill, "end_unix_ns": None, "ready_unix_ns": None,
+                                "robots": None})
+            log.info("cloud tier (%s) SIGKILLed at %.3f s", fault_target(self.cloud_nodes), now)
         elif fault is not None and fault["end_unix_ns"] is None and now >= outage[1]:
-            fault["end_unix_ns"] = self.sup.restart(CLOUD).started_unix_ns
-            log.info("cloud restarted at %.3f s", now)
+            fault["end_unix_ns"] = min(self.sup.restart(c).started_unix_ns for c in self.clouds)
+            log.info("cloud tier restarted at %.3f s", now)
         elif fault is not None and fault["end_unix_ns"] is not None and fault["ready_unix_ns"] is None:
-            if self.sup.procs[CLOUD].is_ready():
-                fault["ready_unix_ns"] = self.sup.procs[CLOUD].ready_unix_ns
+            ready = [self.sup.procs[c].ready_unix_ns for c in self.clouds if self.sup.procs[c].is_ready()]
+            if ready:  # the tier is back with its first node
+                fault["ready_unix_ns"] = min(ready)
 
     def _outage_pending(self) -> bool:
         """Whether the cloud is still down, to be restarted."""
         return bool(self.faults) and self.faults[0]["end_unix_ns"] is None
 
     def _expected_exit(self, name: str, rc: int | None) -> bool:
-        return (name in self.rids and rc == 0) or (name == CLOUD and self._outage_pending())
+        return (name in self.rids and rc == 0) or (name in self.clouds and self._outage_pending())
 
     def _read_records(self) -> None:
         for rid in self.rids:
             if rid in self.tails:
                 self.records.extend(self.tails[rid].read_new())
 
+    def _up(self, name: str) -> bool:
+        p = self.sup.procs.get(name)
+        return p is not None and p.alive() and p.is_ready()
+
     def _alive_tiers(self) -> dict[str, bool]:
-        return {n: self.sup.procs[n].alive() and self.sup.procs[n].is_ready() for n in (CLOUD, LEADER)}
+        """``{"cloud": any cloud node up, "leader": leader up}``."""
+        return {CLOUD: any(self._up(c) for c in self.clouds), LEADER: self._up(LEADER)}
 
     def _emit(self, phase: str, elapsed: float, alive: dict[str, bool]) -> None:
         if self.progress is None:
@@ -384,6 +398,11 @@ class FleetRun:
             tor_p99_ms=metrics.percentile(recent, 99) if recent else None,
             by_tier=metrics.tier_counts(records), alive=alive, phase=phase,
         ))
+
+
+def fault_target(cloud_nodes: Mapping[str, str]) -> str:
+    """The ``target`` of a cloud-tier fault: the node names, comma-separated (``cloud0`` for one)."""
+    return ",".join(cloud_nodes.values())
 
 
 def _start_viz(options, rids: Sequence[str], specs: dict) -> Any:
