@@ -103,7 +103,7 @@ def srm(image: np.ndarray, *, q: float = 32, min_size: int | None = None) -> Srm
     """
     import numpy as np
 
-    from scmr_mesh.imaging._srm_kernels import srm_kernel
+    from scmr_mesh.imaging._aot import srm_kernel
     from scmr_mesh.imaging.codec import as_rgb
 
     rgb = as_rgb(image, name="image")

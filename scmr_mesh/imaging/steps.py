@@ -236,7 +236,7 @@ def remove_sparse_pixels(
     mask : (H, W) uint8
         255 = drivable, 0 = not.
     """
-    from scmr_mesh.imaging._srm_kernels import remove_sparse_kernel
+    from scmr_mesh.imaging._aot import remove_sparse_kernel
 
     d = np.asarray(drivable)
     if d.ndim != 2 or 0 in d.shape:
@@ -272,7 +272,7 @@ def fill_columns(candidate: np.ndarray, *, max_gap: int = 10) -> np.ndarray:
     mask : (H, W) uint8
         255 = drivable, 0 = not.
     """
-    from scmr_mesh.imaging._srm_kernels import column_fill_kernel
+    from scmr_mesh.imaging._aot import column_fill_kernel
 
     c = np.asarray(candidate)
     if c.ndim != 2 or 0 in c.shape:
