@@ -23,6 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from scmr_mesh import keys, wire
+from scmr_mesh.imaging.codec import MAX_PIXELS
 from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
 from scmr_mesh.mesh.testing import spawn_peer, stop_peer, synthetic_png, wait_for
 
@@ -168,7 +169,7 @@ def test_bombs_and_absurd_dimensions(cloud, width, height, fmt):
     img = _png(width, height) if fmt == "png" else _jpeg(width, height)
     proc, q = cloud
     kind, msg = _ask(q, wire.encode(_good(0, image=img, encoding=fmt)))
-    if width * height > 50_000_000:
+    if width * height > MAX_PIXELS:
         # refused from the header, before any pixel is decoded
         assert kind == "err" and msg["code"] == "malformed" and "pixels" in msg["message"], msg
     elif kind == "err":  # the body rarely matches the claimed size: corrupt

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -152,7 +153,41 @@ def test_bench_pipeline_runs_in_its_own_process(tmp_path):
     doc = json.loads(out.read_text())
     assert doc["frames"] == 4
     for key in ("median_ms", "p99_ms"):
-        assert {"decode", "resize", "srm", "total"} <= set(doc[key])
+        assert {"blur", "srm", "total"} <= set(doc[key])
         assert all(v >= 0 for v in doc[key].values())
     assert doc["p99_ms"]["total"] >= doc["median_ms"]["total"]
+    dec = doc["decode"]
+    assert set(dec["median_ms"]) == {"png", "jpeg", "bomb 3840x2160", "bomb 7000x7000"}
+    assert dec["bytes"]["jpeg"] < dec["bytes"]["png"] and dec["bytes"]["bomb 7000x7000"] < 1000
+    assert dec["bombs"] == {"bomb 3840x2160": "decoded at reduced scale", "bomb 7000x7000": "refused from its header"}
+    assert dec["peak_rss_growth_mb"] < 20
+    assert "reference" not in doc
     assert "timed 8/8 runs" in r.stderr
+
+
+def test_bench_pipeline_reference_needs_dpm_srm(tmp_path):
+    """--reference installs nothing: without dpm-srm it says how to get it, in one line."""
+    (tmp_path / "dpm_srm.py").write_text("raise ImportError('dpm_srm hidden by the test')\n")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    r = subprocess.run([sys.executable, "-m", "scmr_mesh", "bench", "pipeline", "--frames", "2", "--reference"],
+                       capture_output=True, text=True, timeout=240, env=env)
+    assert r.returncode == 1
+    lines = [ln for ln in r.stderr.splitlines() if ln.startswith("scmr: error")]
+    assert len(lines) == 1 and "pip install 'scmr-mesh[bench]'" in lines[0], r.stderr
+
+
+def test_bench_pipeline_reference_ratios(tmp_path):
+    pytest.importorskip("dpm_srm", reason="the bench extra (pip install 'scmr-mesh[bench]') is not installed")
+    out = tmp_path / "bench.json"
+    r = subprocess.run(
+        [sys.executable, "-m", "scmr_mesh", "bench", "pipeline", "--frames", "3", "--reference", "--json", str(out)],
+        capture_output=True, text=True, timeout=240,
+    )
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(out.read_text())
+    ref = doc["reference"]
+    assert ref["package"] == "dpm-srm" and ref["srm_median_ms"] > 0
+    ratios = doc["ratios"]
+    assert ratios["total_over_reference_srm"] == pytest.approx(doc["median_ms"]["total"] / ref["srm_median_ms"], rel=0.01)
+    assert ratios["srm_over_reference_srm"] == pytest.approx(doc["median_ms"]["srm"] / ref["srm_median_ms"], rel=0.01)
+    assert "ours / reference" in r.stdout

@@ -144,3 +144,136 @@ def test_resize_frame():
     assert np.all(resize_frame(flat) == 123)  # area interpolation keeps a flat colour exactly
     with pytest.raises(InputError, match="dtype uint8, got float32"):
         resize_frame(np.zeros((5, 5, 3), np.float32))
+
+
+# ------------------------------------------------------- reduced decode, bombs
+from scmr_mesh.imaging import (  # noqa: E402
+    MAX_PROGRESSIVE_PIXELS,
+    decode_frame,
+    encode_jpeg,
+    load_frame,
+)
+from scmr_mesh.imaging.codec import reduction_factor  # noqa: E402
+from scmr_mesh.imaging.testing import jpeg_bomb  # noqa: E402
+
+
+def _smooth(h, w):
+    y, x = np.mgrid[0:h, 0:w]
+    return np.stack([x * 255 // w, y * 255 // h, (x + y) * 127 // (h + w)], axis=2).astype(np.uint8)
+
+
+@pytest.mark.parametrize("w,h,r", [(300, 225, 1), (320, 240, 1), (640, 480, 2), (1280, 720, 2),
+                                   (1242, 375, 1), (1920, 1200, 4), (2400, 1800, 8), (3840, 2160, 8),
+                                   (100, 100, 1), (597, 447, 1), (599, 449, 2), (601, 451, 2)])
+def test_reduction_factor_keeps_at_least_the_frame_size(w, h, r):
+    assert reduction_factor(w, h) == r
+    assert -(-w // r) >= 300 or r == 1
+    assert -(-h // r) >= 225 or r == 1
+
+
+@pytest.mark.parametrize("h,w", [(480, 640), (720, 1280), (1200, 1920), (375, 1242), (100, 120)])
+def test_decode_frame_equals_full_decode_then_resize(h, w):
+    rgb = _smooth(h, w)
+    jpg = encode_jpeg(rgb, quality=95)
+    fast = decode_frame(jpg)
+    slow = resize_frame(decode_image(jpg))
+    assert fast.shape == (225, 300, 3) and fast.dtype == np.uint8
+    # DCT-domain scaling and area resizing differ by rounding only on a smooth picture
+    assert np.abs(fast.astype(int) - slow.astype(int)).mean() < 1.5
+    png = encode_png(rgb)
+    np.testing.assert_array_equal(decode_frame(png), resize_frame(rgb))
+
+
+def test_decode_frame_keeps_rgb_order_and_raw_frames():
+    img = np.zeros((480, 640, 3), np.uint8)
+    img[..., 0] = 220  # red
+    out = decode_frame(encode_jpeg(img))
+    assert out[..., 0].min() > 200 and out[..., 1:].max() < 20
+    raw = _smooth(4, 6)
+    np.testing.assert_array_equal(decode_frame(raw.tobytes(), shape=(4, 6)), resize_frame(raw))
+
+
+def test_decode_frame_errors_match_decode_image(tmp_path):
+    jpg = encode_jpeg(_smooth(480, 640))
+    with pytest.raises(ImageDecodeError, match="truncated"):
+        decode_frame(jpg[: len(jpg) // 2])
+    with pytest.raises(ImageDecodeError, match="not a PNG or JPEG"):
+        decode_frame(b"garbage!")
+    with pytest.raises(ImageDecodeError, match="empty"):
+        decode_frame(b"")
+    with pytest.raises(InputError, match="not found"):
+        load_frame(tmp_path / "none.jpg")
+
+
+def test_cap_is_what_cameras_send():
+    assert MAX_PIXELS == 3840 * 2160
+    with pytest.raises(ImageDecodeError, match="7000x7000"):
+        decode_frame(jpeg_bomb(7000, 7000))
+    with pytest.raises(ImageDecodeError, match="3841x2160"):
+        decode_image(jpeg_bomb(3841, 2160))
+
+
+def test_progressive_jpeg_cap():
+    with pytest.raises(ImageDecodeError, match="progressive JPEG header claims 2000x2000"):
+        decode_frame(jpeg_bomb(2000, 2000, progressive=True))
+    assert MAX_PROGRESSIVE_PIXELS == 1920 * 1080
+    ok = encode_jpeg(_smooth(480, 640))  # an ordinary progressive frame still decodes
+    prog = cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(ok, np.uint8), cv2.IMREAD_COLOR),
+                        [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    assert decode_frame(prog).shape == (225, 300, 3)
+
+
+def test_encode_jpeg_checks_quality():
+    with pytest.raises(InputError, match="quality must be 1..100, got 0"):
+        encode_jpeg(_smooth(8, 8), quality=0)
+
+
+_BOMB_PROBE = r"""
+import json, resource, time
+import cv2
+from scmr_mesh.imaging.testing import jpeg_bomb
+from scmr_mesh.errors import ImageDecodeError
+from scmr_mesh.imaging.codec import decode_frame
+cv2.setNumThreads(1)
+decode_frame(jpeg_bomb(640, 480))  # load libjpeg and the code paths once
+out = {}
+for name, (w, h, prog) in {"7000x7000": (7000, 7000, False), "3840x2160": (3840, 2160, False),
+                           "1920x1080 progressive": (1920, 1080, True)}.items():
+    data = jpeg_bomb(w, h, progressive=prog)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    c0 = time.process_time()
+    try:
+        decode_frame(data)
+        result = "decoded"
+    except ImageDecodeError as exc:
+        result = "refused"
+    cpu_ms = (time.process_time() - c0) * 1e3
+    rss_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
+    out[name] = {"bytes": len(data), "cpu_ms": cpu_ms, "peak_growth_mb": rss_mb, "result": result}
+print(json.dumps(out))
+"""
+
+
+def test_decompression_bomb_costs_little(tmp_path):
+    """Issue #13 item 5: a ~600-byte JPEG claiming 7000x7000 cost 0.64 s and 280 MB.
+
+    Measured in a fresh process: CPU time of the decode and the growth of the
+    peak resident set (``ru_maxrss``).  The bounds are generous (the targets are
+    20 ms and 20 MB; measured 0.02 ms / 0 MB refused, about 2 ms / 1 MB for the
+    4K bomb decoded at 1/8 scale).
+    """
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _BOMB_PROBE],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert res["7000x7000"]["result"] == "refused"
+    assert res["3840x2160"]["result"] == "decoded"
+    assert res["1920x1080 progressive"]["result"] == "decoded"
+    for name, r in res.items():
+        assert r["bytes"] < 1000, (name, r)
+        assert r["peak_growth_mb"] < 20, (name, r)
+        assert r["cpu_ms"] < 100, (name, r)

@@ -58,13 +58,20 @@ def add_pipeline(bench: argparse._SubParsersAction) -> None:
         help="per-stage median/p99 ms of the drivable-region pipeline",
         description=(
             "Time the pipeline on one core (sched_setaffinity, numba and OpenCV at 1 thread) after "
-            "JIT warm-up.  'total' = 300x225 RGB array to mask; 'decode' and 'resize' are reported "
-            "separately.  Frames come from --images (PNG/JPEG folder) or built-in synthetic scenes."
+            "JIT warm-up.  'total' = 300x225 RGB array to mask.  A separate pass times decode_frame "
+            "(bytes to the 300x225 frame) per encoding: each frame as PNG and as JPEG (quality 90), "
+            "and two decompression bombs (a ~700-byte JPEG claiming 3840x2160, decoded at 1/8 scale, "
+            "and one claiming 7000x7000, refused).  Frames come from --images (PNG/JPEG folder) or "
+            "built-in synthetic scenes."
         ),
     )
     p.add_argument("--frames", type=int, default=300, help="frames to time (default: %(default)s)")
     p.add_argument("--images", type=Path, metavar="DIR", help="folder of PNG/JPEG frames (default: synthetic)")
     p.add_argument("--mode", choices=MODES, default="best", help="pipeline mode (default: %(default)s)")
+    p.add_argument("--reference", action="store_true",
+                   help="also time the C++ SRM of the dpm-srm package (grey input, same frames, same Q) and "
+                        "report our total and SRM as ratios of it; installs nothing: needs "
+                        "pip install 'scmr-mesh[bench]'")
     p.add_argument("--json", type=Path, metavar="FILE", help="write the result as JSON here")
     p.set_defaults(func=_handler("pipeline", "cmd_bench_pipeline"))
 

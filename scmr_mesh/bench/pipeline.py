@@ -2,8 +2,10 @@
 
 Runs in one process pinned to one core (``os.sched_setaffinity``) with numba
 and OpenCV limited to one thread, after JIT warm-up.  ``total`` is the time
-from a 300x225 RGB array to the mask; ``decode`` (PNG bytes to RGB) and
-``resize`` (source size to 300x225) are measured separately.
+from a 300x225 RGB array to the mask.  Decoding (bytes to the 300x225 frame,
+what the services run) is timed in its own pass per encoding: PNG, JPEG and
+two decompression bombs.  ``--reference`` adds the C++ SRM of the ``dpm-srm``
+package on the same frames and reports ours as ratios of it.
 """
 
 from __future__ import annotations
@@ -58,58 +60,139 @@ def _frames(images: Path | None, limit: int = 64) -> list[tuple[str, bytes]]:
     return out
 
 
+#: The decompression bombs timed by the decode pass: (label, width, height).
+BOMBS = (("bomb 3840x2160", 3840, 2160), ("bomb 7000x7000", 7000, 7000))
+
+
+def _reference_srm():
+    """dpm-srm's grey SRM as ``fn(grey, q) -> labels``, or None when the package is not installed."""
+    try:
+        import dpm_srm
+    except ImportError:
+        return None
+
+    def run(grey: np.ndarray, q: float) -> np.ndarray:
+        obj = dpm_srm.SRM2D_u8(grey, float(q))
+        obj.segment()
+        return obj.get_result()
+
+    return run
+
+
+def _package_version(name: str) -> str | None:
+    from importlib import metadata
+
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict, dict]:
+    """Time :func:`decode_frame` per encoding: each source as PNG and as JPEG (quality 90), and the bombs."""
+    import resource
+
+    from scmr_mesh.errors import ImageDecodeError
+    from scmr_mesh.imaging.codec import JPEG_QUALITY, decode_frame, decode_image, encode_jpeg, encode_png
+    from scmr_mesh.imaging.testing import jpeg_bomb
+
+    encoded = []
+    for _, data in sources:
+        rgb = decode_image(data)
+        encoded.append({"png": encode_png(rgb), "jpeg": encode_jpeg(rgb, quality=JPEG_QUALITY)})
+    bombs = {label: jpeg_bomb(w, h) for label, w, h in BOMBS}
+    samples: dict[str, list[float]] = {"png": [], "jpeg": [], **{label: [] for label in bombs}}
+    outcome = {}
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    for i in range(frames):
+        enc = encoded[i % len(encoded)]
+        for kind in ("png", "jpeg"):
+            t0 = time.perf_counter()
+            decode_frame(enc[kind])
+            samples[kind].append((time.perf_counter() - t0) * 1000)
+        for label, data in bombs.items():
+            t0 = time.perf_counter()
+            try:
+                decode_frame(data)
+                outcome[label] = "decoded at reduced scale"
+            except ImageDecodeError:
+                outcome[label] = "refused from its header"
+            samples[label].append((time.perf_counter() - t0) * 1000)
+        if progress and (i % 20 == 0 or i == frames - 1):
+            progress(i + 1, total)
+    growth = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
+    sizes = {
+        "png": int(np.median([len(e["png"]) for e in encoded])),
+        "jpeg": int(np.median([len(e["jpeg"]) for e in encoded])),
+        **{label: len(data) for label, data in bombs.items()},
+    }
+    med = {k: round(float(np.median(v)), 4) for k, v in samples.items()}
+    p99 = {k: round(float(np.percentile(v, 99)), 4) for k, v in samples.items()}
+    decode = {"median_ms": med, "p99_ms": p99, "bytes": sizes, "bombs": outcome,
+              "peak_rss_growth_mb": round(growth, 2), "jpeg_quality": JPEG_QUALITY}
+    return decode, med, p99
+
+
 def bench_pipeline(
     *,
     frames: int = 200,
     images: Path | None = None,
     mode: str = "best",
+    reference: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Time the pipeline stages over ``frames`` frames.
+
+    Three passes over the same frames: decoding (:func:`decode_frame` of each
+    frame as PNG and as JPEG, and of two decompression bombs), the pipeline
+    (300x225 RGB array to mask, per stage), and with ``reference=True`` the
+    grey SRM of the ``dpm-srm`` package on the same 300x225 frames,
+    interleaved with our SRM so both see the same machine state.
 
     Returns
     -------
     dict
         ``{"frames", "mode", "core", "sources", "median_ms": {stage: ms, ...,
-        "total": ms}, "p99_ms": {...}}``; stages include ``decode`` and
-        ``resize``, which are not part of ``total``.  ``cpu_total_median_ms`` is
-    the thread CPU time of the same calls (robust to a busy machine) and
-    ``load_average`` the 1/5/15-minute load when the run ended.
+        "total": ms}, "p99_ms": {...}, "decode": {"median_ms": {"png",
+        "jpeg", "bomb ..."}, "p99_ms", "bytes", "bombs", "peak_rss_growth_mb"},
+        "cpu_total_median_ms", "cpu_total_p99_ms", "load_average"}``, plus
+        ``"reference": {"package", "version", "srm_median_ms", "srm_p99_ms",
+        "q"}`` and ``"ratios"`` with ``reference=True``.
+
+    Raises
+    ------
+    InputError
+        Bad ``frames``/``images``, or ``reference=True`` without ``dpm-srm``.
     """
     import cv2
     import numba
 
     from scmr_mesh.errors import InputError
-    from scmr_mesh.imaging.codec import decode_image, resize_frame
-    from scmr_mesh.imaging.pipeline import segment_drivable, warm_up
+    from scmr_mesh.imaging.codec import decode_frame
+    from scmr_mesh.imaging.pipeline import srm_q, segment_drivable, warm_up
+    from scmr_mesh.imaging.srm import srm
+    from scmr_mesh.imaging.steps import gaussian_blur_3x3
 
     if frames < 1:
         raise InputError(f"--frames must be at least 1, got {frames}")
+    ref_srm = _reference_srm() if reference else None
+    if reference and ref_srm is None:
+        raise InputError("--reference needs the dpm-srm package, which is not installed; "
+                         "install it with: pip install 'scmr-mesh[bench]' (or pip install dpm-srm==0.1.9)")
     core = _pin_one_core()
     numba.set_num_threads(1)
     cv2.setNumThreads(1)
     sources = _frames(images)
-    decoded = [decode_image(data) for _, data in sources]
-    ready = [resize_frame(rgb) for rgb in decoded]
+    ready = [decode_frame(data) for _, data in sources]
     warm_up()
     for f in ready[: min(len(ready), 5)]:
         segment_drivable(f, mode=mode)
+    passes = 3 if reference else 2
+    total_runs = passes * frames
 
-    samples: dict[str, list[float]] = {"decode": [], "resize": []}
+    decode, _, _ = _decode_pass(sources, frames, progress, total_runs)
+    samples: dict[str, list[float]] = {}
     cpu: list[float] = []
-    # decode and resize are timed in their own pass, so decoding a large file
-    # does not flush the caches just before each timed pipeline run
-    for i in range(frames):
-        j = i % len(sources)
-        t0 = time.perf_counter()
-        rgb = decode_image(sources[j][1])
-        t1 = time.perf_counter()
-        resize_frame(rgb)
-        t2 = time.perf_counter()
-        samples["decode"].append((t1 - t0) * 1000)
-        samples["resize"].append((t2 - t1) * 1000)
-        if progress and (i % 20 == 0 or i == frames - 1):
-            progress(i + 1, 2 * frames)
     for i in range(frames):
         j = i % len(sources)
         c0 = time.thread_time()
@@ -119,23 +202,66 @@ def bench_pipeline(
             if k != "resize":
                 samples.setdefault(k, []).append(v)
         if progress and (i % 20 == 0 or i == frames - 1):
-            progress(frames + i + 1, 2 * frames)
+            progress(frames + i + 1, total_runs)
     median = {k: round(float(np.median(v)), 4) for k, v in samples.items()}
     p99 = {k: round(float(np.percentile(v, 99)), 4) for k, v in samples.items()}
-    h, w = decoded[0].shape[:2]
-    return {
+    out = {
         "frames": frames,
         "mode": mode,
         "core": core,
-        "sources": {"n": len(sources), "from": str(images) if images else "synthetic 640x480 PNG", "first_size": [w, h]},
+        "sources": {"n": len(sources), "from": str(images) if images else "synthetic 640x480 PNG",
+                    "first_size": list(_size(sources[0][1]))},
         "median_ms": median,
         "p99_ms": p99,
+        "decode": decode,
         # CPU time of the whole segment_drivable call (this thread only): much less
         # sensitive than wall time to other processes competing for the core
         "cpu_total_median_ms": round(float(np.median(cpu)), 4),
         "cpu_total_p99_ms": round(float(np.percentile(cpu, 99)), 4),
-        "load_average": _loadavg(),
     }
+    if reference:
+        q = srm_q(mode)
+        greys = [cv2.cvtColor(gaussian_blur_3x3(f), cv2.COLOR_RGB2GRAY) for f in ready]
+        blurred = [gaussian_blur_3x3(f) for f in ready]
+        ref_srm(greys[0], q)
+        theirs: list[float] = []
+        ours: list[float] = []
+        for i in range(frames):
+            j = i % len(sources)
+            t0 = time.perf_counter()
+            ref_srm(greys[j], q)
+            t1 = time.perf_counter()
+            srm(blurred[j], q=q)
+            t2 = time.perf_counter()
+            theirs.append((t1 - t0) * 1000)
+            ours.append((t2 - t1) * 1000)
+            if progress and (i % 20 == 0 or i == frames - 1):
+                progress(2 * frames + i + 1, total_runs)
+        ref_med = float(np.median(theirs))
+        out["reference"] = {
+            "package": "dpm-srm",
+            "version": _package_version("dpm-srm"),
+            "input": "grey (OpenCV RGB2GRAY of the blurred 300x225 frame), uint8",
+            "q": q,
+            "srm_median_ms": round(ref_med, 4),
+            "srm_p99_ms": round(float(np.percentile(theirs, 99)), 4),
+            "ours_srm_interleaved_median_ms": round(float(np.median(ours)), 4),
+        }
+        out["ratios"] = {
+            "total_over_reference_srm": round(median["total"] / ref_med, 3),
+            "srm_over_reference_srm": round(median["srm"] / ref_med, 3),
+            "srm_interleaved_over_reference_srm": round(float(np.median(ours)) / ref_med, 3),
+            "targets": {"total_over_reference_srm": 0.5, "srm_over_reference_srm": 0.5},
+        }
+    out["load_average"] = _loadavg()
+    return out
+
+
+def _size(data: bytes) -> tuple[int, int]:
+    from scmr_mesh.imaging.codec import decode_image
+
+    h, w = decode_image(data).shape[:2]
+    return w, h
 
 
 def _loadavg() -> list[float] | None:
@@ -150,21 +276,34 @@ def cmd_bench_pipeline(args: argparse.Namespace) -> int:
     from scmr_mesh.imaging.commands import _write_json
 
     tty = sys.stderr.isatty()
+    what = "decode pass, pipeline pass" + (", reference pass" if args.reference else "")
 
     def progress(i: int, n: int) -> None:
         if tty:
-            print(f"\rtimed {i}/{n} runs (decode pass, then pipeline pass)", end="" if i < n else "\n",
-                  file=sys.stderr, flush=True)
+            print(f"\rtimed {i}/{n} runs ({what})", end="" if i < n else "\n", file=sys.stderr, flush=True)
         elif i == n or i % max(1, n // 5) == 0:  # a few whole lines in logs and CI
-            print(f"timed {i}/{n} runs (decode pass, then pipeline pass)", file=sys.stderr)
+            print(f"timed {i}/{n} runs ({what})", file=sys.stderr)
 
     print("warming up (numba JIT / cache) ...", file=sys.stderr)
-    result = bench_pipeline(frames=args.frames, images=args.images, mode=args.mode, progress=progress)
+    result = bench_pipeline(frames=args.frames, images=args.images, mode=args.mode, reference=args.reference,
+                            progress=progress)
     med, p99 = result["median_ms"], result["p99_ms"]
     print(f"{'stage':10s} {'median ms':>10s} {'p99 ms':>10s}")
     for k in med:
         print(f"{k:10s} {med[k]:10.3f} {p99[k]:10.3f}")
     print(f"{'total CPU':10s} {result['cpu_total_median_ms']:10.3f} {result['cpu_total_p99_ms']:10.3f}")
+    dec = result["decode"]
+    print(f"\ndecode_frame to 300x225 {'median ms':>10s} {'p99 ms':>10s} {'bytes':>9s}")
+    for k in dec["median_ms"]:
+        note = f"  ({dec['bombs'][k]})" if k in dec["bombs"] else ""
+        print(f"{k:23s} {dec['median_ms'][k]:10.3f} {dec['p99_ms'][k]:10.3f} {dec['bytes'][k]:9d}{note}")
+    print(f"peak RSS growth over the decode pass: {dec['peak_rss_growth_mb']} MB")
+    if "reference" in result:
+        ref, rat = result["reference"], result["ratios"]
+        print(f"\nreference: {ref['package']} {ref['version']} grey SRM at Q={ref['q']:g}: "
+              f"{ref['srm_median_ms']:.3f} ms median")
+        print(f"ours / reference: total {rat['total_over_reference_srm']:.3f}, SRM {rat['srm_over_reference_srm']:.3f} "
+              f"(interleaved SRM {rat['srm_interleaved_over_reference_srm']:.3f}); targets <= 0.5")
     if result.get("load_average"):
         print(f"load average during the run: {result['load_average']} (wall-clock figures include waiting for the core)")
     if args.json:

@@ -2,6 +2,7 @@
 
 Public API (re-exported here, imported lazily so ``scmr --help`` stays fast)::
 
+    decode_frame, load_frame, encode_jpeg,
     decode_image, load_image, resize_frame, encode_png       codec
     segment_drivable, DrivableResult, warm_up                 pipeline
     gaussian_blur_3x3, srm, roi, bottom_centre,
@@ -21,6 +22,10 @@ from scmr_mesh._lazy import lazy_exports
 
 _EXPORTS = {
     "decode_image": "codec",
+    "decode_frame": "codec",
+    "load_frame": "codec",
+    "encode_jpeg": "codec",
+    "MAX_PROGRESSIVE_PIXELS": "codec",
     "load_image": "codec",
     "resize_frame": "codec",
     "encode_png": "codec",
@@ -61,8 +66,12 @@ if TYPE_CHECKING:  # pragma: no cover
     from scmr_mesh.imaging.codec import (
         FRAME_SHAPE,
         MAX_PIXELS,
+        MAX_PROGRESSIVE_PIXELS,
+        decode_frame,
         decode_image,
+        encode_jpeg,
         encode_png,
+        load_frame,
         load_image,
         resize_frame,
     )

@@ -5,10 +5,23 @@ OpenCV works in BGR; the functions here are the only place that converts, so
 callers never have to think about it.
 
 Decoding is defensive: the header is parsed *before* decoding so that a tiny
-file that claims to be a 100 000 x 100 000 image (a decompression bomb) is
-refused cheaply, and every failure raises
-:class:`~scmr_mesh.errors.ImageDecodeError` with a message that says what was
-received.
+file that claims to be a huge image (a decompression bomb) is refused cheaply,
+and every failure raises :class:`~scmr_mesh.errors.ImageDecodeError` with a
+message that says what was received.  Two limits:
+
+* :data:`MAX_PIXELS`: 3840 x 2160 (4K UHD), the largest frame common robot
+  cameras send; anything larger is refused from its header.
+* :data:`MAX_PROGRESSIVE_PIXELS`: 1920 x 1080 for progressive JPEGs, because
+  libjpeg buffers every DCT coefficient of a progressive image (about 3 bytes
+  per pixel at 4:2:0) whatever the output scale.  Camera encoders emit
+  baseline JPEG.
+
+:func:`decode_frame` is what the services run: it decodes a JPEG at 1/2, 1/4
+or 1/8 scale in libjpeg's DCT (OpenCV's ``IMREAD_REDUCED_COLOR_*``) so that the
+result is still at least 300x225, then resizes to the 300x225 frame.  A
+631-byte JPEG whose header claims 3840x2160 costs about 2 ms and under 1 MB
+that way (a 7000x7000 one is refused from its header; before these limits it
+cost 0.64 s of CPU and 280 MB).
 """
 
 from __future__ import annotations
@@ -29,22 +42,32 @@ FRAME_WIDTH = 300
 FRAME_HEIGHT = 225
 FRAME_SHAPE = (FRAME_HEIGHT, FRAME_WIDTH)
 
-#: Largest image (in pixels) :func:`decode_image` accepts: 50 Mpx.
-MAX_PIXELS = 50_000_000
+#: Largest image (in pixels) the decoders accept: 3840 x 2160 (4K UHD), the
+#: largest frame common robot cameras send (the thesis's were 640x480).
+MAX_PIXELS = 3840 * 2160
+#: Largest progressive JPEG: 1920 x 1080.  libjpeg keeps all DCT coefficients of a
+#: progressive image in memory (about 3 bytes per pixel at 4:2:0), even when it
+#: decodes at reduced scale; camera encoders emit baseline JPEG.
+MAX_PROGRESSIVE_PIXELS = 1920 * 1080
+#: Default JPEG quality of frames a robot sends (the thesis's frames were 80-130 KB JPEGs).
+JPEG_QUALITY = 90
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _JPEG_MAGIC = b"\xff\xd8"
 # JPEG start-of-frame markers that carry the image size (not DHT/JPG/DAC).
 _SOF_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+# progressive (and lossless) SOF markers: libjpeg buffers the whole coefficient image
+_PROGRESSIVE_SOF = {0xC2, 0xC3, 0xC6, 0xC7, 0xCA, 0xCB, 0xCE, 0xCF}
 
 
-def _check_size(width: int, height: int, what: str) -> None:
+def _check_size(width: int, height: int, what: str, limit: int = MAX_PIXELS) -> None:
     if width <= 0 or height <= 0:
         raise ImageDecodeError(f"{what} header gives an empty size {width}x{height}; the file is corrupt")
-    if width * height > MAX_PIXELS:
+    if width * height > limit:
         raise ImageDecodeError(
             f"{what} header claims {width}x{height} = {width * height} pixels, more than the "
-            f"{MAX_PIXELS} allowed; refusing to decode (downscale the image first)"
+            f"{limit} allowed (cameras send at most 3840x2160); refusing to decode "
+            "(downscale the image first)"
         )
 
 
@@ -55,8 +78,8 @@ def _png_size(data: bytes) -> tuple[int, int]:
     return width, height
 
 
-def _jpeg_size(data: bytes) -> tuple[int, int, int]:
-    """Return (width, height, offset after the SOF segment) of a JPEG."""
+def _jpeg_size(data: bytes) -> tuple[int, int, int, bool]:
+    """Return (width, height, offset after the SOF segment, progressive) of a JPEG."""
     i = 2
     n = len(data)
     while i < n:
@@ -79,13 +102,71 @@ def _jpeg_size(data: bytes) -> tuple[int, int, int]:
             if i + 7 > n:
                 break
             height, width = struct.unpack(">HH", data[i + 3 : i + 7])
-            return width, height, i + seg_len
+            return width, height, i + seg_len, marker in _PROGRESSIVE_SOF
         i += seg_len
     raise ImageDecodeError(f"truncated or corrupt JPEG: no frame header in {len(data)} bytes")
 
 
+def _check_bytes(data) -> bytes:
+    if isinstance(data, (bytearray, memoryview)):
+        data = bytes(data)
+    if not isinstance(data, bytes):
+        raise ImageDecodeError(f"image data must be bytes, got {type(data).__name__}")
+    if len(data) == 0:
+        raise ImageDecodeError("empty image data (0 bytes)")
+    return data
+
+
+def _raw(data: bytes, shape) -> np.ndarray:
+    try:
+        height, width = (int(v) for v in shape)
+    except (TypeError, ValueError):
+        raise ImageDecodeError(f"shape must be (height, width), got {shape!r}") from None
+    _check_size(width, height, "raw RGB")
+    expected = height * width * 3
+    if len(data) != expected:
+        raise ImageDecodeError(f"raw RGB data for shape {height}x{width} must be {expected} bytes, got {len(data)}")
+    return np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3).copy()
+
+
+def _sniff(data: bytes) -> tuple[str, int, int]:
+    """Kind ("PNG"/"JPEG") and header size of encoded bytes, after the size and truncation checks."""
+    if data.startswith(_PNG_MAGIC):
+        width, height = _png_size(data)
+        _check_size(width, height, "PNG")
+        if data.rfind(b"IEND") < 0:
+            raise ImageDecodeError(f"truncated PNG: {len(data)} bytes and no IEND chunk")
+        return "PNG", width, height
+    if data.startswith(_JPEG_MAGIC):
+        width, height, after_sof, progressive = _jpeg_size(data)
+        _check_size(width, height, "JPEG")
+        if progressive:
+            _check_size(width, height, "progressive JPEG", MAX_PROGRESSIVE_PIXELS)
+        if data.rfind(b"\xff\xd9", after_sof) < 0:
+            raise ImageDecodeError(f"truncated JPEG: {len(data)} bytes and no end-of-image marker")
+        return "JPEG", width, height
+    head = data[:8].hex()
+    raise ImageDecodeError(
+        f"not a PNG or JPEG image (first bytes {head}); pass PNG/JPEG, or raw RGB with shape=(H, W)"
+    )
+
+
+def _imdecode(data: bytes, flags: int, kind: str) -> np.ndarray:
+    buf = np.frombuffer(data, dtype=np.uint8)
+    try:
+        img = cv2.imdecode(buf, flags)
+    except cv2.error as exc:  # pragma: no cover - OpenCV usually returns None
+        raise ImageDecodeError(f"corrupt {kind} ({len(data)} bytes): {exc}") from None
+    if img is None or img.size == 0:
+        raise ImageDecodeError(f"corrupt or truncated {kind} ({len(data)} bytes): OpenCV could not decode it")
+    return img
+
+
 def decode_image(data: bytes, *, shape: tuple[int, int] | None = None) -> np.ndarray:
-    """Decode PNG/JPEG bytes (or raw RGB bytes) to an RGB frame.
+    """Decode PNG/JPEG bytes (or raw RGB bytes) to an RGB image at full size.
+
+    Services use :func:`decode_frame`, which decodes JPEGs at reduced scale;
+    this function is for callers that need every source pixel.
 
     Parameters
     ----------
@@ -99,13 +180,14 @@ def decode_image(data: bytes, *, shape: tuple[int, int] | None = None) -> np.nda
     -------
     rgb : (H, W, 3) uint8
         RGB order.  Alpha is dropped, grey images get three equal channels,
-        16-bit images are scaled to 8 bits.
+        16-bit images are scaled to 8 bits.  EXIF orientation is ignored.
 
     Raises
     ------
     ImageDecodeError
-        Empty, truncated, not PNG/JPEG, corrupt, or larger than
-        :data:`MAX_PIXELS` (checked from the header before decoding).
+        Empty, truncated, not PNG/JPEG, corrupt, larger than
+        :data:`MAX_PIXELS` (or a progressive JPEG larger than
+        :data:`MAX_PROGRESSIVE_PIXELS`), checked from the header before decoding.
 
     Examples
     --------
@@ -113,51 +195,75 @@ def decode_image(data: bytes, *, shape: tuple[int, int] | None = None) -> np.nda
     >>> rgb.shape, rgb.dtype.name
     ((2, 3, 3), 'uint8')
     """
-    if isinstance(data, (bytearray, memoryview)):
-        data = bytes(data)
-    if not isinstance(data, bytes):
-        raise ImageDecodeError(f"image data must be bytes, got {type(data).__name__}")
-    if len(data) == 0:
-        raise ImageDecodeError("empty image data (0 bytes)")
+    data = _check_bytes(data)
     if shape is not None:
-        try:
-            height, width = (int(v) for v in shape)
-        except (TypeError, ValueError):
-            raise ImageDecodeError(f"shape must be (height, width), got {shape!r}") from None
-        _check_size(width, height, "raw RGB")
-        expected = height * width * 3
-        if len(data) != expected:
-            raise ImageDecodeError(
-                f"raw RGB data for shape {height}x{width} must be {expected} bytes, got {len(data)}"
-            )
-        return np.frombuffer(data, dtype=np.uint8).reshape(height, width, 3).copy()
+        return _raw(data, shape)
+    kind, _, _ = _sniff(data)
+    return _to_rgb(_imdecode(data, cv2.IMREAD_UNCHANGED, kind))
 
-    if data.startswith(_PNG_MAGIC):
-        width, height = _png_size(data)
-        _check_size(width, height, "PNG")
-        if data.rfind(b"IEND") < 0:
-            raise ImageDecodeError(f"truncated PNG: {len(data)} bytes and no IEND chunk")
-        kind = "PNG"
-    elif data.startswith(_JPEG_MAGIC):
-        width, height, after_sof = _jpeg_size(data)
-        _check_size(width, height, "JPEG")
-        if data.rfind(b"\xff\xd9", after_sof) < 0:
-            raise ImageDecodeError(f"truncated JPEG: {len(data)} bytes and no end-of-image marker")
-        kind = "JPEG"
-    else:
-        head = data[:8].hex()
-        raise ImageDecodeError(
-            f"not a PNG or JPEG image (first bytes {head}); pass PNG/JPEG, or raw RGB with shape=(H, W)"
-        )
 
-    buf = np.frombuffer(data, dtype=np.uint8)
-    try:
-        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
-    except cv2.error as exc:  # pragma: no cover - OpenCV usually returns None
-        raise ImageDecodeError(f"corrupt {kind} ({len(data)} bytes): {exc}") from None
-    if img is None or img.size == 0:
-        raise ImageDecodeError(f"corrupt or truncated {kind} ({len(data)} bytes): OpenCV could not decode it")
-    return _to_rgb(img)
+#: OpenCV flags decoding a JPEG at 1/factor scale in libjpeg's DCT (BGR, EXIF orientation ignored).
+_REDUCED = {
+    2: cv2.IMREAD_REDUCED_COLOR_2 | cv2.IMREAD_IGNORE_ORIENTATION,
+    4: cv2.IMREAD_REDUCED_COLOR_4 | cv2.IMREAD_IGNORE_ORIENTATION,
+    8: cv2.IMREAD_REDUCED_COLOR_8 | cv2.IMREAD_IGNORE_ORIENTATION,
+}
+
+
+def reduction_factor(width: int, height: int) -> int:
+    """The largest JPEG DCT scale 1/r (r in 1, 2, 4, 8) that keeps the image at least 300x225.
+
+    Examples
+    --------
+    >>> reduction_factor(640, 480), reduction_factor(1920, 1200), reduction_factor(1242, 375)
+    (2, 4, 1)
+    """
+    for r in (8, 4, 2):
+        if -(-width // r) >= FRAME_WIDTH and -(-height // r) >= FRAME_HEIGHT:
+            return r
+    return 1
+
+
+def decode_frame(data: bytes, *, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Decode PNG/JPEG bytes (or raw RGB bytes) straight to the 300x225 pipeline frame.
+
+    A JPEG is decoded at the smallest DCT scale (1/2, 1/4 or 1/8, OpenCV's
+    ``IMREAD_REDUCED_COLOR_*``) that is still at least 300x225, so a large
+    frame (or a decompression bomb) never materialises at full size; the
+    result is then resized with area interpolation.  PNG and raw frames are
+    decoded in full (PNG has no reduced decode) and resized.
+
+    Parameters
+    ----------
+    data : bytes
+        An encoded PNG or JPEG, or raw ``H * W * 3`` RGB bytes when ``shape``
+        is given.
+    shape : tuple of int, optional
+        ``(H, W)`` of raw RGB bytes.
+
+    Returns
+    -------
+    frame : (225, 300, 3) uint8
+        RGB order.
+
+    Raises
+    ------
+    ImageDecodeError
+        As :func:`decode_image`.
+
+    Examples
+    --------
+    >>> decode_frame(bytes(2 * 3 * 3), shape=(2, 3)).shape
+    (225, 300, 3)
+    """
+    data = _check_bytes(data)
+    if shape is not None:
+        return resize_frame(_raw(data, shape))
+    kind, width, height = _sniff(data)
+    r = reduction_factor(width, height) if kind == "JPEG" else 1
+    if r == 1:
+        return resize_frame(_to_rgb(_imdecode(data, cv2.IMREAD_UNCHANGED, kind)))
+    return resize_frame(_to_rgb(_imdecode(data, _REDUCED[r], kind)))
 
 
 def _to_rgb(img: np.ndarray) -> np.ndarray:
@@ -176,8 +282,24 @@ def _to_rgb(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
+def _load(path: str | Path, decode) -> np.ndarray:
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"image file not found: {p}") from None
+    except IsADirectoryError:
+        raise InputError(f"expected an image file, got a directory: {p}") from None
+    except OSError as exc:
+        raise InputError(f"cannot read image file {p}: {exc.strerror or exc}") from None
+    try:
+        return decode(data)
+    except ImageDecodeError as exc:
+        raise ImageDecodeError(f"{p}: {exc}") from None
+
+
 def load_image(path: str | Path) -> np.ndarray:
-    """Read a PNG/JPEG file as an RGB frame.
+    """Read a PNG/JPEG file as an RGB image at full size (:func:`decode_image`).
 
     Parameters
     ----------
@@ -195,19 +317,21 @@ def load_image(path: str | Path) -> np.ndarray:
     ImageDecodeError
         The bytes are not an acceptable image; the message names the file.
     """
-    p = Path(path)
-    try:
-        data = p.read_bytes()
-    except FileNotFoundError:
-        raise InputError(f"image file not found: {p}") from None
-    except IsADirectoryError:
-        raise InputError(f"expected an image file, got a directory: {p}") from None
-    except OSError as exc:
-        raise InputError(f"cannot read image file {p}: {exc.strerror or exc}") from None
-    try:
-        return decode_image(data)
-    except ImageDecodeError as exc:
-        raise ImageDecodeError(f"{p}: {exc}") from None
+    return _load(path, decode_image)
+
+
+def load_frame(path: str | Path) -> np.ndarray:
+    """Read a PNG/JPEG file straight to the (225, 300, 3) frame (:func:`decode_frame`).
+
+    This is the decode the services run, so ``scmr segment`` and ``scmr eval``
+    see what a robot's frame turns into.
+
+    Raises
+    ------
+    InputError, ImageDecodeError
+        As :func:`load_image`.
+    """
+    return _load(path, decode_frame)
 
 
 def as_rgb(image: np.ndarray, *, name: str = "image") -> np.ndarray:
@@ -288,4 +412,29 @@ def encode_png(array: np.ndarray) -> bytes:
     ok, buf = cv2.imencode(".png", array)
     if not ok:  # pragma: no cover
         raise InputError(f"OpenCV could not encode an array of shape {array.shape} as PNG")
+    return buf.tobytes()
+
+
+def encode_jpeg(rgb: np.ndarray, *, quality: int = JPEG_QUALITY) -> bytes:
+    """Encode an RGB frame as a baseline JPEG (what robots send).
+
+    Parameters
+    ----------
+    rgb : (H, W, 3) uint8
+        RGB order (converted to OpenCV's BGR here); grey and RGBA accepted.
+    quality : int, keyword-only
+        1..100 (default :data:`JPEG_QUALITY` = 90).
+
+    Returns
+    -------
+    jpeg : bytes
+    """
+    q = int(quality)
+    if not 1 <= q <= 100:
+        raise InputError(f"JPEG quality must be 1..100, got {quality}")
+    rgb = as_rgb(rgb, name="rgb")
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, q])
+    if not ok:  # pragma: no cover
+        raise InputError(f"OpenCV could not encode an array of shape {rgb.shape} as JPEG")
     return buf.tobytes()

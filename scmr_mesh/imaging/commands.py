@@ -148,7 +148,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
         raise InputError(f"cannot create --out folder {args.out}: {exc.strerror or exc}") from None
     synthetic = [_parse_synthetic(s) for s in args.synthetic]
 
-    from scmr_mesh.imaging.codec import load_image
+    from scmr_mesh.imaging.codec import load_frame
     from scmr_mesh.imaging.synthetic import make_scene
 
     jobs: list[tuple[str, object]] = [(str(p), p) for p in args.images]
@@ -162,7 +162,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
                 rgb, _ = make_scene(src[0], seed=src[1])
                 stem = f"{src[0]}_{src[1]}"
             else:
-                rgb = load_image(src)
+                rgb = load_frame(src)
                 stem = Path(src).stem
             base, n = stem, 2
             while stem in used:  # two inputs with the same name

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from scmr_mesh.errors import ConfigError, InputError, ScmrError
-from scmr_mesh.imaging.codec import FRAME_HEIGHT, FRAME_WIDTH, load_image
+from scmr_mesh.imaging.codec import FRAME_HEIGHT, FRAME_WIDTH, load_frame
 
 log = logging.getLogger(__name__)
 
@@ -226,7 +226,7 @@ def evaluate(
         if progress:
             progress(i, len(items), item.image.name)
         try:
-            rgb = load_image(item.image)
+            rgb = load_frame(item.image)
             road, valid = truth_at_frame(item)
         except ScmrError as exc:  # one unreadable pair must not sink the whole evaluation
             skipped.append({"image": item.image.name, "error": str(exc)})

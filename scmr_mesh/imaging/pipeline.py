@@ -91,6 +91,11 @@ HORIZON_FRACTION = 0.40
 COLUMN_GAP = 15
 
 
+def srm_q(mode: str, q: float = 32) -> float:
+    """The SRM Q a mode runs with for the user's ``q``."""
+    return q * BEST_Q_FACTOR if mode == "best" else q
+
+
 def segment_drivable(
     rgb: np.ndarray, *, mode: str = "best", q: float = 32, stages: bool = False
 ) -> DrivableResult:

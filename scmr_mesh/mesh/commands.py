@@ -120,6 +120,9 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     src.add_argument("--synthetic", metavar="KIND",
                      help="synthetic scenes of this kind (seeded per frame); 'stub' needs no imaging module")
     g.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="frames per second (default 5)")
+    g.add_argument("--jpeg-quality", type=int, default=90, metavar="Q",
+                   help="frames are sent as JPEG at this quality, 1..100 (default 90); 0 sends lossless PNG. "
+                        "JPEG files from --images are sent as they are")
     lim = g.add_mutually_exclusive_group()
     lim.add_argument("--count", type=int, default=None, metavar="N", help="stop after N frames")
     lim.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
@@ -236,7 +239,8 @@ def _check_robot_args(args):
     if args.duration is not None and args.duration < 0:
         raise InputError(f"--duration must be >= 0, got {args.duration}")
     args._frames = frames_from_args(args.images, args.synthetic,
-                                    seed=args.seed if args.seed is not None else pick_seed(args.id))
+                                    seed=args.seed if args.seed is not None else pick_seed(args.id),
+                                    jpeg_quality=args.jpeg_quality)
     return args._frames
 
 

@@ -184,6 +184,15 @@ class LiveView:
 
 
 # ---------------------------------------------------------------- frames
+#: JPEG quality of the frames a robot sends (``--jpeg-quality``; the thesis's
+#: frames were 80-130 KB JPEGs).  Equal to ``scmr_mesh.imaging.codec.JPEG_QUALITY``
+#: (not imported, to keep this module light).  0 sends lossless PNG instead.
+JPEG_QUALITY = 90
+#: An ``--images`` folder with at most this many files keeps each re-encoded
+#: frame after its first use instead of encoding it again every cycle.
+ENCODE_CACHE_FILES = 64
+
+
 @dataclass
 class Frame:
     """One frame to send: encoded bytes, and how to get its pixels."""
@@ -204,26 +213,71 @@ class Frame:
         return self.rgb
 
 
-def image_frames(folder: str | Path) -> Iterator[Frame]:
+def check_jpeg_quality(quality: int) -> int:
+    """``--jpeg-quality``: 1..100, or 0 for lossless PNG; anything else is an InputError."""
+    try:
+        q = int(quality)
+    except (TypeError, ValueError):
+        raise InputError(f"--jpeg-quality must be an integer 0..100, got {quality!r}") from None
+    if not 0 <= q <= 100 or q != quality:
+        raise InputError(f"--jpeg-quality must be 1..100 (or 0 for lossless PNG), got {quality}")
+    return q
+
+
+def _encode(rgb, jpeg_quality: int) -> tuple[bytes, str]:
+    from scmr_mesh.imaging import encode_jpeg, encode_png
+
+    if jpeg_quality == 0:
+        return encode_png(rgb), "png"
+    return encode_jpeg(rgb, quality=jpeg_quality), "jpeg"
+
+
+def image_frames(folder: str | Path, *, jpeg_quality: int = JPEG_QUALITY) -> Iterator[Frame]:
     """Cycle forever over the PNG/JPEG files of ``folder`` (sorted by name).
+
+    JPEG files are sent as they are (re-encoding would lose quality twice);
+    PNG files are re-encoded as JPEG at ``jpeg_quality`` (sent unchanged
+    when it is 0).
 
     Raises
     ------
     InputError
         At once (not at the first frame) when the folder is missing or holds
-        no PNG/JPEG file.
+        no PNG/JPEG file, or ``jpeg_quality`` is out of range.
     """
+    jpeg_quality = check_jpeg_quality(jpeg_quality)
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"--images {folder} is not a folder; pass a folder of PNG/JPEG frames")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     if not files:
         raise InputError(f"--images {folder} holds no .png/.jpg/.jpeg file")
+    cache: dict[Path, Frame] = {}
+
+    def load(p: Path) -> Frame:
+        data = p.read_bytes()
+        if p.suffix.lower() != ".png":
+            return Frame(p.name, data, "jpeg")
+        if jpeg_quality == 0:
+            return Frame(p.name, data, "png")
+        from scmr_mesh.imaging import decode_image
+
+        try:
+            rgb = decode_image(data)
+        except InputError as exc:  # send it as it is: the server's error reply reports it
+            log.warning("%s: not re-encoded as JPEG (%s); sent as it is", p.name, exc)
+            return Frame(p.name, data, "png")
+        enc, kind = _encode(rgb, jpeg_quality)
+        return Frame(p.name, enc, kind, rgb=rgb)
 
     def gen() -> Iterator[Frame]:
         for p in itertools.cycle(files):
-            enc = "png" if p.suffix.lower() == ".png" else "jpeg"
-            yield Frame(p.name, p.read_bytes(), enc)
+            frame = cache.get(p)
+            if frame is None:
+                frame = load(p)
+                if len(files) <= ENCODE_CACHE_FILES:
+                    cache[p] = frame
+            yield frame
 
     return gen()
 
@@ -235,18 +289,21 @@ def image_frames(folder: str | Path) -> Iterator[Frame]:
 SYNTHETIC_SET = 8
 
 
-def synthetic_frames(kind: str, *, seed: int = 0, distinct: int = SYNTHETIC_SET) -> Iterator[Frame]:
-    """Endless synthetic scenes of ``kind``, PNG-encoded: ``distinct`` scenes
-    seeded ``seed .. seed+distinct-1``, each generated once and then cycled.
+def synthetic_frames(kind: str, *, seed: int = 0, distinct: int = SYNTHETIC_SET,
+                     jpeg_quality: int = JPEG_QUALITY) -> Iterator[Frame]:
+    """Endless synthetic scenes of ``kind``: ``distinct`` scenes seeded
+    ``seed .. seed+distinct-1``, each generated and encoded (JPEG at
+    ``jpeg_quality``, PNG when it is 0) once and then cycled.
 
-    ``kind="stub"`` uses :func:`scmr_mesh.mesh.testing.synthetic_png` and needs no
-    imaging module; other kinds come from ``scmr_mesh.imaging.synthetic``.
+    ``kind="stub"`` uses :func:`scmr_mesh.mesh.testing.synthetic_png` (always PNG)
+    and needs no imaging module; other kinds come from ``scmr_mesh.imaging.synthetic``.
 
     Raises
     ------
     InputError
-        At once when ``kind`` is unknown.
+        At once when ``kind`` is unknown or ``jpeg_quality`` out of range.
     """
+    jpeg_quality = check_jpeg_quality(jpeg_quality)
     if kind == "stub":
         from scmr_mesh.mesh.testing import synthetic_png
 
@@ -256,19 +313,20 @@ def synthetic_frames(kind: str, *, seed: int = 0, distinct: int = SYNTHETIC_SET)
 
         return stub()
     try:
-        from scmr_mesh.imaging import encode_png
         from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
     except ImportError as exc:
         raise InputError(f"--synthetic {kind}: synthetic scenes unavailable ({exc}); use --synthetic stub") from None
     if kind not in SCENE_KINDS:
         raise InputError(f"--synthetic must be one of {', '.join(SCENE_KINDS)} or stub, got {kind!r}")
+    ext = ".png" if jpeg_quality == 0 else ".jpg"
 
     def scenes() -> Iterator[Frame]:
         made: list[Frame] = []
         for i in itertools.count():
             if i < distinct:
                 rgb, _truth = make_scene(kind, seed=seed + i)
-                made.append(Frame(f"{kind}-{seed + i}.png", encode_png(rgb), "png", rgb=rgb))
+                data, enc = _encode(rgb, jpeg_quality)
+                made.append(Frame(f"{kind}-{seed + i}{ext}", data, enc, rgb=rgb))
             yield made[i % distinct]
 
     return scenes()
@@ -706,11 +764,14 @@ class Robot:
         return dict(self.stats)
 
 
-def frames_from_args(images: str | None, synthetic: str | None, *, seed: int = 0) -> Iterator[Frame]:
-    """The frame source of ``--images DIR`` or ``--synthetic KIND``."""
+def frames_from_args(images: str | None, synthetic: str | None, *, seed: int = 0,
+                     jpeg_quality: int = JPEG_QUALITY) -> Iterator[Frame]:
+    """The frame source of ``--images DIR`` or ``--synthetic KIND`` (``--jpeg-quality``)."""
     if (images is None) == (synthetic is None):
         raise InputError("give exactly one of --images DIR or --synthetic KIND")
-    return image_frames(images) if images is not None else synthetic_frames(synthetic, seed=seed)
+    if images is not None:
+        return image_frames(images, jpeg_quality=jpeg_quality)
+    return synthetic_frames(synthetic, seed=seed, jpeg_quality=jpeg_quality)
 
 
 def pick_seed(robot_id: str) -> int:

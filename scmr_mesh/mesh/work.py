@@ -85,10 +85,10 @@ def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str 
         ``mask_png`` (PNG of the (225, 300) uint8 0/255 mask), ``shape``,
         ``threshold``, ``timings_ms`` (per stage, plus ``decode`` and ``encode``).
     """
-    from scmr_mesh.imaging import decode_image, encode_png, segment_drivable
+    from scmr_mesh.imaging import decode_frame, encode_png, segment_drivable
 
     t0 = time.perf_counter()
-    rgb = decode_image(image, shape=tuple(shape[:2]) if encoding == "raw" and shape else None)
+    rgb = decode_frame(image, shape=tuple(shape[:2]) if encoding == "raw" and shape else None)
     t1 = time.perf_counter()
     res = segment_drivable(rgb, mode=mode)
     t2 = time.perf_counter()

@@ -1,0 +1,76 @@
+"""The robot's frame sources: JPEG by default (``--jpeg-quality``), PNG on request."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from scmr_mesh.cli import main
+from scmr_mesh.errors import InputError
+from scmr_mesh.imaging import codec, decode_image, encode_png
+from scmr_mesh.mesh import robot
+from scmr_mesh.mesh.robot import frames_from_args, image_frames, synthetic_frames
+
+
+def _picture(h=240, w=320):
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.stack([x * 255 // w, y * 255 // h, np.full_like(x, 90)], axis=2)
+    return img.astype(np.uint8)
+
+
+@pytest.fixture
+def folder(tmp_path):
+    rgb = _picture()
+    (tmp_path / "a.png").write_bytes(encode_png(rgb))
+    ok, buf = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 75])
+    (tmp_path / "b.jpg").write_bytes(buf.tobytes())
+    return tmp_path
+
+
+def test_default_quality_matches_the_codec():
+    assert robot.JPEG_QUALITY == codec.JPEG_QUALITY
+
+
+def test_png_files_go_out_as_jpeg_and_jpeg_files_unchanged(folder):
+    frames = image_frames(folder)
+    a, b, a2 = next(frames), next(frames), next(frames)
+    assert (a.name, a.encoding) == ("a.png", "jpeg") and a.data[:2] == b"\xff\xd8"
+    assert len(a.data) < len((folder / "a.png").read_bytes())
+    # the JPEG keeps the picture (quality 90): colours within a few levels
+    diff = np.abs(decode_image(a.data).astype(int) - _picture().astype(int))
+    assert diff.mean() < 3
+    assert (b.encoding, b.data) == ("jpeg", (folder / "b.jpg").read_bytes())
+    assert a2 is a  # small folders are encoded once
+
+
+def test_quality_changes_the_size_and_zero_sends_png(folder):
+    low = next(image_frames(folder, jpeg_quality=20)).data
+    high = next(image_frames(folder, jpeg_quality=95)).data
+    assert len(low) < len(high)
+    png = next(image_frames(folder, jpeg_quality=0))
+    assert png.encoding == "png" and png.data == (folder / "a.png").read_bytes()
+
+
+def test_synthetic_frames_are_jpeg_by_default():
+    f = next(synthetic_frames("tunnel", seed=3))
+    assert f.encoding == "jpeg" and f.data[:2] == b"\xff\xd8" and f.name == "tunnel-3.jpg"
+    assert f.rgb.shape == (225, 300, 3)
+    p = next(synthetic_frames("tunnel", seed=3, jpeg_quality=0))
+    assert p.encoding == "png" and p.data[:4] == b"\x89PNG"
+    np.testing.assert_array_equal(decode_image(p.data), f.rgb)
+
+
+@pytest.mark.parametrize("bad", [-1, 101, 2.5])
+def test_bad_quality_is_refused_at_once(folder, bad):
+    with pytest.raises(InputError, match="--jpeg-quality"):
+        frames_from_args(str(folder), None, jpeg_quality=bad)
+    with pytest.raises(InputError, match="--jpeg-quality"):
+        frames_from_args(None, "tunnel", jpeg_quality=bad)
+
+
+def test_robot_cli_refuses_bad_quality_in_one_line(folder, capsys):
+    rc = main(["robot", "--id", "r1", "--images", str(folder), "--out", str(folder / "out"),
+               "--jpeg-quality", "101"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and len(err) == 1 and "--jpeg-quality" in err[0], err
