@@ -86,6 +86,25 @@ def test_full_queue_refuses_clearly_and_keeps_everything(tmp_path):
         assert q.append(b"w" * 10) == 11  # room again, and no seq was spent on the refusal
     with TelemetryQueue(tmp_path, max_bytes=100) as q:
         assert [s for s, _ in q.pending()] == list(range(2, 12))
+        assert q.stats().lost_seqs == []
+
+
+def test_refusals_can_keep_their_seqs_so_the_store_sees_the_gap(tmp_path):
+    """A robot's queue: a refused record keeps its seq, listed in refused_seqs and lost after a reopen."""
+    with TelemetryQueue(tmp_path, max_bytes=20, refusals_use_seqs=True) as q:
+        assert q.append(b"a" * 10) == 1 and q.append(b"b" * 10) == 2
+        with pytest.raises(QueueFullError, match="record 3 was refused"):
+            q.append(b"c" * 10, seq=3)
+        q.ack(2)
+        assert q.append(b"d" * 10, seq=4) == 4
+        with pytest.raises(QueueFullError):
+            q.append(b"e" * 20, seq=5)
+        st_ = q.stats()
+        assert st_.refused == 2 and st_.refused_seqs == [3, 5] and q.next_seq == 6
+    with TelemetryQueue(tmp_path, max_bytes=20, refusals_use_seqs=True) as q:
+        st_ = q.stats()
+        assert [s for s, _ in q.pending()] == [4]
+        assert st_.lost_seqs == [3, 5] and q.next_seq == 6
 
 
 def test_append_with_explicit_seq(tmp_path):
@@ -110,10 +129,12 @@ def _write(d: Path, payloads: list[bytes]) -> tuple[Path, list[int]]:
 
 @settings(max_examples=60, deadline=None)
 @given(payloads=st.lists(payload_st, min_size=1, max_size=8), data=st.data())
-def test_truncation_at_any_offset_is_detected(payloads, data):
+def test_appended_records_cut_off_at_any_offset_are_lost_never_reused(payloads, data):
+    """Every append returned (fsynced), then the file was cut: not a torn append (issue #12, item 2)."""
     d = Path(tempfile.mkdtemp())
     try:
         seg, ends = _write(d, payloads)
+        n = len(payloads)
         cut = data.draw(st.integers(0, ends[-1]), label="cut")
         with seg.open("r+b") as fh:
             fh.truncate(cut)
@@ -124,11 +145,33 @@ def test_truncation_at_any_offset_is_detected(payloads, data):
             assert [s for s, _ in q.pending()] == whole
             assert st_.torn_bytes == cut - boundary
             assert st_.corruptions == []
-            assert q.next_seq == len(whole) + 1
+            assert st_.lost_seqs == list(range(len(whole) + 1, n + 1))
+            assert q.next_seq == n + 1  # the cut records' seqs are never handed out again
             q.append(b"after")
-        with TelemetryQueue(d) as q:  # the torn tail was repaired, the file is clean again
+        with TelemetryQueue(d) as q:  # the cut tail was repaired, the file is clean again
             assert q.stats().torn_bytes == 0
-            assert [s for s, _ in q.pending()] == whole + [len(whole) + 1]
+            assert [s for s, _ in q.pending()] == whole + [n + 1]
+    finally:
+        shutil.rmtree(d)
+
+
+@settings(max_examples=40, deadline=None)
+@given(payloads=st.lists(payload_st, min_size=1, max_size=8), torn=payload_st, data=st.data())
+def test_a_torn_append_is_truncated_and_its_seq_reused(payloads, torn, data):
+    """A crash during an append (its bytes partly written, the head not moved): nothing was handed out."""
+    d = Path(tempfile.mkdtemp())
+    try:
+        seg, ends = _write(d, payloads)
+        n = len(payloads)
+        frame = encode_frame(n + 1, torn)
+        part = data.draw(st.integers(1, len(frame) - 1), label="part")
+        with seg.open("ab") as fh:
+            fh.write(frame[:part])
+        with TelemetryQueue(d) as q:
+            st_ = q.stats()
+            assert [s for s, _ in q.pending()] == list(range(1, n + 1))
+            assert st_.torn_bytes == part and st_.lost_seqs == [] and st_.corruptions == []
+            assert q.next_seq == n + 1
     finally:
         shutil.rmtree(d)
 

@@ -20,6 +20,7 @@ _EXPORTS: dict[str, str] = {
     "telemetry_report": "report", "run_telemetry": "report", "settle_telemetry": "report",
     "fleet_telemetry": "report",
     "StoreError": "errors", "QueueError": "errors", "QueueFullError": "errors", "QueueCorruptError": "errors",
+    "QueueWriteError": "errors",
     "TelemetryError": "errors",
 }
 

@@ -21,6 +21,14 @@ class QueueFullError(QueueError):
     """
 
 
+class QueueWriteError(QueueError):
+    """The file system refused an append (full, read-only, immutable, I/O error).
+
+    The segment is left exactly as it was before the call (a partial write is
+    truncated away), and the refusal is counted in :attr:`QueueStats.refused`.
+    """
+
+
 class QueueCorruptError(QueueError):
     """A segment file holds a record whose length or CRC does not check out."""
 
@@ -33,6 +41,7 @@ __all__ = [
     "QueueCorruptError",
     "QueueError",
     "QueueFullError",
+    "QueueWriteError",
     "StoreError",
     "TelemetryError",
 ]

@@ -13,6 +13,14 @@ u32 crc32(length, seq) | u32 crc32(payload) | payload``.  The header has its
 own CRC so that a torn tail (a complete, valid header whose payload is cut
 short, or a cut header) can be told from a corrupted length field.
 
+The ``head`` file holds the highest seq handed out (20 digits and a newline,
+rewritten in place after each append's segment write, so a process crash
+never loses it).  It tells a *torn append* from a *truncated record*: a record
+cut off at the tail whose seq is at most ``head`` had been appended (its
+append returned, and under ``"always"`` it was fsynced), so it is counted in
+``lost_seqs`` and its seq is never reused; a cut record beyond ``head`` is an
+append that never returned (torn), which never had a seq.
+
 Durability (``fsync`` policy):
 
 * ``"always"`` (default): every :meth:`TelemetryQueue.append` fsyncs the
@@ -22,17 +30,30 @@ Durability (``fsync`` policy):
   returned, so its seq was never handed out.
 * ``"batch"``: fsync every ``fsync_every`` appends and on ack/close; a power
   loss can lose the last unsynced records (a process crash cannot: the OS keeps
-  written pages).
+  written pages); when it does, their seqs are in ``lost_seqs`` (``head``).
 * ``"never"``: leave it to the OS.
 
 The ``ack`` file is written to a temporary file, fsynced and renamed before any
 fully acknowledged segment is deleted, and the active segment's name carries
 its first seq, so seqs are never reused after a restart.
 
+Appends are single ``os.write`` calls on an unbuffered descriptor: no record
+ever waits in a user-space buffer.  When the file system refuses an append
+(``ENOSPC`` on a full disk, ``EPERM`` on an immutable file, ``EIO``) the
+segment is truncated back to its length before the call, so it holds exactly
+what it held before, and :class:`QueueWriteError` is raised; nothing written
+later can land behind a partial record.
+
+Refusals (full queue or :class:`QueueWriteError`) are counted in ``refused``.
+With ``refusals_use_seqs=True`` (a robot's own queue, whose caller embeds the
+seq in the record) a refused record keeps its seq: it is listed in
+``refused_seqs``, ``head`` moves past it, and the store sees the gap, so every
+report counts it as lost.  Without it (the leader's relay queue, whose sender
+keeps the records) a refusal hands out no seq.
+
 Full queue: when unacknowledged records would exceed ``max_bytes`` the queue
-refuses the new record with :class:`QueueFullError` and counts it in
-``refused``; nothing already queued is ever dropped, and a refused record
-never received a seq, so the store sees no gap.
+refuses the new record with :class:`QueueFullError`; nothing already queued
+is ever dropped.
 
 Corruption: a record whose magic, length or CRC does not check out is
 reported (an ERROR log line and ``stats().corruptions``), counted, and skipped
@@ -53,7 +74,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from scmr_mesh.data.errors import QueueCorruptError, QueueError, QueueFullError
+from scmr_mesh.data.errors import QueueCorruptError, QueueError, QueueFullError, QueueWriteError
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +85,9 @@ _HCRC = struct.Struct("<IQ")
 MAX_RECORD_BYTES = 1 << 20
 FSYNC_POLICIES = ("always", "batch", "never")
 _SEG_RE = re.compile(r"^seg-(\d{12})\.log$")
+#: Name of the file holding the highest seq handed out (see the module docstring).
+HEAD_FILE = "head"
+_HEAD_FMT = "{:020d}\n"
 
 
 def _hcrc(length: int, seq: int) -> int:
@@ -99,11 +123,14 @@ class QueueStats:
     torn_bytes: int = 0
     corruptions: list[Corruption] = field(default_factory=list)
     lost_seqs: list[int] = field(default_factory=list)
+    refused_seqs: list[int] = field(default_factory=list)
+    last_error: str | None = None
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
         d["corruptions"] = [c.__dict__ for c in self.corruptions]
         d["lost_seqs"] = list(self.lost_seqs)
+        d["refused_seqs"] = list(self.refused_seqs)
         return d
 
 
@@ -202,6 +229,10 @@ class TelemetryQueue:
     readonly : bool
         Inspect only (another process may be appending): no repair, no
         writes; :meth:`append` and :meth:`ack` raise :class:`QueueError`.
+    refusals_use_seqs : bool
+        A refused append keeps its seq (``refused_seqs``; the store sees the
+        gap and reports count it as lost).  For a queue whose caller embeds
+        the seq in the record before appending (a robot's telemetry).
 
     Examples
     --------
@@ -218,7 +249,7 @@ class TelemetryQueue:
 
     def __init__(self, path: str | Path, *, max_bytes: int = 16 << 20, segment_bytes: int = 1 << 20,
                  fsync: str = "always", fsync_every: int = 32, strict: bool = False,
-                 readonly: bool = False) -> None:
+                 readonly: bool = False, refusals_use_seqs: bool = False) -> None:
         if fsync not in FSYNC_POLICIES:
             raise QueueError(f"fsync policy must be one of {FSYNC_POLICIES}, got {fsync!r}")
         if max_bytes < 1 or segment_bytes < 1:
@@ -228,10 +259,15 @@ class TelemetryQueue:
         self.segment_bytes = int(segment_bytes)
         self.fsync = fsync
         self.fsync_every = max(1, int(fsync_every))
+        self.refusals_use_seqs = bool(refusals_use_seqs)
         self._lock = threading.RLock()
         self._pending: deque[tuple[int, bytes]] = deque()
         self._segments: list[tuple[int, Path, int]] = []  # (first_seq, path, last_seq or first-1)
-        self._fh = None
+        self._fd: int | None = None      # the active segment, O_APPEND, unbuffered
+        self._size = 0                   # its length after the last complete append
+        self._dirty = False              # a failed append's bytes could not be truncated away
+        self._head_fd: int | None = None
+        self._head_warned = False
         self._unsynced = 0
         self.stats_ = QueueStats()
         self.readonly = readonly
@@ -260,9 +296,24 @@ class TelemetryQueue:
             return 0
         return int(text)
 
+    def _read_head(self) -> int:
+        f = self.path / HEAD_FILE
+        try:
+            text = f.read_text().strip()
+        except FileNotFoundError:
+            return 0
+        except OSError as exc:
+            raise QueueError(f"cannot read {str(f)!r}: {exc}") from None
+        if not text.isdigit():
+            log.error("queue %s: head file holds %r, not a seq; a record cut off at the tail cannot be "
+                      "told from a torn append", self.path, text[:40])
+            return 0
+        return int(text)
+
     def _recover(self, strict: bool) -> None:
         st = self.stats_
         acked = self._read_ack()
+        head = self._read_head()
         segs = sorted((int(m.group(1)), p) for p in self.path.iterdir()
                       if (m := _SEG_RE.match(p.name)))
         expected: int | None = None
@@ -286,8 +337,8 @@ class TelemetryQueue:
                     log.info("queue %s: %d bytes at the tail are an incomplete record (torn, or being "
                              "written)", seg, len(data) - torn_at)
                 else:
-                    log.warning("queue %s: torn tail of %d bytes at offset %d (an append that never "
-                                "completed); truncated", seg, len(data) - torn_at, torn_at)
+                    log.warning("queue %s: incomplete record of %d bytes at offset %d; truncated",
+                                seg, len(data) - torn_at, torn_at)
                     with seg.open("r+b") as fh:
                         fh.truncate(torn_at)
                         os.fsync(fh.fileno())
@@ -320,25 +371,50 @@ class TelemetryQueue:
                     expected = seg_last + 1
             self._segments.append((first, seg, seg_last))
             last_seq = max(last_seq, seg_last, first - 1)
+        if head > last_seq:
+            # handed out (appended, or refused keeping their seq) but not on disk: records
+            # cut off at the tail (not torn appends: those never reached the head), or refusals
+            gone = list(range(last_seq + 1, head + 1))
+            st.lost_seqs.extend(gone)
+            log.error("queue %s: %d record(s) handed out but missing at the tail (seq %s; cut off, or "
+                      "refused when written); counted as lost, their seqs are not reused",
+                      self.path, len(gone), ",".join(seq_ranges(gone, limit=5)))
+            last_seq = head
         if st.lost_seqs:
-            log.error("queue %s: %d seq(s) lost to corruption: %s", self.path, len(st.lost_seqs),
-                      ",".join(seq_ranges(st.lost_seqs)))
+            log.error("queue %s: %d seq(s) lost: %s", self.path, len(st.lost_seqs),
+                      ",".join(seq_ranges(st.lost_seqs, limit=20)))
         st.acked_seq = acked
         st.next_seq = max(last_seq, acked) + 1
         st.depth = len(self._pending)
         if self.readonly:
             return
-        if not self._segments or (st.corruptions and st.corruptions[-1].file == str(self._segments[-1][1])):
-            self._new_segment(st.next_seq)  # never append behind a corrupt stretch
-        else:
-            self._fh = self._segments[-1][1].open("ab")
+        try:
+            self._head_fd = os.open(self.path / HEAD_FILE, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            self._head_fd = None
+            log.warning("queue %s: cannot open its head file (%s); records cut off at the tail will "
+                        "look like torn appends", self.path, exc)
+        try:
+            if not self._segments or (st.corruptions and st.corruptions[-1].file == str(self._segments[-1][1])):
+                self._new_segment(st.next_seq)  # never append behind a corrupt stretch
+            else:
+                self._open_segment(self._segments[-1][1])
+        except OSError as exc:
+            self.close()
+            raise QueueError(f"cannot open the telemetry queue {str(self.path)!r} for appending: {exc}") from None
+
+    def _open_segment(self, seg: Path) -> None:
+        fd = os.open(seg, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        old, self._fd = self._fd, fd
+        self._size = os.fstat(fd).st_size
+        if old is not None:
+            os.close(old)
 
     def _new_segment(self, first: int) -> None:
-        if self._fh is not None:
+        if self._fd is not None:
             self._sync(force=True)
-            self._fh.close()
         seg = self.path / f"seg-{first:012d}.log"
-        self._fh = seg.open("ab")
+        self._open_segment(seg)
         self._fsync_dir()
         self._segments.append((first, seg, first - 1))
 
@@ -352,15 +428,35 @@ class TelemetryQueue:
             os.close(fd)
 
     def _sync(self, *, force: bool = False) -> None:
-        if self._fh is None:
-            return
-        self._fh.flush()
-        if self.fsync == "never":
+        """fsync the active segment per the policy (raises OSError)."""
+        if self._fd is None or self.fsync == "never":
             return
         self._unsynced += 1
         if force or self.fsync == "always" or self._unsynced >= self.fsync_every:
-            os.fsync(self._fh.fileno())
+            os.fsync(self._fd)
             self._unsynced = 0
+
+    def _write_head(self, seq: int) -> None:
+        """Record ``seq`` as handed out (in place; the page cache keeps it across a process crash)."""
+        if self._head_fd is None:
+            return
+        try:
+            os.pwrite(self._head_fd, _HEAD_FMT.format(seq).encode(), 0)
+        except OSError as exc:
+            if not self._head_warned:
+                self._head_warned = True
+                log.warning("queue %s: cannot update its head file (%s)", self.path, exc)
+
+    def _rollback(self) -> None:
+        """Cut the active segment back to its length before a failed append."""
+        try:
+            if os.fstat(self._fd).st_size != self._size:
+                os.ftruncate(self._fd, self._size)
+            self._dirty = False
+        except OSError as exc:
+            self._dirty = True
+            log.error("queue %s: a failed append left bytes in the segment that cannot be truncated (%s); "
+                      "every append is refused until it can", self.path, exc)
 
     # ---------------------------------------------------------------- API
     @property
@@ -370,6 +466,16 @@ class TelemetryQueue:
 
     def __len__(self) -> int:
         return len(self._pending)
+
+    def _refuse(self, seq: int, exc: QueueError) -> QueueError:
+        st = self.stats_
+        st.refused += 1
+        st.last_error = str(exc)
+        if self.refusals_use_seqs:
+            st.refused_seqs.append(seq)
+            st.next_seq = seq + 1
+            self._write_head(seq)
+        return exc
 
     def append(self, payload: bytes, *, seq: int | None = None) -> int:
         """Append a record durably (per the fsync policy); return its seq.
@@ -386,6 +492,10 @@ class TelemetryQueue:
         ------
         QueueFullError
             The unacknowledged records already hold ``max_bytes``; counted in ``refused``.
+        QueueWriteError
+            The file system refused the write or the fsync (full, read-only,
+            immutable, I/O error); the segment holds exactly what it held
+            before the call.  Counted in ``refused``.
         """
         if not isinstance(payload, (bytes, bytearray)):
             raise QueueError(f"queue payload must be bytes, got {type(payload).__name__}")
@@ -393,23 +503,39 @@ class TelemetryQueue:
             raise QueueError(f"queue record of {len(payload)} bytes exceeds {MAX_RECORD_BYTES}")
         with self._lock:
             st = self.stats_
-            if self._fh is None:
+            if self._fd is None:
                 raise QueueError(f"queue {str(self.path)!r} is closed or read-only")
             if seq is not None and seq != st.next_seq:
                 raise QueueError(f"append seq must be the next seq {st.next_seq}, got {seq}")
-            if st.pending_bytes + len(payload) > self.max_bytes:
-                st.refused += 1
-                raise QueueFullError(
-                    f"telemetry queue {str(self.path)!r} is full: {st.depth} unacknowledged records, "
-                    f"{st.pending_bytes} of {self.max_bytes} bytes; the record was refused "
-                    f"({st.refused} refused so far); reconnect a tier to drain it or raise max_bytes")
             seq = st.next_seq
+            if st.pending_bytes + len(payload) > self.max_bytes:
+                raise self._refuse(seq, QueueFullError(
+                    f"telemetry queue {str(self.path)!r} is full: {st.depth} unacknowledged records, "
+                    f"{st.pending_bytes} of {self.max_bytes} bytes; record {seq} was refused "
+                    f"({st.refused + 1} refused so far); reconnect a tier to drain it or raise max_bytes"))
+            frame = encode_frame(seq, bytes(payload))
+            try:
+                if self._dirty:
+                    self._rollback()
+                    if self._dirty:
+                        raise OSError("bytes of an earlier failed append are still in the segment")
+                if self._size >= self.segment_bytes:
+                    self._new_segment(seq)
+                view = memoryview(frame)
+                while view:  # os.write may write part of it (a file system filling up)
+                    n = os.write(self._fd, view)
+                    view = view[n:]
+                self._sync()
+            except OSError as exc:
+                if self._fd is not None:
+                    self._rollback()
+                raise self._refuse(seq, QueueWriteError(
+                    f"telemetry queue {str(self.path)!r}: record {seq} could not be written "
+                    f"({exc.strerror or exc}); the segment is unchanged; free space on that file "
+                    f"system or make the queue folder writable ({st.refused + 1} refused so far)")) from None
+            self._size += len(frame)
+            self._write_head(seq)
             first, seg, _last = self._segments[-1]
-            if self._fh.tell() >= self.segment_bytes:
-                self._new_segment(seq)
-                first, seg, _last = self._segments[-1]
-            self._fh.write(encode_frame(seq, bytes(payload)))
-            self._sync()
             self._segments[-1] = (first, seg, seq)
             self._pending.append((seq, bytes(payload)))
             st.pending_bytes += len(payload)
@@ -486,15 +612,23 @@ class TelemetryQueue:
             st = self.stats_
             return QueueStats(st.depth, st.pending_bytes, st.next_seq, st.acked_seq, st.appended,
                               st.refused, st.replayed, st.torn_bytes, list(st.corruptions),
-                              list(st.lost_seqs))
+                              list(st.lost_seqs), list(st.refused_seqs), st.last_error)
 
     def close(self) -> None:
-        """Flush, fsync and close the active segment (idempotent)."""
+        """fsync and close the active segment and the head file (idempotent; never raises)."""
         with self._lock:
-            if self._fh is not None:
-                self._sync(force=True)
-                self._fh.close()
-                self._fh = None
+            for name in ("_fd", "_head_fd"):
+                fd = getattr(self, name)
+                if fd is None:
+                    continue
+                setattr(self, name, None)
+                try:
+                    if self.fsync != "never":
+                        os.fsync(fd)
+                except OSError as exc:
+                    log.error("queue %s: fsync at close failed: %s", self.path, exc)
+                finally:
+                    os.close(fd)
 
     def __enter__(self) -> "TelemetryQueue":
         return self
@@ -536,4 +670,4 @@ def seq_ranges(seqs: list[int], *, limit: int | None = None) -> list[str]:
     return out if limit is None else out[:limit]
 
 
-__all__ = ["MAX_RECORD_BYTES", "Corruption", "QueueStats", "TelemetryQueue", "encode_frame", "scan_segment"]
+__all__ = ["HEAD_FILE", "MAX_RECORD_BYTES", "Corruption", "QueueStats", "TelemetryQueue", "encode_frame", "scan_segment"]

@@ -19,6 +19,7 @@ def telemetry_report(
     sent: Mapping[str, int],
     *,
     queued: Mapping[str, int] | None = None,
+    refused: Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
     """Count telemetry per robot and in total.
 
@@ -32,6 +33,10 @@ def telemetry_report(
         Messages still in each robot's on-disk queue at the end (reported as
         ``queued``; they are not in the store yet, so they also count as lost
         until they are replayed).
+    refused : mapping robot -> int, optional
+        Records each robot's queue refused (full, or the file system refused
+        the write); they kept their seqs, so they are already among the
+        missing seqs and in ``lost`` (reported as ``refused`` per robot).
 
     Returns
     -------
@@ -78,11 +83,14 @@ def telemetry_report(
             }
             if queued is not None:
                 row["queued"] = int(queued.get(robot, 0))
+            if refused is not None:
+                row["refused"] = int(refused.get(robot, 0))
             per_robot[robot] = row
     finally:
         if own:
             ods.close()
-    total = {k: sum(r[k] for r in per_robot.values()) for k in ("sent", "stored", "duplicates", "lost", "conflicts")}
+    keys = ("sent", "stored", "duplicates", "lost", "conflicts") + (("refused",) if refused is not None else ())
+    total = {k: sum(r[k] for r in per_robot.values()) for k in keys}
     return {"telemetry": {**total, "per_robot": per_robot}}
 
 
@@ -95,6 +103,18 @@ def queue_sent(queue_dir: str | Path) -> tuple[int, int]:
     return st.next_seq - 1, st.depth
 
 
+def robot_summary(robot_dir: str | Path) -> dict[str, Any] | None:
+    """A robot's ``telemetry.json`` (written at exit), or None when missing or unreadable."""
+    import json
+
+    summary = Path(robot_dir) / "telemetry.json"
+    try:
+        d = json.loads(summary.read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
+
+
 def robot_sent(robot_dir: str | Path) -> tuple[int, int]:
     """``(sent, queued)`` of one robot from its output folder.
 
@@ -103,15 +123,12 @@ def robot_sent(robot_dir: str | Path) -> tuple[int, int]:
     last seq handed out, ``queued`` what is still waiting for an ack.
     Returns ``(0, 0)`` for a robot that never produced telemetry.
     """
-    import json
-
     robot_dir = Path(robot_dir)
-    summary = robot_dir / "telemetry.json"
-    if summary.is_file():
+    d = robot_summary(robot_dir)
+    if d is not None:
         try:
-            d = json.loads(summary.read_text())
             return int(d["sent"]), int(d["queued"])
-        except (ValueError, KeyError, TypeError):
+        except (KeyError, TypeError, ValueError):
             pass
     qdir = robot_dir / "telemetry-queue"
     if not qdir.is_dir():
@@ -145,28 +162,40 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     if robots is None:
         base = queues if queues.is_dir() else run_dir / "robots"
         robots = sorted(p.name for p in base.iterdir() if p.is_dir()) if base.is_dir() else []
-    sent, queued = {}, {}
+    sent, queued, refused = {}, {}, {}
     for rid in robots:
         if (queues / rid).is_dir():  # peers with a run dir keep the queue there, across restarts
             sent[rid], queued[rid] = queue_sent(queues / rid)
         else:
             sent[rid], queued[rid] = robot_sent(run_dir / "robots" / rid)
+        # the robot's own count at exit: refusals, and seqs it handed out that never reached
+        # its queue's files (a queue on a file system that refused every write)
+        d = robot_summary(run_dir / "robots" / rid) or {}
+        try:
+            refused[rid] = int(d.get("refused", 0))
+            sent[rid] = max(sent[rid], int(d.get("sent", 0)))
+        except (TypeError, ValueError):
+            refused[rid] = 0
     ods = Path(ods_path) if ods_path is not None else run_dir / "ods.sqlite"
     if ods.is_file():
-        rep = telemetry_report(ods, sent, queued=queued)
+        rep = telemetry_report(ods, sent, queued=queued, refused=refused)
         rep["telemetry"]["ods"] = str(ods)
         return rep
     per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent[r],
-               "missing": seq_ranges(list(range(1, sent[r] + 1)), limit=20), "unexpected": 0, "queued": queued[r]}
+               "missing": seq_ranges(list(range(1, sent[r] + 1)), limit=20), "unexpected": 0, "queued": queued[r],
+               "refused": refused[r]}
            for r in robots}
     tot = sum(sent.values())
     return {"telemetry": {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "conflicts": 0,
-                          "per_robot": per, "ods": None}}
+                          "refused": sum(refused.values()), "per_robot": per, "ods": None}}
 
 
 def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, timeout_s: float = 10.0,
                      ods_path: str | Path | None = None) -> dict[str, Any]:
-    """:func:`run_telemetry`, polled until nothing is lost or ``timeout_s`` passes.
+    """:func:`run_telemetry`, polled until nothing more can arrive or ``timeout_s`` passes.
+
+    Nothing more can arrive when every lost record is one a robot's queue
+    refused (those never reach the store).
 
     Call it after the robots stopped and before the cloud and leader stop:
     the leader forwards what it relayed within a fraction of a second once a
@@ -177,7 +206,9 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
     end = time.monotonic() + timeout_s
     while True:
         rep = run_telemetry(run_dir, robots, ods_path=ods_path)
-        if rep["telemetry"]["lost"] == 0 or time.monotonic() >= end:
+        t = rep["telemetry"]
+        # records the robots' queues refused can never arrive: do not wait for them
+        if t["lost"] - t.get("refused", 0) <= 0 or time.monotonic() >= end:
             return rep
         time.sleep(0.2)
 
@@ -201,4 +232,4 @@ def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         return None
 
 
-__all__ = ["fleet_telemetry", "queue_sent", "robot_sent", "run_telemetry", "settle_telemetry", "telemetry_report"]
+__all__ = ["fleet_telemetry", "queue_sent", "robot_sent", "robot_summary", "run_telemetry", "settle_telemetry", "telemetry_report"]

@@ -257,6 +257,7 @@ def _robot_body(args, session, stop: threading.Event) -> int:
     robot = Robot(args.id, args.out, options=opts)
     placer = _energy_placer(args, robot, profile)
     agent = None
+    telemetry = None
     rerun_viz = None
     try:
         rerun_viz = _robot_viz(args, robot)
@@ -289,13 +290,33 @@ def _robot_body(args, session, stop: threading.Event) -> int:
                           progress=progress)
     finally:
         if agent is not None:  # drain, write OUT/telemetry.json, keep the rest queued on disk
-            agent.close(summary_path=Path(args.out) / "telemetry.json")
+            telemetry = agent.close(summary_path=Path(args.out) / "telemetry.json")
         robot.close()
         if rerun_viz is not None:
             rerun_viz.close()
     extra = {"energy": placer.summary()} if placer is not None else {}
+    if telemetry is not None:
+        extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
+    if robot.telemetry_errors:
+        extra["telemetry_errors"] = robot.telemetry_errors
     print(json.dumps({"robot": args.id, **stats, **extra}), flush=True)
-    return 0
+    return _robot_status(args.id, telemetry, robot.telemetry_errors)
+
+
+def _robot_status(rid: str, telemetry: dict | None, errors: int) -> int:
+    """Exit status of a robot: 1 (one line on stderr) when telemetry was lost or could not be produced."""
+    problems = []
+    if telemetry is not None and telemetry["lost"]:
+        refused = ",".join(telemetry["refused_seqs"])
+        problems.append(f"{telemetry['lost']} of {telemetry['sent']} telemetry records lost"
+                        + (f" (refused seqs {refused}: {telemetry['error']})" if refused else "")
+                        + "; see OUT/telemetry.json")
+    if errors:
+        problems.append(f"{errors} telemetry message(s) could not be produced (see the log)")
+    if not problems:
+        return 0
+    print(f"scmr: error: robot {rid}: " + "; ".join(problems), file=sys.stderr, flush=True)
+    return 1
 
 
 def _robot_viz(args, robot):

@@ -57,9 +57,9 @@ import msgpack
 
 from scmr_mesh import keys
 from scmr_mesh.data.buffer import BufferSync, DataBuffer
-from scmr_mesh.data.errors import QueueFullError, TelemetryError
+from scmr_mesh.data.errors import QueueError, QueueFullError, TelemetryError
 from scmr_mesh.data.ods import DEFAULT_FILENAME, OperationalDataStore
-from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.data.queue import TelemetryQueue, seq_ranges
 from scmr_mesh.data.record import TelemetryRecord, decode_batch, encode_records
 from scmr_mesh.errors import InputError, MeshError
 
@@ -440,10 +440,13 @@ class TelemetryAgent:
     def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
                  deadline_ms: float = 1000.0, autostart: bool = True) -> None:
         self.robot = robot
-        self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes)
+        # a refused record keeps its seq (it is in the record already): the store sees the
+        # gap and every report counts it as lost
+        self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
         self.deadline_s = deadline_ms / 1e3
         self.acked_by = {"cloud": 0, "leader": 0}
         self.refused_logged = 0
+        self.publish_errors = 0
         self._replay_upto = 0  # records with seq <= this waited through a failed attempt
         self._queriers: dict[str, Any] = {}
         self._qlock = threading.Lock()
@@ -461,19 +464,27 @@ class TelemetryAgent:
 
     # -- producer side
     def publish(self, message: dict) -> int | None:
-        """Publish ``message`` as before and queue it for the store; return its telemetry seq."""
+        """Publish ``message`` as before and queue it for the store; return its telemetry seq.
+
+        Never raises for a refusal: a full queue or a file system that refuses
+        the write (full, read-only, immutable) counts the record as refused
+        with its seq (``refused``, ``refused_seqs`` in :meth:`summary`), logs
+        it, and returns None, so the robot keeps sending frames.
+        """
         try:
             self._orig(message)
         except Exception as exc:
+            self.publish_errors += 1
             log.debug("telemetry publish failed: %s", exc)
         seq = self.queue.next_seq
         rec = record_from_message(message, seq)
         try:
             self.queue.append(_pack(rec.to_dict()), seq=seq)
-        except QueueFullError as exc:
+        except QueueError as exc:  # QueueFullError, QueueWriteError: refused, counted with its seq
             self.refused_logged += 1
             if self.refused_logged in (1, 10, 100) or self.refused_logged % 1000 == 0:
-                log.error("robot %s: %s", self.robot.id, exc)
+                log.error("robot %s: telemetry record %d refused (%d so far): %s", self.robot.id, seq,
+                          self.refused_logged, exc)
             return None
         self._wake.set()
         return seq
@@ -571,10 +582,20 @@ class TelemetryAgent:
 
     # -- end
     def summary(self) -> dict:
+        """The robot's telemetry counters (``OUT/telemetry.json``).
+
+        ``sent`` counts every seq handed out (refused ones included), ``lost``
+        the records that can never reach the store: ``refused`` (refused with
+        their seq, listed as ranges in ``refused_seqs``) plus ``lost_seqs``
+        found on disk at start (corruption, records cut off).
+        """
         st = self.queue.stats()
+        lost = sorted(set(st.refused_seqs) | set(st.lost_seqs))
         return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
+                "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": len(lost),
                 "replayed": st.replayed, "acked_by": dict(self.acked_by), "torn_bytes": st.torn_bytes,
-                "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100]}
+                "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100],
+                "error": st.last_error}
 
     def close(self, *, drain_s: float = 2.0, summary_path: str | Path | None = None) -> dict:
         """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
@@ -597,8 +618,16 @@ class TelemetryAgent:
         out = self.summary()
         if summary_path is not None:
             tmp = Path(f"{summary_path}.tmp")
-            tmp.write_text(json.dumps(out) + "\n")
-            os.replace(tmp, summary_path)
+            try:
+                tmp.write_text(json.dumps(out) + "\n")
+                os.replace(tmp, summary_path)
+            except OSError as exc:  # the counts still reach the log and the exit status
+                log.error("robot %s: cannot write %s (%s); telemetry summary: %s", self.robot.id, summary_path,
+                          exc, json.dumps(out))
+        if out["lost"]:
+            log.error("robot %s: %d telemetry record(s) lost (refused %s; lost on disk %s): %s", self.robot.id,
+                      out["lost"], ",".join(out["refused_seqs"]) or "none",
+                      ",".join(seq_ranges(out["lost_seqs"], limit=20)) or "none", out["error"] or "see above")
         if out["queued"]:
             log.warning("robot %s: %d telemetry records still queued at exit (kept on disk in %s; "
                         "replayed at the next start)", self.robot.id, out["queued"], self.queue.path)

@@ -395,6 +395,8 @@ class Robot:
         self._t0 = time.monotonic()
         self._last_seq = 0
         self._health = "ok"
+        #: telemetry messages whose publishing raised (counted; the robot keeps sending frames)
+        self.telemetry_errors = 0
 
     # ------------------------------------------------------------ hooks
     def add_observer(self, fn: Callable[[dict, Any, Any], None]) -> None:
@@ -692,8 +694,10 @@ class Robot:
                 log.debug("results publish failed: %s", exc)
         try:
             self.publish_telemetry(self.make_telemetry())
-        except Exception as exc:
-            log.warning("telemetry publish failed: %s", exc)
+        except Exception as exc:  # counted: the robot keeps sending frames, its exit status says so
+            self.telemetry_errors += 1
+            log.error("telemetry of request %s failed (%d so far): %s: %s", seq, self.telemetry_errors,
+                      type(exc).__name__, exc)
         if self._observers:
             if mask_png is not None:
                 import cv2

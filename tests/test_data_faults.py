@@ -1,0 +1,168 @@
+"""Storage faults under the telemetry queue: a real full tmpfs and an immutable segment file.
+
+Issue #12, item 1: a failed append must leave the segment exactly as it was
+before the call (no bytes left in a write buffer that land later under
+another seq), the record is refused with its seq, the robot keeps sending
+frames, and the loss shows in ``telemetry.json``, the robot's output and its
+exit status.  The tests mount their own small tmpfs (root; unmounted in a
+``finally``) and use ``chattr +i``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+from conftest import free_port
+
+from scmr_mesh.data.errors import QueueWriteError
+from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.mesh.data_service import TelemetryAgent
+from scmr_mesh.mesh.testing import STUB
+
+pytestmark = [
+    pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0,
+                       reason="mounting a tmpfs and chattr +i need root; CI runs as root"),
+    pytest.mark.skipif(shutil.which("chattr") is None, reason="needs chattr (e2fsprogs)"),
+]
+
+PAGE = 4096
+
+
+@contextlib.contextmanager
+def full_tmpfs(where: Path, *, free_pages: int, size_kb: int = 256):
+    """A tmpfs of ``size_kb`` mounted at ``where``, filled up to ``free_pages`` free pages."""
+    where.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(where)], check=True)
+    try:
+        filler = where / "filler"
+        fd = os.open(filler, os.O_WRONLY | os.O_CREAT)
+        try:
+            while True:
+                try:
+                    os.write(fd, b"\0" * PAGE)
+                except OSError:  # ENOSPC: full
+                    break
+            os.ftruncate(fd, max(0, os.fstat(fd).st_size - free_pages * PAGE))
+        finally:
+            os.close(fd)
+        yield filler
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def _segment(qdir: Path) -> Path:
+    return sorted(qdir.glob("seg-*.log"))[-1]
+
+
+def test_a_full_file_system_leaves_the_segment_unchanged_and_nothing_lands_later(tmp_path):
+    with full_tmpfs(tmp_path / "mnt", free_pages=3) as filler:
+        qdir = tmp_path / "mnt" / "q"
+        q = TelemetryQueue(qdir, refusals_use_seqs=True)
+        accepted: dict[int, bytes] = {}
+        refused: list[int] = []
+        for i in range(60):
+            payload = bytes([i]) * 700  # a record now and then spans a page boundary: partial writes
+            seg = _segment(qdir)
+            before = seg.read_bytes()
+            seq = q.next_seq
+            try:
+                assert q.append(payload, seq=seq) == seq
+                accepted[seq] = payload
+            except QueueWriteError as exc:
+                assert "could not be written" in str(exc) and "No space left" in str(exc)
+                assert seg.read_bytes() == before, f"record {seq}: the failed append changed the segment"
+                refused.append(seq)
+        assert accepted and refused
+        st = q.stats()
+        assert st.refused == len(refused) and st.refused_seqs == refused and q.next_seq == 61
+        filler.unlink()  # space comes back: nothing of the refused records may land now
+        accepted[61] = b"after"
+        assert q.append(b"after", seq=61) == 61
+        q.close()
+        with TelemetryQueue(qdir, refusals_use_seqs=True) as q2:
+            st2 = q2.stats()
+            assert dict(q2.pending()) == accepted  # every acknowledged append reads back as written
+            assert st2.corruptions == [] and st2.torn_bytes == 0
+            assert st2.lost_seqs == refused and q2.next_seq == 62
+
+
+def test_an_immutable_segment_refuses_cleanly_and_recovers(tmp_path):
+    q = TelemetryQueue(tmp_path / "q")
+    assert q.append(b"one") == 1
+    seg = _segment(tmp_path / "q")
+    before = seg.read_bytes()
+    subprocess.run(["chattr", "+i", str(seg)], check=True)
+    try:
+        for _ in range(3):
+            with pytest.raises(QueueWriteError, match="record 2 could not be written"):
+                q.append(b"two")
+        assert seg.read_bytes() == before
+        assert q.stats().refused == 3 and q.next_seq == 2  # the relay's kind of queue: no seq spent
+    finally:
+        subprocess.run(["chattr", "-i", str(seg)], check=True)
+    assert q.append(b"three") == 2
+    q.close()
+    with TelemetryQueue(tmp_path / "q") as q2:
+        assert q2.pending() == [(1, b"one"), (2, b"three")] and q2.stats().corruptions == []
+
+
+def _robot_stub(rid: str = "r1"):
+    return SimpleNamespace(id=rid, _session=None, publish_telemetry=lambda m: None,
+                           view=SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=(), leader=())))
+
+
+def _message(i: int) -> dict:
+    return {"robot": "r1", "seq": i, "t_unix_ns": i, "pose": {"x": 0.0, "y": 1.0, "theta": 0.0},
+            "battery": 0.5, "health": "ok", "results": {"requests": i}}
+
+
+def test_the_agent_counts_an_unwritable_record_as_refused_with_its_seq(tmp_path):
+    agent = TelemetryAgent(_robot_stub(), tmp_path / "q", autostart=False)
+    assert agent.publish(_message(1)) == 1
+    seg = _segment(tmp_path / "q")
+    subprocess.run(["chattr", "+i", str(seg)], check=True)
+    try:
+        assert agent.publish(_message(2)) is None  # refused, never raised
+        assert agent.publish(_message(3)) is None
+    finally:
+        subprocess.run(["chattr", "-i", str(seg)], check=True)
+    assert agent.publish(_message(4)) == 4
+    out = agent.close(drain_s=0, summary_path=tmp_path / "telemetry.json")
+    assert out["sent"] == 4 and out["refused"] == 2 and out["refused_seqs"] == ["2-3"] and out["lost"] == 2
+    assert "Operation not permitted" in out["error"]
+    assert json.loads((tmp_path / "telemetry.json").read_text())["refused"] == 2
+
+
+def test_a_robot_on_a_full_disk_keeps_sending_and_reports_the_loss(tmp_path):
+    """The issue's reproduction: the queue on a nearly full tmpfs, no tier storing anything."""
+    with full_tmpfs(tmp_path / "mnt", free_pages=2):
+        qdir = tmp_path / "mnt" / "q"
+        out_dir = tmp_path / "r1"
+        dead = f"tcp/127.0.0.1:{free_port()}"
+        p = subprocess.run([sys.executable, "-m", "scmr_mesh", "robot", "--id", "r1", "--synthetic", "stub",
+                            "--process", STUB, "--out", str(out_dir), "--connect", dead, "--count", "60",
+                            "--rate", "200", "--wait-ms", "0", "--quiet", "--telemetry-queue", str(qdir)],
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 1, p.stderr
+        assert "internal error" not in p.stderr and "Traceback" not in p.stderr
+        last = p.stderr.strip().splitlines()[-1]
+        assert last.startswith("scmr: error: robot r1: ") and "telemetry records lost" in last
+        assert "No space left on device" in last
+        records = (out_dir / "records.jsonl").read_text().splitlines()
+        assert len(records) == 60  # every frame was still sent (and served locally)
+        s = json.loads((out_dir / "telemetry.json").read_text())
+        assert s["sent"] == 60 and s["refused"] > 0 and s["queued"] > 0
+        assert s["queued"] + s["refused"] == 60 and s["lost"] == s["refused"]
+        summary = json.loads(p.stdout.strip().splitlines()[-1])
+        assert summary["telemetry"]["lost"] == s["refused"]
+        with TelemetryQueue(qdir, readonly=True) as q:  # what is on disk is intact
+            st = q.stats()
+            assert st.corruptions == [] and st.torn_bytes == 0 and st.depth == s["queued"]
