@@ -7,11 +7,11 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.scmr-installed
 AOT    := $(VENV)/.scmr-aot
 
-.PHONY: demo test bench clean help
+.PHONY: demo test bench clean help postgresql
 
 help:
 	@echo "make demo   run the fleet demo (cloud, leader, 4 robots, a cloud outage, a report)"
-	@echo "make test   run the whole test suite"
+	@echo "make test   run the whole test suite (installs Debian's postgresql package if initdb is missing)"
 	@echo "make bench  run the benchmarks (writes bench-*.json)"
 
 $(STAMP): pyproject.toml
@@ -31,7 +31,17 @@ $(AOT): $(STAMP) scmr_mesh/imaging/_srm_kernels.py scmr_mesh/imaging/_aot.py
 demo: $(STAMP) $(AOT)
 	$(VENV)/bin/scmr demo
 
-test: $(STAMP) $(AOT)
+# Debian's PostgreSQL server programs (initdb, postgres): the tests and `scmr up --clouds N`
+# start a server of their own in a folder of the run; nothing runs as a system service.
+postgresql:
+	@if ! command -v initdb >/dev/null 2>&1 && ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" != 0 ]; then echo "PostgreSQL missing: run 'sudo apt-get install -y postgresql' (the tests start a server of their own)"; exit 1; fi; \
+	  echo "installing Debian's postgresql package (initdb is missing) ..."; \
+	  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql; } > /tmp/scmr-apt-postgresql.log 2>&1 \
+	    || { tail -20 /tmp/scmr-apt-postgresql.log; echo "apt-get install postgresql failed (log: /tmp/scmr-apt-postgresql.log)"; exit 1; }; \
+	fi
+
+test: $(STAMP) $(AOT) postgresql
 	$(PY) -m pytest -q
 
 bench: $(STAMP) $(AOT)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import itertools
 import os
+import re
 import socket
 from pathlib import Path
 
@@ -38,3 +40,32 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def pg_server(tmp_path_factory):
+    """A real PostgreSQL server for the session (Debian's postgresql package), stopped and removed after.
+
+    ``make test`` / ``.ci/run`` install the package when ``initdb`` is missing.
+    """
+    from scmr_mesh.data.pgserver import PgServer, available
+
+    why = available()
+    if why:
+        pytest.fail(why)
+    pg = PgServer(tmp_path_factory.mktemp("pg"))
+    pg.start()
+    try:
+        yield pg
+    finally:
+        pg.remove()
+
+
+_DB_NUMBER = itertools.count(1)
+
+
+@pytest.fixture
+def pg_dsn(pg_server, request) -> str:
+    """The URL of a fresh, empty database on the session's PostgreSQL server."""
+    name = re.sub(r"[^a-z0-9_]", "_", request.node.name.lower())[:40]
+    return pg_server.create_database(f"t{next(_DB_NUMBER)}_{name}")

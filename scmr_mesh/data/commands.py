@@ -11,18 +11,20 @@ from pathlib import Path
 from scmr_mesh.errors import InputError
 
 DESCRIPTION = """\
-Query the operational data store (ODS): the SQLite file in which the cloud keeps
-every robot's telemetry (pose, battery, health, results summary), stored once
-per (robot, seq).
+Query the operational data store (ODS): the SQLite file (or the PostgreSQL
+database several cloud nodes share) in which the cloud keeps every robot's
+telemetry (pose, battery, health, results summary), stored once per (robot, seq).
 
   scmr ods --db runs/ods.sqlite counts
   scmr ods --db runs/ods.sqlite latest
   scmr ods --db runs/ods.sqlite range --since 2026-11-21T17:00:00Z --until 1795281200
   scmr ods --db runs/ods.sqlite export --format csv --out telemetry.csv
+  scmr ods --db 'postgresql://scmr@db.site:5432/scmr' counts   (a shared PostgreSQL store)
   scmr ods queue runs/<run>/robots/r1/telemetry-queue   (a robot's on-disk queue)
   scmr ods fetch 'state/**' --connect tcp/127.0.0.1:7447  (the mesh's data buffer)
 
---db defaults to $SCMR_ODS, else $SCMR_RUN_DIR/ods.sqlite, else runs/ods.sqlite.
+--db (a file or a postgresql:// URL) defaults to $SCMR_ODS, else
+$SCMR_RUN_DIR/ods.sqlite, else runs/ods.sqlite.
 """
 
 TIME_HELP = ("a time: ISO 8601 (2026-11-21T17:00:00Z; naive means UTC), unix seconds "
@@ -159,7 +161,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr ods`` to the command line."""
     p = sub.add_parser("ods", help="query the operational data store (telemetry) and robot queues",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--db", metavar="FILE", help="the ODS file (see above for the default)")
+    p.add_argument("--db", metavar="FILE|URL", help="the ODS file or postgresql:// URL (see above for the default)")
     p.set_defaults(func=lambda args: (p.print_help(sys.stderr), 2)[1])
     ods_sub = p.add_subparsers(dest="ods_command", metavar="QUERY")
 

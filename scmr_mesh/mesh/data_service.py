@@ -192,8 +192,9 @@ class CloudData:
     ----------
     node : str
         Cloud node name.
-    ods_path : path
-        The SQLite file (shared by every cloud node that is given the same path).
+    ods_path : path or str
+        The SQLite file (shared by the cloud nodes of one host given the same
+        path) or a ``postgresql://`` URL (shared by cloud nodes on any host).
     params : dict, optional
         Initial buffer entries (``maps/...``, ``params/...``).
     """
@@ -650,8 +651,10 @@ def add_arguments(parser, role: str) -> None:
     """Add the data-tier flags of ``role`` ("cloud", "leader" or "robot") to a peer's parser."""
     g = parser.add_argument_group("data tier")
     if role == "cloud":
-        g.add_argument("--ods", metavar="FILE",
-                       help="operational data store (SQLite) file; default $SCMR_ODS, else "
+        g.add_argument("--ods", metavar="FILE|URL",
+                       help="operational data store: a SQLite file (one cloud node, or several on one "
+                            "host), or a postgresql:// URL that several cloud nodes share (e.g. "
+                            "postgresql://scmr@db.site:5432/scmr); default $SCMR_ODS, else "
                             "$SCMR_RUN_DIR/ods.sqlite, else RUN/ods.sqlite where RUN is the folder of "
                             "--ready-file (its parent when that folder is named 'ready'), else "
                             "runs/ods.sqlite")
@@ -682,10 +685,10 @@ def service_setup(args, tier: str) -> Callable:
             return
         run_dir = _run_dir_from(args)
         if tier == "cloud":
-            from scmr_mesh.data.ods import default_db_path
+            from scmr_mesh.data.ods import default_db_path, store_target
 
             if getattr(args, "ods", None):
-                path = Path(args.ods)
+                path = store_target(args.ods)
             elif os.environ.get("SCMR_ODS") or run_dir is None:
                 path = default_db_path()
             else:
@@ -700,7 +703,7 @@ def service_setup(args, tier: str) -> Callable:
                     raise InputError(f"--data-params {args.data_params}: must hold a JSON object, "
                                      f"got {type(params).__name__}")
             data = CloudData(svc.node, path, params=params)
-            log.info("cloud %s: operational data store %s", svc.node, path)
+            log.info("cloud %s: operational data store %s (%s)", svc.node, data.ods.name, data.ods.backend)
         else:
             if not getattr(args, "sync_period", 1.0) > 0:
                 raise InputError(f"--sync-period must be > 0 s, got {args.sync_period}")
