@@ -2,7 +2,7 @@
 
 :func:`telemetry_report` compares what each robot says it sent (seqs
 ``1..sent``) with what the operational data store holds, and returns the
-``{"telemetry": {...}}`` block of a report.  Pure: SQLite reads only.
+``{"telemetry": {...}}`` block of a report.  Pure: reads of the store (SQLite or PostgreSQL) only.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping
 
-from scmr_mesh.data.ods import OperationalDataStore
+from scmr_mesh.data.errors import StoreError
+from scmr_mesh.data.ods import OperationalDataStore, is_dsn
 from scmr_mesh.data.queue import seq_ranges
 
 
@@ -148,8 +149,9 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         dir) and ``robots/<id>/``.
     robots : list of str, optional
         Robot ids (default: every folder under ``queues/``, else ``robots/``).
-    ods_path : path, optional
-        The ODS file when it is not ``run_dir/ods.sqlite``.
+    ods_path : path or str, optional
+        The ODS file when it is not ``run_dir/ods.sqlite``, or the
+        ``postgresql://`` URL of the store the cloud nodes shared.
 
     Returns
     -------
@@ -176,11 +178,22 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
             sent[rid] = max(sent[rid], int(d.get("sent", 0)))
         except (TypeError, ValueError):
             refused[rid] = 0
-    ods = Path(ods_path) if ods_path is not None else run_dir / "ods.sqlite"
-    if ods.is_file():
-        rep = telemetry_report(ods, sent, queued=queued, refused=refused)
-        rep["telemetry"]["ods"] = str(ods)
-        return rep
+    if is_dsn(ods_path):  # a PostgreSQL store (several cloud nodes)
+        from scmr_mesh.data.ods_pg import redact
+
+        try:
+            rep = telemetry_report(ods_path, sent, queued=queued, refused=refused)
+            rep["telemetry"]["ods"] = redact(ods_path)
+            return rep
+        except StoreError as exc:
+            if "holds no operational data store" not in str(exc):
+                raise
+    else:
+        ods = Path(ods_path) if ods_path is not None else run_dir / "ods.sqlite"
+        if ods.is_file():
+            rep = telemetry_report(ods, sent, queued=queued, refused=refused)
+            rep["telemetry"]["ods"] = str(ods)
+            return rep
     per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent[r],
                "missing": seq_ranges(list(range(1, sent[r] + 1)), limit=20), "unexpected": 0, "queued": queued[r],
                "refused": refused[r]}
@@ -214,7 +227,8 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
 
 
 def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
-                    wait: bool = True, timeout_s: float = 5.0) -> dict[str, Any] | None:
+                    wait: bool = True, timeout_s: float = 5.0,
+                    ods: str | Path | None = None) -> dict[str, Any] | None:
     """The report's ``"telemetry"`` value for a fleet run; never raises.
 
     For ``scmr up`` / scenarios: call it after the robots stopped and, with
@@ -225,7 +239,7 @@ def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     import logging
 
     try:
-        rep = settle_telemetry(run_dir, robots, timeout_s=timeout_s if wait else 0.0)
+        rep = settle_telemetry(run_dir, robots, timeout_s=timeout_s if wait else 0.0, ods_path=ods)
         return rep["telemetry"]
     except Exception as exc:  # a report must not fail over telemetry accounting
         logging.getLogger(__name__).warning("telemetry accounting for %s failed: %s", run_dir, exc)

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from scmr_mesh.fleet.output import check_ror, format_summary, run_with_output
-from scmr_mesh.fleet.plan import FleetConfig, parse_outage
+from scmr_mesh.fleet.plan import ODS_BACKENDS, FleetConfig, parse_outage
 
 
 def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> None:
@@ -33,7 +33,8 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
 def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | None) -> FleetConfig:
     kinds = [k for k in (args.synthetic or "").split(",") if k]
     return FleetConfig(
-        robots=robots, clouds=getattr(args, "clouds", 1), duration_s=args.duration, rate_hz=args.rate,
+        robots=robots, clouds=getattr(args, "clouds", 1), ods_backend=getattr(args, "ods_backend", "auto"),
+        ods=getattr(args, "ods", None), duration_s=args.duration, rate_hz=args.rate,
         cloud_outage=parse_outage(args.cloud_outage) if getattr(args, "cloud_outage", None) else None,
         images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
@@ -77,6 +78,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--clouds", type=int, default=1, metavar="N",
                    help="cloud nodes cloud0..cloud<N-1>; robots spread frames over them by load "
                         "(default: %(default)s)")
+    p.add_argument("--ods-backend", choices=ODS_BACKENDS, default="auto",
+                   help="the cloud nodes' data store: auto = SQLite (RUN/ods.sqlite) for one cloud node, "
+                        "a PostgreSQL server started for the run (RUN/postgres) for several (default: auto)")
+    p.add_argument("--ods", metavar="FILE|URL",
+                   help="use this existing data store instead (a SQLite file or a postgresql:// URL)")
     _add_fleet_args(p)
     p.add_argument("--cloud-outage", metavar="START:END",
                    help="SIGKILL every cloud node START s after the fleet is ready, restart them at END s")

@@ -21,6 +21,8 @@ log = logging.getLogger(__name__)
 CLOUD, LEADER = "cloud", "leader"
 #: Most cloud nodes ``scmr up --clouds`` starts on one host.
 MAX_CLOUDS = 16
+#: Values of ``--ods-backend``.
+ODS_BACKENDS = ("auto", "sqlite", "postgresql")
 #: File that marks a folder as an scmr run directory (``scmr demo`` only replaces such folders).
 RUN_MARKER = ".scmr-run"
 
@@ -37,6 +39,13 @@ class FleetConfig:
     clouds : int
         Number of cloud nodes (``cloud0`` ... ``cloud<N-1>``); robots spread
         their frames over them by published load.
+    ods_backend : {"auto", "sqlite", "postgresql"}
+        The cloud nodes' shared data store: ``auto`` is SQLite
+        (``<run dir>/ods.sqlite``) for one cloud node and a PostgreSQL server
+        started for the run (``<run dir>/postgres``) for several.
+    ods : str or None
+        An existing store instead (a SQLite file or a ``postgresql://`` URL):
+        nothing is started for it.
     duration_s : float
         How long each robot sends frames.
     rate_hz : float
@@ -66,6 +75,8 @@ class FleetConfig:
 
     robots: int = 4
     clouds: int = 1
+    ods_backend: str = "auto"
+    ods: str | None = None
     duration_s: float = 10.0
     rate_hz: float = 5.0
     cloud_outage: tuple[float, float] | None = None
@@ -87,6 +98,11 @@ class FleetConfig:
             raise InputError(f"--robots must be at least 1, got {self.robots}")
         if not 1 <= self.clouds <= MAX_CLOUDS:
             raise InputError(f"--clouds must be between 1 and {MAX_CLOUDS}, got {self.clouds}")
+        if self.ods_backend not in ODS_BACKENDS:
+            raise InputError(f"--ods-backend must be one of {', '.join(ODS_BACKENDS)}, got {self.ods_backend!r}")
+        if self.ods is not None and self.ods_backend != "auto":
+            raise InputError("give either --ods (an existing store) or --ods-backend (a store started for the "
+                             "run), not both")
         if not self.duration_s > 0:
             raise InputError(f"--duration must be positive (seconds), got {self.duration_s}")
         if not self.rate_hz > 0:
@@ -136,7 +152,18 @@ def cloud_peers(n: int) -> list[tuple[str, str]]:
     return [(CLOUD if i == 0 else f"cloud{i}", f"cloud{i}") for i in range(n)]
 
 
-def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
+def ods_backend(config: FleetConfig) -> str:
+    """The data store backend a fleet runs with: ``sqlite`` or ``postgresql``."""
+    if config.ods is not None:
+        from scmr_mesh.data.ods import is_dsn
+
+        return "postgresql" if is_dsn(config.ods) else "sqlite"
+    if config.ods_backend == "auto":
+        return "sqlite" if config.clouds == 1 else "postgresql"
+    return config.ods_backend
+
+
+def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, ods: str | None = None):
     """The peers of a fleet as :class:`~scmr_mesh.fleet.procs.PeerSpec` (pure: starts nothing).
 
     Parameters
@@ -145,6 +172,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
     run_dir : Path
     ports : mapping
         Loopback port per peer name (``cloud``, ``cloud1``..., ``leader``, ``r1``...).
+    ods : str, optional
+        The data store every cloud node gets as ``--ods`` (default: theirs,
+        ``<run dir>/ods.sqlite``).
 
     Returns
     -------
@@ -171,6 +201,8 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int]):
             argv += ["--connect", ep(c)]
         if config.workers is not None:
             argv += ["--workers", str(config.workers)]
+        if cmd == "cloud" and ods is not None:
+            argv += ["--ods", str(ods)]
         argv += [*common, "--ready-file", str(run_dir / "ready" / f"{name}.ready"), *config.server_args]
         specs[name] = PeerSpec(name, argv, log_path=run_dir / "logs" / f"{name}.log",
                                ready_file=run_dir / "ready" / f"{name}.ready")

@@ -39,6 +39,7 @@ from scmr_mesh.fleet.plan import (
     RUN_MARKER,
     FleetConfig,
     cloud_peers,
+    ods_backend,
     plan_fleet,
     robot_ids,
 )
@@ -218,6 +219,9 @@ class FleetRun:
         self.fviz = None  # scmr_mesh.viz.FleetViz with rerun flags
         self.specs: dict = {}
         self.tails: dict[str, RecordTail] = {}
+        self.pg = None  # scmr_mesh.data.pgserver.PgServer when the run starts PostgreSQL
+        self.ods: str | None = None  # what the cloud nodes were given as --ods
+        self.ods_backend = ods_backend(config)
 
     # ------------------------------------------------------------ steps
     def start(self) -> None:
@@ -229,7 +233,8 @@ class FleetRun:
         for sub in ("logs", "ready", "robots"):
             (run_dir / sub).mkdir(parents=True, exist_ok=True)
         (run_dir / RUN_MARKER).write_text("written by scmr up; this folder may be replaced by `scmr demo`\n")
-        self.specs = plan_fleet(config, run_dir, _free_ports([*self.clouds, LEADER, *self.rids]))
+        self.ods = self._start_ods()
+        self.specs = plan_fleet(config, run_dir, _free_ports([*self.clouds, LEADER, *self.rids]), ods=self.ods)
         self.tails = {rid: RecordTail(run_dir / "robots" / rid / "records.jsonl") for rid in self.rids}
         if config.rerun is not None:
             self.fviz = _start_viz(config.rerun, self.rids, self.specs)
@@ -293,11 +298,12 @@ class FleetRun:
 
                 self.telemetry = fleet_telemetry(self.run_dir, self.rids,
                                                  wait=any(c in sup.procs and sup.procs[c].alive()
-                                                          for c in self.clouds))
+                                                          for c in self.clouds), ods=self.ods)
             except Exception as exc:  # the peers must be stopped whatever happens here
                 log.warning("telemetry accounting failed: %s", exc)
             finally:
                 sup.stop_all()
+                self._stop_ods()
         finally:
             _restore_interrupts(old)
             if self.fviz is not None:  # after the peers: their data is in; --save finalises the file
@@ -318,6 +324,7 @@ class FleetRun:
         report.update(metrics.summarize(records, self.faults, robots=config.robots))
         report.update({
             "clouds": config.clouds,
+            "ods": {"backend": self.ods_backend, "store": self._ods_name()},
             "rate_hz": config.rate_hz,
             "duration_s": config.duration_s,
             "started_unix_ns": self.started_unix_ns,
@@ -344,6 +351,42 @@ class FleetRun:
         return report
 
     # ---------------------------------------------------------- helpers
+    def _start_ods(self) -> str | None:
+        """Start the run's PostgreSQL server when the fleet needs one; return the cloud nodes' ``--ods``."""
+        config = self.config
+        if config.ods is not None:
+            return config.ods
+        if self.ods_backend == "sqlite":
+            return None  # the cloud nodes' default: <run dir>/ods.sqlite
+        from scmr_mesh.data.pgserver import PgServer, available
+
+        why = available()
+        if why:
+            raise InputError(f"{config.clouds} cloud nodes share their data store on PostgreSQL, but {why}; "
+                             "or run them on one SQLite file with --ods-backend sqlite")
+        self._emit("starting the PostgreSQL data store", 0.0, {CLOUD: False, LEADER: False})
+        self.pg = PgServer(self.run_dir / "postgres")
+        dsn = self.pg.start()
+        log.info("data store: PostgreSQL %s (log %s)", dsn, self.pg.log_path)
+        return dsn
+
+    def _stop_ods(self) -> None:
+        pg, self.pg = self.pg, None
+        if pg is None:
+            return
+        if pg._own_root:  # the server's user could not enter the run dir: the cluster was in /tmp
+            log.info("removing the run's PostgreSQL cluster %s (outside the run dir)", pg.root)
+            pg.remove()
+        else:
+            pg.stop()
+
+    def _ods_name(self) -> str:
+        if self.ods is None:
+            return str(self.run_dir / "ods.sqlite")
+        from scmr_mesh.data.ods_pg import redact
+
+        return redact(str(self.ods))
+
     def _outage_step(self, now: float) -> None:
         """SIGKILL every cloud node at the outage's start, restart them at its end, note when the first is ready."""
         outage = self.config.cloud_outage

@@ -1,0 +1,144 @@
+"""The cloud tier scaled out: several cloud nodes on one shared PostgreSQL store, real processes.
+
+* ``scmr up --clouds 2`` starts a PostgreSQL server for the run, both cloud
+  nodes serve and store, nothing is lost, nothing is left running;
+* the database stopped mid-run and started again: the cloud says so in one
+  line, the robot keeps its records queued, then every record is stored once;
+* the leader syncs its data buffer from a cloud node that is not the first by name.
+
+Stub process function, multicast off, loopback endpoints.  About 40 s.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import free_port
+
+from scmr_mesh.data.ods import OperationalDataStore
+from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+
+LEASE = "300"
+
+
+def _ep(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+def _procs_mentioning(text: str) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                state = (d / "stat").read_text().rsplit(")", 1)[1].split()[0]
+            except OSError:
+                continue
+            if text in cmd and state != "Z" and int(d.name) != __import__("os").getpid():
+                out.append(int(d.name))
+    return out
+
+
+@pytest.mark.timeout(180)
+def test_up_with_two_clouds_shares_one_postgres_store(tmp_path):
+    run_dir = tmp_path / "run"
+    r = subprocess.run(
+        [sys.executable, "-m", "scmr_mesh", "up", "--robots", "3", "--clouds", "2", "--duration", "5",
+         "--rate", "5", "--synthetic", "stub", "--server-arg=--process", f"--server-arg={STUB}", "--quiet",
+         "--lease-ms", LEASE, "--run-dir", str(run_dir)],
+        capture_output=True, text=True, timeout=170)
+    try:
+        assert r.returncode == 0, r.stdout + r.stderr
+        rep = json.loads((run_dir / "report.json").read_text())
+        assert rep["clouds"] == 2 and rep["ods"]["backend"] == "postgresql"
+        assert rep["ods"]["store"].startswith("postgresql://")
+        assert rep["ror"] == 1.0
+        served = {rec["served_by"] for rid in ("r1", "r2", "r3")
+                  for rec in read_records(run_dir / "robots" / rid / "records.jsonl")}
+        assert {"cloud0", "cloud1"} <= served  # robots spread over both nodes
+        tel = rep["telemetry"]
+        assert tel["ods"] == rep["ods"]["store"]
+        assert tel["sent"] > 0 and tel["stored"] == tel["sent"] and tel["lost"] == 0
+        # both cloud nodes logged the same store, and the server is gone
+        for name in ("cloud", "cloud1"):
+            assert "(postgresql)" in (run_dir / "logs" / f"{name}.log").read_text()
+        assert not _procs_mentioning("postgres -D"), "a PostgreSQL server outlived the run"
+        assert not _procs_mentioning(str(run_dir))
+    finally:
+        for pid in _procs_mentioning(str(run_dir)):
+            try:
+                __import__("os").kill(pid, 9)
+            except ProcessLookupError:
+                pass
+
+
+@pytest.mark.timeout(180)
+def test_database_down_mid_run_robot_keeps_records_until_it_is_back(tmp_path):
+    """No leader: while the database is stopped nothing can store telemetry, so the robot's queue holds it."""
+    from scmr_mesh.data.pgserver import PgServer
+
+    pg = PgServer(tmp_path / "pg")
+    dsn = pg.start()
+    procs = []
+    cport = free_port()
+    qdir = tmp_path / "queue"
+    try:
+        ready = tmp_path / "cloud.ready"
+        cloud = spawn_peer(["cloud", "--node", "cloud0", "--listen", _ep(cport), "--workers", "1", "--process",
+                            STUB, "--lease-ms", LEASE, "--ready-file", str(ready), "--ods", dsn],
+                           log_path=tmp_path / "cloud.log")
+        procs.append(cloud)
+        wait_for(lambda: ready.exists() or cloud.poll() is not None, timeout=60, what="cloud ready")
+        assert cloud.poll() is None, (tmp_path / "cloud.log").read_text()
+        robot = spawn_peer(["robot", "--id", "r1", "--synthetic", "stub", "--rate", "10", "--duration", "60",
+                            "--out", str(tmp_path / "r1"), "--process", STUB, "--no-local-fallback",
+                            "--lease-ms", LEASE, "--quiet", "--telemetry-queue", str(qdir), "--connect", _ep(cport)],
+                           log_path=tmp_path / "r1.log")
+        procs.append(robot)
+
+        def stored() -> int:
+            with OperationalDataStore(dsn, readonly=True) as ods:
+                return ods.counts().get("r1", {}).get("stored", 0)
+
+        wait_for(lambda: pg.alive() and _ods_ready(dsn) and stored() >= 5, timeout=60, what="telemetry stored")
+        pg.stop()
+        # frames are still served (they need no database); telemetry piles up in the robot's queue
+        n_records = len(read_records(tmp_path / "r1" / "records.jsonl"))
+        wait_for(lambda: _depth(qdir) >= 15 and len(read_records(tmp_path / "r1" / "records.jsonl")) >= n_records + 15,
+                 timeout=60, what="the robot to queue telemetry while the database is down")
+        log = (tmp_path / "cloud.log").read_text()
+        errors = [ln for ln in log.splitlines() if "ODS:" in ln and "unreachable" in ln]
+        assert len(errors) == 1, errors  # one line when it went away, not one per batch
+        pg.start()
+        wait_for(lambda: _depth(qdir) <= 2, timeout=60, what="the queue to drain once the database is back")
+        stop_peer(robot, timeout=15)
+        summary = json.loads((tmp_path / "r1" / "telemetry.json").read_text())
+        assert summary["queued"] == 0 and summary["acked_by"]["cloud"] == summary["sent"]
+        with OperationalDataStore(dsn, readonly=True) as ods:
+            assert ods.seqs("r1") == list(range(1, summary["sent"] + 1))  # every record, once
+        assert "reachable again" in (tmp_path / "cloud.log").read_text()
+    finally:
+        for p in procs:
+            stop_peer(p, timeout=10)
+        pg.remove()
+
+
+def _ods_ready(dsn: str) -> bool:
+    try:
+        OperationalDataStore(dsn, readonly=True).close()
+        return True
+    except Exception:
+        return False
+
+
+def _depth(qdir: Path) -> int:
+    try:
+        with TelemetryQueue(qdir, readonly=True) as q:
+            return q.stats().depth
+    except Exception:
+        return 0
