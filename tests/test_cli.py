@@ -40,3 +40,32 @@ def test_no_command_prints_help(capsys):
 def test_python_dash_m_entry_point():
     r = subprocess.run([sys.executable, "-m", "scmr_mesh", "--version"], capture_output=True, text=True)
     assert r.returncode == 0 and "scmr-mesh" in r.stdout
+
+
+def test_command_home_names_the_module_of_every_command():
+    import argparse
+    import importlib
+
+    from scmr_mesh.cli import COMMAND_HOME, COMMAND_MODULES
+
+    found = {}
+    for name in COMMAND_MODULES:
+        sub = argparse.ArgumentParser().add_subparsers()
+        importlib.import_module(name).register(sub)
+        found.update({cmd: name for cmd in sub.choices})
+    assert COMMAND_HOME == found
+
+
+def test_a_peer_command_loads_only_its_own_module():
+    # `scmr cloud` is a peer's start-up path: no other area's command module
+    code = ("import sys\nfrom scmr_mesh import cli\ncli.build_parser(['-v', 'cloud', '--node', 'x'], full=False)\n"
+            "print(sorted(m for m in sys.modules if m.startswith('scmr_mesh') and m.endswith('commands')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "['scmr_mesh.mesh.commands']"
+
+
+@pytest.mark.parametrize("argv", [["cloud", "--help"], ["bench", "mesh", "--help"], ["-v", "up", "--help"]])
+def test_help_through_the_short_parser(argv, capsys):
+    assert main(argv) == 0
+    assert "usage: scmr " + next(a for a in argv if not a.startswith("-")) in capsys.readouterr().out

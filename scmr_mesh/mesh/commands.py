@@ -106,8 +106,12 @@ def _service_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--process", default=None, metavar="MODULE:FUNC",
                    help="process function run by the workers (default: the drivable pipeline; tests "
                         "use scmr_mesh.mesh.testing:stub_process)")
-    p.add_argument("--ready-file", metavar="PATH", help="written once the service is serving")
+    p.add_argument("--ready-file", metavar="PATH",
+                   help="written once the service is serving (JSON; 'startup' holds the start-up phases)")
     p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    p.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
+                   help="more log output, and the start-up phases when ready: wall and CPU ms of each "
+                        "from exec (same as scmr -v)")
     from scmr_mesh.qos import negotiator
 
     negotiator.add_arguments(p)
@@ -186,7 +190,7 @@ def _cmd_cloud(args) -> int:
     _setup_logging(args)
     return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file,
-                       setup=_setup(args, "cloud"))
+                       setup=_setup(args, "cloud"), verbose=bool(args.verbose))
 
 
 def _cmd_leader(args) -> int:
@@ -206,7 +210,7 @@ def _cmd_leader(args) -> int:
 
     return run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                       setup=_setup(args, "leader"))
+                       setup=_setup(args, "leader"), verbose=bool(args.verbose))
 
 
 def _cmd_robot(args) -> int:

@@ -8,8 +8,9 @@ returns.
 
 Ready file: written atomically (temp file + rename) once the peer serves or
 is connected, holding JSON ``{"pid", "role", "node", "zid", "keys",
-"t_unix_ns"}``; removed again at a clean exit.  A stale one is removed at
-start.
+"t_unix_ns"}`` (services add ``"workers"`` and ``"startup"``, the wall and CPU
+time of each start-up phase from exec: :mod:`scmr_mesh.mesh.startup`);
+removed again at a clean exit.  A stale one is removed at start.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ def run_service(
     stop: StopFlag | None = None,
     robot_body: Callable | None = None,
     setup: Callable | None = None,
+    verbose: bool = False,
 ) -> int:
     """Run a cloud or leader service until stopped.
 
@@ -107,6 +109,10 @@ def run_service(
         returns or on a signal.
     setup : callable, optional
         ``fn(service)`` called before attach (hooks: admission, queryables).
+    verbose : bool
+        Log the start-up phases (wall and CPU time of each, from exec to
+        ready; :mod:`scmr_mesh.mesh.startup`); they are in the ready file
+        either way.
 
     Returns
     -------
@@ -115,26 +121,34 @@ def run_service(
     """
     from scmr_mesh import keys, wire
     from scmr_mesh.mesh.server import Service
+    from scmr_mesh.mesh.startup import clock as startup_clock
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
 
+    clock = startup_clock()
     # a bad setting (lease 0, unknown key, ...) fails here, before workers are
     # forked or any file is created; building a zenoh.Config starts no thread
     mesh.build()
+    clock.mark("zenoh config")
     stop = stop or StopFlag().install()
     clear_ready(ready_file)
     # workers first: they are forked before zenoh starts any thread
     svc = Service(node, tier=tier, workers=workers, process=process or DEFAULT_PROCESS,
-                  max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES)
+                  max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES, clock=clock)
     session = None
     rc = 0
     try:
         if setup is not None:
             setup(svc)
+            clock.mark("setup hooks")
         session = open_session(mesh)
-        svc.attach(session)
+        clock.mark("zenoh session")
+        svc.attach(session, clock=clock)
+        startup = clock.as_dict()
         write_ready(ready_file, {"role": tier, "node": node, "zid": str(session.info.zid()),
-                                 "keys": [svc.key, keys.alive(tier, node)], "workers": svc.worker_pids})
-        log.info("%s %s ready (zid %s)", tier, node, session.info.zid())
+                                 "keys": [svc.key, keys.alive(tier, node)], "workers": svc.worker_pids,
+                                 "startup": startup})
+        log.info("%s %s ready (zid %s) %.0f ms after exec, %.0f ms of CPU%s", tier, node, session.info.zid(),
+                 startup["wall_ms"], startup["cpu_ms"], ":\n" + clock.format() if verbose else "")
         if robot_body is not None:
             rc = int(robot_body(session, stop.event) or 0)
         else:

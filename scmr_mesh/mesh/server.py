@@ -126,6 +126,8 @@ class Service:
         Limit of the default admission (default ``8 * workers``).
     admission : callable, optional
         Replaces :func:`default_admission`.
+    clock : scmr_mesh.mesh.startup.StartupClock, optional
+        Marks the start-up phases (``scmr -v cloud`` prints them).
     """
 
     def __init__(
@@ -138,6 +140,7 @@ class Service:
         max_request_bytes: int = wire.MAX_REQUEST_BYTES,
         max_inflight: int | None = None,
         admission: Admission | None = None,
+        clock=None,
     ) -> None:
         import os
 
@@ -159,9 +162,13 @@ class Service:
         self._load_pub = None
         self._stop = threading.Event()
         self._load_thread: threading.Thread | None = None
-        wire.warm()
-        self.pool = WorkerPool(workers, process=process)
+        self.pool = WorkerPool(workers, process=process, clock=clock)
         self.worker_pids = self.pool.start()
+        if clock is not None:
+            clock.mark("worker pool", workers=workers)
+        wire.warm()
+        if clock is not None:
+            clock.mark("wire validators")
         log.info("%s %s: %d workers ready %s", tier, node, workers, self.worker_pids)
 
     # ------------------------------------------------------------ hooks
@@ -172,16 +179,22 @@ class Service:
             self._declared.append(self.session.declare_queryable(key, callback, complete=complete))
 
     # ------------------------------------------------------- life cycle
-    def attach(self, session) -> None:
+    def attach(self, session, *, clock=None) -> None:
         """Declare the queryable, extra queryables, the load publisher, then the token."""
         self.session = session
         self._declared.append(session.declare_queryable(self.key, self._on_query, complete=True))
         for key, cb, complete in self._extra:
             self._declared.append(session.declare_queryable(key, cb, complete=complete))
         self._load_pub = session.declare_publisher(keys.load(self.tier, self.node))
+        if clock is not None:
+            clock.mark("queryables")
         self._warm_path(session)
+        if clock is not None:
+            clock.mark("warm-up query")
         # the token last: a robot that sees it finds the queryable in place
         self._token = session.liveliness().declare_token(keys.alive(self.tier, self.node))
+        if clock is not None:
+            clock.mark("token")
         self._stop.clear()
         self._load_thread = threading.Thread(target=self._publish_load, name="scmr-load", daemon=True)
         self._load_thread.start()
@@ -194,9 +207,9 @@ class Service:
         hand-off and the reply path (about 150 ms measured under load); paying
         it here keeps it out of the first robot's ToR and the failback gap.
         """
-        from scmr_mesh.mesh.testing import synthetic_png
+        from scmr_mesh.mesh.work import warm_png
 
-        req = wire.make_request("warmup", 0, synthetic_png(0), encoding="png")
+        req = wire.make_request("warmup", 0, warm_png(), encoding="png")
         t0 = time.perf_counter()
         ok = False
         try:
