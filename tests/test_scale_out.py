@@ -142,3 +142,56 @@ def _depth(qdir: Path) -> int:
             return q.stats().depth
     except Exception:
         return 0
+
+
+@pytest.mark.timeout(120)
+def test_leader_syncs_from_every_live_cloud_not_only_the_first_by_name(tmp_path):
+    """cloud0 and cloud1 hold different shared entries; the leader's copy gets cloud1's too,
+    and keeps syncing from cloud1 after cloud0 is gone."""
+    import msgpack
+
+    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+
+    ports = {n: free_port() for n in ("cloud0", "cloud1", "leader0")}
+    procs = []
+
+    def start(role, node, *extra):
+        ready = tmp_path / f"{node}.ready"
+        p = spawn_peer([role, "--node", node, "--listen", _ep(ports[node]), "--workers", "1", "--process", STUB,
+                        "--lease-ms", LEASE, "--ready-file", str(ready), *extra], log_path=tmp_path / f"{node}.log")
+        procs.append(p)
+        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what=f"{node} ready")
+        assert p.poll() is None, (tmp_path / f"{node}.log").read_text()
+        return p
+
+    for i, node in enumerate(("cloud0", "cloud1")):
+        params = tmp_path / f"{node}.json"
+        params.write_text(json.dumps({f"params/{node}": i}))
+        start("cloud", node, "--data-params", str(params), "--ods", str(tmp_path / "ods.sqlite"))
+    start("leader", "leader0", "--sync-period", "0.2", "--connect", _ep(ports["cloud0"]),
+          "--connect", _ep(ports["cloud1"]), "--relay-dir", str(tmp_path / "relay"))
+    session = open_session(MeshConfig(connect=[_ep(ports["leader0"])],
+                                      cfg=["scouting/gossip/enabled:false"]))
+
+    def leader_items() -> dict:
+        for reply in session.get("scmr/data/leader/leader0/buffer", payload=msgpack.packb({"sel": "params/**"}),
+                                 timeout=2.0):
+            if reply.ok is not None:
+                return msgpack.unpackb(reply.ok.payload.to_bytes())["items"]
+        return {}
+
+    try:
+        wait_for(lambda: leader_items() == {"params/cloud0": 0, "params/cloud1": 1}, timeout=30,
+                 what="the leader's copy to hold both nodes' entries")
+        stop_peer(procs[0], timeout=10)  # cloud0 (first by name) gone: sync goes on from cloud1
+        params = tmp_path / "cloud1-again.json"
+        params.write_text(json.dumps({"params/cloud1": 2, "params/late": 3}))
+        stop_peer(procs[1], timeout=10)
+        start("cloud", "cloud1", "--data-params", str(params), "--ods", str(tmp_path / "ods.sqlite"))
+        wait_for(lambda: leader_items().get("params/late") == 3, timeout=30,
+                 what="the leader to sync from cloud1 alone")
+        assert leader_items()["params/cloud1"] == 2
+    finally:
+        close_session(session)
+        for p in procs:
+            stop_peer(p, timeout=10)

@@ -36,9 +36,9 @@ Flow ("nothing lost"):
    relay queue on the cloud's answer.
 4. The ODS stores each ``(robot, seq)`` once (``INSERT OR IGNORE``); replays
    and relays are counted as duplicates, never stored twice.
-5. The leader pulls the cloud's data buffer every ``--sync-period`` seconds
-   (delta since the last revision) and serves the same buffer queries when
-   the cloud is gone.
+5. The leader pulls the data buffer of every live cloud node every
+   ``--sync-period`` seconds (delta since the last revision it saw of that
+   node) and serves the same buffer queries when the cloud is gone.
 """
 
 from __future__ import annotations
@@ -282,7 +282,11 @@ class LeaderData:
         On-disk queue of telemetry the leader stored for robots while the
         cloud was gone; forwarded to the cloud after failback.
     sync_period_s : float
-        Seconds between buffer pulls from the cloud (scheduled batches).
+        Seconds between buffer pulls from the cloud (scheduled batches).  Each
+        pull asks every live cloud node for its delta, each node with its own
+        cursor (:attr:`syncs`), so the leader's copy is the merge of every
+        node's buffer (last writer wins per key) and keeps growing from the
+        nodes that are left when any of them is gone.
     relay_max_bytes : int
         Bound of the relay queue; a full relay refuses (robots keep theirs).
     """
@@ -296,7 +300,11 @@ class LeaderData:
         self._lock = threading.Lock()
         for _, payload in self.relay.pending():
             self.buffer.record_telemetry(_unpack(payload))
-        self.sync = BufferSync(self.buffer, self._fetch, period_s=sync_period_s)
+        if not sync_period_s > 0:
+            raise TelemetryError(f"sync period must be > 0 s, got {sync_period_s!r}")
+        self.sync_period_s = float(sync_period_s)
+        #: One scheduled pull (and cursor) per cloud node seen alive.
+        self.syncs: dict[str, BufferSync] = {}
         self.session = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -363,11 +371,20 @@ class LeaderData:
                 return reply.ok.payload.to_bytes()
         return None
 
-    def _fetch(self, epoch: str | None, since: int) -> bytes | None:
-        clouds = self._clouds()
-        if not clouds:
-            return None
-        return self._query(sync_key(clouds[0]), _pack({"epoch": epoch, "since": since}))
+    def _fetch_from(self, node: str, epoch: str | None, since: int) -> bytes | None:
+        return self._query(sync_key(node), _pack({"epoch": epoch, "since": since}))
+
+    def sync_once(self) -> dict[str, bool]:
+        """Pull a delta from every live cloud node; return ``{node: answered}``."""
+        out = {}
+        for node in self._clouds():
+            sync = self.syncs.get(node)
+            if sync is None:
+                sync = self.syncs[node] = BufferSync(
+                    self.buffer, lambda epoch, since, node=node: self._fetch_from(node, epoch, since),
+                    period_s=self.sync_period_s)
+            out[node] = sync.pull_once() is not None
+        return out
 
     def forward_once(self) -> int:
         """Send the oldest relayed records to a cloud node; return how many were acknowledged."""
@@ -398,8 +415,8 @@ class LeaderData:
             now = time.monotonic()
             try:
                 if now >= next_sync:
-                    next_sync = now + self.sync.period_s
-                    self.sync.pull_once()
+                    next_sync = now + self.sync_period_s
+                    self.sync_once()
                 while self.forward_once() and not self._stop.is_set():
                     pass
             except Exception as exc:  # the session closing under us at shutdown
