@@ -126,8 +126,58 @@ def test_summary_validates_against_schema_and_prints():
     validate_report(rep)
     json.dumps(rep)  # serialisable
     text = format_summary(rep)
-    assert "r1" in text and "crash cloud0 at 0.45 s, restored never" in text
+    assert "r1" in text and "crash cloud0 at 0.45 s, never restarted" in text
     assert "failover gap 5.0 ms" in text  # first leader answer 5 ms after seq 5 was sent at 0.5 s
+    assert "telemetry: NOT COUNTED" in text  # the line is always there
+
+
+def _telemetry(lost: int = 0, **extra) -> dict:
+    per = {"r1": {"sent": 10, "stored": 10 - lost, "duplicates": 1, "conflicts": 0, "lost": lost,
+                  "missing": ["8-10"] if lost else [], "unexpected": 0, "queued": 0}}
+    return {"sent": 10, "stored": 10 - lost, "duplicates": 1, "lost": lost, "conflicts": 0, "per_robot": per,
+            "ods": "/x/ods.sqlite", **extra}
+
+
+def test_the_summary_always_has_the_telemetry_line_and_the_verdict_counts_it():
+    """Issue #12, item 3: sent, stored, duplicates, lost printed; a loss is a failed run (exit 1)."""
+    from scmr_mesh.fleet import check_fleet, fleet_problems
+
+    rep = _report()
+    rep["peers"] = {"cloud": {"exit": 0, "log": "/x/logs/cloud.log"}, "r1": {"exit": 0, "log": "/x/logs/r1.log"}}
+    rep["telemetry"] = _telemetry()
+    rep["problems"] = fleet_problems(rep)
+    assert rep["problems"] == [] and check_fleet(rep, 1.0) == 0
+    assert "telemetry: 10 sent, 10 stored, 1 duplicates, 0 lost" in format_summary(rep)
+    rep["telemetry"] = _telemetry(3)
+    rep["problems"] = fleet_problems(rep)
+    assert rep["problems"] == ["3 of 10 telemetry records lost: r1 3 (seqs 8-10)"]
+    text = format_summary(rep)
+    assert "telemetry: 10 sent, 7 stored, 1 duplicates, 3 lost" in text and "PROBLEM: 3 of 10" in text
+    with pytest.raises(MeshError, match="3 of 10 telemetry records lost"):
+        check_fleet(rep, 1.0)
+    rep["telemetry"] = _telemetry(10, stored=0, error="the store could not be read (StoreError: not a database)")
+    rep["problems"] = fleet_problems(rep)
+    assert any("could not be read" in p for p in rep["problems"])
+    del rep["telemetry"]
+    assert fleet_problems(rep) == ["telemetry was not counted (see the log of scmr up)"]
+
+
+def test_a_restart_that_never_came_up_is_printed_and_fails_the_run():
+    from scmr_mesh.fleet import check_fleet, fleet_problems
+
+    rep = _report()
+    rep["faults"][0]["end_unix_ns"] = T0 + 900_000_000
+    rep["faults"][0]["ready_unix_ns"] = None
+    rep["peers"] = {"cloud": {"exit": 1, "log": "/x/logs/cloud.log"}}
+    rep["telemetry"] = _telemetry()
+    rep["problems"] = fleet_problems(rep)
+    assert rep["problems"][0] == ("cloud0 was restarted at 0.90 s but never became ready (it exited with "
+                                  "status 1); see /x/logs/cloud.log")
+    assert "peer cloud exited with status 1; see /x/logs/cloud.log" in rep["problems"]
+    text = format_summary(rep)
+    assert "restarted 0.90 s but NEVER BECAME READY" in text and "restored" not in text
+    with pytest.raises(MeshError, match="never became ready"):
+        check_fleet(rep, 0.0)
 
 
 def test_schema_rejects_a_broken_report():

@@ -60,12 +60,37 @@ def test_gaps_follow_the_shared_definitions(report):
 
 def test_expectations_and_summary(report):
     held = {e["name"]: e["held"] for e in report["expectations"]}
-    assert held == {"ror >= 1": True, "max_failover_gap_ms <= 300": True, "max_failback_gap_ms <= 100": False}
+    # the default telemetry expectation fails when telemetry was not counted (no block given)
+    assert held == {"ror >= 1": True, "max_failover_gap_ms <= 300": True, "max_failback_gap_ms <= 100": False,
+                    "telemetry_lost <= 0": False}
     assert report["passed"] is False
     s = report["summary"]
     assert (s["requests"], s["succeeded"], s["ror"]) == (5, 5, 1.0)
     assert s["by_tier"]["leader"] == 3 and s["by_tier"]["cloud"] == 2
     assert report["seed"] == 42 and len(report["requests"]) == 5
+
+
+def test_every_scenario_expects_no_telemetry_lost_unless_it_says_otherwise():
+    """Issue #12, item 3: a default expectation of zero telemetry lost."""
+    import dataclasses
+
+    from scmr_mesh.scenario.spec import Expectation
+
+    ok = {"sent": 10, "stored": 10, "duplicates": 0, "lost": 0, "per_robot": {}}
+    lost = {"sent": 10, "stored": 7, "duplicates": 0, "lost": 3, "per_robot": {}}
+    sc = dataclasses.replace(SC, expectations=(Expectation("ror", ">=", 1.0),))
+
+    def tel_exp(rep):
+        return next(e for e in rep["expectations"] if e["metric"] == "telemetry_lost")
+
+    rep = build_report(sc, RECORDS, FAULTS, t0_unix_ns=T0, backend="test", telemetry=ok)
+    assert tel_exp(rep) == {"name": "telemetry_lost <= 0", "metric": "telemetry_lost", "observed": 0, "held": True}
+    assert rep["passed"] is True
+    rep = build_report(sc, RECORDS, FAULTS, t0_unix_ns=T0, backend="test", telemetry=lost)
+    assert tel_exp(rep)["observed"] == 3 and rep["passed"] is False
+    loose = dataclasses.replace(sc, expectations=(Expectation("telemetry_lost", "<=", 5.0),))
+    rep = build_report(loose, RECORDS, FAULTS, t0_unix_ns=T0, backend="test", telemetry=lost)
+    assert [e["name"] for e in rep["expectations"]] == ["telemetry_lost <= 5"] and rep["passed"] is True
 
 
 def test_failed_requests_lower_ror_and_unmeasured_gaps_fail():

@@ -228,13 +228,15 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
 
 def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
                     wait: bool = True, timeout_s: float = 5.0,
-                    ods: str | Path | None = None) -> dict[str, Any] | None:
-    """The report's ``"telemetry"`` value for a fleet run; never raises.
+                    ods: str | Path | None = None) -> dict[str, Any]:
+    """The report's ``"telemetry"`` value for a fleet run; never raises, never None.
 
     For ``scmr up`` / scenarios: call it after the robots stopped and, with
     ``wait=True``, while the cloud still runs (it waits up to ``timeout_s``
-    for relayed telemetry to land).  Returns None, after logging why, when the
-    accounting fails.
+    for relayed telemetry to land).  When the store cannot be read (a
+    destroyed ODS, say), the block still counts what the robots sent, counts
+    every record as lost (none can be shown stored) and says why in
+    ``"error"``.
     """
     import logging
 
@@ -242,8 +244,35 @@ def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         rep = settle_telemetry(run_dir, robots, timeout_s=timeout_s if wait else 0.0, ods_path=ods)
         return rep["telemetry"]
     except Exception as exc:  # a report must not fail over telemetry accounting
-        logging.getLogger(__name__).warning("telemetry accounting for %s failed: %s", run_dir, exc)
-        return None
+        why = f"{type(exc).__name__}: {exc}"
+        logging.getLogger(__name__).error("telemetry accounting for %s failed: %s", run_dir, why)
+        return unreadable_telemetry(run_dir, robots, why, ods=ods)
 
 
-__all__ = ["fleet_telemetry", "queue_sent", "robot_sent", "robot_summary", "run_telemetry", "settle_telemetry", "telemetry_report"]
+def _redact(dsn) -> str:
+    from scmr_mesh.data.ods_pg import redact
+
+    return redact(dsn)
+
+
+def unreadable_telemetry(run_dir: str | Path, robots: list[str] | None, why: str, *,
+                         ods: str | Path | None = None) -> dict[str, Any]:
+    """A telemetry block for a run whose store could not be read: sent as far as known, all lost."""
+    run_dir = Path(run_dir)
+    per: dict[str, dict[str, Any]] = {}
+    for rid in robots or []:
+        try:
+            qdir = run_dir / "queues" / rid
+            sent, queued = queue_sent(qdir) if qdir.is_dir() else robot_sent(run_dir / "robots" / rid)
+        except Exception:  # the robots' own counts are unreadable too: nothing known
+            sent, queued = 0, 0
+        per[rid] = {"sent": sent, "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent,
+                    "missing": seq_ranges(list(range(1, sent + 1)), limit=20), "unexpected": 0, "queued": queued}
+    tot = sum(r["sent"] for r in per.values())
+    return {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "conflicts": 0, "per_robot": per,
+            "ods": _redact(ods) if is_dsn(ods) else str(ods if ods is not None else run_dir / "ods.sqlite"),
+            "error": f"the store could not be read ({why})"}
+
+
+__all__ = ["fleet_telemetry", "queue_sent", "robot_sent", "robot_summary", "run_telemetry", "settle_telemetry", "telemetry_report",
+           "unreadable_telemetry"]

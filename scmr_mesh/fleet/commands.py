@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from scmr_mesh.fleet.output import check_ror, format_summary, run_with_output
+from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
 from scmr_mesh.fleet.plan import ODS_BACKENDS, FleetConfig, parse_outage
 
 
@@ -51,10 +51,13 @@ def _rerun_options(args: argparse.Namespace):
 
 
 UP_EPILOG = """\
-Exit status: 0 when every request was answered (RoR >= --min-ror, default 1.0),
-1 when fewer were (the report is still written) or a peer failed to start
-(the error ends with the tail of its log), 130 on Ctrl-C (report written,
-"interrupted": true).
+Exit status: 0 when every request was answered (RoR >= --min-ror, default 1.0)
+and nothing else went wrong; 1 when fewer were, when telemetry was lost or
+could not be counted, when a restarted peer never became ready or a peer
+exited with an error, or when a peer failed to start (the error names each
+problem; the report is still written); 130 on Ctrl-C (report written,
+"interrupted": true).  The summary always prints the telemetry line (sent,
+stored, duplicates, lost).
 
 Example:
   scmr up --robots 4 --duration 20 --cloud-outage 8:14 --json report.json
@@ -109,6 +112,6 @@ def _cmd_up(args: argparse.Namespace) -> int:
         print(f"rerun:  {args.save} (open it with `scmr view {args.save}`)")
     if report.get("interrupted"):
         return 130
-    return check_ror(report, args.min_ror)
+    return check_fleet(report, args.min_ror)
 
 

@@ -38,7 +38,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "cloud in the middle (SIGKILL at 6 s, restart at 10 s of a 20 s run, leaving time for "
             "the restarted cloud to start up and answer again), and write the "
             "report, the peers' logs, every mask and two pictures (ToR timeline by tier, overlays "
-            "before/during/after the outage).  Takes 30-50 s.  Exit 1 if a request was lost."
+            "before/during/after the outage).  Takes 30-50 s.  Exit 1 if a request or a "
+            "telemetry record was lost, or a peer failed (the summary's PROBLEM lines)."
         ),
     )
     p.add_argument("--out", type=Path, default=Path("runs/demo"),
@@ -74,7 +75,7 @@ def _clear_previous(out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from scmr_mesh.fleet.output import check_ror, format_summary, run_with_output
+    from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
     from scmr_mesh.fleet.plan import FleetConfig, parse_outage
 
     out = Path(args.out)
@@ -103,7 +104,7 @@ pictures:  {pics / 'timeline.png'}  (ToR per request over time, by serving tier)
               f"headless: `scmr view {rerun.target} --web`)")
     if report.get("interrupted"):
         return 130
-    return check_ror(report, 1.0)
+    return check_fleet(report, 1.0)
 
 
 def _rerun_options(args: argparse.Namespace, out: Path):

@@ -54,9 +54,13 @@ def format_summary(report: Mapping[str, Any]) -> str:
     lines.append(f"  (ToR in ms over succeeded requests; RoR {ror})")
     for f in report.get("faults", []):
         start = (f["start_unix_ns"] - report.get("started_unix_ns", f["start_unix_ns"])) / 1e9
-        end = "never" if f.get("end_unix_ns") is None else \
-            f"{(f['end_unix_ns'] - report.get('started_unix_ns', 0)) / 1e9:.2f} s"
-        lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, restored {end}; "
+        if f.get("end_unix_ns") is None:
+            end = "never restarted"
+        else:
+            at = f"{(f['end_unix_ns'] - report.get('started_unix_ns', 0)) / 1e9:.2f} s"
+            end = f"restored {at}" if f.get("ready_unix_ns") is not None else \
+                f"restarted {at} but NEVER BECAME READY"
+        lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, {end}; "
                      f"failover gap {_ms(f.get('failover_gap_ms'))} ms (largest robot), "
                      f"failback gap {_ms(f.get('failback_gap_ms'))} ms"
                      + (f" = restart to ready {f['restart_to_ready_ms']:.0f} ms"
@@ -64,7 +68,26 @@ def format_summary(report: Mapping[str, Any]) -> str:
                         if f.get("restart_to_ready_ms") is not None else ""))
     if not report.get("faults"):
         lines.append("  no faults injected")
+    lines.append("  " + format_telemetry(report.get("telemetry")))
+    for p in report.get("problems") or []:
+        lines.append(f"  PROBLEM: {p}")
     return "\n".join(lines)
+
+
+def format_telemetry(tel: Mapping[str, Any] | None) -> str:
+    """The summary's telemetry line: sent, stored, duplicates, lost (always printed)."""
+    if tel is None:
+        return "telemetry: NOT COUNTED (see the log)"
+    line = (f"telemetry: {tel.get('sent', 0)} sent, {tel.get('stored', 0)} stored, "
+            f"{tel.get('duplicates', 0)} duplicates, {tel.get('lost', 0)} lost")
+    extra = []
+    if tel.get("refused"):
+        extra.append(f"{tel['refused']} refused by the robots' queues")
+    if tel.get("conflicts"):
+        extra.append(f"{tel['conflicts']} conflicts")
+    if tel.get("error"):
+        extra.append(tel["error"])
+    return line + (f" ({'; '.join(extra)})" if extra else "")
 
 
 class _ProgressPrinter:
@@ -124,6 +147,23 @@ def run_with_output(config: FleetConfig, *, json_path: str | None = None, quiet:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+def check_fleet(report: Mapping[str, Any], min_ror: float) -> int:
+    """0 if the run met ``min_ror`` and had no problem; raise :class:`MeshError` otherwise.
+
+    Problems (``report["problems"]``, see :func:`scmr_mesh.fleet.run.fleet_problems`):
+    telemetry lost or not counted, a restart that never became ready, a peer
+    that exited with a non-zero status.
+    """
+    problems = list(report.get("problems") or [])
+    try:
+        check_ror(report, min_ror)
+    except MeshError as exc:
+        problems.insert(0, str(exc))
+    if problems:
+        raise MeshError("; ".join(problems) + f" (report in {report['run_dir']}/report.json)")
+    return 0
 
 
 def check_ror(report: Mapping[str, Any], min_ror: float) -> int:

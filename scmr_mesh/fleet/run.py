@@ -346,6 +346,7 @@ class FleetRun:
                     records, {**f, "end_unix_ns": f["ready_unix_ns"]})
         if self.telemetry is not None:
             report["telemetry"] = self.telemetry
+        report["problems"] = fleet_problems(report)
         validate_report(report)
         (self.run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
         return report
@@ -446,6 +447,45 @@ class FleetRun:
 def fault_target(cloud_nodes: Mapping[str, str]) -> str:
     """The ``target`` of a cloud-tier fault: the node names, comma-separated (``cloud0`` for one)."""
     return ",".join(cloud_nodes.values())
+
+
+def fleet_problems(report: Mapping[str, Any]) -> list[str]:
+    """What went wrong in a fleet run besides failed requests, one sentence each (pure).
+
+    A restarted peer that never became ready, a peer that exited with a
+    non-zero status, telemetry that was lost or could not be counted.  An
+    interrupted run lists what it saw too.  ``scmr up`` and ``scmr demo``
+    print these and exit 1 when there is any (docs/FLEET.md).
+    """
+    out: list[str] = []
+    t0 = report.get("started_unix_ns") or 0
+    peers = report.get("peers") or {}
+    for f in report.get("faults") or []:
+        if f.get("end_unix_ns") is not None and f.get("ready_unix_ns") is None:
+            name = CLOUD if f.get("tier") == "cloud" else str(f.get("target"))
+            p = peers.get(name) or {}
+            rc = p.get("exit")
+            out.append(f"{f.get('target')} was restarted at {(f['end_unix_ns'] - t0) / 1e9:.2f} s but never became "
+                       "ready" + (f" (it exited with status {rc})" if rc not in (None, 0) else "")
+                       + (f"; see {p['log']}" if p.get("log") else ""))
+    for name, p in peers.items():
+        rc = p.get("exit")
+        if rc not in (None, 0):
+            what = f"killed by signal {-rc}" if rc < 0 else f"exited with status {rc}"
+            out.append(f"peer {name} {what}; see {p.get('log')}")
+    tel = report.get("telemetry")
+    if tel is None:
+        out.append("telemetry was not counted (see the log of scmr up)")
+    else:
+        if tel.get("error"):
+            out.append(f"telemetry: {tel['error']}")
+        if tel.get("lost"):
+            who = [f"{rid} {r['lost']} (seqs {','.join(r.get('missing') or []) or '?'})"
+                   for rid, r in sorted((tel.get("per_robot") or {}).items()) if r.get("lost")]
+            out.append(f"{tel['lost']} of {tel.get('sent', 0)} telemetry records lost: " + "; ".join(who))
+        if tel.get("conflicts"):
+            out.append(f"{tel['conflicts']} telemetry records conflicted with stored ones (a robot reused seqs)")
+    return out
 
 
 def _start_viz(options, rids: Sequence[str], specs: dict) -> Any:

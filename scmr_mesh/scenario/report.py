@@ -32,7 +32,7 @@ TIER_COLOURS = {"cloud": (200, 120, 30), "leader": (30, 140, 240), "local": (60,
                 "failed": (40, 40, 220), "unknown": (128, 128, 128)}
 
 
-def _metric_values(summary: Mapping[str, Any]) -> dict[str, float | None]:
+def _metric_values(summary: Mapping[str, Any], telemetry: Mapping[str, Any] | None = None) -> dict[str, float | None]:
     over: list[float] = []
     over_missing = False
     for f in summary.get("faults", []):
@@ -56,18 +56,23 @@ def _metric_values(summary: Mapping[str, Any]) -> dict[str, float | None]:
         "max_failback_gap_ms": None if any(b is None for b in back) else (max(back) if back else 0.0),
         "leader_answers": tiers.get("leader", 0),
         "cloud_answers": tiers.get("cloud", 0),
+        # not counted (None) fails its expectation: a loss that cannot be ruled out is not "0 lost"
+        "telemetry_lost": None if telemetry is None or telemetry.get("lost") is None else telemetry["lost"],
     }
 
 
-def check_expectations(scenario: Scenario, summary: Mapping[str, Any]) -> list[dict[str, Any]]:
+def check_expectations(scenario: Scenario, summary: Mapping[str, Any],
+                       telemetry: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
     """``[{"name", "metric", "observed", "held"}]`` for each expectation of ``scenario``.
 
-    A metric that could not be measured (e.g. a failover that never happened)
-    is ``None`` and fails its expectation.
+    Checks :attr:`Scenario.checked_expectations`: the declared ones plus the
+    default ``telemetry_lost <= 0``.  A metric that could not be measured
+    (e.g. a failover that never happened, telemetry not counted) is ``None``
+    and fails its expectation.
     """
-    values = _metric_values(summary)
+    values = _metric_values(summary, telemetry)
     return [{"name": e.name, "metric": e.metric, "observed": values.get(e.metric),
-             "held": e.holds(values.get(e.metric))} for e in scenario.expectations]
+             "held": e.holds(values.get(e.metric))} for e in scenario.checked_expectations]
 
 
 def energy_per_robot(scenario: Scenario, records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -172,8 +177,10 @@ def build_report(
         ``thesis_table_4_2.csv`` to put beside our figures.
     telemetry : dict, keyword-only
         The data tier's count (``RunResult.telemetry``: ``{"sent", "stored",
-        "duplicates", "lost", "per_robot"}``); when None, :func:`write_report`
-        takes it from the run's ``telemetry.json``.
+        "duplicates", "lost", "per_robot"}``), checked by the default
+        expectation ``telemetry_lost <= 0`` (None: not counted, which fails
+        it); when None, :func:`write_report` still takes it from the run's
+        ``telemetry.json`` for the report's table.
 
     Returns
     -------
@@ -208,7 +215,7 @@ def build_report(
             "restart_ready_after_ms": None if f.get("ready_unix_ns") is None or f.get("end_unix_ns") is None
             else (int(f["ready_unix_ns"]) - int(f["end_unix_ns"])) / 1e6,
         })
-    expectations = check_expectations(scenario, summ)
+    expectations = check_expectations(scenario, summ, telemetry)
     requests = []
     for r in records:
         row = {k: r.get(k) for k in REQUEST_FIELDS}

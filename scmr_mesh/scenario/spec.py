@@ -146,6 +146,11 @@ class Expectation:
         return bool(_OPS[self.op](float(observed), float(self.value)))
 
 
+#: Checked in every scenario unless it states its own expectation on the same metric:
+#: nothing the robots sent as telemetry may be lost (docs/DATA.md).
+DEFAULT_EXPECTATIONS: tuple[Expectation, ...] = (Expectation("telemetry_lost", "<=", 0.0),)
+
+
 @dataclass(frozen=True)
 class Scenario:
     """A validated scenario (see the module docstring)."""
@@ -164,6 +169,12 @@ class Scenario:
     expectations: tuple[Expectation, ...] = ()
     process: str | None = None
     source: str = "<dict>"
+
+    @property
+    def checked_expectations(self) -> tuple[Expectation, ...]:
+        """The declared expectations plus :data:`DEFAULT_EXPECTATIONS` on metrics not declared."""
+        mine = {e.metric for e in self.expectations}
+        return self.expectations + tuple(e for e in DEFAULT_EXPECTATIONS if e.metric not in mine)
 
     @property
     def peers(self) -> tuple[PeerSpec, ...]:

@@ -1,0 +1,119 @@
+"""``scmr up`` tells the truth about its data tier (issue #12, items 1 and 3).
+
+Real fleets (cloud, leader, one robot as processes on loopback, stub pipeline):
+
+* the ODS destroyed during a cloud outage: the restarted cloud never becomes
+  ready; the summary says so, the telemetry line is there, the run fails;
+* the ODS deleted during the outage: the restarted cloud starts a fresh store,
+  the records stored before are lost; the summary and the exit status say so;
+* the robot's telemetry queue on a full tmpfs: the refused records are lost in
+  ``report.json``, on the console and in the exit status of ``scmr up``.
+
+About 15 s each on a quiet 2-core box.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from test_data_faults import full_tmpfs
+from test_fleet_e2e import STUB, kill_leftovers, scmr
+
+from scmr_mesh.errors import MeshError
+from scmr_mesh.fleet import FleetConfig, check_fleet, format_summary
+from scmr_mesh.fleet.run import FleetRun
+
+SERVER = ("--process", "scmr_mesh.mesh.testing:stub_process")
+
+
+def _run_with_damage(run_dir: Path, damage) -> dict:
+    """One fleet run; ``damage(run_dir)`` is called right after the cloud was SIGKILLed."""
+    cfg = FleetConfig(robots=1, duration_s=6.0, rate_hz=8.0, cloud_outage=(1.5, 3.5), synthetic=["stub"],
+                      run_dir=run_dir, server_args=SERVER, workers=1, ready_timeout_s=60)
+    cfg.check()
+    run = FleetRun(cfg)
+    step = run._outage_step
+    done = []
+
+    def outage_step(now: float) -> None:
+        step(now)
+        if run.faults and run.faults[0]["end_unix_ns"] is None and not done:
+            done.append(now)
+            damage(run_dir)
+
+    run._outage_step = outage_step
+    try:
+        run.start()
+        run.drive()
+    finally:
+        run.stop()
+        kill_leftovers(run_dir)
+    assert done, "the outage never started"
+    return run.report()
+
+
+def _rm_store(run_dir: Path) -> None:
+    for suffix in ("", "-wal", "-shm"):
+        (run_dir / f"ods.sqlite{suffix}").unlink(missing_ok=True)
+
+
+@pytest.mark.timeout(180)
+def test_a_restart_that_never_comes_up_fails_the_run(tmp_path):
+    def destroy(run_dir: Path) -> None:
+        _rm_store(run_dir)
+        (run_dir / "ods.sqlite").write_bytes(b"this is no longer a database\n" * 100)
+
+    rep = _run_with_damage(tmp_path / "run", destroy)
+    (fault,) = rep["faults"]
+    assert fault["end_unix_ns"] is not None and fault["ready_unix_ns"] is None
+    text = format_summary(rep)
+    assert "NEVER BECAME READY" in text and "restored" not in text
+    tel = rep["telemetry"]
+    assert "telemetry: " in text and f"{tel['sent']} sent" in text
+    assert tel["sent"] > 0 and tel["lost"] == tel["sent"] and "could not be read" in tel["error"]
+    assert any("never became ready" in p for p in rep["problems"])
+    assert rep["ror"] == 1.0  # every request was answered (the leader): only the data tier failed
+    with pytest.raises(MeshError, match="never became ready"):
+        check_fleet(rep, 1.0)
+    assert json.loads((tmp_path / "run" / "report.json").read_text())["problems"] == rep["problems"]
+
+
+@pytest.mark.timeout(180)
+def test_records_lost_with_the_store_show_on_the_console_and_fail_the_run(tmp_path):
+    rep = _run_with_damage(tmp_path / "run", _rm_store)
+    (fault,) = rep["faults"]
+    assert fault["ready_unix_ns"] is not None  # the restarted cloud started a fresh store
+    tel = rep["telemetry"]
+    assert tel["lost"] > 0 and tel["stored"] == tel["sent"] - tel["lost"] and "error" not in tel
+    text = format_summary(rep)
+    assert f"{tel['lost']} lost" in text and f"PROBLEM: {tel['lost']} of {tel['sent']} telemetry records lost" in text
+    with pytest.raises(MeshError, match="telemetry records lost"):
+        check_fleet(rep, 1.0)
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="mounting a tmpfs needs root")
+def test_scmr_up_reports_telemetry_refused_by_a_full_disk(tmp_path):
+    run_dir = tmp_path / "run"
+    with full_tmpfs(tmp_path / "mnt", free_pages=2):
+        try:
+            r = subprocess.run(
+                scmr("up", "--robots", "1", "--duration", "5", "--rate", "20", "--run-dir", str(run_dir),
+                     f"--robot-arg=--telemetry-queue={tmp_path / 'mnt' / 'q'}", *STUB),
+                capture_output=True, text=True, timeout=150)
+        finally:
+            kill_leftovers(run_dir)
+    assert r.returncode == 1, r.stdout + r.stderr
+    rep = json.loads((run_dir / "report.json").read_text())
+    tel = rep["telemetry"]
+    assert tel["refused"] > 0 and tel["lost"] >= tel["refused"] and tel["sent"] > tel["refused"]
+    assert f"{tel['lost']} lost ({tel['refused']} refused by the robots' queues)" in r.stdout
+    assert rep["peers"]["r1"]["exit"] == 1
+    err = r.stderr.strip().splitlines()[-1]
+    assert err.startswith("scmr: error: ") and "telemetry records lost" in err and "Traceback" not in r.stderr
+    assert rep["ror"] == 1.0
