@@ -198,7 +198,10 @@ value = 0
     rep = json.loads((tmp_path / "r.json").read_text())
     assert r.returncode == 1, r.stdout + r.stderr  # leader_answers == 0 cannot hold: the link went down
     assert rep["expectations"] == [{"name": "leader_answers == 0", "metric": "leader_answers",
-                                    "observed": rep["summary"]["by_tier"]["leader"], "held": False}]
+                                    "observed": rep["summary"]["by_tier"]["leader"], "held": False},
+                                   {"name": "telemetry_lost <= 0", "metric": "telemetry_lost",  # the default
+                                    "observed": rep["telemetry"]["lost"], "held": rep["telemetry"]["lost"] == 0}]
+    assert "  telemetry: " in r.stdout and "expectation telemetry_lost <= 0" in r.stdout
     assert rep["summary"]["by_tier"]["leader"] > 0 and rep["seed"] == 5
     f = rep["faults"][0]
     assert f["kind"] == "link_down" and f["at_s"] == 2.5 and f["failover_gap_ms"] is not None
