@@ -262,6 +262,8 @@ class FleetRun:
         while True:
             now = time.monotonic() - self.t_ready
             self._outage_step(now)
+            for proc in self.sup.procs.values():  # note every (re)started peer's ready time for the report
+                proc.is_ready()
             n_seen = len(self.records)
             self._read_records()
             if self.fviz is not None:
@@ -461,11 +463,18 @@ def fleet_problems(report: Mapping[str, Any]) -> list[str]:
     t0 = report.get("started_unix_ns") or 0
     peers = report.get("peers") or {}
     for f in report.get("faults") or []:
-        if f.get("end_unix_ns") is not None and f.get("ready_unix_ns") is None:
-            name = CLOUD if f.get("tier") == "cloud" else str(f.get("target"))
+        if f.get("end_unix_ns") is None:
+            continue
+        # the restarted peers: every cloud node for a cloud-tier crash (scmr up restarts them all)
+        names = [n for n in peers if n.startswith(CLOUD)] if f.get("tier") == "cloud" else [str(f.get("target"))]
+        never = [n for n in names if n in peers and peers[n].get("ready_unix_ns") is None]
+        if f.get("ready_unix_ns") is None and not never:
+            never = names or [str(f.get("target"))]
+        for name in never:
             p = peers.get(name) or {}
             rc = p.get("exit")
-            out.append(f"{f.get('target')} was restarted at {(f['end_unix_ns'] - t0) / 1e9:.2f} s but never became "
+            label = f.get("target") if len(names) <= 1 else name
+            out.append(f"{label} was restarted at {(f['end_unix_ns'] - t0) / 1e9:.2f} s but never became "
                        "ready" + (f" (it exited with status {rc})" if rc not in (None, 0) else "")
                        + (f"; see {p['log']}" if p.get("log") else ""))
     for name, p in peers.items():
