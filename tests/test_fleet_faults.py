@@ -50,6 +50,7 @@ def _run_with_damage(run_dir: Path, damage) -> dict:
     try:
         run.start()
         run.drive()
+        run.await_restarts()
     finally:
         run.stop()
         kill_leftovers(run_dir)

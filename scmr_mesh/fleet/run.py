@@ -171,6 +171,7 @@ def run_fleet(
     try:
         run.start()   # run directory, rerun sink, servers, then robots, each waited ready
         run.drive()   # until the robots finish: faults on schedule, records, progress
+        run.await_restarts()  # a restarted cloud still starting up: ready late, or never
     except KeyboardInterrupt:
         run.interrupted = True
         log.warning("interrupted: stopping the fleet")
@@ -284,6 +285,25 @@ class FleetRun:
                 last_emit = now
                 self._emit("running", min(now, config.duration_s), self._alive_tiers())
             time.sleep(0.05)
+
+    def await_restarts(self) -> None:
+        """Wait (up to the ready timeout) for a restarted cloud still starting when the robots finished.
+
+        A cold start can take longer than the rest of the run on a busy box; a
+        restart is "never became ready" only when the peer exits or stays
+        unready for ``ready_timeout_s`` (docs/FLEET.md).
+        """
+        fault = self.faults[0] if self.faults else None
+        if fault is None or fault["end_unix_ns"] is None or fault["ready_unix_ns"] is not None:
+            return
+        deadline = time.monotonic() + self.config.ready_timeout_s
+        self._emit("waiting for the restarted cloud to become ready", self.config.duration_s, self._alive_tiers())
+        while time.monotonic() < deadline and any(self.sup.procs[c].alive() for c in self.clouds):
+            self._outage_step(float("inf"))  # notes the ready time once a node is ready
+            if fault["ready_unix_ns"] is not None:
+                return
+            time.sleep(0.05)
+        self._outage_step(float("inf"))
 
     def stop(self) -> None:
         """Stop the robots (they flush their records), count the data tier, stop the rest, close the recording."""
