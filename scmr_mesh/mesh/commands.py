@@ -27,7 +27,7 @@ import threading
 import time
 from pathlib import Path
 
-from scmr_mesh.errors import InputError
+from scmr_mesh.errors import InputError, MeshError
 
 log = logging.getLogger(__name__)
 
@@ -208,9 +208,11 @@ def _cmd_leader(args) -> int:
         def body(session, stop):
             return _robot_body(args, session, stop)
 
-    return run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
-                       max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                       setup=_setup(args, "leader"), verbose=bool(args.verbose))
+    rc = run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
+                     max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
+                     setup=_setup(args, "leader"), verbose=bool(args.verbose))
+    _raise_problem(args)
+    return rc
 
 
 def _cmd_robot(args) -> int:
@@ -223,11 +225,13 @@ def _cmd_robot(args) -> int:
     clear_ready(args.ready_file)
     session = open_session(_mesh(args))
     try:
-        return _robot_body(args, session, stop.event)
+        rc = _robot_body(args, session, stop.event)
     finally:
         close_session(session)
         clear_ready(args.ready_file)
         stop.restore()
+    _raise_problem(args)
+    return rc
 
 
 def _check_robot_args(args):
@@ -304,11 +308,20 @@ def _robot_body(args, session, stop: threading.Event) -> int:
     if robot.telemetry_errors:
         extra["telemetry_errors"] = robot.telemetry_errors
     print(json.dumps({"robot": args.id, **stats, **extra}), flush=True)
-    return _robot_status(args.id, telemetry, robot.telemetry_errors)
+    # raised by the command once the session is closed, so it is the last line on stderr
+    args._problem = _robot_problem(args.id, telemetry, robot.telemetry_errors)
+    return 0
 
 
-def _robot_status(rid: str, telemetry: dict | None, errors: int) -> int:
-    """Exit status of a robot: 1 (one line on stderr) when telemetry was lost or could not be produced."""
+def _raise_problem(args) -> None:
+    """Exit 1 with one line when the robot's telemetry was lost (see :func:`_robot_problem`)."""
+    problem = getattr(args, "_problem", None)
+    if problem:
+        raise MeshError(problem)
+
+
+def _robot_problem(rid: str, telemetry: dict | None, errors: int) -> str | None:
+    """What makes a robot exit 1: telemetry lost or not produced (None when nothing was)."""
     problems = []
     if telemetry is not None and telemetry["lost"]:
         refused = ",".join(telemetry["refused_seqs"])
@@ -318,9 +331,8 @@ def _robot_status(rid: str, telemetry: dict | None, errors: int) -> int:
     if errors:
         problems.append(f"{errors} telemetry message(s) could not be produced (see the log)")
     if not problems:
-        return 0
-    print(f"scmr: error: robot {rid}: " + "; ".join(problems), file=sys.stderr, flush=True)
-    return 1
+        return None
+    return f"robot {rid}: " + "; ".join(problems)
 
 
 def _robot_viz(args, robot):
