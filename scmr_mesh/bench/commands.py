@@ -8,6 +8,7 @@ target       module                                measures
 ===========  ====================================  =================================
 pipeline     :mod:`scmr_mesh.bench.pipeline`       per-stage ms of the vision pipeline
 mesh         :mod:`scmr_mesh.bench.mesh`           ToR/RoR of fleets, a cloud crash, overload
+scale        :mod:`scmr_mesh.bench.scale`          served/s against 1..8 cloud nodes, a node crash
 scenario     :mod:`scmr_mesh.bench.scenario`       failover/failback of a scenario over N runs
 energy       :mod:`scmr_mesh.bench.energy`         measured energy-model inputs
 data         :mod:`scmr_mesh.bench.data`           queue, ODS, buffer, store round trip
@@ -40,6 +41,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     """Add every ``scmr bench`` target."""
     add_pipeline(bench)
     add_mesh(bench)
+    add_scale(bench)
     add_scenario(bench)
     add_energy(bench)
     add_data(bench)
@@ -109,6 +111,40 @@ def add_mesh(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
     b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
     b.set_defaults(func=_handler("mesh", "cmd_bench_mesh"))
+
+
+def add_scale(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench scale``."""
+    b = bench.add_parser(
+        "scale", help="served/s of 32 robots against 1, 2, 4 (8) cloud nodes on a shared PostgreSQL store",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=(
+            "Run a fleet of --robots robots against N = 1, 2, 4 (and 8 without --quick) cloud nodes that "
+            "share a PostgreSQL data store, then a crash run (4 nodes, cloud0 SIGKILLed halfway and left "
+            "down), and write {\"ods_backend\", \"served_per_s\": {\"1\": ...}, \"efficiency\": "
+            "{\"2\": ...}, \"crash\": {\"ror\", \"telemetry\": {\"sent\", \"stored\", \"lost\"}}, ...}.\n\n"
+            "The nodes run a fixed service time (--service-ms, sleeping, no CPU work) on --workers worker "
+            "processes, so a node serves at most workers/service requests/s and the tier N times that; "
+            "robots send as fast as answers come (one request in flight each), nodes queue up to 64 "
+            "requests instead of answering busy, deadlines are 10 s and local fallback is off, so the "
+            "cloud tier, not the robots' pacing or admission, limits served/s. efficiency(N) = "
+            "served/s(N) / (N x served/s(1)). Targets: efficiency >= 0.85 at 4 nodes, RoR 1.0 and no "
+            "telemetry lost in the crash run; exit 1 when one is missed. On one 2-core host the robots, "
+            "nodes and database share the cores: see docs/DEPLOY.md for what the figures do and do not show."
+        ),
+    )
+    b.add_argument("--quick", action="store_true",
+                   help="N = 1, 2, 4 and 14 s per run (about 2 minutes) instead of N = 1, 2, 4, 8 and 30 s")
+    b.add_argument("--robots", type=int, default=32, metavar="N", help="robots (default: %(default)s)")
+    b.add_argument("--workers", type=int, default=2, metavar="W",
+                   help="worker processes per cloud node (default: %(default)s)")
+    b.add_argument("--service-ms", type=float, default=200.0, metavar="MS",
+                   help="fixed service time per request (default: %(default)s)")
+    b.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="seconds each fleet runs (default: 14 with --quick, else 30)")
+    b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
+    b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
+    b.set_defaults(func=_handler("scale", "cmd_bench_scale"))
 
 
 def add_scenario(bench: argparse._SubParsersAction) -> None:

@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
-from scmr_mesh.fleet.plan import ODS_BACKENDS, FleetConfig, parse_outage
+from scmr_mesh.fleet.plan import ODS_BACKENDS, FleetConfig, parse_kill, parse_outage
 
 
 def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> None:
@@ -36,6 +36,7 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         robots=robots, clouds=getattr(args, "clouds", 1), ods_backend=getattr(args, "ods_backend", "auto"),
         ods=getattr(args, "ods", None), duration_s=args.duration, rate_hz=args.rate,
         cloud_outage=parse_outage(args.cloud_outage) if getattr(args, "cloud_outage", None) else None,
+        kill_cloud=parse_kill(args.kill_cloud) if getattr(args, "kill_cloud", None) else None,
         images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
         server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
@@ -89,6 +90,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_fleet_args(p)
     p.add_argument("--cloud-outage", metavar="START:END",
                    help="SIGKILL every cloud node START s after the fleet is ready, restart them at END s")
+    p.add_argument("--kill-cloud", metavar="cloudI@S",
+                   help="SIGKILL cloud node cloudI S s after the fleet is ready and leave it down (with "
+                        "--clouds N > 1 the other nodes serve on), e.g. cloud0@5")
     p.add_argument("--json", metavar="FILE", help="also write the report here")
     p.add_argument("--run-dir", type=Path, metavar="DIR", help="run directory (default: runs/<UTC timestamp>)")
     p.add_argument("--min-ror", type=float, default=1.0, metavar="R",

@@ -53,6 +53,10 @@ class FleetConfig:
     cloud_outage : (float, float) or None
         Seconds after the fleet is ready at which the cloud tier (every cloud
         node) is SIGKILLed and restarted.
+    kill_cloud : (int, float) or None
+        ``(i, t)``: SIGKILL cloud node ``cloud<i>`` ``t`` seconds after the
+        fleet is ready and leave it down (the other nodes serve on; needs
+        ``clouds > 1`` to keep the cloud tier).
     images : Path or None
         A folder of images every robot sends (else synthetic scenes).
     synthetic : sequence of str
@@ -80,6 +84,7 @@ class FleetConfig:
     duration_s: float = 10.0
     rate_hz: float = 5.0
     cloud_outage: tuple[float, float] | None = None
+    kill_cloud: tuple[int, float] | None = None
     images: Path | None = None
     synthetic: Sequence[str] = ()
     run_dir: Path | None = None
@@ -114,6 +119,13 @@ class FleetConfig:
                     f"--cloud-outage must satisfy 0 <= START < END <= --duration ({self.duration_s:g}), "
                     f"got {start:g}:{end:g}"
                 )
+        if self.kill_cloud is not None:
+            i, t = self.kill_cloud
+            if not 0 <= i < self.clouds or not 0 <= t <= self.duration_s:
+                raise InputError(f"--kill-cloud must name cloud0..cloud{self.clouds - 1} at 0..{self.duration_s:g} s "
+                                 f"(--duration), got cloud{i}@{t:g}")
+            if self.cloud_outage is not None:
+                raise InputError("give either --kill-cloud or --cloud-outage, not both")
         if self.images is not None and not Path(self.images).is_dir():
             raise InputError(f"--images must be a folder of images, got {self.images} (not a folder)")
 
@@ -128,6 +140,16 @@ def parse_outage(text: str) -> tuple[float, float]:
     if not 0 <= start < end:
         raise InputError(f"--cloud-outage needs 0 <= START < END, got {text!r}")
     return start, end
+
+
+def parse_kill(text: str) -> tuple[int, float]:
+    """``"cloud2@5"`` -> ``(2, 5.0)``: which cloud node to SIGKILL, seconds after the fleet is ready."""
+    import re
+
+    m = re.fullmatch(r"cloud(\d+)@(\d+(?:\.\d*)?)", str(text).strip())
+    if not m:
+        raise InputError(f"--kill-cloud must be cloudI@SECONDS such as cloud1@5, got {text!r}")
+    return int(m.group(1)), float(m.group(2))
 
 
 def _default_kinds() -> list[str]:

@@ -265,6 +265,7 @@ class FleetRun:
             self._outage_step(now)
             for proc in self.sup.procs.values():  # note every (re)started peer's ready time for the report
                 proc.is_ready()
+            self._kill_step(now)
             n_seen = len(self.records)
             self._read_records()
             if self.fviz is not None:
@@ -430,12 +431,29 @@ class FleetRun:
             if ready:  # the tier is back with its first node
                 fault["ready_unix_ns"] = min(ready)
 
+    def _kill_step(self, now: float) -> None:
+        """SIGKILL one cloud node (``--kill-cloud``) on schedule; it stays down."""
+        kill = self.config.kill_cloud
+        if kill is None or any(f.get("kind") == "crash" for f in self.faults) or now < kill[1]:
+            return
+        name, node = list(self.cloud_nodes.items())[kill[0]]
+        t_kill = self.sup.kill(name)
+        # the cloud tier stays (other nodes serve): a fault that takes away no tier
+        self.faults.append({"kind": "crash", "target": node, "tier": "cloud" if self.config.clouds == 1 else None,
+                            "start_unix_ns": t_kill, "end_unix_ns": None, "ready_unix_ns": None, "robots": None})
+        log.info("cloud node %s SIGKILLed at %.3f s (not restarted)", node, now)
+
+    def _killed(self, name: str) -> bool:
+        kill = self.config.kill_cloud
+        return kill is not None and name == list(self.cloud_nodes)[kill[0]] and bool(self.faults)
+
     def _outage_pending(self) -> bool:
         """Whether the cloud is still down, to be restarted."""
         return bool(self.faults) and self.faults[0]["end_unix_ns"] is None
 
     def _expected_exit(self, name: str, rc: int | None) -> bool:
-        return (name in self.rids and rc == 0) or (name in self.clouds and self._outage_pending())
+        return ((name in self.rids and rc == 0) or (name in self.clouds and self._outage_pending())
+                or self._killed(name))
 
     def _read_records(self) -> None:
         for rid in self.rids:

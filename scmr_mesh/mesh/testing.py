@@ -5,6 +5,8 @@ scmr_mesh.mesh.testing:stub_process``) that needs neither numba nor the
 pipeline: the mask marks as drivable every pixel of the 300x225 frame whose
 grey value is at least the frame's mean.  :func:`slow_process` sleeps first
 (``SCMR_STUB_DELAY_MS``, default 200) to keep requests in flight.
+:func:`fixed_process` only sleeps (``SCMR_STUB_DELAY_MS``, default 100) and
+replies a constant mask: a fixed service time with no CPU work.
 """
 
 from __future__ import annotations
@@ -69,6 +71,36 @@ def slow_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> d
 slow_process.warm_up = _warm_stub  # type: ignore[attr-defined]
 
 
+_FIXED_MASK: bytes | None = None
+
+
+def _fixed_mask() -> bytes:
+    global _FIXED_MASK
+    if _FIXED_MASK is None:
+        import cv2
+        import numpy as np
+
+        mask = np.zeros((225, 300), np.uint8)
+        mask[112:, 75:225] = 255  # the bottom centre is road
+        _FIXED_MASK = cv2.imencode(".png", mask)[1].tobytes()
+    return _FIXED_MASK
+
+
+def fixed_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> dict:
+    """A fixed service time and no CPU work: sleep ``SCMR_STUB_DELAY_MS`` ms (default 100), reply a constant mask.
+
+    What ``scmr bench scale`` runs on the cloud nodes, so that the capacity
+    measured is the cloud tier's (workers x nodes / service time), not the
+    host's two cores.  The frame is not decoded.
+    """
+    delay_ms = float(os.environ.get("SCMR_STUB_DELAY_MS", "100"))
+    time.sleep(delay_ms / 1e3)
+    return {"mask_png": _fixed_mask(), "shape": (225, 300), "threshold": 128, "timings_ms": {"fixed": delay_ms}}
+
+
+fixed_process.warm_up = _fixed_mask  # type: ignore[attr-defined]
+
+
 def synthetic_png(seed: int = 0, *, height: int = 120, width: int = 160) -> bytes:
     """A small PNG road-like frame (grey road in the bottom centre), seeded."""
     import cv2
@@ -84,6 +116,7 @@ def synthetic_png(seed: int = 0, *, height: int = 120, width: int = 160) -> byte
 # ------------------------------------------------------------ processes
 STUB = "scmr_mesh.mesh.testing:stub_process"
 SLOW = "scmr_mesh.mesh.testing:slow_process"
+FIXED = "scmr_mesh.mesh.testing:fixed_process"
 
 
 def spawn_peer(args: list[str], *, log_path, env: dict | None = None, prefix: list[str] = ()):
