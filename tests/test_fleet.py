@@ -228,3 +228,36 @@ def test_progress_line_puts_alive_tiers_first():
     assert line.startswith("[ 10.6/20 s] cloud DOWN, leader up | 4 req, RoR 0.750, ToR p50/p99 7.5/40.0 ms")
     assert line.endswith("cloud 2 leader 1 local 0 failed 1")
     assert "starting" in format_progress(Progress(0, 20, 0, 0, None, None, {}, {}, phase="starting"))
+
+
+@pytest.mark.parametrize("text, want", [("cloud0@5", (0, 5.0)), ("cloud3@2.5", (3, 2.5))])
+def test_parse_kill(text, want):
+    from scmr_mesh.fleet.plan import parse_kill
+
+    assert parse_kill(text) == want
+
+
+def test_kill_cloud_checks():
+    from scmr_mesh.fleet.plan import parse_kill
+
+    with pytest.raises(InputError, match="cloudI@SECONDS"):
+        parse_kill("c1@5")
+    with pytest.raises(InputError, match="must name cloud0..cloud1"):
+        FleetConfig(clouds=2, kill_cloud=(2, 1.0)).check()
+    with pytest.raises(InputError, match="either --kill-cloud or --cloud-outage"):
+        FleetConfig(clouds=2, duration_s=10, kill_cloud=(1, 1.0), cloud_outage=(2, 3)).check()
+
+
+def test_bench_scale_window_counts_cloud_answers_only(tmp_path):
+    from scmr_mesh.bench.scale import served_in_window
+
+    (tmp_path / "robots" / "r1").mkdir(parents=True)
+    t0 = 10**18
+    recs = [{"ok": True, "tier": "cloud", "served_by": f"cloud{i % 2}", "received_unix_ns": t0 + i * 10**8}
+            for i in range(100)]  # 10 s at 10/s
+    recs += [{"ok": True, "tier": "leader", "served_by": "leader0", "received_unix_ns": t0 + 5 * 10**9},
+             {"ok": False, "tier": None, "received_unix_ns": t0 + 5 * 10**9}]
+    (tmp_path / "robots" / "r1" / "records.jsonl").write_text("".join(json.dumps(r) + "\n" for r in recs))
+    w = served_in_window({"started_unix_ns": t0, "run_dir": str(tmp_path)}, duration_s=10)
+    assert w["window_s"] == 7.0 and w["served"] == 70 and w["served_per_s"] == 10.0  # 2 s warm-up, 1 s tail
+    assert w["other"] == 2 and w["by_node"] == {"cloud0": 35, "cloud1": 35}
