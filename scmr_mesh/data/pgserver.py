@@ -127,15 +127,25 @@ class PgServer:
     listen : str, optional
         Also accept TCP connections on this address (e.g. ``127.0.0.1``;
         authentication ``trust`` from loopback only).  Default: the Unix socket only.
+    trust : tuple of str
+        More client networks (CIDR) trusted over TCP, e.g. another site's link.
+        A real deployment uses ``scram-sha-256`` and TLS instead (docs/DEPLOY.md).
+    prefix : tuple of str
+        Command prefix of the server and its probes, e.g. ``("ip", "netns",
+        "exec", NS)`` to run it inside a network namespace (as root the server
+        is then started through ``runuser``).
     """
 
-    def __init__(self, root: str | Path, *, port: int = 5432, listen: str | None = None) -> None:
+    def __init__(self, root: str | Path, *, port: int = 5432, listen: str | None = None,
+                 trust: tuple[str, ...] = (), prefix: tuple[str, ...] = ()) -> None:
         why = available()
         if why:
             raise PgServerError(why)
         self.user = _server_user()
         self.port = int(port)
         self.listen = listen
+        self.trust = tuple(trust)
+        self.prefix = tuple(prefix)
         root = Path(root).resolve()
         root.mkdir(parents=True, exist_ok=True)
         self._own_root = False
@@ -188,9 +198,10 @@ class PgServer:
         if r.returncode != 0:
             last = (r.stderr.strip() or r.stdout.strip()).splitlines()[-1:] or ["no output"]
             raise PgServerError(f"initdb {self.data_dir} failed (exit {r.returncode}): {last[0]}")
-        if self.listen:  # only loopback clients are trusted
+        if self.listen:  # only loopback clients (and the networks in ``trust``) are trusted
             hba = self.data_dir / "pg_hba.conf"
-            hba.write_text("local all all trust\nhost all all 127.0.0.1/32 trust\nhost all all ::1/128 trust\n")
+            hba.write_text("local all all trust\nhost all all 127.0.0.1/32 trust\nhost all all ::1/128 trust\n"
+                           + "".join(f"host all all {net} trust\n" for net in self.trust))
 
     def start(self, *, timeout: float = 60.0) -> str:
         """Create the cluster if needed, start the server, create the database; return :attr:`dsn`.
@@ -217,13 +228,17 @@ class PgServer:
         argv = [find_bin("postgres"), "-D", str(self.data_dir)]
         for k, v in settings.items():
             argv += ["-c", f"{k}={v}"]
+        as_user = _as_user(self.user)
+        if self.prefix:  # e.g. ip netns exec NS: root switches namespace, then runuser drops to the user
+            argv = [*self.prefix, *(["runuser", "-u", self.user, "--"] if self.user else []), *argv]
+            as_user = {}
         with open(self.log_path, "ab") as logf:
             if self.user is not None:
                 self._chown(self.log_path)
             parent = os.getpid()
             self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=logf, stderr=subprocess.STDOUT,
                                          start_new_session=True, preexec_fn=_die_with(parent),
-                                         close_fds=True, **_as_user(self.user))
+                                         close_fds=True, **as_user)
         self._wait_ready(timeout)
         self._create_db()
         log.info("PostgreSQL %s serving %s (pid %d)", self.data_dir, self.dsn, self.proc.pid)
@@ -238,7 +253,7 @@ class PgServer:
 
     def _psql(self, db: str, sql: str) -> subprocess.CompletedProcess:
         host = self.listen or str(self.socket_dir)
-        return subprocess.run([find_bin("psql"), "-X", "-q", "-h", host, "-p", str(self.port), "-U", DB_USER,
+        return subprocess.run([*self.prefix, find_bin("psql"), "-X", "-q", "-h", host, "-p", str(self.port), "-U", DB_USER,
                                "-d", db, "-v", "ON_ERROR_STOP=1", "-tA", "-c", sql],
                               capture_output=True, text=True, timeout=30)
 
@@ -251,7 +266,8 @@ class PgServer:
             if rc is not None:
                 raise PgServerError(f"PostgreSQL exited with status {rc} at start; {self.log_path}: "
                                     f"{self._last_log_line()}")
-            r = subprocess.run([isready, "-q", "-h", host, "-p", str(self.port)], capture_output=True, timeout=10)
+            r = subprocess.run([*self.prefix, isready, "-q", "-h", host, "-p", str(self.port)], capture_output=True,
+                               timeout=10)
             if r.returncode == 0:
                 return
             if time.monotonic() > end:
@@ -287,7 +303,10 @@ class PgServer:
             return None
         if p.poll() is None:
             try:
-                p.send_signal(signal.SIGINT)
+                if self.prefix:  # the postmaster is a grandchild (runuser): signal the group
+                    os.killpg(p.pid, signal.SIGINT)
+                else:
+                    p.send_signal(signal.SIGINT)
                 p.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 log.warning("PostgreSQL ignored a fast shutdown for %.0f s; SIGKILL", timeout)

@@ -1,6 +1,7 @@
-"""Two "hosts" on one machine: Linux network namespaces joined by a veth pair.
+"""Two (or more) "hosts" on one machine: Linux network namespaces joined by veth pairs.
 
-Used by the cross-host test (tests/test_mesh_netns.py) and the router probe
+Used by the cross-host test (tests/test_mesh_netns.py), the several-sites
+cloud test (tests/test_scale_out_sites.py, :class:`Sites`) and the router probe
 (``python -m scmr_mesh.bench.probe routers``).  The commands are computed by a
 pure function (:func:`plan_two_sites`) and run by an executor you can replace,
 so the plan is testable without root.  Namespaces are named ``scmrm-<tag>-a``
@@ -111,3 +112,53 @@ class TwoSites:
                 self.run(cmd)
             except Exception as exc:
                 log.debug("teardown %s: %s", cmd, exc)
+
+
+def plan_sites(tag: str, n: int, links: Sequence[tuple[int, int]]) -> tuple[
+        list[str], list[list[str]], list[list[str]], dict[tuple[int, int], tuple[str, str]]]:
+    """Namespaces for ``n`` sites joined by a veth pair per link (pure).
+
+    Link ``k`` between sites ``i`` and ``j`` gets the /30 ``10.78.<k+1>.0``: site
+    ``i`` is ``.1``, site ``j`` is ``.2``.  No default route anywhere; traffic
+    crosses only the links given (each site's router forwards between them).
+
+    Returns
+    -------
+    (names, up, down, addrs)
+        ``addrs[(i, j)] = (address of i, address of j)`` on their link.
+    """
+    tag = str(tag)[:8]
+    if not 2 <= n <= 9:
+        raise MeshError(f"sites: between 2 and 9 sites, got {n}")
+    names = [f"scmrm-{tag}-{chr(ord('a') + i)}" for i in range(n)]
+    up = [["netns", "add", ns] for ns in names]
+    up += [["-n", ns, "link", "set", "lo", "up"] for ns in names]
+    addrs: dict[tuple[int, int], tuple[str, str]] = {}
+    for k, (i, j) in enumerate(links):
+        if not (0 <= i < n and 0 <= j < n and i != j):
+            raise MeshError(f"sites: link {(i, j)} names a site outside 0..{n - 1}")
+        vi, vj = f"sm{tag}{k}{i}", f"sm{tag}{k}{j}"
+        ai, aj = f"10.78.{k + 1}.1", f"10.78.{k + 1}.2"
+        up += [["link", "add", vi, "netns", names[i], "type", "veth", "peer", "name", vj, "netns", names[j]],
+               ["-n", names[i], "addr", "add", f"{ai}/30", "dev", vi],
+               ["-n", names[j], "addr", "add", f"{aj}/30", "dev", vj],
+               ["-n", names[i], "link", "set", vi, "up"], ["-n", names[j], "link", "set", vj, "up"]]
+        addrs[(i, j)] = (ai, aj)
+    down = [["netns", "del", ns] for ns in names]
+    return names, up, down, addrs
+
+
+class Sites(TwoSites):
+    """Context manager creating ``n`` site namespaces joined by ``links``; yields the names.
+
+    ``addrs[(i, j)]`` are the two ends' addresses of the link between sites i and j.
+    """
+
+    def __init__(self, n: int, links: Sequence[tuple[int, int]], tag: str | None = None, *,
+                 executor: Executor = run_ip) -> None:
+        self.names, self.up, self.down, self.addrs = plan_sites(tag or str(os.getpid() % 10**8), n, links)
+        self.run = executor
+
+    def __enter__(self) -> list[str]:  # type: ignore[override]
+        super().__enter__()
+        return list(self.names)
