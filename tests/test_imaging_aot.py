@@ -66,8 +66,10 @@ def test_pipeline_runs_without_numba_and_matches_the_jit(aot_dir):
         rng = np.random.default_rng(5)
         for shape, q, ms in (((7, 9, 3), 32.0, 0), ((40, 33, 3), 8.0, 5), ((225, 300, 3), 512.0, 10)):
             img = rng.integers(0, 256, shape, dtype=np.uint8)
-            a = _aot.kernel("srm_kernel")(img, q, ms)
-            b = jit.srm_kernel(img, q, ms)
+            t = jit.b2_table(shape[0] * shape[1], q)
+            np.testing.assert_array_equal(_aot.kernel("b2_table")(shape[0] * shape[1], q), t)
+            a = _aot.kernel("srm_kernel")(img, q, ms, t)
+            b = jit.srm_kernel(img, q, ms, t)
             assert all((x == y).all() and x.dtype == y.dtype for x, y in zip(a, b)), shape
         print("ok", len(masks))
     """
@@ -85,7 +87,8 @@ def test_arguments_of_other_types_go_to_the_jit_instead_of_crashing(aot_dir):
         f = _aot.kernel("srm_kernel")
         assert hasattr(f, "aot")
         img = np.random.default_rng(1).integers(0, 256, (20, 30, 3), dtype=np.uint8)
-        for args in ((img[:, ::2], 32.0, 1), (img.astype(np.int32), 32.0, 1), (img[0], 32.0, 1)):
+        t = jit.b2_table(600, 32.0)
+        for args in ((img[:, ::2], 32.0, 1, t), (img.astype(np.int32), 32.0, 1, t), (img[0], 32.0, 1, t)):
             try:
                 got = f(*args)
             except Exception as exc:  # the JIT's own type error is fine

@@ -10,7 +10,8 @@ ports differ on each of them):
   ``b2(R) = g^2 / (2 Q |R|) * (min(|R|, g) * ln(|R| + 1) + ln(1/delta))``;
   merge ``R, R'`` when every channel has ``|mean(R) - mean(R')| <= sqrt(b2(R) + b2(R'))``.
   No Fiji-style 0.1 scaling: ``q`` is used as given.
-* Region sums and means in float64.
+* Region sums exact (int32), means ``sum / size`` in float64 when tested; ``b2`` from a
+  per-size table cached per (image size, Q).
 * **Small-region rule** (as in Nielsen's reference code): after the
   statistical pass, a second pass over the same sorted pairs merges every
   region with fewer than ``min_size`` pixels into the neighbour it meets
@@ -118,5 +119,21 @@ def srm(image: np.ndarray, *, q: float = 32, min_size: int | None = None) -> Srm
         min_size = default_min_size(n)
     if int(min_size) < 0:
         raise InputError(f"min_size must be >= 0, got {min_size}")
-    labels, means, sizes = srm_kernel(rgb, q, int(min_size))
+    labels, means, sizes = srm_kernel(rgb, q, int(min_size), _b2_table(n, q))
     return SrmResult(labels=labels, means=means, sizes=sizes)
+
+
+_B2_TABLES: dict = {}
+
+
+def _b2_table(n: int, q: float):
+    """``b2`` for every region size of an ``n``-pixel image at ``q``, cached (a few sizes and Qs in use)."""
+    table = _B2_TABLES.get((n, q))
+    if table is None:
+        from scmr_mesh.imaging._aot import b2_table
+
+        if len(_B2_TABLES) >= 8:
+            _B2_TABLES.clear()
+        table = _B2_TABLES[(n, q)] = b2_table(int(n), float(q))
+        table.setflags(write=False)
+    return table
