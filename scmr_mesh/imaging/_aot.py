@@ -39,7 +39,8 @@ from typing import Any, Callable
 log = logging.getLogger(__name__)
 
 #: The kernels called from outside ``_srm_kernels`` (srm.py, steps.py).
-KERNELS: tuple[str, ...] = ("srm_kernel", "b2_table", "remove_sparse_kernel", "column_fill_kernel")
+KERNELS: tuple[str, ...] = ("srm_kernel", "b2_table", "remove_sparse_kernel", "column_fill_kernel",
+                             "region_features_kernel")
 
 #: Environment switch: ``0`` uses the numba JIT even when an AOT module exists.
 ENV = "SCMR_AOT"

@@ -210,3 +210,52 @@ def column_fill_kernel(candidate, max_gap):
         for y in range(top, h):
             out[y, x] = 255
     return out
+
+
+@njit(cache=True, nogil=True)
+def region_features_kernel(labels, img, grad, slot, k, off):
+    """Per-region feature sums and per-seed pixel moments in one pass.
+
+    Pixel features (f = channel + off): ``log(fR/fG)``, ``log(fB/fG)``,
+    ``log((fR+fG+fB)/3)``, ``log1p(grad/8)``.  Returns ``sums`` (k, 5) float64
+    (the four feature sums and the pixel count of every region), and for the
+    regions with ``slot[r] >= 0``: ``m1`` (s, 4) sums, ``m2`` (s, 4, 4) sums
+    of outer products, ``ns`` (s,) pixel counts.
+    """
+    h, w = labels.shape
+    lut = np.empty(256, np.float64)
+    for v in range(256):
+        lut[v] = math.log(v + off)
+    lsum = np.empty(766, np.float64)
+    for v in range(766):
+        lsum[v] = math.log(v / 3.0 + off)
+    s = 0
+    for r in range(k):
+        if slot[r] + 1 > s:
+            s = slot[r] + 1
+    sums = np.zeros((k, 5), np.float64)
+    m1 = np.zeros((s, 4), np.float64)
+    m2 = np.zeros((s, 4, 4), np.float64)
+    ns = np.zeros(s, np.float64)
+    x4 = np.empty(4, np.float64)
+    for y in range(h):
+        for x in range(w):
+            r = labels[y, x]
+            cr = img[y, x, 0]
+            cg = img[y, x, 1]
+            cb = img[y, x, 2]
+            x4[0] = lut[cr] - lut[cg]
+            x4[1] = lut[cb] - lut[cg]
+            x4[2] = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
+            x4[3] = math.log1p(grad[y, x] / 8.0)
+            for c in range(4):
+                sums[r, c] += x4[c]
+            sums[r, 4] += 1.0
+            j = slot[r]
+            if j >= 0:
+                ns[j] += 1.0
+                for a in range(4):
+                    m1[j, a] += x4[a]
+                    for b in range(4):
+                        m2[j, a, b] += x4[a] * x4[b]
+    return sums, m1, m2, ns

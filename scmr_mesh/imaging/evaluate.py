@@ -280,3 +280,117 @@ def format_table(result: dict) -> str:
         mean_iou = res["mean"]["iou"] if "mean" in res else res["iou"]
         lines.append(f"{name:22s} {vals} {mean_iou:7.3f}")
     return "\n".join(lines)
+
+
+#: The values :func:`cross_validate` chooses ``best``'s constants from (every combination).
+CV_GRID: dict[str, tuple] = {
+    "gamma": (1.0, 0.5, 0.35),
+    "p": (0.95, 0.99),
+    "horizon": (0.0, 0.4, 0.5),
+    "gap": (10, 20),
+    "seed_share": (0.1, 0.2),
+}
+
+
+def cross_validate(
+    folder: str | Path,
+    *,
+    grid: dict[str, tuple] | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> dict:
+    """Leave-one-dataset-out cross-validation of ``best``'s constants.
+
+    Every combination of ``grid`` (default :data:`CV_GRID`) is scored on every
+    image.  For each dataset ``d``, the combination with the highest mean IoU
+    over the images of the *other* datasets is chosen and scored on ``d``: that
+    is ``d``'s cross-validated IoU.  The in-sample IoU is that of the
+    combination chosen on all images (the shipped defaults, when they are up to
+    date), and the bottom-half baseline is scored beside both.
+
+    Returns
+    -------
+    dict
+        ``{"grid", "combinations", "in_sample": {"params", "mean_iou"},
+        "per_dataset": {d: {"n", "cv_iou", "cv_params", "in_sample_iou",
+        "bottom_half_iou"}}, "mean": {"cv_iou", "in_sample_iou",
+        "bottom_half_iou"}, "mean_of_datasets": {...}, "skipped"}``; means are
+        over images (each image weighs the same) and over datasets.
+    """
+    import itertools
+
+    from scmr_mesh.imaging.codec import load_frame as _load
+    from scmr_mesh.imaging.pipeline import segment_drivable
+    from scmr_mesh.imaging.road_model import RoadParams
+
+    grid = dict(grid or CV_GRID)
+    fields = set(RoadParams.__dataclass_fields__)
+    for k, vals in grid.items():
+        if k not in fields:
+            raise InputError(f"cross-validation grid: unknown constant {k!r}; choose from {', '.join(sorted(fields))}")
+        if not vals:
+            raise InputError(f"cross-validation grid: no values for {k!r}")
+    items = load_manifest(folder)
+    frames, skipped = [], []
+    for item in items:
+        try:
+            frames.append((item, _load(item.image), *truth_at_frame(item)))
+        except ScmrError as exc:
+            skipped.append({"image": item.image.name, "error": str(exc)})
+    if not frames:
+        raise InputError(f"{folder}: none of the {len(items)} manifest item(s) could be read")
+    datasets = np.array([f[0].dataset for f in frames])
+    names = sorted(set(datasets.tolist()))
+    if len(names) < 2:
+        raise InputError(f"{folder}: cross-validation needs at least two datasets, got {names}")
+    keys = list(grid)
+    combos = [dict(zip(keys, vals)) for vals in itertools.product(*grid.values())]
+    scores = np.zeros((len(combos), len(frames)))
+    for ci, combo in enumerate(combos):
+        params = RoadParams(**combo).check()
+        if progress:
+            progress(ci, len(combos), ", ".join(f"{k}={v}" for k, v in combo.items()))
+        for fi, (_item, rgb, road, valid) in enumerate(frames):
+            scores[ci, fi] = score(segment_drivable(rgb, params=params).mask, road, valid)["iou"]
+    if progress:
+        progress(len(combos), len(combos), "")
+    half = np.array([score(bottom_half_mask(), road, valid)["iou"] for _i, _r, road, valid in frames])
+    best_all = int(np.argmax(scores.mean(axis=1)))
+    cv_per_image = np.zeros(len(frames))
+    per = {}
+    for d in names:
+        held = datasets == d
+        ci = int(np.argmax(scores[:, ~held].mean(axis=1)))
+        cv_per_image[held] = scores[ci, held]
+        per[d] = {
+            "n": int(held.sum()),
+            "cv_iou": float(scores[ci, held].mean()),
+            "cv_params": combos[ci],
+            "in_sample_iou": float(scores[best_all, held].mean()),
+            "bottom_half_iou": float(half[held].mean()),
+        }
+    return {
+        "grid": {k: list(v) for k, v in grid.items()},
+        "combinations": len(combos),
+        "in_sample": {"params": combos[best_all], "mean_iou": float(scores[best_all].mean())},
+        "per_dataset": per,
+        "mean": {"cv_iou": float(cv_per_image.mean()), "in_sample_iou": float(scores[best_all].mean()),
+                 "bottom_half_iou": float(half.mean())},
+        "mean_of_datasets": {k: float(np.mean([per[d][k] for d in names]))
+                             for k in ("cv_iou", "in_sample_iou", "bottom_half_iou")},
+        "skipped": skipped,
+    }
+
+
+def format_cv_table(result: dict) -> str:
+    """A plain-text table of a :func:`cross_validate` result."""
+    lines = [f"{'dataset':12s} {'images':>6s} {'CV IoU':>7s} {'in-sample':>9s} {'bottom half':>11s}  constants chosen on the other datasets"]
+    for d, r in result["per_dataset"].items():
+        chosen = ", ".join(f"{k}={v}" for k, v in r["cv_params"].items())
+        lines.append(f"{d[:12]:12s} {r['n']:6d} {r['cv_iou']:7.3f} {r['in_sample_iou']:9.3f} {r['bottom_half_iou']:11.3f}  {chosen}")
+    m, md = result["mean"], result["mean_of_datasets"]
+    n = sum(r["n"] for r in result["per_dataset"].values())
+    lines.append(f"{'all (images)':12s} {n:6d} {m['cv_iou']:7.3f} {m['in_sample_iou']:9.3f} {m['bottom_half_iou']:11.3f}")
+    lines.append(f"{'all (datasets)':12s} {'':6s} {md['cv_iou']:7.3f} {md['in_sample_iou']:9.3f} {md['bottom_half_iou']:11.3f}")
+    chosen = ", ".join(f"{k}={v}" for k, v in result["in_sample"]["params"].items())
+    lines.append(f"in-sample constants (chosen on all images, {result['combinations']} combinations): {chosen}")
+    return "\n".join(lines)

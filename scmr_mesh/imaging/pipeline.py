@@ -10,12 +10,13 @@ Two modes:
     removal (a column stops at its first red pixel or strong edge).
 
 ``"best"`` (default)
-    The same building blocks arranged for accuracy: Gaussian -> SRM at
-    ``16 * q`` -> seed regions in the bottom-centre cell -> regions of a
-    similar colour (relative to the seed's brightness), below a horizon prior,
-    4-connected to the cell -> a gap-tolerant bottom-up column fill.  See
-    :func:`_best_candidates` and docs/PIPELINE.md for the rules, and
-    docs/ACCURACY.md for what was measured to choose them.
+    A road model learned from each frame itself: Gaussian -> tone curve ->
+    SRM at ``16 * q`` -> the regions covering the bottom-centre cell seed a
+    mixture of Gaussians over illumination-invariant colour, brightness and
+    texture -> regions inside a seed's chi-square ellipsoid, below a horizon
+    prior, 4-connected to the cell -> a gap-tolerant bottom-up column fill.
+    See :mod:`scmr_mesh.imaging.road_model`, docs/PIPELINE.md, and
+    docs/ACCURACY.md for the cross-validated choice of its few constants.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
+from scmr_mesh.imaging.road_model import RoadParams, classify, tone_curve
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
     bottom_centre,
@@ -81,14 +83,8 @@ def _clock() -> float:
 #: ``best`` runs SRM with ``BEST_Q_FACTOR * q`` (512 for the default q = 32):
 #: Q = 32 merges the road with dark buildings and verges (measured, docs/ACCURACY.md).
 BEST_Q_FACTOR = 16
-#: An SRM region is a seed when it covers at least this share of the bottom-centre cell.
-SEED_SHARE = 0.10
-#: Largest relative colour difference to a seed, ``max_c |m_c - s_c| / (mean(s) + 10)``.
-COLOUR_TOLERANCE = 0.15
-#: Rows above this fraction of the height are never drivable (horizon prior).
-HORIZON_FRACTION = 0.40
-#: Longest non-drivable run (pixels) bridged by the bottom-up column fill.
-COLUMN_GAP = 15
+#: The constants of ``best`` (chosen by leave-one-dataset-out cross-validation).
+DEFAULT_PARAMS = RoadParams()
 
 
 def srm_q(mode: str, q: float = 32) -> float:
@@ -97,7 +93,8 @@ def srm_q(mode: str, q: float = 32) -> float:
 
 
 def segment_drivable(
-    rgb: np.ndarray, *, mode: str = "best", q: float = 32, stages: bool = False
+    rgb: np.ndarray, *, mode: str = "best", q: float = 32, stages: bool = False,
+    params: RoadParams | None = None,
 ) -> DrivableResult:
     """Find the drivable region of a camera frame.
 
@@ -113,6 +110,8 @@ def segment_drivable(
         uses ``BEST_Q_FACTOR * q`` (finer regions, 512 by default).
     stages : bool, keyword-only
         Also return the intermediate images.
+    params : RoadParams, optional, keyword-only
+        Constants of ``best`` (default :data:`DEFAULT_PARAMS`); ignored by ``thesis``.
 
     Returns
     -------
@@ -139,11 +138,12 @@ def segment_drivable(
     t1 = _clock()
     t["resize"] = t1 - t0
 
+    params = (params or DEFAULT_PARAMS).check() if mode == "best" else None
     blurred = gaussian_blur_3x3(frame)
     t2 = _clock()
     t["blur"] = t2 - t1
 
-    seg = srm(blurred, q=q * BEST_Q_FACTOR if mode == "best" else q)
+    seg = srm(tone_curve(blurred, params.gamma) if params else blurred, q=srm_q(mode, q))
     full = mode == "thesis" or stages  # best needs only the bottom-centre cell of the SRM image
     palette = np.rint(seg.means).clip(0, 255).astype(np.uint8)
     srm_img = palette[seg.labels] if full else None
@@ -169,10 +169,10 @@ def segment_drivable(
         mask = remove_sparse_pixels(otsu_bw, _inner_edges(edges), edge_threshold=THESIS_EDGE_THRESHOLD)
     else:
         otsu_bw = _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold) if stages else None
-        candidate = _best_candidates(seg)
+        candidate, _info = classify(blurred, seg, params)
         t6 = _clock()
         t["classify"] = t6 - t5
-        mask = fill_columns(candidate, max_gap=COLUMN_GAP)
+        mask = fill_columns(candidate, max_gap=int(params.gap))
     t7 = _clock()
     t["sparse"] = t7 - t6
     t["total"] = t7 - t1
@@ -211,36 +211,6 @@ def _otsu_class_image(channel_img: np.ndarray, window_channel: np.ndarray, thres
     if upper_in_window * 2 > window_channel.size:
         return np.where(channel_img > threshold, 255, 0).astype(np.uint8)
     return np.where(channel_img <= threshold, 255, 0).astype(np.uint8)
-
-
-def _best_candidates(seg) -> np.ndarray:
-    """Candidate drivable pixels of ``best``: (H, W) uint8, 1 = candidate.
-
-    1. Seeds: SRM regions covering >= SEED_SHARE of the bottom-centre cell
-       (several, because shading or puddles split the road).
-    2. A region is road-coloured when its mean is within COLOUR_TOLERANCE of
-       some seed, relative to that seed's brightness (a Weber-like rule, so a
-       dark road and a bright road get the same treatment).
-    3. Rows above HORIZON_FRACTION of the height are dropped (horizon prior).
-    4. Only road-coloured pixels 4-connected to the bottom-centre cell stay.
-    """
-    labels = seg.labels
-    h, w = labels.shape
-    cell = bottom_centre(roi(labels))
-    counts = np.bincount(cell.ravel(), minlength=seg.n_regions)
-    seeds = np.flatnonzero(counts >= SEED_SHARE * cell.size)
-    if seeds.size == 0:
-        seeds = np.array([int(np.argmax(counts))])
-    ref = seg.means[seeds]  # (s, 3)
-    scale = ref.mean(axis=1) + 10.0  # (s,)
-    diff = np.abs(seg.means[:, None, :] - ref[None, :, :]).max(axis=2) / scale[None, :]
-    road_like = (diff <= COLOUR_TOLERANCE).any(axis=1)
-    cand = road_like.astype(np.uint8)[labels]
-    cand[: int(HORIZON_FRACTION * h)] = 0
-    n, comp = cv2.connectedComponents(cand, connectivity=4)
-    hits = np.bincount(bottom_centre(roi(comp)).ravel(), minlength=n)
-    hits[0] = 0
-    return (hits > 0).astype(np.uint8)[comp]
 
 
 def warm_up() -> None:
