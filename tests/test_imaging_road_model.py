@@ -36,7 +36,7 @@ def test_tone_curve_is_the_power_law():
 def _slow_features(labels, img, grad, seeds):
     f = img.astype(np.float64) + FEATURE_OFFSET
     x = np.stack([np.log(f[..., 0] / f[..., 1]), np.log(f[..., 2] / f[..., 1]),
-                  np.log(f.sum(axis=2) / 3.0), np.log1p(grad.astype(np.float64) / 8.0)], axis=2).reshape(-1, 4)
+                  np.log(f.sum(axis=2) / 3.0), np.log1p(np.floor(np.clip(grad, 0, 2047).astype(np.float64) + 0.5) / 8.0)], axis=2).reshape(-1, 4)
     lab = labels.ravel()
     k = int(lab.max()) + 1
     sums = np.zeros((k, 5))

@@ -217,7 +217,8 @@ def region_features_kernel(labels, img, grad, slot, k, off):
     """Per-region feature sums and per-seed pixel moments in one pass.
 
     Pixel features (f = channel + off): ``log(fR/fG)``, ``log(fB/fG)``,
-    ``log((fR+fG+fB)/3)``, ``log1p(grad/8)``.  Returns ``sums`` (k, 5) float64
+    ``log((fR+fG+fB)/3)``, ``log1p(round(grad)/8)`` (grad clipped to 0..2047),
+    all through lookup tables.  Returns ``sums`` (k, 5) float64
     (the four feature sums and the pixel count of every region), and for the
     regions with ``slot[r] >= 0``: ``m1`` (s, 4) sums, ``m2`` (s, 4, 4) sums
     of outer products, ``ns`` (s,) pixel counts.
@@ -229,6 +230,9 @@ def region_features_kernel(labels, img, grad, slot, k, off):
     lsum = np.empty(766, np.float64)
     for v in range(766):
         lsum[v] = math.log(v / 3.0 + off)
+    tex = np.empty(2048, np.float64)
+    for v in range(2048):
+        tex[v] = math.log1p(v / 8.0)
     s = 0
     for r in range(k):
         if slot[r] + 1 > s:
@@ -247,7 +251,9 @@ def region_features_kernel(labels, img, grad, slot, k, off):
             x4[0] = lut[cr] - lut[cg]
             x4[1] = lut[cb] - lut[cg]
             x4[2] = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
-            x4[3] = math.log1p(grad[y, x] / 8.0)
+            gv = grad[y, x]
+            gi = 2047 if not gv < 2047.0 else (0 if not gv > 0.0 else np.int32(gv + 0.5))
+            x4[3] = tex[gi]
             for c in range(4):
                 sums[r, c] += x4[c]
             sums[r, 4] += 1.0
@@ -256,6 +262,10 @@ def region_features_kernel(labels, img, grad, slot, k, off):
                 ns[j] += 1.0
                 for a in range(4):
                     m1[j, a] += x4[a]
-                    for b in range(4):
+                    for b in range(a, 4):
                         m2[j, a, b] += x4[a] * x4[b]
+    for j in range(s):
+        for a in range(4):
+            for b in range(a):
+                m2[j, a, b] = m2[j, b, a]
     return sums, m1, m2, ns

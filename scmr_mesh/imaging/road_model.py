@@ -196,7 +196,7 @@ def classify(blurred: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, 
         cov = (m2[j] - n * np.outer(mu, mu)) / (n - 1) if n > N_FEATURES else np.zeros((N_FEATURES, N_FEATURES))
         icov = np.linalg.inv(cov + floor)
         d = means - mu
-        road |= np.einsum("ij,jk,ik->i", d, icov, d) <= limit
+        road |= ((d @ icov) * d).sum(axis=1) <= limit
     road[seeds] = True
     cand = road.astype(np.uint8)[labels]
     if params.horizon > 0:
