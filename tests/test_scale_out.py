@@ -67,7 +67,8 @@ def test_up_with_two_clouds_shares_one_postgres_store(tmp_path):
         # both cloud nodes logged the same store, and the server is gone
         for name in ("cloud", "cloud1"):
             assert "(postgresql)" in (run_dir / "logs" / f"{name}.log").read_text()
-        assert not _procs_mentioning("postgres -D"), "a PostgreSQL server outlived the run"
+        sock = rep["ods"]["store"].split("host=", 1)[1].split("&", 1)[0]  # the run's own server
+        assert not _procs_mentioning(f"unix_socket_directories={sock}"), "the run's PostgreSQL outlived it"
         assert not _procs_mentioning(str(run_dir))
     finally:
         for pid in _procs_mentioning(str(run_dir)):
