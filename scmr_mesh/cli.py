@@ -23,6 +23,7 @@ import traceback
 from typing import Sequence
 
 from scmr_mesh import __version__
+from scmr_mesh.cliargs import ScmrArgumentParser
 from scmr_mesh.errors import ScmrError
 
 #: Modules that contribute sub-commands, in the order ``--help`` lists them.
@@ -80,7 +81,7 @@ def _command_of(argv: Sequence[str] | None) -> str | None:
 def build_parser(argv: Sequence[str] | None = None, *, full: bool = True) -> argparse.ArgumentParser:
     """The ``scmr`` parser; with ``full=False`` only the module of the command in ``argv``."""
     command = None if full else _command_of(argv)
-    parser = argparse.ArgumentParser(
+    parser = ScmrArgumentParser(
         prog="scmr",
         description=(
             "scmr-mesh: robots offload drivable-region segmentation to a cloud "

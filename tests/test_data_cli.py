@@ -49,7 +49,8 @@ def test_counts_latest_range_export(db, tmp_path, capsys):
 def test_missing_and_corrupt_database_are_one_line_errors(tmp_path, capsys):
     assert main(["ods", "--db", str(tmp_path / "nope.sqlite"), "counts"]) == 1
     err = capsys.readouterr().err
-    assert err.startswith("scmr: error: no operational data store at") and "Traceback" not in err
+    assert err.startswith(f"scmr: error: --db {tmp_path / 'nope.sqlite'}: no such file") and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
     bad = tmp_path / "bad.sqlite"
     bad.write_bytes(b"\x00garbage" * 512)
     assert main(["ods", "--db", str(bad), "latest"]) == 1

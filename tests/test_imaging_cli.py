@@ -48,7 +48,7 @@ def test_segment_all_good_exits_zero_and_thesis_mode(tmp_path):
         (["segment", "--synthetic", "moon", "--out", "{tmp}"], "unknown kind 'moon'"),
         (["segment", "--synthetic", "tunnel:x", "--out", "{tmp}"], "seed must be an integer"),
         (["eval", "{tmp}"], "no manifest.json"),
-        (["eval", "{tmp}/nope"], "data folder not found"),
+        (["eval", "{tmp}/nope"], "no such file or folder"),
     ],
 )
 def test_command_errors_are_one_line(argv, match, tmp_path, capsys):

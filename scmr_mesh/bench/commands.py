@@ -26,6 +26,36 @@ import importlib
 from pathlib import Path
 from typing import Callable
 
+from scmr_mesh import cliargs as ca
+
+
+def _fleet_sizes(text: str) -> list[int]:
+    """``"1,4,16"`` -> ``[1, 4, 16]`` (each >= 1)."""
+    sizes = [int(x) for x in text.split(",") if x.strip()]
+    if not sizes or min(sizes) < 1:
+        raise ValueError("fleet sizes must be whole numbers >= 1")
+    return sizes
+
+
+def _outage(text: str) -> tuple[float, float]:
+    from scmr_mesh.fleet.plan import parse_outage
+
+    return parse_outage(text)
+
+
+def _rate(text: str) -> float:
+    from scmr_mesh.energy.commands import parse_rate
+
+    return parse_rate(text)
+
+
+def _frame_size(text: str) -> tuple[int, int]:
+    """``"640x480"`` -> ``(640, 480)`` (each 1..16384)."""
+    w, h = (int(v) for v in text.lower().split("x"))
+    if not (0 < w <= 16384 and 0 < h <= 16384):
+        raise ValueError("width and height must be 1..16384")
+    return w, h
+
 
 def _handler(module: str, func: str) -> Callable[[argparse.Namespace], int]:
     """A handler that imports ``scmr_mesh.bench.<module>`` only when the target runs."""
@@ -67,14 +97,14 @@ def add_pipeline(bench: argparse._SubParsersAction) -> None:
             "built-in synthetic scenes."
         ),
     )
-    p.add_argument("--frames", type=int, default=300, help="frames to time (default: %(default)s)")
-    p.add_argument("--images", type=Path, metavar="DIR", help="folder of PNG/JPEG frames (default: synthetic)")
+    p.add_argument("--frames", type=ca.count("frames", hi=10**6), default=300, help="frames to time (default: %(default)s)")
+    p.add_argument("--images", type=ca.PathArg("in-dir", as_path=True, what="a folder of PNG/JPEG frames"), metavar="DIR", help="folder of PNG/JPEG frames (default: synthetic)")
     p.add_argument("--mode", choices=MODES, default="best", help="pipeline mode (default: %(default)s)")
     p.add_argument("--reference", action="store_true",
                    help="also time the C++ SRM of the dpm-srm package (grey input, same frames, same Q) and "
                         "report our total and SRM as ratios of it; installs nothing: needs "
                         "pip install 'scmr-mesh[bench]'")
-    p.add_argument("--json", type=Path, metavar="FILE", help="write the result as JSON here")
+    p.add_argument("--json", type=ca.PathArg("out-file", as_path=True), metavar="FILE", help="write the result as JSON here")
     p.set_defaults(func=_handler("pipeline", "cmd_bench_pipeline"))
 
 
@@ -92,24 +122,24 @@ def add_mesh(bench: argparse._SubParsersAction) -> None:
             "RoR 1.0 through a cloud crash; failover gap <= 50 ms; failback gap <= 1 s."
         ),
     )
-    b.add_argument("--robots", default="1,4,16", metavar="LIST",
+    b.add_argument("--robots", type=ca.parsed(_fleet_sizes, what="comma-separated fleet sizes >= 1", example="1,4", keep_text=True), default="1,4,16", metavar="LIST",
                    help="comma-separated fleet sizes (default: %(default)s)")
     _add_fleet_args(b)
-    b.add_argument("--crash-robots", type=int, default=4, metavar="N",
+    b.add_argument("--crash-robots", type=ca.count("robots", hi=1000), default=4, metavar="N",
                    help="robots in the crash run (0 skips it; default: %(default)s)")
-    b.add_argument("--crash-duration", type=float, default=16.0, metavar="S",
+    b.add_argument("--crash-duration", type=ca.positive("seconds", hi=604800), default=16.0, metavar="S",
                    help="length of the crash run (default: %(default)s)")
-    b.add_argument("--crash-outage", default="4:7", metavar="START:END",
+    b.add_argument("--crash-outage", type=ca.parsed(_outage, what="START:END seconds with 0 <= START < END", example="4:7", positive=False, keep_text=True), default="4:7", metavar="START:END",
                    help="cloud SIGKILL and restart in the crash run, s (default: %(default)s; the run "
                         "goes on after END so the restarted cloud's first answer is seen)")
-    b.add_argument("--overload-robots", type=int, default=8, metavar="N",
+    b.add_argument("--overload-robots", type=ca.count("robots", hi=1000), default=8, metavar="N",
                    help="robots in the overload run (0 skips it; default: %(default)s): a cloud with a "
                         "40 ms service and 1 worker (~25 requests/s) against N robots at --overload-rate, "
                         "once with the priority negotiator (--queue 2) and once FIFO; see `scmr bench overload`")
-    b.add_argument("--overload-rate", type=float, default=10.0, metavar="HZ",
+    b.add_argument("--overload-rate", type=ca.positive("frames per second", hi=10000), default=10.0, metavar="HZ",
                    help="frames/s per robot in the overload run (default: %(default)s)")
-    b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
-    b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", required=True, help="where to write the results")
+    b.add_argument("--run-dir", type=ca.PathArg("out-dir", as_path=True), metavar="DIR", help="parent of the runs' directories")
     b.set_defaults(func=_handler("mesh", "cmd_bench_mesh"))
 
 
@@ -155,13 +185,13 @@ def add_scenario(bench: argparse._SubParsersAction) -> None:
                           description="Run a scenario N times (default peers/scenarios/cloud-link-drop.toml) and "
                           "print JSON with the median, p99 and max of the per-robot failover gaps, the failback "
                           "gaps and ToR, and the RoR of each run.")
-    bs.add_argument("file", nargs="?", default="peers/scenarios/cloud-link-drop.toml", help="scenario TOML file")
-    bs.add_argument("--runs", type=int, default=3, help="number of runs (default 3)")
+    bs.add_argument("file", type=ca.PathArg("in-file", what="a scenario TOML file", example="peers/scenarios/cloud-crash.toml"), nargs="?", default="peers/scenarios/cloud-link-drop.toml", help="scenario TOML file")
+    bs.add_argument("--runs", type=ca.count("runs", hi=1000), default=3, help="number of runs (default 3)")
     bs.add_argument("--backend", choices=["auto", "netns", "proxy"], default="auto", help="as for scenario run")
-    bs.add_argument("--out", metavar="DIR", help="run folders go here (default runs/bench-scenario-...)")
-    bs.add_argument("--json", metavar="FILE", help="also write the JSON here")
-    bs.add_argument("--data", metavar="DIR", type=Path, default=None, help="image folder (as for scenario run)")
-    bs.add_argument("--ready-timeout", type=float, default=120.0, metavar="S", help="peer start timeout (s)")
+    bs.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", help="run folders go here (default runs/bench-scenario-...)")
+    bs.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
+    bs.add_argument("--data", metavar="DIR", type=ca.PathArg("in-dir", as_path=True), default=None, help="image folder (as for scenario run)")
+    bs.add_argument("--ready-timeout", type=ca.positive("seconds", hi=86400), default=120.0, metavar="S", help="peer start timeout (s)")
     _override_args(bs)
     bs.set_defaults(func=_handler("scenario", "cmd_bench_scenario"))
 
@@ -185,14 +215,14 @@ def add_energy(bench: argparse._SubParsersAction) -> None:
         epilog=energy_commands.__doc__.split("\n\n", 1)[1],
         formatter_class=fmt,
     )
-    b.add_argument("--data", required=True, metavar="DIR",
+    b.add_argument("--data", type=ca.PathArg("in-dir"), required=True, metavar="DIR",
                    help="roads folder with manifest.json (read in place) or a folder of PNG/JPEG frames")
-    b.add_argument("--count", type=int, default=None, help="frames to run (default: each file once)")
+    b.add_argument("--count", type=ca.count("frames", hi=10**6), default=None, help="frames to run (default: each file once)")
     b.add_argument("--mode", choices=("best", "thesis"), default="best", help="pipeline mode (default best)")
     b.add_argument("--profile", metavar="NAMES", help="comma-separated profile names (default: all)")
-    b.add_argument("--bandwidth-up", default="23Mb/s", help="assumed upload rate (default 23Mb/s, Eq 4.9)")
-    b.add_argument("--bandwidth-down", default="28Mb/s", help="assumed download rate (default 28Mb/s, Eq 4.9)")
-    b.add_argument("--decisions", type=int, default=5000, help="placement decisions to time (default 5000)")
+    b.add_argument("--bandwidth-up", type=ca.parsed(_rate, what="a rate such as 23Mb/s", example="23Mb/s", keep_text=True), default="23Mb/s", help="assumed upload rate (default 23Mb/s, Eq 4.9)")
+    b.add_argument("--bandwidth-down", type=ca.parsed(_rate, what="a rate such as 28Mb/s", example="28Mb/s", keep_text=True), default="28Mb/s", help="assumed download rate (default 28Mb/s, Eq 4.9)")
+    b.add_argument("--decisions", type=ca.count("decisions", hi=10**7), default=5000, help="placement decisions to time (default 5000)")
     _common(b, json_help="write the report to FILE")
     b.set_defaults(func=_handler("energy", "cmd_bench_energy"))
 
@@ -206,8 +236,8 @@ def add_data(bench: argparse._SubParsersAction) -> None:
                          "ODS commit -> ack, two sessions on loopback), and how fast a robot's backlog "
                          "of 10*N queued records drains to the cloud after an outage.  Prints JSON "
                          "with medians and p99s.")
-    b.add_argument("--n", type=int, default=200, help="samples per figure (default 200)")
-    b.add_argument("--json", metavar="FILE", help="also write the JSON here")
+    b.add_argument("--n", type=ca.count("samples", hi=10**6), default=200, help="samples per figure (default 200)")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
     b.add_argument("--no-mesh", action="store_true", help="skip the Zenoh round trip")
     b.add_argument("--quiet", action="store_true", help="no progress on stderr")
     b.set_defaults(func=_handler("data", "cmd_bench_data"))
@@ -233,20 +263,20 @@ def add_overload(bench: argparse._SubParsersAction) -> None:
 
 def _add_overload_arguments(p) -> None:
     """Flags of ``scmr bench overload``."""
-    p.add_argument("--robots", type=int, default=8, metavar="N", help="robot processes (default 8)")
-    p.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames/s per robot (default 10)")
-    p.add_argument("--duration", type=float, default=10.0, metavar="S", help="seconds per run (default 10)")
-    p.add_argument("--workers", type=int, default=1, metavar="N", help="cloud worker processes (default 1)")
-    p.add_argument("--service-ms", type=float, default=40.0, metavar="MS",
+    p.add_argument("--robots", type=ca.count("robots", hi=1000), default=8, metavar="N", help="robot processes (default 8)")
+    p.add_argument("--rate", type=ca.positive("frames per second", hi=10000), default=10.0, metavar="HZ", help="frames/s per robot (default 10)")
+    p.add_argument("--duration", type=ca.positive("seconds", hi=604800), default=10.0, metavar="S", help="seconds per run (default 10)")
+    p.add_argument("--workers", type=ca.count("workers", hi=256), default=1, metavar="N", help="cloud worker processes (default 1)")
+    p.add_argument("--service-ms", type=ca.positive("milliseconds", hi=3600000), default=40.0, metavar="MS",
                    help="fixed service time per frame (slow_process stub); 0 = the real pipeline (default 40)")
-    p.add_argument("--queue", type=int, default=2, metavar="Q", help="negotiator queue size (default 2)")
-    p.add_argument("--per-robot", type=int, default=None, metavar="N", help="negotiator per-robot quota")
-    p.add_argument("--levels", type=int, default=2, metavar="L",
+    p.add_argument("--queue", type=ca.count("waiting requests", lo=0, hi=100000), default=2, metavar="Q", help="negotiator queue size (default 2)")
+    p.add_argument("--per-robot", type=ca.count("requests", hi=100000), default=None, metavar="N", help="negotiator per-robot quota")
+    p.add_argument("--levels", type=ca.count("priority levels", hi=1000), default=2, metavar="L",
                    help="priority classes: robot k pays 10 * (k mod L) (default 2)")
     p.add_argument("--policies", default="negotiator,fifo", metavar="LIST",
                    help="runs to make, in order (default negotiator,fifo)")
-    p.add_argument("--json", metavar="FILE", help="write the results here")
-    p.add_argument("--run-dir", type=Path, metavar="DIR", help="keep logs and records here (default: a temp dir)")
+    p.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="write the results here")
+    p.add_argument("--run-dir", type=ca.PathArg("out-dir", as_path=True), metavar="DIR", help="keep logs and records here (default: a temp dir)")
 
 
 def add_tls(bench: argparse._SubParsersAction) -> None:
@@ -260,9 +290,9 @@ def add_tls(bench: argparse._SubParsersAction) -> None:
             "security, usrpwd, mutual TLS, and mutual TLS with the fleet ACL."
         ),
     )
-    t.add_argument("--payload", type=int, default=200_000, metavar="BYTES", help="query payload (default 200000)")
-    t.add_argument("--queries", type=int, default=300, metavar="N", help="timed queries per kind (default 300)")
-    t.add_argument("--json", metavar="FILE", help="write the results here")
+    t.add_argument("--payload", type=ca.count("bytes", hi=1 << 30), default=200_000, metavar="BYTES", help="query payload (default 200000)")
+    t.add_argument("--queries", type=ca.count("queries", hi=10**6), default=300, metavar="N", help="timed queries per kind (default 300)")
+    t.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="write the results here")
     t.set_defaults(func=_handler("tls", "cmd_bench_tls"))
 
 
@@ -277,9 +307,9 @@ def add_viz(bench: argparse._SubParsersAction) -> None:
             "times.  Synthetic frames; reports medians and p99s measured in one run."
         ),
     )
-    b.add_argument("--frames", type=int, default=200, help="requests to log (default: %(default)s)")
-    b.add_argument("--size", default="640x480", help="camera frame WxH (default: %(default)s)")
-    b.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    b.add_argument("--frames", type=ca.count("requests", hi=10**6), default=200, help="requests to log (default: %(default)s)")
+    b.add_argument("--size", type=ca.parsed(_frame_size, what="WIDTHxHEIGHT in pixels", example="640x480", keep_text=True), default="640x480", help="camera frame WxH (default: %(default)s)")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the results as JSON")
     b.set_defaults(func=_handler("viz", "cmd_bench_viz"))
 
 
@@ -293,7 +323,7 @@ def add_zenoh(bench: argparse._SubParsersAction) -> None:
                     "reconnect, failover, redundant, latency, routers (root).  Options after PROBE "
                     "go to the probe; `scmr bench zenoh PROBE -h` lists them.",
         epilog="example: scmr bench zenoh failover --repeat 3 --json failover.json")
-    b.add_argument("--json", metavar="FILE", help="also write the measurements as a JSON list")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the measurements as a JSON list")
     b.add_argument("probe", choices=("detect", "stress", "reconnect", "failover", "redundant", "latency", "routers"))
     b.add_argument("probe_args", nargs=argparse.REMAINDER, help="options of the probe")
     b.set_defaults(func=_handler("zenoh", "cmd_bench_zenoh"))

@@ -557,62 +557,69 @@ def probe_redundant(args) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m scmr_mesh.bench.probe", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> argparse.ArgumentParser:
+    """The probes' parser (``scmr bench zenoh PROBE ...`` hands it the options after PROBE)."""
+    from scmr_mesh import cliargs as ca
+
+    p = ca.ScmrArgumentParser(prog="scmr bench zenoh", description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="probe", required=True)
     s = sub.add_parser("_serve")
     s.add_argument("--listen", required=True)
-    s.add_argument("--lease", type=int, default=500)
-    s.add_argument("--busy", type=int, default=0)
+    s.add_argument("--lease", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), default=500)
+    s.add_argument("--busy", type=ca.count("busy threads", lo=0, hi=64), default=0)
     s.add_argument("--no-shm", action="store_true")
-    s.add_argument("--close-after", type=float, default=None)
-    s.add_argument("--reply-bytes", type=int, default=100)
+    s.add_argument("--close-after", type=ca.positive("seconds", hi=86400), default=None)
+    s.add_argument("--reply-bytes", type=ca.count("bytes", lo=0, hi=1 << 30), default=100)
     s.set_defaults(func=serve)
     d = sub.add_parser("detect", help="liveliness loss detection per lease")
-    d.add_argument("--lease", type=int, nargs="+", default=[500])
+    d.add_argument("--lease", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), nargs="+", default=[500])
     d.add_argument("--cases", nargs="+", default=["sigkill", "close", "blackhole"],
                    choices=["sigkill", "close", "blackhole"])
-    d.add_argument("--repeat", type=int, default=3)
+    d.add_argument("--repeat", type=ca.count("repeats", hi=1000), default=3)
     d.set_defaults(func=probe_detect)
     st = sub.add_parser("stress", help="false expiries under GIL load")
-    st.add_argument("--lease", type=int, nargs="+", default=[500])
-    st.add_argument("--busy", type=int, default=2)
-    st.add_argument("--seconds", type=float, default=10.0)
-    st.add_argument("--bytes", type=int, default=200_000)
+    st.add_argument("--lease", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), nargs="+", default=[500])
+    st.add_argument("--busy", type=ca.count("busy threads", lo=0, hi=64), default=2)
+    st.add_argument("--seconds", type=ca.positive("seconds", hi=86400), default=10.0)
+    st.add_argument("--bytes", type=ca.count("bytes", hi=1 << 30), default=200_000)
     st.set_defaults(func=probe_stress)
     r = sub.add_parser("reconnect", help="token seen again after a restart")
-    r.add_argument("--repeat", type=int, default=3)
-    r.add_argument("--down", type=float, default=1.0, help="seconds the server stays down")
+    r.add_argument("--repeat", type=ca.count("repeats", hi=1000), default=3)
+    r.add_argument("--down", type=ca.positive("seconds", hi=3600), default=1.0, help="seconds the server stays down")
     r.set_defaults(func=probe_reconnect)
     ro = sub.add_parser("routers", help="(root) cross-namespace routing set-ups")
-    ro.add_argument("--count", type=int, default=5)
+    ro.add_argument("--count", type=ca.count("repeats", hi=1000), default=5)
     ro.set_defaults(func=probe_routers)
     fo = sub.add_parser("failover", help="cloud SIGKILL/restart with a running robot")
-    fo.add_argument("--repeat", type=int, default=3)
-    fo.add_argument("--rate", type=float, default=10.0)
-    fo.add_argument("--up", type=float, default=2.0, help="seconds between recoveries and the next kill")
-    fo.add_argument("--down", type=float, default=2.0, help="seconds the cloud stays down")
-    fo.add_argument("--workers", type=int, default=1)
-    fo.add_argument("--images", default=None, help="folder of frames (default: stub frames)")
+    fo.add_argument("--repeat", type=ca.count("repeats", hi=1000), default=3)
+    fo.add_argument("--rate", type=ca.positive("frames per second", hi=10000), default=10.0)
+    fo.add_argument("--up", type=ca.positive("seconds", hi=3600), default=2.0, help="seconds between recoveries and the next kill")
+    fo.add_argument("--down", type=ca.positive("seconds", hi=3600), default=2.0, help="seconds the cloud stays down")
+    fo.add_argument("--workers", type=ca.count("workers", hi=256), default=1)
+    fo.add_argument("--images", type=ca.PathArg("in-dir"), default=None, help="folder of frames (default: stub frames)")
     fo.add_argument("--process", default="scmr_mesh.mesh.testing:stub_process",
                     help="process function ('' for the real pipeline)")
     fo.set_defaults(func=probe_failover)
     rd = sub.add_parser("redundant", help="--redundant vs default")
-    rd.add_argument("--robots", type=int, default=2)
-    rd.add_argument("--rate", type=float, default=5.0)
-    rd.add_argument("--count", type=int, default=40)
-    rd.add_argument("--workers", type=int, default=1)
-    rd.add_argument("--images", default=None, help="folder of frames (default: stub frames)")
+    rd.add_argument("--robots", type=ca.count("robots", hi=1000), default=2)
+    rd.add_argument("--rate", type=ca.positive("frames per second", hi=10000), default=5.0)
+    rd.add_argument("--count", type=ca.count("frames", hi=10**6), default=40)
+    rd.add_argument("--workers", type=ca.count("workers", hi=256), default=1)
+    rd.add_argument("--images", type=ca.PathArg("in-dir"), default=None, help="folder of frames (default: stub frames)")
     rd.add_argument("--process", default="scmr_mesh.mesh.testing:stub_process",
                     help="process function ('' for the real pipeline)")
     rd.set_defaults(func=probe_redundant)
     la = sub.add_parser("latency", help="query round trip")
-    la.add_argument("--sizes", type=int, nargs="+", default=[1000, 40_000, 260_000])
-    la.add_argument("--reply-bytes", type=int, default=1500)
-    la.add_argument("-n", type=int, default=200)
+    la.add_argument("--sizes", type=ca.count("bytes", hi=1 << 30), nargs="+", default=[1000, 40_000, 260_000])
+    la.add_argument("--reply-bytes", type=ca.count("bytes", lo=0, hi=1 << 30), default=1500)
+    la.add_argument("-n", type=ca.count("round trips", hi=10**6), default=200)
     la.set_defaults(func=probe_latency)
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     return int(args.func(args) or 0)
 
 

@@ -8,6 +8,7 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import InputError
 
 DESCRIPTION = """\
@@ -161,7 +162,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr ods`` to the command line."""
     p = sub.add_parser("ods", help="query the operational data store (telemetry) and robot queues",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--db", metavar="FILE|URL", help="the ODS file or postgresql:// URL (see above for the default)")
+    p.add_argument("--db", type=ca.PathArg("in-file", url=True, what="an ODS file written by a cloud peer, or a postgresql:// URL", example="runs/demo/ods.sqlite"), metavar="FILE|URL", help="the ODS file or postgresql:// URL (see above for the default)")
     p.set_defaults(func=lambda args: (p.print_help(sys.stderr), 2)[1])
     ods_sub = p.add_subparsers(dest="ods_command", metavar="QUERY")
 
@@ -180,17 +181,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = ods_sub.add_parser("range", help="records in a time range, as JSON lines",
                            description="Records with SINCE <= t < UNTIL (robot time), one JSON "
                            "object per line, by time.")
-    r.add_argument("--since", metavar="TIME", help=TIME_HELP)
-    r.add_argument("--until", metavar="TIME", help=TIME_HELP + " (exclusive)")
+    r.add_argument("--since", type=ca.parsed(parse_time_ns, what=TIME_HELP, example="2026-11-21T17:00:00Z", keep_text=True), metavar="TIME", help=TIME_HELP)
+    r.add_argument("--until", type=ca.parsed(parse_time_ns, what=TIME_HELP, example="2026-11-21T18:00:00Z", keep_text=True), metavar="TIME", help=TIME_HELP + " (exclusive)")
     r.add_argument("--robot", help="only this robot")
     r.set_defaults(func=_cmd_range)
 
     e = ods_sub.add_parser("export", help="export records to CSV or JSON",
                            description="Write every record (or a time range) to a CSV or JSON file.")
     e.add_argument("--format", choices=("csv", "json"), default="csv", help="output format (default csv)")
-    e.add_argument("--out", required=True, metavar="FILE", help="file to write")
-    e.add_argument("--since", metavar="TIME", help=TIME_HELP)
-    e.add_argument("--until", metavar="TIME", help=TIME_HELP + " (exclusive)")
+    e.add_argument("--out", type=ca.PathArg("out-file"), required=True, metavar="FILE", help="file to write")
+    e.add_argument("--since", type=ca.parsed(parse_time_ns, what=TIME_HELP, example="2026-11-21T17:00:00Z", keep_text=True), metavar="TIME", help=TIME_HELP)
+    e.add_argument("--until", type=ca.parsed(parse_time_ns, what=TIME_HELP, example="2026-11-21T18:00:00Z", keep_text=True), metavar="TIME", help=TIME_HELP + " (exclusive)")
     e.set_defaults(func=_cmd_export)
 
     q = ods_sub.add_parser("queue", help="inspect a robot's on-disk telemetry queue",
@@ -198,7 +199,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                            "refused, torn bytes, corruptions, lost seqs) as JSON; exit 1 when "
                            "it found corruption.  Read-only: safe while the robot runs (the robot "
                            "itself repairs a torn tail when it opens its queue).")
-    q.add_argument("dir", metavar="DIR", help="the robot's queue folder")
+    q.add_argument("dir", type=ca.PathArg("in-dir", what="a robot's telemetry queue folder", example="runs/demo/queues/r1"), metavar="DIR", help="the robot's queue folder")
     q.set_defaults(func=_cmd_queue)
 
     f = ods_sub.add_parser("fetch", help="ask the mesh's data buffer (cloud, else leader) for entries",
@@ -207,9 +208,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                            "a key (state/r1) or a pattern (state/**, maps/*, **).  Prints the items as JSON; "
                            "stderr says which tier answered.")
     f.add_argument("selector", metavar="SELECTOR", help="buffer key or pattern, e.g. state/**")
-    f.add_argument("--wait-ms", type=float, default=3000.0, metavar="MS",
+    f.add_argument("--wait-ms", type=ca.non_negative("milliseconds", hi=3600000), default=3000.0, metavar="MS",
                    help="wait up to MS for a cloud or leader to be seen (default 3000)")
-    f.add_argument("--deadline-ms", type=float, default=1000.0, metavar="MS",
+    f.add_argument("--deadline-ms", type=ca.positive("milliseconds", hi=3600000), default=1000.0, metavar="MS",
                    help="per-tier deadline (default 1000)")
     from scmr_mesh.mesh import config as _zconfig
 

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import InputError
 
 _SIZE_UNITS = {"": 1, "b": 1, "kb": 1024, "kib": 1024, "mb": 1048576, "mib": 1048576, "gb": 1 << 30, "gib": 1 << 30}
@@ -251,9 +252,9 @@ def _frame_files(data: str) -> list[Path]:
 
 
 def _common(p: argparse.ArgumentParser, *, json_help: str) -> None:
-    p.add_argument("--profiles-file", metavar="TOML", help="user profiles (schemas/energy-profiles.schema.json); "
+    p.add_argument("--profiles-file", type=ca.PathArg("in-file", what="a TOML file of energy profiles"), metavar="TOML", help="user profiles (schemas/energy-profiles.schema.json); "
                    "they add to, or replace, the built-in Table 4.3 profiles")
-    p.add_argument("--json", metavar="FILE", help=json_help)
+    p.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help=json_help)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -296,14 +297,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog=__doc__.split("\n\n", 1)[1],
         formatter_class=fmt,
     )
-    s.add_argument("--sizes", default=DEFAULT_SIZES, help=f"upload sizes (default {DEFAULT_SIZES})")
-    s.add_argument("--bandwidths", default=DEFAULT_BANDWIDTHS, help="upload bandwidths (default 5..100 Mb/s step 5)")
+    s.add_argument("--sizes", type=ca.parsed(lambda t: _list(t, parse_size), what="sizes such as 0.5MB,1MB", example="1MB,3MB", keep_text=True), default=DEFAULT_SIZES, help=f"upload sizes (default {DEFAULT_SIZES})")
+    s.add_argument("--bandwidths", type=ca.parsed(lambda t: _list(t, parse_rate), what="rates such as 10Mb/s,20Mb/s", example="10Mb/s,20Mb/s", keep_text=True), default=DEFAULT_BANDWIDTHS, help="upload bandwidths (default 5..100 Mb/s step 5)")
     s.add_argument("--profile", metavar="NAMES", help="comma-separated profile names (default: all)")
-    s.add_argument("--cycles", default="5e9", help="C, cycles per task (default 5e9, the thesis's C = 5)")
-    s.add_argument("--reply-bytes", metavar="SIZE", help="D_down (default: same as the upload size, as the thesis)")
-    s.add_argument("--down-up-ratio", default="1", help="B_d / B_u (default 1; Eq 4.9 uses 28/23)")
-    s.add_argument("--cloud-factor", default="300", help="F in S_c = F * S_r (default 300)")
-    s.add_argument("--plot", metavar="PNG", help="draw E_saved vs bandwidth per profile to PNG (OpenCV)")
+    s.add_argument("--cycles", type=ca.positive("cycles", example="5e9"), default="5e9", help="C, cycles per task (default 5e9, the thesis's C = 5)")
+    s.add_argument("--reply-bytes", type=ca.parsed(parse_size, what="a size such as 1MB", example="1MB", keep_text=True), metavar="SIZE", help="D_down (default: same as the upload size, as the thesis)")
+    s.add_argument("--down-up-ratio", type=ca.positive("", example="1.2"), default="1", help="B_d / B_u (default 1; Eq 4.9 uses 28/23)")
+    s.add_argument("--cloud-factor", type=ca.positive("", example="300"), default="300", help="F in S_c = F * S_r (default 300)")
+    s.add_argument("--plot", type=ca.PathArg("out-file"), metavar="PNG", help="draw E_saved vs bandwidth per profile to PNG (OpenCV)")
     _common(s, json_help="write the grid and break-even bandwidths to FILE")
     s.set_defaults(func=_cmd_sweep)
 
@@ -319,20 +320,20 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=fmt,
     )
     p.add_argument("--profile", required=True, help="robot profile name (leader, robot1..robot4 or from --profiles-file)")
-    p.add_argument("--cycles", help="C, cycles the task needs (assumed input)")
-    p.add_argument("--cpu-seconds", help="instead of --cycles: CPU time measured on this host (C = s x host clock)")
-    p.add_argument("--up", required=True, help="request bytes D_up (e.g. 1MB, 250000)")
-    p.add_argument("--down", required=True, help="reply bytes D_down")
-    p.add_argument("--bandwidth-up", required=True, help="upload rate to the cloud (e.g. 23Mb/s, 3014656)")
-    p.add_argument("--bandwidth-down", help="download rate (default: same as up)")
-    p.add_argument("--leader-bandwidth-up", help="upload rate to the leader (default: the cloud's)")
-    p.add_argument("--leader-bandwidth-down", help="download rate from the leader (default: the cloud's)")
-    p.add_argument("--leader-hz", help="the leader's clock in Hz (default: leader profile, 3.5e9)")
-    p.add_argument("--rtt", default="0", type=str, help="round-trip time added to remote requests, s (default 0)")
-    p.add_argument("--deadline", help="delay deadline T, s (default: none)")
+    p.add_argument("--cycles", type=ca.positive("cycles", example="5e9"), help="C, cycles the task needs (assumed input)")
+    p.add_argument("--cpu-seconds", type=ca.positive("seconds", example="0.004"), help="instead of --cycles: CPU time measured on this host (C = s x host clock)")
+    p.add_argument("--up", type=ca.parsed(parse_size, what="a size such as 1MB", example="1MB", positive=False, keep_text=True), required=True, help="request bytes D_up (e.g. 1MB, 250000)")
+    p.add_argument("--down", type=ca.parsed(parse_size, what="a size such as 1MB", example="1MB", positive=False, keep_text=True), required=True, help="reply bytes D_down")
+    p.add_argument("--bandwidth-up", type=ca.parsed(parse_rate, what="a rate such as 23Mb/s", example="23Mb/s", keep_text=True), required=True, help="upload rate to the cloud (e.g. 23Mb/s, 3014656)")
+    p.add_argument("--bandwidth-down", type=ca.parsed(parse_rate, what="a rate such as 28Mb/s", example="28Mb/s", keep_text=True), help="download rate (default: same as up)")
+    p.add_argument("--leader-bandwidth-up", type=ca.parsed(parse_rate, what="a rate such as 23Mb/s", example="23Mb/s", keep_text=True), help="upload rate to the leader (default: the cloud's)")
+    p.add_argument("--leader-bandwidth-down", type=ca.parsed(parse_rate, what="a rate such as 28Mb/s", example="28Mb/s", keep_text=True), help="download rate from the leader (default: the cloud's)")
+    p.add_argument("--leader-hz", type=ca.positive("Hz", example="3.5e9"), help="the leader's clock in Hz (default: leader profile, 3.5e9)")
+    p.add_argument("--rtt", default="0", type=ca.non_negative("seconds", example="0.01"), help="round-trip time added to remote requests, s (default 0)")
+    p.add_argument("--deadline", type=ca.positive("seconds", example="2"), help="delay deadline T, s (default: none)")
     p.add_argument("--reachable", default="cloud,leader", help="reachable remote tiers, comma-separated, or 'none'")
     p.add_argument("--dvs", action="store_true", help="run local execution at the lowest DVS clock that meets T")
-    p.add_argument("--cloud-factor", default="300", help="F in S_c = F * S_r (default 300)")
+    p.add_argument("--cloud-factor", type=ca.positive("", example="300"), default="300", help="F in S_c = F * S_r (default 300)")
     _common(p, json_help="write the placement (options and inputs marked measured/assumed) to FILE")
     p.set_defaults(func=_cmd_place)
 

@@ -5,23 +5,28 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
 from scmr_mesh.fleet.plan import ODS_BACKENDS, FleetConfig, parse_kill, parse_outage
 
 
+def _outage(text: str) -> tuple[float, float]:
+    return parse_outage(text)
+
+
 def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> None:
-    p.add_argument("--duration", type=float, default=10.0, metavar="S",
+    p.add_argument("--duration", type=ca.positive("seconds", hi=604800, example="10"), default=10.0, metavar="S",
                    help="seconds each robot sends frames (default: %(default)s)")
-    p.add_argument("--rate", type=float, default=5.0, metavar="HZ",
+    p.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=5.0, metavar="HZ",
                    help="frames per second per robot (default: %(default)s)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--images", type=Path, metavar="DIR", help="a folder of images the robots send")
+    src.add_argument("--images", type=ca.PathArg("in-dir", as_path=True, what="a folder of images"), metavar="DIR", help="a folder of images the robots send")
     src.add_argument("--synthetic", metavar="KINDS",
                      help="comma-separated synthetic scene kinds dealt to the robots (default: all kinds)")
-    p.add_argument("--workers", type=int, metavar="N", help="worker processes of cloud and leader")
-    p.add_argument("--lease-ms", type=int, metavar="MS", help="zenoh lease of every peer")
-    p.add_argument("--deadline-ms", type=int, metavar="MS", help="robots' per-request deadline")
-    p.add_argument("--ready-timeout", type=float, default=90.0, metavar="S",
+    p.add_argument("--workers", type=ca.count("workers", hi=256), metavar="N", help="worker processes of cloud and leader")
+    p.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), metavar="MS", help="zenoh lease of every peer")
+    p.add_argument("--deadline-ms", type=ca.count("milliseconds", hi=3600000, example="1000"), metavar="MS", help="robots' per-request deadline")
+    p.add_argument("--ready-timeout", type=ca.positive("seconds", hi=86400, example="90"), default=90.0, metavar="S",
                    help="seconds a peer may take to start (default: %(default)s)")
     p.add_argument("--server-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for cloud and leader (repeatable, e.g. --server-arg=--process "
@@ -78,24 +83,24 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
         epilog=UP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--robots", type=int, default=4, metavar="N", help="robots (default: %(default)s)")
-    p.add_argument("--clouds", type=int, default=1, metavar="N",
+    p.add_argument("--robots", type=ca.count("robots", hi=1000, example="4"), default=4, metavar="N", help="robots (default: %(default)s)")
+    p.add_argument("--clouds", type=ca.count("cloud nodes", hi=64, example="2"), default=1, metavar="N",
                    help="cloud nodes cloud0..cloud<N-1>; robots spread frames over them by load "
                         "(default: %(default)s)")
     p.add_argument("--ods-backend", choices=ODS_BACKENDS, default="auto",
                    help="the cloud nodes' data store: auto = SQLite (RUN/ods.sqlite) for one cloud node, "
                         "a PostgreSQL server started for the run (RUN/postgres) for several (default: auto)")
-    p.add_argument("--ods", metavar="FILE|URL",
+    p.add_argument("--ods", type=ca.PathArg("out-file", url=True, what="an ODS file path or a postgresql:// URL"), metavar="FILE|URL",
                    help="use this existing data store instead (a SQLite file or a postgresql:// URL)")
     _add_fleet_args(p)
-    p.add_argument("--cloud-outage", metavar="START:END",
+    p.add_argument("--cloud-outage", type=ca.parsed(_outage, what="START:END seconds with 0 <= START < END", example="8:14", positive=False, keep_text=True), metavar="START:END",
                    help="SIGKILL every cloud node START s after the fleet is ready, restart them at END s")
     p.add_argument("--kill-cloud", metavar="cloudI@S",
                    help="SIGKILL cloud node cloudI S s after the fleet is ready and leave it down (with "
                         "--clouds N > 1 the other nodes serve on), e.g. cloud0@5")
-    p.add_argument("--json", metavar="FILE", help="also write the report here")
-    p.add_argument("--run-dir", type=Path, metavar="DIR", help="run directory (default: runs/<UTC timestamp>)")
-    p.add_argument("--min-ror", type=float, default=1.0, metavar="R",
+    p.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the report here")
+    p.add_argument("--run-dir", type=ca.PathArg("out-dir", as_path=True, example="runs/my-run"), metavar="DIR", help="run directory (default: runs/<UTC timestamp>)")
+    p.add_argument("--min-ror", type=ca.Number(lo=0, hi=1, what="RoR", example="1.0"), default=1.0, metavar="R",
                    help="exit 1 when the RoR is below this (default: %(default)s; 0 never fails)")
     p.add_argument("--quiet", action="store_true", help="no live progress")
     from scmr_mesh.viz import (

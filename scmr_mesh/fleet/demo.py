@@ -23,10 +23,18 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from scmr_mesh import cliargs as ca
+
 __all__ = ["register", "render_overlays", "render_timeline"]
 
 #: BGR colours of the serving tiers in the pictures.
 TIER_BGR = {"cloud": (200, 120, 20), "leader": (0, 140, 255), "local": (170, 40, 170), None: (0, 0, 230)}
+
+
+def _outage(text: str) -> tuple[float, float]:
+    from scmr_mesh.fleet.plan import parse_outage
+
+    return parse_outage(text)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,12 +50,12 @@ def register(sub: argparse._SubParsersAction) -> None:
             "telemetry record was lost, or a peer failed (the summary's PROBLEM lines)."
         ),
     )
-    p.add_argument("--out", type=Path, default=Path("runs/demo"),
+    p.add_argument("--out", type=ca.PathArg("out-dir", as_path=True, example="runs/demo"), default=Path("runs/demo"),
                    help="run directory; a previous run there is replaced (default: %(default)s)")
-    p.add_argument("--robots", type=int, default=4, metavar="N", help="robots (default: %(default)s)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S", help="seconds (default: %(default)s)")
-    p.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="frames/s per robot (default: %(default)s)")
-    p.add_argument("--cloud-outage", default="6:10", metavar="START:END",
+    p.add_argument("--robots", type=ca.count("robots", hi=1000, example="4"), default=4, metavar="N", help="robots (default: %(default)s)")
+    p.add_argument("--duration", type=ca.positive("seconds", hi=604800, example="20"), default=20.0, metavar="S", help="seconds (default: %(default)s)")
+    p.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=5.0, metavar="HZ", help="frames/s per robot (default: %(default)s)")
+    p.add_argument("--cloud-outage", type=ca.parsed(_outage, what="START:END seconds with 0 <= START < END", example="6:10", positive=False, keep_text=True), default="6:10", metavar="START:END",
                    help="cloud SIGKILL and restart times in s (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no live progress")
     from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only when used

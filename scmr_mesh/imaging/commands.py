@@ -11,6 +11,8 @@ import json
 import sys
 from pathlib import Path
 
+from scmr_mesh import cliargs as ca
+
 MODES = ("best", "thesis")
 
 
@@ -37,10 +39,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also segment a built-in synthetic scene (structured_road, dirt_road, tunnel, hallway, "
         "desert), e.g. tunnel:3; repeatable",
     )
-    p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created if missing)")
+    p.add_argument("--out", required=True, type=ca.PathArg("out-dir", as_path=True), metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--mode", choices=MODES, default="best", help="best (default, most accurate) or thesis (the dissertation's rules)")
     p.add_argument("--stages", action="store_true", help="also write the intermediate images")
-    p.add_argument("--q", type=float, default=32.0, help="SRM complexity Q (default: %(default)s; best mode runs SRM at 16 x Q)")
+    p.add_argument("--q", type=ca.positive("SRM complexity", hi=1e6, example="32"), default=32.0, help="SRM complexity Q (default: %(default)s; best mode runs SRM at 16 x Q)")
     p.set_defaults(func=cmd_segment)
 
     p = sub.add_parser(
@@ -53,13 +55,13 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Prints a table and writes JSON."
         ),
     )
-    p.add_argument("folder", type=Path, metavar="DIR", help="folder with manifest.json, images/ and masks/")
+    p.add_argument("folder", type=ca.PathArg("in-dir", as_path=True, what="a folder with manifest.json, images/ and masks/", example="../shared/data/roads"), metavar="DIR", help="folder with manifest.json, images/ and masks/")
     p.add_argument("--mode", choices=MODES, default="best", help="mode to score (default: %(default)s)")
     p.add_argument("--cv", action="store_true",
                    help="leave-one-dataset-out cross-validation of best's constants: for each dataset, choose "
                         "them on the other datasets and score this one; prints cross-validated and in-sample "
                         "IoU and the bottom-half baseline per dataset (about 10 s on the shared images)")
-    p.add_argument("--json", type=Path, metavar="FILE", help="write the full result as JSON here")
+    p.add_argument("--json", type=ca.PathArg("out-file", as_path=True), metavar="FILE", help="write the full result as JSON here")
     p.set_defaults(func=cmd_eval)
 
 

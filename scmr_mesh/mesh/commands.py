@@ -27,6 +27,7 @@ import threading
 import time
 from pathlib import Path
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import InputError, MeshError
 
 log = logging.getLogger(__name__)
@@ -77,8 +78,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog=_PEER_EPILOG)
     p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
     _robot_args(p, leader=False)
-    p.add_argument("--ready-file", metavar="PATH", help="written once the robot is connected")
-    p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the robot is connected")
+    p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
     _data_args(p, "robot")
     p.set_defaults(func=_cmd_robot)
@@ -89,26 +90,26 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "cloud nodes as clients of their site's router (--zmode client) and connect the "
                     "routers to each other; see docs/ZENOH.md (router section).",
         epilog=_PEER_EPILOG)
-    p.add_argument("--ready-file", metavar="PATH", help="written once the router runs")
-    p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the router runs")
+    p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
     p.set_defaults(func=_cmd_router)
 
 
 def _service_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--node", required=True, help="node name (A-Z a-z 0-9 _ . -)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
+    p.add_argument("--workers", type=ca.count("worker processes", hi=256), default=None, metavar="N",
                    help="worker processes running the pipeline (default: number of cores)")
     p.add_argument("--mode", choices=("best", "thesis"), default=None,
                    help="default pipeline mode (requests carry their own; kept for symmetry with robots)")
-    p.add_argument("--max-request-bytes", type=int, default=None, metavar="N",
+    p.add_argument("--max-request-bytes", type=ca.count("bytes", hi=1 << 30, example="33554432"), default=None, metavar="N",
                    help="larger requests get an 'oversized' error reply (default 32 MiB)")
     p.add_argument("--process", default=None, metavar="MODULE:FUNC",
                    help="process function run by the workers (default: the drivable pipeline; tests "
                         "use scmr_mesh.mesh.testing:stub_process)")
-    p.add_argument("--ready-file", metavar="PATH",
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH",
                    help="written once the service is serving (JSON; 'startup' holds the start-up phases)")
-    p.add_argument("--log-file", metavar="PATH", help="log here instead of stderr")
+    p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     p.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
                    help="more log output, and the start-up phases when ready: wall and CPU ms of each "
                         "from exec (same as scmr -v)")
@@ -120,29 +121,29 @@ def _service_args(p: argparse.ArgumentParser) -> None:
 def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     g = p.add_argument_group("robot" + (" (optional: makes the leader a robot too)" if leader else ""))
     src = g.add_mutually_exclusive_group(required=not leader)
-    src.add_argument("--images", metavar="DIR", help="folder of PNG/JPEG frames (cycled in name order)")
+    src.add_argument("--images", type=ca.PathArg("in-dir", what="a folder of PNG/JPEG frames"), metavar="DIR", help="folder of PNG/JPEG frames (cycled in name order)")
     src.add_argument("--synthetic", metavar="KIND",
                      help="synthetic scenes of this kind (seeded per frame); 'stub' needs no imaging module")
-    g.add_argument("--rate", type=float, default=5.0, metavar="HZ", help="frames per second (default 5)")
-    g.add_argument("--jpeg-quality", type=int, default=90, metavar="Q",
+    g.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=5.0, metavar="HZ", help="frames per second (default 5)")
+    g.add_argument("--jpeg-quality", type=ca.count("JPEG quality (0 sends PNG)", lo=0, hi=100, example="90"), default=90, metavar="Q",
                    help="frames are sent as JPEG at this quality, 1..100 (default 90); 0 sends lossless PNG. "
                         "JPEG files from --images are sent as they are")
     lim = g.add_mutually_exclusive_group()
-    lim.add_argument("--count", type=int, default=None, metavar="N", help="stop after N frames")
-    lim.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    g.add_argument("--out", metavar="DIR", required=not leader, help="output folder (outbox, inbox, records.jsonl)")
-    g.add_argument("--deadline-ms", type=float, default=1000.0, metavar="MS",
+    lim.add_argument("--count", type=ca.count("frames", lo=0, hi=10**9, example="100"), default=None, metavar="N", help="stop after N frames")
+    lim.add_argument("--duration", type=ca.non_negative("seconds", hi=604800, example="10"), default=None, metavar="S", help="stop after S seconds")
+    g.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", required=not leader, help="output folder (outbox, inbox, records.jsonl)")
+    g.add_argument("--deadline-ms", type=ca.Number(lo=0, lo_open=True, hi=3600000, what="milliseconds", example="1000"), default=1000.0, metavar="MS",
                    help="per-attempt deadline; past it the request is re-sent to the next tier (default 1000)")
     g.add_argument("--redundant", action="store_true",
                    help="send each frame to cloud and leader at once; the first good reply wins")
     g.add_argument("--local-fallback", action=argparse.BooleanOptionalAction, default=True,
                    help="run the pipeline on the robot when no tier answers (default on)")
-    g.add_argument("--priority", type=int, default=0, help="request priority (willingness to pay), default 0")
+    g.add_argument("--priority", type=ca.count("priority", lo=0, hi=1000000, example="10"), default=0, help="request priority (willingness to pay), default 0")
     g.add_argument("--profile", metavar="NAME", default=None,
                    help="energy profile (leader, robot1..robot4, or from --profiles-file): place each frame on "
                         "local/cloud/leader by least robot energy within --deadline-ms and record energy_j per "
                         "request (docs/ENERGY.md)")
-    g.add_argument("--profiles-file", metavar="TOML", default=None,
+    g.add_argument("--profiles-file", type=ca.PathArg("in-file", what="a TOML file of energy profiles"), metavar="TOML", default=None,
                    help="user energy profiles (schemas/energy-profiles.schema.json), used with --profile")
     g.add_argument("--dvs", action="store_true",
                    help="with --profile: local runs at the lowest DVS clock that meets the deadline")
@@ -150,9 +151,9 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
         g.add_argument("--mode", choices=("best", "thesis"), default="best", help="pipeline mode (default best)")
         g.add_argument("--process", default=None, metavar="MODULE:FUNC",
                        help="process function for local execution (default: the drivable pipeline)")
-    g.add_argument("--wait-ms", type=float, default=2000.0, metavar="MS",
+    g.add_argument("--wait-ms", type=ca.non_negative("milliseconds", hi=3600000, example="2000"), default=2000.0, metavar="MS",
                    help="before the first frame, wait up to MS for a cloud or leader to appear (default 2000)")
-    g.add_argument("--seed", type=int, default=None, help="seed of synthetic frames (default: from the id)")
+    g.add_argument("--seed", type=ca.count("seed", lo=0, hi=2**32 - 1, example="7"), default=None, help="seed of synthetic frames (default: from the id)")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from scmr_mesh.viz import (
         add_rerun_peer_args,  # light: rerun itself is imported only with a flag
@@ -166,6 +167,7 @@ def _setup_logging(args) -> None:
     root = logging.getLogger()
     if path:
         try:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
             handler = logging.FileHandler(path, encoding="utf-8")
         except OSError as exc:
             raise InputError(f"--log-file {path}: cannot open ({exc})") from None

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -237,11 +238,11 @@ def add_arguments(parser, *, lease_default: int | None = None) -> None:
                    help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
     g.add_argument("--connect", action="append", default=[], metavar="EP",
                    help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    g.add_argument("--config", metavar="FILE", default=None,
+    g.add_argument("--config", type=ca.PathArg("in-file", what="a zenoh JSON5 config file"), metavar="FILE", default=None,
                    help="zenoh JSON5 config file applied over scmr's defaults (see peers/*.json5)")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:JSON5",
                    help="zenoh config override, e.g. 'scouting/multicast/enabled:true' (repeatable)")
-    g.add_argument("--lease-ms", type=int, default=lease_default, metavar="MS",
+    g.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), default=lease_default, metavar="MS",
                    help=f"link lease in ms (default {DEFAULT_LEASE_MS}); silent link loss is "
                         "detected in about 0.8 x lease")
     g.add_argument("--zmode", choices=MODES, default=None,
@@ -249,7 +250,7 @@ def add_arguments(parser, *, lease_default: int | None = None) -> None:
     g.add_argument("--security", metavar="PROFILE", default=None,
                    help="security profile TOML, e.g. peers/secure/mtls.toml (mutual TLS + access control; "
                         "tcp/ endpoints become tls/); credentials from `scmr certs` (docs/SECURITY.md)")
-    g.add_argument("--credentials", metavar="DIR", default=None,
+    g.add_argument("--credentials", type=ca.PathArg("in-dir", what="a folder written by scmr certs"), metavar="DIR", default=None,
                    help="credentials directory made by `scmr certs` (overrides the profile and $SCMR_CREDENTIALS)")
 
 

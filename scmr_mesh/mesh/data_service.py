@@ -55,6 +55,7 @@ from typing import Any, Callable
 
 import msgpack
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh import keys
 from scmr_mesh.data.buffer import BufferSync, DataBuffer
 from scmr_mesh.data.errors import QueueError, QueueFullError, TelemetryError
@@ -668,27 +669,27 @@ def add_arguments(parser, role: str) -> None:
     """Add the data-tier flags of ``role`` ("cloud", "leader" or "robot") to a peer's parser."""
     g = parser.add_argument_group("data tier")
     if role == "cloud":
-        g.add_argument("--ods", metavar="FILE|URL",
+        g.add_argument("--ods", type=ca.PathArg("out-file", url=True, what="an ODS file path or a postgresql:// URL"), metavar="FILE|URL",
                        help="operational data store: a SQLite file (one cloud node, or several on one "
                             "host), or a postgresql:// URL that several cloud nodes share (e.g. "
                             "postgresql://scmr@db.site:5432/scmr); default $SCMR_ODS, else "
                             "$SCMR_RUN_DIR/ods.sqlite, else RUN/ods.sqlite where RUN is the folder of "
                             "--ready-file (its parent when that folder is named 'ready'), else "
                             "runs/ods.sqlite")
-        g.add_argument("--data-params", metavar="FILE",
+        g.add_argument("--data-params", type=ca.PathArg("in-file", what="a JSON file of buffer entries"), metavar="FILE",
                        help="JSON object of shared entries for the data buffer (keys like "
                             "'maps/site' or 'params/speed')")
     if role == "leader":
-        g.add_argument("--sync-period", type=float, default=1.0, metavar="S",
+        g.add_argument("--sync-period", type=ca.positive("seconds", hi=3600, example="1"), default=1.0, metavar="S",
                        help="seconds between pulls of the cloud's data buffer (default 1)")
-        g.add_argument("--relay-dir", metavar="DIR",
+        g.add_argument("--relay-dir", type=ca.PathArg("out-dir"), metavar="DIR",
                        help="on-disk queue of telemetry held for the cloud (default <run dir>/relay-NODE)")
     if role in ("robot", "leader"):
-        g.add_argument("--telemetry-queue", metavar="DIR",
+        g.add_argument("--telemetry-queue", type=ca.PathArg("out-dir"), metavar="DIR",
                        help="the robot's on-disk telemetry queue, kept across restarts (default "
                             "RUN/queues/ID when a run dir is known from $SCMR_RUN_DIR or --ready-file, "
                             "else OUT/telemetry-queue)")
-        g.add_argument("--telemetry-max-bytes", type=int, default=16 << 20, metavar="N",
+        g.add_argument("--telemetry-max-bytes", type=ca.count("bytes", lo=1024, hi=1 << 40, example="16777216"), default=16 << 20, metavar="N",
                        help="bound of the telemetry queue; beyond it new telemetry is refused and "
                             "counted (default 16 MiB)")
 

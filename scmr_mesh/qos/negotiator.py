@@ -53,6 +53,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable, Hashable
 
+from scmr_mesh import cliargs as ca
+
 log = logging.getLogger(__name__)
 
 #: Why a request was not served.
@@ -391,14 +393,14 @@ def add_arguments(parser) -> None:
     """Add ``--queue``, ``--min-priority`` and ``--per-robot`` to a service's parser."""
     g = parser.add_argument_group("request negotiator (thesis Table 3.6)")
     g.add_argument(
-        "--queue", type=int, default=None, metavar="N",
+        "--queue", type=ca.count("waiting requests", lo=0, hi=100000, example="16"), default=None, metavar="N",
         help="rank requests by priority with at most N waiting beyond the workers; the rest get "
              "an immediate 'busy' reply so robots fall back (default: no negotiator, FIFO with "
              "the service's in-flight limit)",
     )
-    g.add_argument("--min-priority", type=int, default=0, metavar="P",
+    g.add_argument("--min-priority", type=ca.count("priority", lo=0, hi=1000000, example="0"), default=0, metavar="P",
                    help="with --queue: refuse requests below priority P at once (default 0)")
-    g.add_argument("--per-robot", type=int, default=None, metavar="N",
+    g.add_argument("--per-robot", type=ca.count("requests", hi=100000), default=None, metavar="N",
                    help="with --queue: at most N waiting requests per robot (default: no quota)")
 
 

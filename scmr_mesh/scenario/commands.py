@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import ConfigError, ScmrError
 
 DESCRIPTION = """\
@@ -168,7 +169,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _override_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--process", metavar="MODULE:FUNC", help="override the scenario's process function "
                    "(e.g. scmr_mesh.mesh.testing:stub_process to measure the network failover without the pipeline)")
-    p.add_argument("--lease-ms", type=int, metavar="MS", help="override the scenario's zenoh lease")
+    p.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), metavar="MS", help="override the scenario's zenoh lease")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -181,17 +182,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     run = ssub.add_parser("run", help="run a scenario and write Markdown + JSON + PNG reports",
                           description="Run a scenario file against real peers, play its faults, write "
                           "report.md, report.json, tor.png and tiers.png. Exit 1 when an expectation fails.")
-    run.add_argument("file", help="scenario TOML file (e.g. peers/scenarios/cloud-link-drop.toml)")
+    run.add_argument("file", type=ca.PathArg("in-file", what="a scenario TOML file", example="peers/scenarios/cloud-crash.toml"), help="scenario TOML file (e.g. peers/scenarios/cloud-link-drop.toml)")
     run.add_argument("--backend", choices=["auto", "netns", "proxy"], default="auto",
                      help="netns: a network namespace per peer, kernel-level faults (root); proxy: TCP proxies "
                           "per link on loopback (no root); auto (default): netns when root, else proxy")
-    run.add_argument("--out", metavar="DIR", help="output folder (default runs/scenario-<name>-<UTC time>)")
-    run.add_argument("--json", metavar="FILE", help="also write the JSON report here (default DIR/report.json)")
-    run.add_argument("--data", metavar="DIR", type=Path, default=None,
+    run.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", help="output folder (default runs/scenario-<name>-<UTC time>)")
+    run.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON report here (default DIR/report.json)")
+    run.add_argument("--data", metavar="DIR", type=ca.PathArg("in-dir", as_path=True), default=None,
                      help="folder the image sets are relative to (default $SCMR_DATA or ../shared/data/roads)")
-    run.add_argument("--thesis-csv", metavar="FILE", help="thesis Table 4.2 CSV to compare with "
+    run.add_argument("--thesis-csv", type=ca.PathArg("in-file"), metavar="FILE", help="thesis Table 4.2 CSV to compare with "
                      "(default: thesis_table_4_2.csv beside the data folder)")
-    run.add_argument("--ready-timeout", type=float, default=120.0, metavar="S",
+    run.add_argument("--ready-timeout", type=ca.positive("seconds", hi=86400, example="120"), default=120.0, metavar="S",
                      help="seconds each peer may take to become ready (default 120)")
     _override_args(run)
     from scmr_mesh.viz import (
@@ -204,13 +205,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     chk = ssub.add_parser("check", help="validate scenario files",
                           description="Validate scenario files against schemas/scenario.schema.json and the "
                           "rules of the scenario format; print a one-line summary of each.")
-    chk.add_argument("files", nargs="+", help="scenario TOML files")
+    chk.add_argument("files", type=ca.PathArg("in-file", what="a scenario TOML file", example="peers/scenarios/cloud-crash.toml"), nargs="+", help="scenario TOML files")
     chk.set_defaults(func=_cmd_check)
 
     pl = ssub.add_parser("plan", help="print the exact commands a scenario would issue (no root needed)",
                          description="Print the setup, fault and teardown actions of a scenario without "
                          "running anything: ip/tc commands for netns, proxy actions for proxy.")
-    pl.add_argument("file", help="scenario TOML file")
+    pl.add_argument("file", type=ca.PathArg("in-file", what="a scenario TOML file", example="peers/scenarios/cloud-crash.toml"), help="scenario TOML file")
     pl.add_argument("--backend", choices=["netns", "proxy"], default="netns", help="which backend's plan (default netns)")
     pl.add_argument("--run-id", default="RUNID", help="run id used in namespace names (default RUNID)")
     pl.set_defaults(func=_cmd_plan)

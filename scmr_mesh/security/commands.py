@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+from scmr_mesh import cliargs as ca
+
 CERTS_HELP = """\
 Create a development certificate authority, one certificate per peer (CN = peer name,
 signed by the CA, valid for 127.0.0.1, ::1, localhost, the peer name and --hosts), a
@@ -49,17 +51,17 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=CERTS_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", required=True, metavar="DIR", help="directory to write (new or empty)")
+    p.add_argument("--out", type=ca.PathArg("out-dir"), required=True, metavar="DIR", help="directory to write (new or empty)")
     p.add_argument(
         "--peers", required=True, metavar="NAMES",
         help="comma-separated peer names, e.g. cloud,leader,robot1,robot2 (name=role to set a role)",
     )
-    p.add_argument("--days", type=int, default=365, help="certificate validity in days (default 365)")
+    p.add_argument("--days", type=ca.count("days", hi=36500), default=365, help="certificate validity in days (default 365)")
     p.add_argument(
         "--hosts", default="", metavar="H1,H2",
         help="extra host names or IPs for every certificate (peers on other hosts or namespaces)",
     )
     p.add_argument("--force", action="store_true", help="overwrite a non-empty --out directory")
-    p.add_argument("--acl-json", metavar="FILE", help="also write the fleet's access-control JSON here")
+    p.add_argument("--acl-json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the fleet's access-control JSON here")
     p.set_defaults(func=_certs)
 

@@ -6,6 +6,8 @@ import argparse
 import subprocess
 import sys
 
+from scmr_mesh import cliargs as ca
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr view`` to ``scmr``."""
@@ -27,14 +29,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("file", metavar="FILE.rrd", help="recording to open")
+    p.add_argument("file", type=ca.PathArg("in-file", what="a rerun recording (.rrd)", example="runs/demo/demo.rrd"), metavar="FILE.rrd", help="recording to open")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--web", action="store_true", help="serve the web viewer instead of opening a window")
-    mode.add_argument("--screenshot", metavar="OUT.png", help="render headless and save a PNG, then exit")
+    mode.add_argument("--screenshot", type=ca.PathArg("out-file"), metavar="OUT.png", help="render headless and save a PNG, then exit")
     mode.add_argument("--summary", action="store_true", help="print entities with their row counts and exit")
-    p.add_argument("--web-port", type=int, default=9090, help="port of the web viewer (default: %(default)s)")
-    p.add_argument("--settle", type=float, default=6.0, help="seconds to let the viewer load before --screenshot (default: %(default)s)")
-    p.add_argument("--max-size", type=int, default=None, help="longest side of the --screenshot PNG in pixels")
+    p.add_argument("--web-port", type=ca.count("a TCP port", lo=1, hi=65535, example="9090"), default=9090, help="port of the web viewer (default: %(default)s)")
+    p.add_argument("--settle", type=ca.non_negative("seconds", hi=3600), default=6.0, help="seconds to let the viewer load before --screenshot (default: %(default)s)")
+    p.add_argument("--max-size", type=ca.count("pixels", lo=16, hi=16384, example="960"), default=None, help="longest side of the --screenshot PNG in pixels")
     p.set_defaults(func=run)
 
 

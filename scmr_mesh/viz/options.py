@@ -10,6 +10,7 @@ import socket
 from dataclasses import dataclass
 from pathlib import Path
 
+from scmr_mesh import cliargs as ca
 from scmr_mesh import keys
 from scmr_mesh.errors import InputError
 from scmr_mesh.viz.common import (
@@ -42,7 +43,7 @@ def add_rerun_args(parser: argparse.ArgumentParser) -> None:
         "Without these flags nothing rerun-related runs.",
     )
     mx = group.add_mutually_exclusive_group()
-    mx.add_argument("--save", metavar="FILE.rrd", help="save the recording to FILE.rrd (open it with `scmr view FILE.rrd`)")
+    mx.add_argument("--save", type=ca.PathArg("out-file"), metavar="FILE.rrd", help="save the recording to FILE.rrd (open it with `scmr view FILE.rrd`)")
     mx.add_argument("--spawn", action="store_true", help="start a native rerun viewer and stream to it")
     mx.add_argument(
         "--serve",
@@ -74,7 +75,7 @@ def add_rerun_peer_args(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("rerun viewer (set by the fleet command)")
     mx = group.add_mutually_exclusive_group()
     mx.add_argument("--rerun-url", metavar="URL", help="log into the rerun sink at URL (rerun+http://HOST:PORT/proxy)")
-    mx.add_argument("--rerun-save", metavar="FILE.rrd", help="log into FILE.rrd")
+    mx.add_argument("--rerun-save", type=ca.PathArg("out-file"), metavar="FILE.rrd", help="log into FILE.rrd")
     group.add_argument("--rerun-recording-id", metavar="ID", help="shared recording id of the fleet run")
 
 
