@@ -29,7 +29,8 @@ PATH_METAVARS = {"DIR", "FILE", "PATH", "TOML", "PNG", "OUT.png", "FILE.rrd", "F
 #: Flags that take text that is parsed into numbers with units ("23Mb/s", "5e9", "1MB").
 UNIT_FLAGS = {"--bandwidth-up", "--bandwidth-down", "--leader-bandwidth-up", "--leader-bandwidth-down",
               "--cycles", "--cpu-seconds", "--up", "--down", "--leader-hz", "--rtt", "--deadline",
-              "--cloud-factor", "--reply-bytes", "--down-up-ratio", "--sizes", "--bandwidths"}
+              "--cloud-factor", "--reply-bytes", "--down-up-ratio", "--sizes", "--bandwidths", "--kill-cloud",
+              "--cloud-outage", "--crash-outage", "--since", "--until", "--size"}
 
 
 _BUILD = cli.build_parser

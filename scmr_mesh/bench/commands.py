@@ -165,15 +165,15 @@ def add_scale(bench: argparse._SubParsersAction) -> None:
     )
     b.add_argument("--quick", action="store_true",
                    help="N = 1, 2, 4 and 14 s per run (about 2 minutes) instead of N = 1, 2, 4, 8 and 30 s")
-    b.add_argument("--robots", type=int, default=32, metavar="N", help="robots (default: %(default)s)")
-    b.add_argument("--workers", type=int, default=2, metavar="W",
+    b.add_argument("--robots", type=ca.count("robots", hi=1000), default=32, metavar="N", help="robots (default: %(default)s)")
+    b.add_argument("--workers", type=ca.count("workers", hi=256), default=2, metavar="W",
                    help="worker processes per cloud node (default: %(default)s)")
-    b.add_argument("--service-ms", type=float, default=200.0, metavar="MS",
+    b.add_argument("--service-ms", type=ca.positive("milliseconds", hi=3600000), default=200.0, metavar="MS",
                    help="fixed service time per request (default: %(default)s)")
-    b.add_argument("--duration", type=float, default=None, metavar="S",
+    b.add_argument("--duration", type=ca.positive("seconds", hi=604800), default=None, metavar="S",
                    help="seconds each fleet runs (default: 14 with --quick, else 30)")
-    b.add_argument("--json", metavar="FILE", required=True, help="where to write the results")
-    b.add_argument("--run-dir", type=Path, metavar="DIR", help="parent of the runs' directories")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", required=True, help="where to write the results")
+    b.add_argument("--run-dir", type=ca.PathArg("out-dir", as_path=True), metavar="DIR", help="parent of the runs' directories")
     b.set_defaults(func=_handler("scale", "cmd_bench_scale"))
 
 

@@ -95,7 +95,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_fleet_args(p)
     p.add_argument("--cloud-outage", type=ca.parsed(_outage, what="START:END seconds with 0 <= START < END", example="8:14", positive=False, keep_text=True), metavar="START:END",
                    help="SIGKILL every cloud node START s after the fleet is ready, restart them at END s")
-    p.add_argument("--kill-cloud", metavar="cloudI@S",
+    p.add_argument("--kill-cloud", type=ca.parsed(parse_kill, what="cloudI@SECONDS", example="cloud0@5", positive=False, keep_text=True), metavar="cloudI@S",
                    help="SIGKILL cloud node cloudI S s after the fleet is ready and leave it down (with "
                         "--clouds N > 1 the other nodes serve on), e.g. cloud0@5")
     p.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the report here")
