@@ -250,3 +250,59 @@ def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):
     monkeypatch.setattr("scmr_mesh.viz.sink.has_display", lambda: False)
     with pytest.raises(viz.ViewerError, match="--serve"):
         viz.FleetViz(viz.RerunOptions("spawn"), robots=["r0"], port=free_port())
+
+
+# -- off the request thread ---------------------------------------------------
+
+def test_observe_logs_nothing_on_the_callers_thread(isolated_env):
+    import threading
+
+    from scmr_mesh.mesh.testing import wait_for
+
+    out = isolated_env / "r7.rrd"
+    rv = viz.RobotViz(viz.RerunOptions("save", str(out)), "r7", batch_s=0.05)
+    threads = []
+    rec, rr = rv._stream.rec, rv._stream.rr
+    real_log, real_send = rec.log, rr.send_columns
+
+    def log(*a, **k):
+        threads.append(threading.current_thread().name)
+        return real_log(*a, **k)
+
+    class RR:
+        def __getattr__(self, name):
+            return getattr(rr, name)
+
+        def send_columns(self, *a, **k):
+            threads.append(threading.current_thread().name)
+            return real_send(*a, **k)
+
+    rec.log, rv._stream.rr = log, RR()
+    rgb = np.zeros((10, 12, 3), np.uint8)
+    for i in range(5):
+        rv.observe({"seq": i, "ok": True, "tier": "cloud", "tor_ms": 3.0, "battery": 0.9}, rgb, np.ones((10, 12), bool))
+        rv.log_telemetry(battery=0.9)
+    rv.log_liveliness("cloud", "c0", True)
+    assert "MainThread" not in threads
+    wait_for(lambda: threads.count("scmr-rerun") >= 5 + 6, timeout=30, what="the logger thread to log the batch")
+    assert set(threads) == {"scmr-rerun"}
+    rv.close()
+    rows = viz.rrd_rows(out)
+    assert rows["/scmr/results/r7/tor_ms"]["Scalars:scalars"] == 5
+    assert rows["/scmr/results/r7/log"]["TextLog:text"] == 5
+    assert rows["/scmr/telemetry/r7/battery"]["Scalars:scalars"] == 10
+    assert rows["/scmr/robot/r7/camera"]["EncodedImage:blob"] == 5
+    assert rows["/scmr/alive/cloud/c0/r7"]["Scalars:scalars"] == 1
+
+
+def test_images_beyond_the_queue_limit_are_dropped_and_counted(isolated_env):
+    out = isolated_env / "r8.rrd"
+    rv = viz.RobotViz(viz.RerunOptions("save", str(out)), "r8", batch_s=3600, max_images=2)
+    for i in range(5):
+        rv.observe({"seq": i, "ok": i != 3, "tier": "leader", "tor_ms": 1.0}, np.zeros((10, 12, 3), np.uint8))
+    assert rv.dropped_images == 3
+    rv.close()
+    rows = viz.rrd_rows(out)
+    assert rows["/scmr/robot/r8/camera"]["EncodedImage:blob"] == 2
+    assert rows["/scmr/results/r8/tier"]["Scalars:scalars"] == 5
+    assert rows["/scmr/results/r8/tor_ms"]["Scalars:scalars"] == 4

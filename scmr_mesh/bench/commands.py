@@ -302,13 +302,17 @@ def add_viz(bench: argparse._SubParsersAction) -> None:
         "viz",
         help="cost of rerun logging per robot request (median/p99 ms, bytes per frame)",
         description=(
-            "Time RobotViz.observe() (camera JPEG + drivability map + scalars) into a "
-            "--save sink started as in a fleet run, and the sink's start and finalise "
+            "Time RobotViz.observe() on the caller's thread (it only queues; a background "
+            "thread encodes the camera JPEG and logs map and scalars in batches) into a "
+            "--save sink started as in a fleet run, the process's CPU per frame (caller, "
+            "logger thread and rerun's own threads), and the sink's start and finalise "
             "times.  Synthetic frames; reports medians and p99s measured in one run."
         ),
     )
     b.add_argument("--frames", type=ca.count("requests", hi=10**6), default=200, help="requests to log (default: %(default)s)")
     b.add_argument("--size", type=ca.parsed(_frame_size, what="WIDTHxHEIGHT in pixels", example="640x480", keep_text=True), default="640x480", help="camera frame WxH (default: %(default)s)")
+    b.add_argument("--interval", type=ca.non_negative("seconds", hi=60), default=0.0, metavar="S",
+                   help="seconds between requests (default 0: back to back; 0.2 is a robot at 5 Hz)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the results as JSON")
     b.set_defaults(func=_handler("viz", "cmd_bench_viz"))
 

@@ -13,8 +13,11 @@ Probes
 ``stress``     false expiries: a client queries a server back to back for
                ``--seconds`` while ``--busy`` Python threads hog the GIL in
                both processes; counts liveliness DELETEs (should be 0).
-``reconnect``  time from a server restart (same port) until the client sees its
-               token again, with zenoh's default connect retry and scmr's.
+``reconnect``  time from a restarted server's ready (same port) until the client
+               sees its token again, and the client's CPU while the server is
+               down, per ``--retry INIT,MAX,FACTOR`` (ms); ``--token-delay``
+               lets the server listen that long before it declares the token
+               (a service's queryables and warm-up query).
 ``routers``    (root) robot and cloud in two network namespaces, joined only
                through zenoh routers: one router or one per site, ends in peer
                or client mode; counts answered requests per set-up.
@@ -80,6 +83,7 @@ def serve(args) -> int:
             q.drop()
 
         qa = s.declare_queryable(KEY_ECHO, echo, complete=True)
+        time.sleep(args.token_delay)
         tok = s.liveliness().declare_token(KEY_TOKEN)
         print("ready", flush=True)
         if args.close_after is not None:
@@ -94,9 +98,10 @@ def serve(args) -> int:
 
 
 def _spawn_server(port: int, *, lease: int, busy: int = 0, no_shm: bool = False, close_after=None,
-                  reply_bytes: int = 100) -> subprocess.Popen:
+                  reply_bytes: int = 100, token_delay: float = 0.0) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "scmr_mesh.bench.probe", "_serve", "--listen", f"tcp/127.0.0.1:{port}",
-           "--lease", str(lease), "--busy", str(busy), "--reply-bytes", str(reply_bytes)]
+           "--lease", str(lease), "--busy", str(busy), "--reply-bytes", str(reply_bytes),
+           "--token-delay", str(token_delay)]
     if no_shm:
         cmd.append("--no-shm")
     if close_after is not None:
@@ -286,38 +291,60 @@ def probe_stress(args) -> int:
     return 0
 
 
+def _retry_spec(text: str) -> tuple[float, float, float]:
+    """``"INIT_MS,MAX_MS,FACTOR"`` -> floats (each > 0)."""
+    parts = [float(x) for x in text.split(",")]
+    if len(parts) != 3 or not all(x > 0 for x in parts):
+        raise ValueError("three numbers > 0")
+    return tuple(parts)
+
+
 def probe_reconnect(args) -> int:
+    import random
+
     import zenoh
 
-    for fast in (False, True):
-        vals = []
+    rng = random.Random(args.seed)
+    for spec in args.retry:
+        init, top, factor = (float(x) for x in spec.split(","))
+        retry = {"period_init_ms": int(init), "period_max_ms": int(top), "period_increase_factor": factor}
+        vals, cpus = [], []
         for rep in range(args.repeat):
             port = _free_port()
             srv = _spawn_server(port, lease=500)
-            with zenoh.open(_conf(connect=[f"tcp/127.0.0.1:{port}"], retry=fast).build()) as s:
+            conf = _conf(connect=[f"tcp/127.0.0.1:{port}"])
+            conf.cfg.append(f"connect/retry:{json.dumps(retry)}")
+            with zenoh.open(conf.build()) as s:
                 sub, events, cond = _watch(s, KEY_TOKEN)
                 _wait_event(events, cond, "PUT", timeout=10)
                 os.killpg(srv.pid, signal.SIGKILL)
                 srv.wait()
                 _wait_event(events, cond, "DELETE", timeout=10)
-                time.sleep(args.down)
+                c0 = time.process_time()
+                down = args.down + rng.uniform(0, 0.5)  # no phase lock with the retry period
+                time.sleep(down)
+                cpu_ms = (time.process_time() - c0) * 1e3
                 t0 = time.time_ns()
-                srv = _spawn_server(port, lease=500)
+                srv = _spawn_server(port, lease=500, token_delay=args.token_delay)
                 t_ready = time.time_ns()
                 t1 = _wait_event(events, cond, "PUT", after=t0, timeout=30)
                 sub.undeclare()
             srv.kill()
             srv.wait()
-            rec = {"probe": "reconnect", "retry": "scmr {50,250,2}" if fast else "zenoh default-like {1000,4000,2}",
-                   "down_s": args.down, "rep": rep,
+            rec = {"probe": "reconnect", "retry": retry, "down_s": round(down, 3), "rep": rep,
+                   "token_delay_ms": args.token_delay * 1e3,
                    "seen_after_restart_ms": None if t1 is None else round((t1 - t0) / 1e6, 1),
-                   "server_start_ms": round((t_ready - t0) / 1e6, 1)}
+                   "server_start_ms": round((t_ready - t0) / 1e6, 1),
+                   "seen_after_ready_ms": None if t1 is None else round((t1 - t_ready) / 1e6, 1),
+                   "client_cpu_ms_per_s_down": round(cpu_ms / down, 2)}
             print(json.dumps(rec), flush=True)
+            cpus.append(rec["client_cpu_ms_per_s_down"])
             if t1:
-                vals.append(rec["seen_after_restart_ms"] - rec["server_start_ms"])
+                vals.append(rec["seen_after_ready_ms"])
         if vals:
-            print(f"reconnect ({'scmr' if fast else 'slow'} retry): token seen {statistics.median(vals):.0f} ms "
-                  f"(median, max {max(vals):.0f}) after the restarted server was ready", file=sys.stderr)
+            print(f"reconnect retry {spec}: token seen {statistics.median(vals):.1f} ms (median, max {max(vals):.1f}) "
+                  f"after the restarted server was ready; client CPU while down {statistics.median(cpus):.2f} ms/s",
+                  file=sys.stderr)
     return 0
 
 
@@ -571,6 +598,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-shm", action="store_true")
     s.add_argument("--close-after", type=ca.positive("seconds", hi=86400), default=None)
     s.add_argument("--reply-bytes", type=ca.count("bytes", lo=0, hi=1 << 30), default=100)
+    s.add_argument("--token-delay", type=ca.non_negative("seconds", hi=60), default=0.0)
     s.set_defaults(func=serve)
     d = sub.add_parser("detect", help="liveliness loss detection per lease")
     d.add_argument("--lease", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), nargs="+", default=[500])
@@ -587,6 +615,14 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("reconnect", help="token seen again after a restart")
     r.add_argument("--repeat", type=ca.count("repeats", hi=1000), default=3)
     r.add_argument("--down", type=ca.positive("seconds", hi=3600), default=1.0, help="seconds the server stays down")
+    r.add_argument("--retry", type=ca.parsed(_retry_spec, what="INIT_MS,MAX_MS,FACTOR", example="50,50,1",
+                                              keep_text=True),
+                   nargs="+", default=["1000,4000,2", "50,250,2", "50,50,1"],
+                   metavar="INIT,MAX,FACTOR", help="connect/retry settings to compare (ms, ms, factor)")
+    r.add_argument("--seed", type=ca.count("seed", lo=0, hi=2**32), default=1,
+                   help="seed of the random extra down time (0-0.5 s)")
+    r.add_argument("--token-delay", type=ca.non_negative("seconds", hi=60), default=0.03,
+                   help="seconds between the server's listen and its token (default 0.03)")
     r.set_defaults(func=probe_reconnect)
     ro = sub.add_parser("routers", help="(root) cross-namespace routing set-ups")
     ro.add_argument("--count", type=ca.count("repeats", hi=1000), default=5)

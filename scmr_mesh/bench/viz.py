@@ -35,6 +35,7 @@ def cmd_bench_viz(args: argparse.Namespace) -> int:
         start_ms = (time.perf_counter() - t) * 1e3
         rv = viz.RobotViz(viz.RerunOptions("connect", fv.url, fv.recording_id), "r0")
         times = []
+        cpu0 = time.process_time()
         for i in range(args.frames):
             rec = {"seq": i, "ok": True, "tier": "cloud", "tor_ms": 5.0, "received_unix_ns": time.time_ns()}
             t = time.perf_counter()
@@ -42,8 +43,10 @@ def cmd_bench_viz(args: argparse.Namespace) -> int:
             times.append((time.perf_counter() - t) * 1e3)
             if i % 50 == 0:
                 print(f"logged {i}/{args.frames}", file=sys.stderr)
+            time.sleep(args.interval)
         t = time.perf_counter()
         rv.close()
+        cpu_ms = (time.process_time() - cpu0) * 1e3
         fv.close()
         close_ms = (time.perf_counter() - t) * 1e3
         size = out.stat().st_size
@@ -53,6 +56,7 @@ def cmd_bench_viz(args: argparse.Namespace) -> int:
         "frame_size": [w, h],
         "observe_ms_median": round(float(np.median(arr)), 3),
         "observe_ms_p99": round(float(np.percentile(arr, 99)), 3),
+        "process_cpu_ms_per_frame": round(cpu_ms / args.frames, 3),
         "sink_start_ms": round(start_ms, 1),
         "flush_and_finalise_ms": round(close_ms, 1),
         "rrd_bytes_per_frame": round(size / args.frames),

@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 _PEER_EPILOG = """\
 Zenoh defaults (docs/ZENOH.md): multicast scouting off, gossip on, lease 500 ms
-with 4 keep-alives, connect retry 100..500 ms.  Give peers explicit endpoints,
+with 4 keep-alives, a dead endpoint retried every 50 ms.  Give peers explicit endpoints,
 e.g. cloud --listen tcp/127.0.0.1:7447, robots --connect tcp/127.0.0.1:7447.
 """
 

@@ -9,7 +9,7 @@ The defaults encode the measured facts (``docs/ZENOH.md``): multicast scouting
 off (peers are wired with explicit endpoints), gossip on (robots find each
 other through the leader), lease 500 ms with 4 keep-alives (silent link loss
 seen in ~400 ms, no false expiries), fast reconnect ``connect/retry
-{50, 250, 2}``, shared memory off and ``transport/unicast/open_timeout`` 1000 ms (bounds
+{50, 50, 1}`` (a dead endpoint is retried every 50 ms), shared memory off and ``transport/unicast/open_timeout`` 1000 ms (bounds
 ``close()``), and ``wait_before_close`` (how long a reliable send may wait for
 queue space) equal to the lease, so a send on a silently dead link gives up
 after one lease instead of zenoh's 5 s, during which the whole process stopped
@@ -43,7 +43,9 @@ DEFAULTS: dict[str, Any] = {
     "transport/link/tx/lease": DEFAULT_LEASE_MS,
     "transport/link/tx/keep_alive": DEFAULT_KEEP_ALIVE,
     "transport/unicast/open_timeout": 1000,
-    "connect/retry": {"period_init_ms": 50, "period_max_ms": 250, "period_increase_factor": 2},
+    # a dead endpoint is retried every 50 ms, so a restarted cloud is reached
+    # before it has declared its token (docs/ZENOH.md section 3: the trade-off)
+    "connect/retry": {"period_init_ms": 50, "period_max_ms": 50, "period_increase_factor": 1},
     "listen/retry": {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2},
     # one link per pair of peers: with zenoh's "always" both ends of a gossip
     # pair dial each other and keep 2 links; when a peer's link dies silently,

@@ -226,6 +226,16 @@ class _Viz:
 class RobotViz(_Viz):
     """Logs one robot's frames, overlays and QoS into the shared recording.
 
+    Nothing is logged on the caller's thread: :meth:`observe`,
+    :meth:`log_liveliness` and :meth:`log_telemetry` queue what they are given
+    (microseconds) and a background thread (``scmr-rerun``, at a lower CPU
+    priority) logs the queue every ``batch_s`` seconds: the scalars and text
+    of a batch as one column chunk per entity (``send_columns``), then its
+    images (JPEG-encoded there).  So the robot's request thread never waits
+    for rerun, and rerun's per-call work happens once per batch instead of
+    once per request.  :meth:`flush` logs what is queued now; :meth:`close`
+    flushes and closes the stream.
+
     Parameters
     ----------
     options : RerunOptions
@@ -237,6 +247,11 @@ class RobotViz(_Viz):
         scalars are logged for every request).
     jpeg_quality : int
         JPEG quality of the camera frame (the map is lossless).
+    batch_s : float
+        How often the background thread logs what was queued.
+    max_images : int
+        Requests whose images may wait in the queue; beyond that their images
+        are dropped (scalars never are) and counted in :attr:`dropped_images`.
 
     Examples
     --------
@@ -244,15 +259,22 @@ class RobotViz(_Viz):
     >>> robot.add_observer(viz.observe)                        # doctest: +SKIP
     """
 
-    def __init__(self, options: RerunOptions, robot: str, *, image_every: int = 1, jpeg_quality: int = 80) -> None:
+    def __init__(self, options: RerunOptions, robot: str, *, image_every: int = 1, jpeg_quality: int = 80,
+                 batch_s: float = 0.25, max_images: int = 64) -> None:
         self.robot = keys.check_name(robot, what="robot id")
         if image_every < 1:
             raise InputError(f"image_every must be >= 1, got {image_every}")
+        if not batch_s > 0:
+            raise InputError(f"batch_s must be > 0, got {batch_s}")
         self.image_every = int(image_every)
         self.jpeg_quality = int(jpeg_quality)
+        self.batch_s = float(batch_s)
+        self.max_images = int(max_images)
+        self.dropped_images = 0
         self._stream = _Stream(options)
         self._alive, self._faults, self._last_alive = {}, {}, {}
-        self._n = 0
+        self._n = 0  # requests queued
+        self._logged = 0  # requests logged
         self._ok = 0
         self.camera = f"{ROBOT_ROOT}/{self.robot}/camera"
         self.results = f"{keys.RESULTS}/{self.robot}"
@@ -261,9 +283,18 @@ class RobotViz(_Viz):
         rec.log(f"{self.results}/tor_ms", rr.SeriesLines(names=f"{self.robot} ToR (ms)"), static=True)
         rec.log(f"{self.results}/tier", rr.SeriesPoints(names=f"{self.robot} tier"), static=True)
         rec.log(f"{self.results}/ror", rr.SeriesLines(names=f"{self.robot} RoR"), static=True)
+        self._queue: list[tuple] = []
+        self._images_waiting = 0
+        self._qlock = threading.Lock()
+        self._wake = threading.Event()
+        self._closed = False
+        self._flush_lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name="scmr-rerun", daemon=True)
+        self._thread.start()
 
+    # ------------------------------------------------ caller side (cheap)
     def observe(self, record: Mapping[str, Any], rgb: np.ndarray | None = None, mask: np.ndarray | None = None, *, srm: np.ndarray | None = None) -> None:
-        """Log one finished request (usable as ``robot.add_observer(viz.observe)``).
+        """Queue one finished request (usable as ``robot.add_observer(viz.observe)``).
 
         Parameters
         ----------
@@ -272,63 +303,29 @@ class RobotViz(_Viz):
             ``sent_unix_ns``, ``received_unix_ns``, ``served_by``, ``error``,
             optionally ``energy_j`` and ``battery``).
         rgb : (H, W, 3) uint8 array, optional
-            The camera frame; resized to the map's shape.
+            The camera frame; resized to the map's shape.  Kept by reference
+            until logged: do not modify it afterwards.
         mask : (h, w) bool/int or (h, w, 3) uint8 array, optional
             The drivability map (non-zero or green = drivable).
         srm : (h, w, 3) uint8 array, optional
             The SRM image.
         """
-        s, rr = self._stream, self._stream.rr
-        seq = record.get("seq")
-        t = record.get("received_unix_ns") or record.get("sent_unix_ns")
-        ok = bool(record.get("ok"))
-        tier = record.get("tier") if ok else None
-        with s._lock:
+        fields = {k: record.get(k) for k in ("seq", "ok", "tier", "tor_ms", "served_by", "error", "energy_j",
+                                               "battery")}
+        fields["t"] = record.get("received_unix_ns") or record.get("sent_unix_ns") or time.time_ns()
+        with self._qlock:
             self._n += 1
-            self._ok += ok
-            s.at(t, seq)
-            rec = s.rec
-            if ok and record.get("tor_ms") is not None:
-                rec.log(f"{self.results}/tor_ms", rr.Scalars(float(record["tor_ms"])))
-            rec.log(f"{self.results}/tier", rr.Scalars(float(TIER_LEVEL.get(tier, -1))))
-            rec.log(f"{self.results}/ror", rr.Scalars(self._ok / self._n))
-            line = (
-                f"#{seq} {tier} by {record.get('served_by')} in {float(record.get('tor_ms') or 0):.1f} ms"
-                if ok
-                else f"#{seq} failed: {record.get('error')}"
-            )
-            rec.log(f"{self.results}/log", rr.TextLog(line, level="INFO" if ok else "WARN"))
-            if record.get("energy_j") is not None:
-                rec.log(f"{self.telemetry}/energy_j", rr.Scalars(float(record["energy_j"])))
-            if record.get("battery") is not None:
-                rec.log(f"{self.telemetry}/battery", rr.Scalars(float(record["battery"])))
-            if (self._n - 1) % self.image_every == 0:
-                self._log_images(rgb, mask, srm)
-
-    def _log_images(self, rgb, mask, srm) -> None:
-        s, rr = self._stream, self._stream.rr
-        shape = None
-        if mask is not None:
-            classes = _mask_to_classes(mask)
-            shape = classes.shape
-        if rgb is not None:
-            import cv2
-
-            frame = _rgb(rgb, shape)
-            ok, jpg = cv2.imencode(".jpg", frame[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-            if ok:
-                s.rec.log(self.camera, rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
-        if mask is not None:
-            s.rec.log(f"{self.camera}/drivable", rr.SegmentationImage(classes, opacity=0.5))
-        if srm is not None:
-            import cv2
-
-            ok, jpg = cv2.imencode(".jpg", _rgb(srm, None)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
-            if ok:
-                s.rec.log(f"{ROBOT_ROOT}/{self.robot}/srm", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
+            images = None
+            if (self._n - 1) % self.image_every == 0 and (rgb is not None or mask is not None or srm is not None):
+                if self._images_waiting < self.max_images:
+                    images = (rgb, mask, srm)
+                    self._images_waiting += 1
+                else:
+                    self.dropped_images += 1
+            self._queue.append(("request", fields, images))
 
     def log_liveliness(self, role: str, node: str, alive: bool, *, t_unix_ns: int | None = None) -> None:
-        """Log what this robot's liveliness subscriber saw (cloud and leader tokens only).
+        """Queue what this robot's liveliness subscriber saw (cloud and leader tokens only).
 
         Entity ``scmr/alive/<role>/<node>/<robot>``: 1 while the token is up, as
         a step series, so each robot's view of each serving node is one line
@@ -336,23 +333,136 @@ class RobotViz(_Viz):
         """
         if role not in ("cloud", "leader"):
             return
-        s = self._stream
-        entity = f"{keys.alive(role, entity_name(node))}/{self.robot}"
-        with s._lock:
-            self._step_series(entity, f"{node} seen by {self.robot}")
-            s.at(t_unix_ns)
-            s.rec.log(entity, s.rr.Scalars(1.0 if alive else 0.0))
+        t = time.time_ns() if t_unix_ns is None else int(t_unix_ns)
+        with self._qlock:
+            self._queue.append(("alive", (role, node, bool(alive)), t))
 
     def log_telemetry(self, *, battery: float | None = None, energy_j: float | None = None, t_unix_ns: int | None = None) -> None:
-        """Log battery level and/or energy outside a request."""
-        s, rr = self._stream, self._stream.rr
-        with s._lock:
-            s.at(t_unix_ns)
-            if battery is not None:
-                s.rec.log(f"{self.telemetry}/battery", rr.Scalars(float(battery)))
-            if energy_j is not None:
-                s.rec.log(f"{self.telemetry}/energy_j", rr.Scalars(float(energy_j)))
+        """Queue battery level and/or energy outside a request."""
+        t = time.time_ns() if t_unix_ns is None else int(t_unix_ns)
+        with self._qlock:
+            self._queue.append(("telemetry", (battery, energy_j), t))
 
+    # ------------------------------------------------ logger thread
+    def _run(self) -> None:
+        try:  # Linux: a nice value per thread; the robot's own threads keep theirs
+            import os
+
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+        except (AttributeError, OSError):
+            pass
+        while not self._closed:
+            self._wake.wait(self.batch_s)
+            self._wake.clear()
+            self.flush()
+
+    def flush(self) -> None:
+        """Log everything queued so far (the background thread calls it every ``batch_s``)."""
+        with self._flush_lock:
+            with self._qlock:
+                items, self._queue = self._queue, []
+            if not items:
+                return
+            try:
+                self._log_batch(items)
+            except Exception as exc:  # the viewer must never stop a robot
+                log.warning("rerun: could not log %d queued items: %s: %s", len(items), type(exc).__name__, exc)
+            finally:
+                with self._qlock:
+                    self._images_waiting -= sum(1 for it in items if it[0] == "request" and it[2] is not None)
+
+    def _log_batch(self, items: list[tuple]) -> None:
+        import numpy as np
+
+        s, rr = self._stream, self._stream.rr
+        cols: dict[str, list[tuple[int, int | None, Any]]] = {}  # entity -> [(t, seq, value)]
+        texts: list[tuple[int, int | None, str, str]] = []
+        images: list[tuple[int, int | None, tuple]] = []
+        for kind, a, b in items:
+            if kind == "request":
+                f, t, seq = a, int(a["t"]), a.get("seq")
+                ok = bool(f.get("ok"))
+                tier = f.get("tier") if ok else None
+                self._ok += ok
+                self._logged += 1
+                if ok and f.get("tor_ms") is not None:
+                    cols.setdefault(f"{self.results}/tor_ms", []).append((t, seq, float(f["tor_ms"])))
+                cols.setdefault(f"{self.results}/tier", []).append((t, seq, float(TIER_LEVEL.get(tier, -1))))
+                cols.setdefault(f"{self.results}/ror", []).append((t, seq, self._ok / self._logged))
+                line = (f"#{seq} {tier} by {f.get('served_by')} in {float(f.get('tor_ms') or 0):.1f} ms" if ok
+                        else f"#{seq} failed: {f.get('error')}")
+                texts.append((t, seq, line, "INFO" if ok else "WARN"))
+                if f.get("energy_j") is not None:
+                    cols.setdefault(f"{self.telemetry}/energy_j", []).append((t, seq, float(f["energy_j"])))
+                if f.get("battery") is not None:
+                    cols.setdefault(f"{self.telemetry}/battery", []).append((t, seq, float(f["battery"])))
+                if b is not None:
+                    images.append((t, seq, b))
+            elif kind == "alive":
+                role, node, up = a
+                entity = f"{keys.alive(role, entity_name(node))}/{self.robot}"
+                with s._lock:
+                    self._step_series(entity, f"{node} seen by {self.robot}")
+                cols.setdefault(entity, []).append((b, None, 1.0 if up else 0.0))
+            elif kind == "telemetry":
+                battery, energy = a
+                if battery is not None:
+                    cols.setdefault(f"{self.telemetry}/battery", []).append((b, None, float(battery)))
+                if energy is not None:
+                    cols.setdefault(f"{self.telemetry}/energy_j", []).append((b, None, float(energy)))
+        with s._lock:
+            for entity, rows in cols.items():
+                self._send(entity, rows, rr.Scalars.columns(scalars=[v for _, _, v in rows]), np)
+            if texts:
+                self._send(f"{self.results}/log", texts,
+                           rr.TextLog.columns(text=[x[2] for x in texts], level=[x[3] for x in texts]), np)
+        for t, seq, (rgb, mask, srm) in images:  # encoded outside the stream lock
+            self._log_images(t, seq, rgb, mask, srm)
+
+    def _send(self, entity: str, rows: list, columns, np) -> None:
+        """One column chunk: ``rows`` are ``(t_ns, seq or None, ...)``; ``request`` only when all have one."""
+        rr, rec = self._stream.rr, self._stream.rec
+        indexes = [rr.TimeColumn("wall_time", timestamp=np.array([r[0] for r in rows], dtype="datetime64[ns]"))]
+        if all(r[1] is not None for r in rows):
+            indexes.append(rr.TimeColumn("request", sequence=[int(r[1]) for r in rows]))
+        rr.send_columns(entity, indexes=indexes, columns=columns, recording=rec)
+
+    def _log_images(self, t: int, seq, rgb, mask, srm) -> None:
+        import cv2
+
+        s, rr = self._stream, self._stream.rr
+        shape = None
+        classes = None
+        if mask is not None:
+            classes = _mask_to_classes(mask)
+            shape = classes.shape
+        jpg = srm_jpg = None
+        if rgb is not None:
+            frame = _rgb(rgb, shape)
+            ok, buf = cv2.imencode(".jpg", frame[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+            jpg = buf.tobytes() if ok else None
+        if srm is not None:
+            ok, buf = cv2.imencode(".jpg", _rgb(srm, None)[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
+            srm_jpg = buf.tobytes() if ok else None
+        with s._lock:
+            s.at(t, seq)
+            if jpg is not None:
+                s.rec.log(self.camera, rr.EncodedImage(contents=jpg, media_type="image/jpeg"))
+            if classes is not None:
+                s.rec.log(f"{self.camera}/drivable", rr.SegmentationImage(classes, opacity=0.5))
+            if srm_jpg is not None:
+                s.rec.log(f"{ROBOT_ROOT}/{self.robot}/srm", rr.EncodedImage(contents=srm_jpg, media_type="image/jpeg"))
+
+    def close(self) -> None:
+        """Log what is still queued, stop the logger thread, close the stream."""
+        self._closed = True
+        self._wake.set()
+        self._thread.join(timeout=10.0)
+        self.flush()
+        if self.dropped_images:
+            log.warning("rerun: %d frames' images were not logged (the logger fell behind; scalars are complete)",
+                        self.dropped_images)
+        super().close()
 
 
 def robot_viz(options: RerunOptions | None, robot: str, **kw: Any) -> RobotViz | None:

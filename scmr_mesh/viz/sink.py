@@ -88,6 +88,7 @@ class _Sink:
         self.web_url: str | None = None
         self.hint = ""
         mode = options.mode
+        nice = 0
         if mode == "connect":
             self.url = normalize_url(options.target or DEFAULT_CONNECT_URL)
             self.hint = f"streaming to the rerun viewer at {self.url}"
@@ -102,6 +103,7 @@ class _Sink:
             port = port or _free_port()
             cmd = [exe, "--save", str(self.raw_path), "--port", str(port), "--bind", "127.0.0.1"]
             detach = False
+            nice = 10  # a recording must not take CPU from the requests it records
             what = "the rerun recorder (`rerun --save`)"
         elif mode == "spawn":
             port = port or DEFAULT_PORT
@@ -135,6 +137,11 @@ class _Sink:
             )
         except OSError as exc:
             raise ViewerError(f"could not start {what}: {exc}") from exc
+        if nice:
+            try:
+                os.setpriority(os.PRIO_PROCESS, self.proc.pid, nice)
+            except OSError as exc:  # pragma: no cover - the recording works either way
+                log.debug("could not lower the recorder's priority: %s", exc)
         _wait_port(self.proc, port, timeout=15.0, what=what)
         if self.proc.stderr is not None:  # keep the pipe from filling up
             threading.Thread(target=_drain, args=(self.proc.stderr,), daemon=True).start()
