@@ -204,13 +204,19 @@ def test_check_ror():
 
 
 def test_bench_targets():
-    run4 = {"robots": 4, "rate_hz": 5.0, "tor_ms": {"p50": 10.0, "p99": 60.0}}
-    crash = {"ror": 1.0, "failover_gaps_ms": [20.0], "failback_gaps_ms": [1500.0]}
+    from scmr_mesh.bench.mesh import _stat
+
+    run4 = {"robots": 4, "rate_hz": 5.0, "tor_ms": {"p50": 10.0, "p99": 60.0}, "tor_admitted_ms": {"p99": 90.0}}
+    run16 = {"robots": 16, "rate_hz": 5.0, "tor_ms": {"p50": 30.0, "p99": 260.0}, "tor_admitted_ms": {"p99": 120.0}}
+    crash = {"ror_min": 1.0, "failover_gap_ms": _stat([12.0, 15.0, 30.0]), "failback_gap_ms": _stat([300.0, 520.0])}
     t = bench_targets([run4], crash)
-    assert t["tor_p50_4x5hz_ok"] is True and t["tor_p99_4x5hz_ok"] is False
-    assert t["crash_ror_ok"] and t["failover_ok"] and t["failback_ok"] is False
-    t = bench_targets([], {"ror": 0.99, "failover_gaps_ms": [None], "failback_gaps_ms": []})
+    assert t["tor_p50_4x5hz_ok"] is True and t["tor_p99_4x5hz_ok"] is False and t["tor_admitted_p99_ok"] is True
+    assert t["crash_ror_ok"] and t["failover_ok"] and t["failback_ok"] is False  # median 15 ms; max 520 ms
+    assert bench_targets([run4, run16], None)["tor_admitted_p99_ok"] is False
+    hogs = {"ror_min": 1.0, "failover_gap_ms": _stat([40.0, 900.0]), "failback_gap_ms": _stat([800.0, None])}
+    t = bench_targets([], {"ror_min": 0.99, "failover_gap_ms": _stat([None]), "failback_gap_ms": _stat([])}, hogs)
     assert t["tor_p50_4x5hz_ok"] is None and not t["crash_ror_ok"] and not t["failover_ok"] and not t["failback_ok"]
+    assert t["hogs_failover_ok"] is True and t["hogs_failback_ok"] is False  # a run never failed back
 
 
 def test_schema_file_is_valid_json_schema(repo_root: Path):

@@ -102,6 +102,11 @@ def _service_args(p: argparse.ArgumentParser) -> None:
                    help="worker processes running the pipeline (default: number of cores)")
     p.add_argument("--mode", choices=("best", "thesis"), default=None,
                    help="default pipeline mode (requests carry their own; kept for symmetry with robots)")
+    p.add_argument("--budget-ms", type=ca.positive("milliseconds", hi=3600000, example="60"), default=None,
+                   metavar="MS",
+                   help="answer 'busy' at once when every worker is busy and a request would spend longer than "
+                        "MS here (queue wait predicted from the recent time per frame, plus its own); robots then "
+                        "use the leader, a peer or run it locally (default 60; without --queue)")
     p.add_argument("--max-request-bytes", type=ca.count("bytes", hi=1 << 30, example="33554432"), default=None, metavar="N",
                    help="larger requests get an 'oversized' error reply (default 32 MiB)")
     p.add_argument("--process", default=None, metavar="MODULE:FUNC",
@@ -192,7 +197,7 @@ def _cmd_cloud(args) -> int:
     _setup_logging(args)
     return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file,
-                       setup=_setup(args, "cloud"), verbose=bool(args.verbose))
+                       setup=_setup(args, "cloud"), verbose=bool(args.verbose), budget_ms=args.budget_ms)
 
 
 def _cmd_leader(args) -> int:
@@ -212,7 +217,7 @@ def _cmd_leader(args) -> int:
 
     rc = run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
                      max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                     setup=_setup(args, "leader"), verbose=bool(args.verbose))
+                     setup=_setup(args, "leader"), verbose=bool(args.verbose), budget_ms=args.budget_ms)
     _raise_problem(args)
     return rc
 

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from scmr_mesh.errors import InputError
 from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
 
 log = logging.getLogger(__name__)
@@ -89,6 +90,7 @@ def run_service(
     robot_body: Callable | None = None,
     setup: Callable | None = None,
     verbose: bool = False,
+    budget_ms: float | None = None,
 ) -> int:
     """Run a cloud or leader service until stopped.
 
@@ -99,7 +101,7 @@ def run_service(
     mesh : MeshConfig
         Zenoh settings.
     tier : {"cloud", "leader"}
-    workers, process, max_request_bytes
+    workers, process, max_request_bytes, budget_ms
         Passed to :class:`~scmr_mesh.mesh.server.Service`.
     ready_file : str, optional
         Written once the queryable and token are declared.
@@ -120,11 +122,13 @@ def run_service(
         Exit status (0 clean).
     """
     from scmr_mesh import keys, wire
-    from scmr_mesh.mesh.server import Service
+    from scmr_mesh.mesh.server import DEFAULT_BUDGET_MS, Service
     from scmr_mesh.mesh.startup import clock as startup_clock
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
 
     clock = startup_clock()
+    if budget_ms is not None and not budget_ms > 0:
+        raise InputError(f"--budget-ms must be > 0, got {budget_ms:g}; e.g. --budget-ms 60")
     # a bad setting (lease 0, unknown key, ...) fails here, before workers are
     # forked or any file is created; building a zenoh.Config starts no thread
     mesh.build()
@@ -133,7 +137,8 @@ def run_service(
     clear_ready(ready_file)
     # workers first: they are forked before zenoh starts any thread
     svc = Service(node, tier=tier, workers=workers, process=process or DEFAULT_PROCESS,
-                  max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES, clock=clock)
+                  max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES,
+                  budget_ms=DEFAULT_BUDGET_MS if budget_ms is None else budget_ms, clock=clock)
     session = None
     rc = 0
     try:

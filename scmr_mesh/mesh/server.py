@@ -17,8 +17,8 @@ Life cycle (done for you by :func:`run_service`)::
 Per query: the payload is size-checked and validated (``wire.decode``); a bad
 one gets an error reply (``malformed``, ``oversized``, ``wrong_version``) and
 the service keeps serving.  Then the *admission function* decides; a refused
-request gets its error reply (``busy`` by default when more than
-``max_inflight`` requests are being processed).  Admitted requests go to the
+request gets its error reply (``busy`` by default when the request would
+be answered later than the service's latency budget, :func:`default_admission`).  Admitted requests go to the
 pool; the reply is sent from the pool's callback thread (``query.reply`` then
 ``query.drop``), so zenoh's threads never wait for the pipeline.
 
@@ -66,6 +66,15 @@ class Refusal:
     retry_after_ms: float | None = None
 
 
+#: Default budget (ms) of an admitted request's time in the service: the default
+#: admission answers ``busy`` at once when the predicted queue wait plus the
+#: frame's own processing would exceed it (robots' ToR p99 target 100 ms, less
+#: transport, robot-side handling and the error of the prediction).
+DEFAULT_BUDGET_MS = 60.0
+#: Weight of the newest frame in the service-time average.
+SERVICE_EWMA = 0.2
+
+
 @dataclass
 class ServiceState:
     """Live counters the admission function may read.
@@ -77,7 +86,11 @@ class ServiceState:
     inflight : int
         Admitted requests not answered yet.
     max_inflight : int
-        The default admission's limit.
+        The default admission's hard limit.
+    budget_ms : float
+        The default admission's latency budget (see :func:`default_admission`).
+    service_ms : float or None
+        Moving average of a worker's time per frame (None before the first).
     served, errors, refused : int
         Totals since start.
     """
@@ -90,20 +103,61 @@ class ServiceState:
     served: int = 0
     errors: int = 0
     refused: int = 0
+    budget_ms: float = DEFAULT_BUDGET_MS
+    service_ms: float | None = None
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def predicted_ms(self, inflight: int | None = None) -> float | None:
+        """Time a request admitted now would spend here: the frames ahead of it
+        in full rounds of the workers, then its own (None before any sample)."""
+        if self.service_ms is None:
+            return None
+        ahead = self.inflight if inflight is None else inflight
+        return (ahead // max(1, self.workers) + 1) * self.service_ms
+
+    def note_service(self, worker_ms: float) -> None:
+        """Fold one frame's worker time into :attr:`service_ms` (call with the lock held)."""
+        if worker_ms > 0:
+            prev = self.service_ms
+            self.service_ms = worker_ms if prev is None else prev + SERVICE_EWMA * (worker_ms - prev)
 
 
 Admission = Callable[[dict, ServiceState], "Refusal | None"]
 
 
 def default_admission(request: dict, state: ServiceState) -> Refusal | None:
-    """Admit unless ``state.inflight >= state.max_inflight`` (then ``busy``)."""
+    """Answer ``busy`` early instead of letting a queue grow.
+
+    Refuses when ``state.inflight >= state.max_inflight``, or when the request
+    would be answered later than its budget: the predicted time here
+    (:meth:`ServiceState.predicted_ms`: the frames ahead of it, in rounds of
+    the workers, each taking the recent average worker time) exceeds
+    ``state.budget_ms``, or the request's own ``deadline_ms``.  The average
+    follows the machine's load (a frame takes longer when the cores are
+    shared), so the queue a service accepts shrinks as it slows down and an
+    admitted request's time stays near the budget at any offered load; the
+    refused robot goes to the leader, a peer or runs the frame itself.
+    ``retry_after_ms`` says when the queue should have drained enough.
+    """
     if state.inflight >= state.max_inflight:
         return Refusal(
             "busy",
             f"server too busy, try later ({state.inflight} requests in progress, "
             f"limit {state.max_inflight})",
             retry_after_ms=50.0,
+        )
+    predicted = state.predicted_ms()
+    if predicted is None:
+        return None
+    deadline = request.get("deadline_ms")
+    limit = min(state.budget_ms, float(deadline)) if deadline else state.budget_ms
+    if predicted > limit:
+        return Refusal(
+            "busy",
+            f"server too busy, try later: {state.inflight} requests in progress on {state.workers} workers "
+            f"at {state.service_ms:.0f} ms per frame would answer in about {predicted:.0f} ms, over the "
+            f"{limit:.0f} ms budget; send it to another tier or run it locally",
+            retry_after_ms=round(max(1.0, predicted - limit), 1),
         )
     return None
 
@@ -126,6 +180,8 @@ class Service:
         Limit of the default admission (default ``8 * workers``).
     admission : callable, optional
         Replaces :func:`default_admission`.
+    budget_ms : float
+        The default admission's latency budget (``scmr cloud --budget-ms``).
     clock : scmr_mesh.mesh.startup.StartupClock, optional
         Marks the start-up phases (``scmr -v cloud`` prints them).
     """
@@ -140,6 +196,7 @@ class Service:
         max_request_bytes: int = wire.MAX_REQUEST_BYTES,
         max_inflight: int | None = None,
         admission: Admission | None = None,
+        budget_ms: float = DEFAULT_BUDGET_MS,
         clock=None,
     ) -> None:
         import os
@@ -152,7 +209,9 @@ class Service:
         self.tier = tier
         self.key = keys.drivable(tier, node)
         self.max_request_bytes = int(max_request_bytes)
-        self.state = ServiceState(node, tier, workers, int(max_inflight or 8 * workers))
+        if not budget_ms > 0:
+            raise InputError(f"--budget-ms must be > 0, got {budget_ms}")
+        self.state = ServiceState(node, tier, workers, int(max_inflight or 8 * workers), budget_ms=float(budget_ms))
         self.admission: Admission = admission or default_admission
         self.negotiator = None
         self.session = None
@@ -379,8 +438,14 @@ class Service:
             fut.add_done_callback(finished)
 
     def _finish(self, query, req: dict, fut, t_arrival: float, t_sub: float) -> None:
+        try:
+            out = fut.result()
+        except BaseException:
+            out = None
         with self.state.lock:
             self.state.inflight -= 1
+            if out is not None:
+                self.state.note_service(float(out.get("worker_ms", 0.0)))
         try:
             out = fut.result()
         except (ImageDecodeError, InputError) as exc:

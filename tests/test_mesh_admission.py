@@ -1,0 +1,105 @@
+"""Admission by latency budget: a service answers 'busy' at once instead of
+queueing a request it would answer late (issue 14).  Pure checks of the rule,
+and one real cloud process with a slow stub (~3 s)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+from conftest import free_port
+
+from scmr_mesh import keys, wire
+from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+from scmr_mesh.mesh.server import ServiceState, default_admission
+from scmr_mesh.mesh.testing import SLOW, spawn_peer, stop_peer, synthetic_png, wait_for
+
+
+def _state(**kw) -> ServiceState:
+    st = ServiceState("c1", "cloud", kw.pop("workers", 2), kw.pop("max_inflight", 16), **kw)
+    return st
+
+
+def test_no_sample_yet_admits_up_to_the_hard_limit():
+    st = _state()
+    assert default_admission({}, st) is None
+    st.inflight = 16
+    assert default_admission({}, st).code == "busy"
+
+
+def test_budget_counts_rounds_of_workers():
+    st = _state(service_ms=10.0, budget_ms=60.0)
+    admitted = []
+    for inflight in range(14):
+        st.inflight = inflight
+        admitted.append(default_admission({}, st) is None)
+    # 2 workers: inflight 10 and 11 wait 5 rounds (60 ms in all), 12 would take 70
+    assert admitted == [True] * 12 + [False] * 2
+    st.inflight = 12
+    r = default_admission({}, st)
+    assert r.code == "busy" and r.retry_after_ms == pytest.approx(10.0) and "70 ms" in r.message
+
+
+def test_a_slower_service_accepts_a_shorter_queue():
+    st = _state(service_ms=10.0, budget_ms=60.0)
+    for _ in range(30):  # the cores got busy: frames take 30 ms now
+        st.note_service(30.0)
+    assert st.service_ms == pytest.approx(30.0, abs=0.1)
+    st.inflight = 2
+    assert default_admission({}, st) is None  # 2 rounds: 60 ms
+    st.inflight = 4
+    assert default_admission({}, st).code == "busy"
+
+
+def test_request_deadline_tighter_than_budget():
+    st = _state(service_ms=10.0, budget_ms=60.0, inflight=4)
+    assert default_admission({"deadline_ms": 100.0}, st) is None
+    assert default_admission({"deadline_ms": 25.0}, st).code == "busy"
+
+
+def test_overloaded_cloud_answers_busy_before_the_queue_grows(tmp_path):
+    # one worker, 400 ms per frame, budget 900 ms: of 8 requests sent at once two are
+    # admitted (400 ms, then 800 ms), the rest are refused at once; with the old
+    # in-flight limit (8 x workers) all 8 were queued, the last answered after 3.2 s.
+    # (A third may be admitted if the first finishes before the last request arrives.)
+    port = free_port()
+    ready = tmp_path / "c.ready"
+    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+                    "--process", SLOW, "--budget-ms", "900", "--ready-file", str(ready)],
+                   log_path=tmp_path / "c.log", env={"SCMR_STUB_DELAY_MS": "400"})
+    try:
+        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=120, what="cloud ready")
+        assert p.poll() is None, (tmp_path / "c.log").read_text()
+        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
+        try:
+            q = session.declare_querier(keys.drivable("cloud", "c1"), timeout=30.0)
+            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
+            results: dict[int, tuple[str, float]] = {}
+            lock = threading.Lock()
+
+            def ask(seq: int) -> None:
+                req = wire.make_request("t1", seq, synthetic_png(seq), encoding="png")
+                for r in q.get(payload=wire.encode(req)):
+                    kind = "ok" if r.ok is not None else "err"
+                    body = (r.ok or r.err).payload.to_bytes()
+                    msg = wire.decode(body, kind="reply" if kind == "ok" else "error")
+                    with lock:
+                        results[seq] = ("ok" if kind == "ok" else msg["code"], time.monotonic())
+
+            threads = [threading.Thread(target=ask, args=(i,)) for i in range(8)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(timeout=30)
+        finally:
+            close_session(session)
+    finally:
+        assert stop_peer(p) == 0
+    codes = sorted(c for c, _ in results.values())
+    assert len(results) == 8
+    assert codes.count("ok") in (2, 3) and codes.count("ok") + codes.count("busy") == 8, codes
+    # every refusal came back before the second admitted frame was done
+    last_busy = max(t for c, t in results.values() if c == "busy")
+    last_ok = max(t for c, t in results.values() if c == "ok")
+    assert last_busy < last_ok
