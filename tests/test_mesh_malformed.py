@@ -153,8 +153,8 @@ def test_requests_past_their_deadline_are_not_processed(tmp_path):
     port = free_port()
     ready = tmp_path / "slow.ready"
     p = spawn_peer(["cloud", "--node", "slow", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
-                    "--process", SLOW, "--ready-file", str(ready)], log_path=tmp_path / "slow.log",
-                   env={"SCMR_STUB_DELAY_MS": "1000"})
+                    "--process", SLOW, "--budget-ms", "100000", "--ready-file", str(ready)],
+                   log_path=tmp_path / "slow.log", env={"SCMR_STUB_DELAY_MS": "1000"})  # queue them: no busy
     try:
         wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what="slow cloud ready")
         session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))

@@ -91,6 +91,9 @@ class ServiceState:
         The default admission's latency budget (see :func:`default_admission`).
     service_ms : float or None
         Moving average of a worker's time per frame (None before the first).
+    queue_managed : bool
+        A priority negotiator bounds the queue (``--queue``); the default
+        admission then applies only its hard limit.
     served, errors, refused : int
         Totals since start.
     """
@@ -105,6 +108,7 @@ class ServiceState:
     refused: int = 0
     budget_ms: float = DEFAULT_BUDGET_MS
     service_ms: float | None = None
+    queue_managed: bool = False
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def predicted_ms(self, inflight: int | None = None) -> float | None:
@@ -128,15 +132,17 @@ Admission = Callable[[dict, ServiceState], "Refusal | None"]
 def default_admission(request: dict, state: ServiceState) -> Refusal | None:
     """Answer ``busy`` early instead of letting a queue grow.
 
-    Refuses when ``state.inflight >= state.max_inflight``, or when the request
-    would be answered later than its budget: the predicted time here
-    (:meth:`ServiceState.predicted_ms`: the frames ahead of it, in rounds of
-    the workers, each taking the recent average worker time) exceeds
-    ``state.budget_ms``, or the request's own ``deadline_ms``.  The average
-    follows the machine's load (a frame takes longer when the cores are
-    shared), so the queue a service accepts shrinks as it slows down and an
-    admitted request's time stays near the budget at any offered load; the
-    refused robot goes to the leader, a peer or runs the frame itself.
+    Refuses when ``state.inflight >= state.max_inflight``, or when every
+    worker is busy and the request would be answered later than its budget:
+    the predicted time here (:meth:`ServiceState.predicted_ms`: the frames
+    ahead of it, in rounds of the workers, each taking the recent average
+    worker time) exceeds ``state.budget_ms``.  The average follows the machine's load (a frame takes
+    longer when the cores are shared), so the queue a service accepts shrinks
+    as it slows down and an admitted request's time stays near the budget at
+    any offered load; the refused robot goes to the leader, a peer or runs the
+    frame itself.  A request that finds a free worker is always admitted (it
+    waits for nothing), and with a priority negotiator (``--queue``) only the
+    hard limit applies: the negotiator bounds its own queue.
     ``retry_after_ms`` says when the queue should have drained enough.
     """
     if state.inflight >= state.max_inflight:
@@ -146,11 +152,12 @@ def default_admission(request: dict, state: ServiceState) -> Refusal | None:
             f"limit {state.max_inflight})",
             retry_after_ms=50.0,
         )
+    if state.queue_managed or state.inflight < state.workers:
+        return None
     predicted = state.predicted_ms()
     if predicted is None:
         return None
-    deadline = request.get("deadline_ms")
-    limit = min(state.budget_ms, float(deadline)) if deadline else state.budget_ms
+    limit = state.budget_ms
     if predicted > limit:
         return Refusal(
             "busy",
@@ -396,6 +403,7 @@ class Service:
     def use_negotiator(self, negotiator) -> None:
         """Rank requests with ``negotiator`` (see :mod:`scmr_mesh.qos.negotiator`); before attach."""
         self.negotiator = negotiator
+        self.state.queue_managed = True
         threading.Thread(target=self._dispatch, name="scmr-dispatch", daemon=True).start()
 
     def _negotiate(self, query, req: dict, t_arrival: float) -> None:
