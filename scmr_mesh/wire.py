@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -64,9 +65,12 @@ class WireProblem(WireError):
         One of :data:`ERROR_CODES` (``malformed``, ``oversized``, ``wrong_version``).
     """
 
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: str, message: str, *, partial: Mapping[str, Any] | None = None) -> None:
         super().__init__(message)
         self.code = code
+        #: The decoded map when the payload was msgpack but broke the schema: its ``robot``
+        #: and ``seq`` can still be echoed in the error reply (:func:`make_error`).
+        self.partial = partial
 
 
 # ---------------------------------------------------------------- validation
@@ -147,6 +151,7 @@ def validate(message: Mapping[str, Any], kind: str) -> Mapping[str, Any]:
             "wrong_version",
             f"{kind} has wire version {v!r}, this peer speaks {WIRE_VERSION}; "
             "run the same scmr-mesh version on every peer",
+            partial=message,
         )
     check = fast_check(kind)
     if check is not None and check(message):
@@ -156,7 +161,8 @@ def validate(message: Mapping[str, Any], kind: str) -> Mapping[str, Any]:
         return message
     err = min(val.iter_errors(message), key=lambda e: len(e.path))
     where = "/".join(str(p) for p in err.absolute_path) or "(top level)"
-    raise WireProblem("malformed", f"{kind} field {where}: {err.message[:300]}")
+    raise WireProblem("malformed", f"{kind} field {where}: {err.message[:300]} (see schemas/{kind}.schema.json)",
+                      partial=message)
 
 
 # ------------------------------------------------------------ encode / decode
@@ -194,20 +200,39 @@ def decode(data: bytes | bytearray, *, kind: str | tuple[str, ...], max_bytes: i
             f"payload of {len(data)} bytes exceeds the limit of {max_bytes} bytes; "
             "send a smaller or compressed (png/jpeg) frame",
         )
+    fix = _FIX.get(kinds[0], f"send a msgpack map made by scmr_mesh.wire (schemas/{kinds[0]}.schema.json)")
     try:
         msg = msgpack.unpackb(bytes(data), raw=False, strict_map_key=True)
     except Exception as exc:  # msgpack raises many types
-        raise WireProblem("malformed", f"payload is not msgpack ({type(exc).__name__}: {exc})"[:300]) from None
+        why = type(exc).__name__ + (f": {str(exc)[:120]}" if str(exc) else "")
+        raise WireProblem("malformed", f"payload of {len(data)} bytes is not msgpack (it starts with "
+                          f"{head_hex(data)}; {why}); {fix}") from None
     if not isinstance(msg, dict):
-        raise WireProblem("malformed", f"payload must be a msgpack map, got {type(msg).__name__}")
+        raise WireProblem("malformed", f"payload must be a msgpack map, got a msgpack {type(msg).__name__} "
+                          f"({len(data)} bytes, starting with {head_hex(data)}); {fix}")
     got = msg.get("kind")
     if got not in kinds:
         # check the version first: a future peer may rename kinds
         if msg.get("v") != WIRE_VERSION:
             validate(msg, kinds[0])
-        raise WireProblem("malformed", f"expected a message of kind {'/'.join(kinds)}, got kind {got!r}")
+        raise WireProblem("malformed", f"expected a message of kind {'/'.join(kinds)}, got kind "
+                          f"{str(got)[:60]!r}; {fix}", partial=msg)
     validate(msg, got)
     return msg
+
+
+#: What a sender should do instead, per expected kind (in "malformed" messages).
+_FIX = {
+    "request": "send a msgpack map made by scmr_mesh.wire.make_request (docs/protocol.md, "
+               "schemas/request.schema.json)",
+}
+
+
+def head_hex(data: bytes | bytearray, n: int = 16) -> str:
+    """The first bytes of a payload as hex, for error messages (``0x89504e47...``)."""
+    if not data:
+        return "nothing (0 bytes)"
+    return "0x" + bytes(data[:n]).hex() + ("..." if len(data) > n else "")
 
 
 # ---------------------------------------------------------------- factories
@@ -292,6 +317,9 @@ def make_reply(
     }
 
 
+_ROBOT_ID = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
+
+
 def make_error(
     code: str,
     message: str,
@@ -311,8 +339,9 @@ def make_error(
         "kind": "error",
         "code": code,
         "message": str(message)[:2000],
-        "robot": robot if isinstance(robot, str) else None,
-        "seq": seq if isinstance(seq, int) and not isinstance(seq, bool) else None,
+        # echoed whenever they were readable (also from a request that broke the schema elsewhere)
+        "robot": robot if isinstance(robot, str) and _ROBOT_ID.fullmatch(robot) else None,
+        "seq": seq if isinstance(seq, int) and not isinstance(seq, bool) and 0 <= seq < 2**63 else None,
         "served_by": served_by,
         "tier": tier,
     }

@@ -89,6 +89,28 @@ def test_bad_requests_get_error_replies_and_service_keeps_serving(cloud):
     assert proc.poll() is None
 
 
+def test_error_replies_name_what_was_received_and_the_fix(cloud):
+    """Issue #12, item 7: a client reads what it sent, what is wrong, and what to send instead."""
+    _, q = cloud
+    _, msg = _ask(q, b"\xc1\xc1\xc1")
+    assert "payload of 3 bytes is not msgpack" in msg["message"] and "0xc1c1c1" in msg["message"]
+    assert "wire.make_request" in msg["message"]
+    # a schema violation: robot and seq were readable, so they come back
+    for bad in ({**_good(5), "encoding": "gif"}, {k: v for k, v in _good(5).items() if k != "mode"},
+                {**_good(5), "priority": -1}, {**_good(5), "v": 99}):
+        _, msg = _ask(q, wire.encode(bad))
+        assert (msg["robot"], msg["seq"]) == ("t1", 5), msg
+    _, msg = _ask(q, wire.encode({**_good(5), "robot": "no spaces allowed", "encoding": "gif"}))
+    assert (msg["robot"], msg["seq"]) == (None, 5)  # an unreadable robot id is never echoed
+    # an undecodable image: the wire's terms ([H, W, 3]), not the decoder's Python API
+    _, msg = _ask(q, wire.encode({**_good(6), "image": b"not an image at all"}))
+    assert "encoding 'png', 19 bytes" in msg["message"] and "[H, W, 3]" in msg["message"]
+    assert "shape=(H, W)" not in msg["message"] and (msg["robot"], msg["seq"]) == ("t1", 6)
+    raw = wire.make_request("t1", 8, bytes(10), encoding="raw", shape=(4, 4, 3))
+    _, msg = _ask(q, wire.encode(raw))
+    assert "shape [4, 4, 3]" in msg["message"] and "48" in msg["message"] and "[H, W, 3]" in msg["message"]
+
+
 def test_no_payload_is_an_error_reply(cloud):
     _, q = cloud
     replies = list(q.get())

@@ -170,3 +170,20 @@ def test_keys_reject_bad_names(bad):
 def test_keys_reject_unknown_tier():
     with pytest.raises(InputError, match="tier"):
         keys.drivable("edge", "n")
+
+
+def test_a_schema_violation_keeps_what_was_readable_and_names_the_fix():
+    """Issue #12, item 7."""
+    bad = wire.encode({**wire.make_request("r7", 42, b"x"), "mode": "fast"})
+    with pytest.raises(wire.WireProblem) as ei:
+        wire.decode(bad, kind="request")
+    assert ei.value.code == "malformed" and "schemas/request.schema.json" in str(ei.value)
+    err = wire.make_error("malformed", str(ei.value), served_by="c", tier="cloud", request=ei.value.partial)
+    assert (err["robot"], err["seq"]) == ("r7", 42)
+    wire.validate(err, "error")
+    with pytest.raises(wire.WireProblem, match=r"payload of 4 bytes is not msgpack \(it starts with 0xc1c1c1c1"):
+        wire.decode(b"\xc1" * 4, kind="request")
+    with pytest.raises(wire.WireProblem, match=r"msgpack list .*make_request"):
+        wire.decode(wire.encode([1, 2]), kind="request")
+    junk = wire.make_error("malformed", "m", served_by="c", tier="cloud", request={"robot": "x" * 65, "seq": -1})
+    assert (junk["robot"], junk["seq"]) == (None, None)

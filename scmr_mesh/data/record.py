@@ -136,12 +136,17 @@ def encode_records(records: list[TelemetryRecord], *, via: str | None = None) ->
 
 def decode_batch(payload: bytes) -> tuple[list[TelemetryRecord], str | None]:
     """Decode an :func:`encode_records` payload into ``(records, via)``."""
+    from scmr_mesh.wire import head_hex
+
+    fix = "send a batch made by scmr_mesh.data.record.encode_records (docs/DATA.md)"
     try:
         msg = msgpack.unpackb(payload, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types
-        raise TelemetryError(f"telemetry payload is not msgpack ({len(payload)} bytes): {exc}") from None
+        raise TelemetryError(f"telemetry payload of {len(payload)} bytes is not msgpack (it starts with "
+                             f"{head_hex(payload)}; {type(exc).__name__}: {exc}); {fix}") from None
     if not isinstance(msg, dict) or not isinstance(msg.get("records"), list):
-        raise TelemetryError("telemetry payload must be a map with a 'records' list")
+        got = type(msg).__name__ if not isinstance(msg, dict) else f"a map with keys {sorted(map(str, msg))[:8]}"
+        raise TelemetryError(f"telemetry payload must be a map with a 'records' list, got {got}; {fix}")
     via = msg.get("via")
     if via is not None and via not in TIERS:
         raise TelemetryError(f"telemetry 'via' must be one of {TIERS}, got {via!r}")

@@ -378,8 +378,8 @@ class Service:
             data = payload.to_bytes()
             try:
                 req = wire.decode(data, kind="request", max_bytes=self.max_request_bytes)
-            except wire.WireProblem as exc:
-                self._reply_error(query, exc.code, str(exc))
+            except wire.WireProblem as exc:  # robot and seq echoed when they could be read
+                self._reply_error(query, exc.code, str(exc), exc.partial)
                 return
             refusal = self.admission(req, self.state)
             if refusal is not None:
@@ -457,7 +457,7 @@ class Service:
         try:
             out = fut.result()
         except (ImageDecodeError, InputError) as exc:
-            self._reply_error(query, "malformed", f"image unusable: {exc}", req)
+            self._reply_error(query, "malformed", _image_message(req, exc), req)
             return
         except Expired as exc:
             self._reply_error(query, "expired", f"not processed: {exc} (deadline {req.get('deadline_ms')} ms)", req)
@@ -487,6 +487,20 @@ class Service:
             log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
         finally:
             _drop(query)
+
+
+def _image_message(req: dict, exc: Exception) -> str:
+    """What a robot reads when its image does not decode: what was received and the fix, in wire terms.
+
+    The decoder's own hint is about its Python API (``shape=(H, W)``); on the
+    wire a raw frame carries ``shape: [H, W, 3]``, so the hint is replaced.
+    """
+    reason = str(exc).split("; pass ", 1)[0]
+    shape = req.get("shape")
+    got = f"encoding {req.get('encoding')!r}, {len(req.get('image') or b'')} bytes" + (
+        f", shape {list(shape)}" if shape is not None else "")
+    return (f"image unusable ({got}): {reason}; send PNG or JPEG bytes with encoding 'png'/'jpeg' and "
+            "shape null, or raw RGB rows with encoding 'raw', shape [H, W, 3] and H*W*3 bytes")
 
 
 def _expiry(req: dict, t_arrival: float) -> float | None:
