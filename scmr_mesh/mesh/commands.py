@@ -108,7 +108,8 @@ def _service_args(p: argparse.ArgumentParser) -> None:
                         "MS here (queue wait predicted from the recent time per frame, plus its own); robots then "
                         "use the leader, a peer or run it locally (default 60; without --queue)")
     p.add_argument("--max-request-bytes", type=ca.count("bytes", hi=1 << 30, example="33554432"), default=None, metavar="N",
-                   help="larger requests get an 'oversized' error reply (default 32 MiB)")
+                   help="larger requests get an 'oversized' error reply (default 32 MiB); zenoh's transport "
+                        "drops any message over this + 8 MiB (default 40 MiB) before it reaches Python")
     p.add_argument("--process", default=None, metavar="MODULE:FUNC",
                    help="process function run by the workers (default: the drivable pipeline; tests "
                         "use scmr_mesh.mesh.testing:stub_process)")
@@ -186,9 +187,13 @@ def _setup_logging(args) -> None:
 
 
 def _mesh(args, mode: str = "peer"):
-    from scmr_mesh.mesh.config import from_args
+    from scmr_mesh.mesh.config import MAX_MESSAGE_BYTES, from_args
 
-    return from_args(args, mode=mode)
+    mesh = from_args(args, mode=mode)
+    limit = getattr(args, "max_request_bytes", None)
+    if limit:  # the transport must let the largest admitted request through (docs/ZENOH.md section 9)
+        mesh.max_message_bytes = max(MAX_MESSAGE_BYTES, int(limit) + (8 << 20))
+    return mesh
 
 
 def _cmd_cloud(args) -> int:

@@ -36,6 +36,15 @@ DEFAULT_LEASE_MS = 500
 #: Default keep-alives per lease (zenoh's ``keep_alive`` divisor).
 DEFAULT_KEEP_ALIVE = 4
 
+#: Zenoh key bounding the size of one message a peer reassembles from fragments;
+#: a larger one is dropped by the transport before Python sees any of it.
+MAX_MESSAGE_KEY = "transport/link/rx/max_message_size"
+#: Default of :data:`MAX_MESSAGE_KEY`: the largest request a service admits
+#: (``wire.MAX_REQUEST_BYTES``, 32 MiB) plus room for msgpack and zenoh framing.
+#: Zenoh's own default is 1 GiB: one 300 MB query raised a cloud's peak RSS by
+#: ~600 MB before the service could refuse it (docs/ZENOH.md section 9).
+MAX_MESSAGE_BYTES = 40 << 20
+
 #: scmr defaults: zenoh key -> JSON value.
 DEFAULTS: dict[str, Any] = {
     "scouting/multicast/enabled": False,
@@ -54,6 +63,8 @@ DEFAULTS: dict[str, Any] = {
     # SHM: first large query pays 17-26 ms to set it up, SIGKILLed peers leave
     # /dev/shm files, and at our sizes the median gain is nil (docs/ZENOH.md)
     "transport/shared_memory/enabled": False,
+    # every peer refuses oversized messages in the transport (issue #12, docs/ZENOH.md section 9)
+    MAX_MESSAGE_KEY: MAX_MESSAGE_BYTES,
 }
 
 MODES = ("peer", "client", "router")
@@ -88,6 +99,9 @@ class MeshConfig:
         Overrides the profile's credentials directory (made by ``scmr certs``).
     identity : str or None
         This peer's name in the credentials (node name or robot id).
+    max_message_bytes : int or None
+        At least this many bytes for :data:`MAX_MESSAGE_KEY` (a service with a
+        larger ``--max-request-bytes`` raises the transport's limit with it).
     """
 
     mode: str = "peer"
@@ -100,6 +114,7 @@ class MeshConfig:
     security: str | None = None
     credentials: str | None = None
     identity: str | None = None
+    max_message_bytes: int | None = None
 
     def build(self):
         """Return a validated ``zenoh.Config``; raise :class:`ConfigError` if unusable."""
@@ -155,6 +170,8 @@ def build_config(mc: MeshConfig):
         _insert(conf, "transport/link/tx/lease", json.dumps(int(mc.lease_ms)), source="--lease-ms")
     if mc.keep_alive is not None:
         _insert(conf, "transport/link/tx/keep_alive", json.dumps(int(mc.keep_alive)), source="keep_alive")
+    if mc.max_message_bytes is not None and (_get(conf, MAX_MESSAGE_KEY) or 0) < mc.max_message_bytes:
+        _insert(conf, MAX_MESSAGE_KEY, json.dumps(int(mc.max_message_bytes)), source="--max-request-bytes")
     if not wbc_pinned:
         # A send blocked on a silently dead link holds zenoh's pipeline lock: the
         # link cannot be torn down and zenoh's single TX thread stalls, so every
