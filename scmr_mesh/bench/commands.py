@@ -75,6 +75,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     add_scenario(bench)
     add_energy(bench)
     add_data(bench)
+    add_ingest(bench)
     add_overload(bench)
     add_tls(bench)
     add_viz(bench)
@@ -252,6 +253,41 @@ def add_data(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--no-mesh", action="store_true", help="skip the Zenoh round trip")
     b.add_argument("--quiet", action="store_true", help="no progress on stderr")
     b.set_defaults(func=_handler("data", "cmd_bench_data"))
+
+
+def _rates(text: str) -> list[float]:
+    """``"10,100,0"`` -> batches per second (0 = as fast as the sender can)."""
+    import math
+
+    out = [float(x) for x in text.split(",") if x.strip()]
+    if not out or any(not math.isfinite(x) or x < 0 or x > 100000 for x in out):
+        raise ValueError("rates must be batches per second in 0..100000 (0: unpaced)")
+    return out
+
+
+def add_ingest(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench ingest``."""
+    b = bench.add_parser(
+        "ingest", help="a cloud's peak RSS under a telemetry flood at any rate (bounded ingest)",
+        description="Flood a real cloud (stub pipeline, its own ODS) with telemetry batches from a stranger's "
+                    "session at each rate for --duration s, a fresh cloud per case; report the answers (ok, "
+                    "busy, refused, none) and the cloud's RSS at the start and its peak (VmHWM).  With "
+                    "--unbounded every case also runs with the bounds lifted (the behaviour before them), "
+                    "for the ratio.  docs/DATA.md has the figures.")
+    b.add_argument("--rates", default="10,100,1000,0", metavar="LIST",
+                   type=ca.parsed(_rates, what="batches per second, comma-separated (0: unpaced)", example="10,100,0",
+                                  positive=False, keep_text=True),
+                   help="batches per second, comma-separated; 0 = as fast as possible (default %(default)s)")
+    b.add_argument("--records", default="200,1000", metavar="LIST",
+                   type=ca.parsed(_fleet_sizes, what="records per batch, comma-separated", example="200,1000",
+                                  keep_text=True),
+                   help="records per batch, comma-separated (default %(default)s; the cloud takes at most 256)")
+    b.add_argument("--duration", type=ca.positive("seconds", hi=3600, example="5"), default=5.0, metavar="S",
+                   help="seconds of flood per case (default %(default)s)")
+    b.add_argument("--unbounded", action="store_true", help="also run each case with the bounds lifted")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the results here")
+    b.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    b.set_defaults(func=_handler("ingest", "cmd_bench_ingest"))
 
 
 def add_overload(bench: argparse._SubParsersAction) -> None:

@@ -134,6 +134,25 @@ def encode_records(records: list[TelemetryRecord], *, via: str | None = None) ->
     return msgpack.packb(msg, use_bin_type=True)
 
 
+def batch_size(payload: bytes) -> int | None:
+    """How many records an :func:`encode_records` payload holds, read from its headers only.
+
+    Cheap (decodes no record), so a tier can refuse an oversized batch before
+    decoding it.  None when the payload is not such a map (:func:`decode_batch`
+    then says why).
+    """
+    unpacker = msgpack.Unpacker(raw=False, max_buffer_size=max(len(payload), 1))
+    try:
+        unpacker.feed(payload)
+        for _ in range(unpacker.read_map_header()):
+            if unpacker.unpack() == "records":
+                return int(unpacker.read_array_header())
+            unpacker.skip()
+    except Exception:  # not a map, truncated...
+        return None
+    return None
+
+
 def decode_batch(payload: bytes) -> tuple[list[TelemetryRecord], str | None]:
     """Decode an :func:`encode_records` payload into ``(records, via)``."""
     from scmr_mesh.wire import head_hex

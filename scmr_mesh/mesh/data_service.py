@@ -48,6 +48,7 @@ import concurrent.futures
 import json
 import logging
 import os
+import random
 import threading
 import time
 from pathlib import Path
@@ -61,7 +62,7 @@ from scmr_mesh.data.buffer import BufferSync, DataBuffer
 from scmr_mesh.data.errors import QueueError, QueueFullError, TelemetryError
 from scmr_mesh.data.ods import DEFAULT_FILENAME, OperationalDataStore
 from scmr_mesh.data.queue import TelemetryQueue, seq_ranges
-from scmr_mesh.data.record import TelemetryRecord, decode_batch, encode_records
+from scmr_mesh.data.record import TelemetryRecord, batch_size, decode_batch, encode_records
 from scmr_mesh.errors import InputError, MeshError
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,17 @@ log = logging.getLogger(__name__)
 BATCH = 64
 #: Seconds between flush attempts while records are queued and no tier answers.
 RETRY_PERIOD_S = 0.2
+#: Longest wait between attempts while every tier answers busy (backoff doubles up to it).
+MAX_BACKOFF_S = 5.0
+#: Largest telemetry batch a tier takes: records per batch and payload bytes
+#: (robots and the leader send at most :data:`BATCH`).  Larger ones are refused
+#: before they are decoded (payload bytes) or stored (records).
+MAX_BATCH_RECORDS = 256
+MAX_BATCH_BYTES = 256 << 10
+#: Records a tier holds that are not yet durable (waiting for the ODS writer or
+#: the relay's fsync); beyond it a batch gets a busy answer and the sender keeps
+#: its records and retries later (issue #12, item 4).
+MAX_PENDING_RECORDS = 4096
 
 
 def telemetry_key(tier: str, node: str, robot: str | None = None) -> str:
@@ -136,6 +148,88 @@ def _payload(query) -> bytes:
     return b"" if p is None else p.to_bytes()
 
 
+class IngestGate:
+    """Bounds what a tier takes in: batch size, and records waiting to become durable.
+
+    :meth:`admit` answers whether a batch of ``nbytes`` may be decoded; after
+    decoding, :meth:`take` reserves its records (False: busy) and
+    :meth:`release` returns them once stored or refused.  Thread-safe.
+
+    Parameters
+    ----------
+    max_pending : int
+        Records admitted but not yet durable.
+    max_batch_records, max_batch_bytes : int
+        Largest batch.
+    """
+
+    def __init__(self, *, max_pending: int = MAX_PENDING_RECORDS, max_batch_records: int = MAX_BATCH_RECORDS,
+                 max_batch_bytes: int = MAX_BATCH_BYTES) -> None:
+        self.max_pending = int(max_pending)
+        self.max_batch_records = int(max_batch_records)
+        self.max_batch_bytes = int(max_batch_bytes)
+        self.pending = 0
+        self.peak_pending = 0
+        self.busy = 0
+        self.too_large = 0
+        self._lock = threading.Lock()
+
+    def check_size(self, payload: bytes) -> str | None:
+        """Why a batch is refused before it is decoded (None: it may be decoded; "" means busy).
+
+        Reads only its length and its headers (:func:`~scmr_mesh.data.record.batch_size`).
+        """
+        nbytes = len(payload)
+        n = batch_size(payload) if nbytes <= self.max_batch_bytes else None
+        if nbytes > self.max_batch_bytes or (n is not None and n > self.max_batch_records):
+            with self._lock:
+                self.too_large += 1
+            what = f"{nbytes} bytes" if n is None else f"{n} records ({nbytes} bytes)"
+            return (f"telemetry batch of {what} exceeds the limit of {self.max_batch_records} records and "
+                    f"{self.max_batch_bytes} bytes; send smaller batches")
+        with self._lock:
+            if self.pending >= self.max_pending:
+                self.busy += 1
+                return ""  # busy: decided before decoding anything
+        return None
+
+    def take(self, n: int) -> str | None:
+        """Reserve ``n`` records; None when admitted, else why not ("" means busy)."""
+        if n > self.max_batch_records:
+            with self._lock:
+                self.too_large += 1
+            return f"telemetry batch of {n} records exceeds {self.max_batch_records}; send smaller batches"
+        with self._lock:
+            if self.pending + n > self.max_pending and self.pending > 0:
+                self.busy += 1
+                return ""
+            self.pending += n
+            self.peak_pending = max(self.peak_pending, self.pending)
+        return None
+
+    def release(self, n: int) -> None:
+        with self._lock:
+            self.pending -= n
+
+    def retry_after_ms(self) -> float:
+        """A hint for the busy answer: longer the fuller the queue."""
+        return round(RETRY_PERIOD_S * 1e3 * (1 + self.pending / max(1, self.max_pending)), 1)
+
+    def stats(self) -> dict:
+        with self._lock:
+            return {"pending": self.pending, "peak_pending": self.peak_pending, "busy": self.busy,
+                    "too_large": self.too_large, "max_pending": self.max_pending,
+                    "max_batch_records": self.max_batch_records, "max_batch_bytes": self.max_batch_bytes}
+
+
+def _busy(query, gate: IngestGate, who: str) -> None:
+    """Answer busy (the sender keeps its records and retries after ``retry_after_ms``)."""
+    _answer(query, {"error": f"{who} busy: {gate.pending} telemetry records waiting to be stored (limit "
+                             f"{gate.max_pending}); keep the records and retry later",
+                    "busy": True, "retry_after_ms": gate.retry_after_ms()}, error=True)
+    _drop(query)
+
+
 def _answer(query, obj: Any, *, error: bool = False) -> None:
     try:
         if error:
@@ -200,8 +294,10 @@ class CloudData:
         Initial buffer entries (``maps/...``, ``params/...``).
     """
 
-    def __init__(self, node: str, ods_path: str | Path, *, params: dict | None = None) -> None:
+    def __init__(self, node: str, ods_path: str | Path, *, params: dict | None = None,
+                 gate: IngestGate | None = None) -> None:
         self.node = node
+        self.gate = gate or IngestGate()
         self.ods = OperationalDataStore(ods_path)
         self.buffer = DataBuffer(node)
         for rec in self.ods.latest().values():  # a restarted cloud serves the last states at once
@@ -226,16 +322,36 @@ class CloudData:
 
     def _ingest(self, query, *, relay: bool) -> None:
         # zenoh's thread only decodes; the ODS writer thread commits and then acks,
-        # so a slow fsync never holds up the session's other traffic (frame queries)
+        # so a slow fsync never holds up the session's other traffic (frame queries).
+        # Bounded (IngestGate): an oversized batch is refused unread, and beyond
+        # MAX_PENDING_RECORDS records waiting for the store the answer is busy.
+        gate = self.gate
+        taken = 0
         try:
-            records, via = decode_batch(_payload(query))
+            payload = _payload(query)
+            why = gate.check_size(payload)
+            if why == "":
+                _busy(query, gate, f"cloud {self.node}")
+                return
+            if why is not None:
+                raise TelemetryError(why)
+            records, via = decode_batch(payload)
+            del payload
             if relay:
                 source = via or "leader"
             else:
                 check_sender(query.key_expr, records)
                 source = "cloud"  # a robot's batch came straight to the cloud, whatever it claims
+            why = gate.take(len(records))
+            if why == "":
+                _busy(query, gate, f"cloud {self.node}")
+                return
+            if why is not None:
+                raise TelemetryError(why)
+            taken = len(records)
             fut = self.ods.insert_async(records, received_from=source)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
+            gate.release(taken)
             log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
@@ -243,6 +359,7 @@ class CloudData:
         fut.add_done_callback(lambda f: self._ack(query, records, f))
 
     def _ack(self, query, records: list[TelemetryRecord], fut) -> None:
+        self.gate.release(len(records))
         try:
             res = fut.result()
         except Exception as exc:
@@ -293,8 +410,9 @@ class LeaderData:
     """
 
     def __init__(self, node: str, relay_dir: str | Path, *, sync_period_s: float = 1.0,
-                 relay_max_bytes: int = 64 << 20, deadline_s: float = 1.0) -> None:
+                 relay_max_bytes: int = 64 << 20, deadline_s: float = 1.0, gate: IngestGate | None = None) -> None:
         self.node = node
+        self.gate = gate or IngestGate()
         self.buffer = DataBuffer(node)
         self.relay = TelemetryQueue(relay_dir, max_bytes=relay_max_bytes)
         self.deadline_s = float(deadline_s)
@@ -318,22 +436,42 @@ class LeaderData:
                 (buffer_key("leader", self.node), serve_buffer(self.buffer, "leader", self.node))]
 
     def _on_telemetry(self, query) -> None:
-        # the fsync'd append runs on the leader's own thread, never on zenoh's
+        # the fsync'd append runs on the leader's own thread, never on zenoh's; the backlog
+        # of batches waiting for that thread is bounded like the cloud's (IngestGate)
+        payload = _payload(query)
+        why = self.gate.check_size(payload)
+        if why == "":
+            _busy(query, self.gate, f"leader {self.node}")
+            return
+        if why is not None:
+            _answer(query, {"error": why}, error=True)
+            _drop(query)
+            return
+        # reserve before decoding, by size: a robot's record is ~200-300 bytes on the wire
+        est = max(1, min(self.gate.max_batch_records, len(payload) // 128))
+        if self.gate.take(est) is not None:
+            _busy(query, self.gate, f"leader {self.node}")
+            return
         try:
-            self._pool.submit(self._store, query)
+            self._pool.submit(self._store, query, est)
         except RuntimeError as exc:  # shutting down: no ack, the robot keeps its records
+            self.gate.release(est)
             _answer(query, {"error": f"leader {self.node} is stopping ({exc})"}, error=True)
             _drop(query)
 
-    def _store(self, query) -> None:
+    def _store(self, query, reserved: int = 0) -> None:
         try:
             self._store_and_ack(query)
         finally:
+            self.gate.release(reserved)
             _drop(query)
 
     def _store_and_ack(self, query) -> None:
         try:
             records, _via = decode_batch(_payload(query))
+            if len(records) > self.gate.max_batch_records:
+                raise TelemetryError(f"telemetry batch of {len(records)} records exceeds "
+                                     f"{self.gate.max_batch_records}; send smaller batches")
             check_sender(query.key_expr, records)
             blobs = [_pack(r.to_dict()) for r in records]
             with self._lock:
@@ -466,6 +604,9 @@ class TelemetryAgent:
         self.acked_by = {"cloud": 0, "leader": 0}
         self.refused_logged = 0
         self.publish_errors = 0
+        self.busy_answers = 0      # batches a tier answered busy (kept, retried after a backoff)
+        self._busy_streak = 0
+        self._not_before = 0.0     # monotonic time before which the flusher does not retry
         self._replay_upto = 0  # records with seq <= this waited through a failed attempt
         self._queriers: dict[str, Any] = {}
         self._qlock = threading.Lock()
@@ -545,6 +686,7 @@ class TelemetryAgent:
         if not batch:
             return 0
         payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
+        busy_hint_ms = None
         for tier, node in self._targets():
             try:
                 ans = self._ask(telemetry_key(tier, node, self.robot.id), payload)
@@ -561,14 +703,33 @@ class TelemetryAgent:
                 if replayed:
                     self.queue.note_replayed(replayed)
                 self.acked_by[tier] += len(batch)
+                self._busy_streak = 0
+                self._not_before = 0.0
                 return len(batch)
+            if isinstance(body, dict) and body.get("busy"):
+                self.busy_answers += 1
+                busy_hint_ms = max(busy_hint_ms or 0.0, float(body.get("retry_after_ms") or 0.0))
+                log.info("robot %s: %s/%s busy: %s", self.robot.id, tier, node, body.get("error"))
+                continue
             log.warning("robot %s: %s/%s did not store telemetry: %s", self.robot.id, tier, node, body)
         self._replay_upto = self.queue.next_seq - 1
+        if busy_hint_ms is not None:  # kept; back off (doubling, jittered) before the next attempt
+            self._busy_streak += 1
+            wait = min(MAX_BACKOFF_S, max(busy_hint_ms / 1e3, RETRY_PERIOD_S * 2 ** self._busy_streak))
+            self._not_before = time.monotonic() + wait * random.uniform(0.75, 1.0)
         return 0
+
+    @property
+    def backoff_s(self) -> float:
+        """Seconds until the flusher tries again after busy answers (0 when it is not backing off)."""
+        return max(0.0, self._not_before - time.monotonic())
 
     def _loop(self) -> None:
         while not self._stop.is_set():
             self._wake.clear()
+            if self.backoff_s > 0:  # a tier said busy: new records wait too
+                self._stop.wait(self.backoff_s)
+                continue
             try:
                 sent = self.flush_once()
             except Exception as exc:  # session closing at shutdown
@@ -612,7 +773,8 @@ class TelemetryAgent:
         lost = sorted(set(st.refused_seqs) | set(st.lost_seqs))
         return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
                 "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": len(lost),
-                "replayed": st.replayed, "acked_by": dict(self.acked_by), "torn_bytes": st.torn_bytes,
+                "replayed": st.replayed, "acked_by": dict(self.acked_by), "busy_answers": self.busy_answers,
+                "torn_bytes": st.torn_bytes,
                 "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100],
                 "error": st.last_error}
 
@@ -684,6 +846,16 @@ def add_arguments(parser, role: str) -> None:
                        help="seconds between pulls of the cloud's data buffer (default 1)")
         g.add_argument("--relay-dir", type=ca.PathArg("out-dir"), metavar="DIR",
                        help="on-disk queue of telemetry held for the cloud (default <run dir>/relay-NODE)")
+    if role in ("cloud", "leader"):
+        g.add_argument("--ingest-queue", type=ca.count("records", hi=10**7, example="4096"),
+                       default=MAX_PENDING_RECORDS, metavar="N",
+                       help="telemetry records held until they are durable (ODS commit, relay fsync); beyond "
+                            "them a batch gets a busy answer and the robot keeps it and retries (default "
+                            f"{MAX_PENDING_RECORDS})")
+        g.add_argument("--ingest-batch", type=ca.count("records", hi=10**5, example="256"),
+                       default=MAX_BATCH_RECORDS, metavar="N",
+                       help=f"largest telemetry batch taken, in records (and N KiB); larger ones are refused "
+                            f"(default {MAX_BATCH_RECORDS}; robots send {BATCH})")
     if role in ("robot", "leader"):
         g.add_argument("--telemetry-queue", type=ca.PathArg("out-dir"), metavar="DIR",
                        help="the robot's on-disk telemetry queue, kept across restarts (default "
@@ -720,13 +892,13 @@ def service_setup(args, tier: str) -> Callable:
                 if not isinstance(params, dict):
                     raise InputError(f"--data-params {args.data_params}: must hold a JSON object, "
                                      f"got {type(params).__name__}")
-            data = CloudData(svc.node, path, params=params)
+            data = CloudData(svc.node, path, params=params, gate=_gate(args))
             log.info("cloud %s: operational data store %s (%s)", svc.node, data.ods.name, data.ods.backend)
         else:
             if not getattr(args, "sync_period", 1.0) > 0:
                 raise InputError(f"--sync-period must be > 0 s, got {args.sync_period}")
             relay = getattr(args, "relay_dir", None) or (run_dir or Path("runs")) / f"relay-{svc.node}"
-            data = LeaderData(svc.node, relay, sync_period_s=getattr(args, "sync_period", 1.0))
+            data = LeaderData(svc.node, relay, sync_period_s=getattr(args, "sync_period", 1.0), gate=_gate(args))
             data.start(svc)
         for key, cb in data.queryables():
             svc.add_queryable(key, cb)
@@ -734,6 +906,13 @@ def service_setup(args, tier: str) -> Callable:
         atexit.register(data.close)
 
     return setup
+
+
+def _gate(args) -> IngestGate:
+    """The ingest bounds of ``--ingest-queue`` and ``--ingest-batch``."""
+    batch = int(getattr(args, "ingest_batch", None) or MAX_BATCH_RECORDS)
+    return IngestGate(max_pending=int(getattr(args, "ingest_queue", None) or MAX_PENDING_RECORDS),
+                      max_batch_records=batch, max_batch_bytes=batch << 10)
 
 
 def data_tier_off() -> bool:
@@ -758,7 +937,7 @@ def attach_robot(robot, args) -> TelemetryAgent | None:
 
 
 __all__ = [
-    "CloudData", "LeaderData", "TelemetryAgent", "add_arguments", "attach_robot", "buffer_key",
+    "CloudData", "IngestGate", "LeaderData", "TelemetryAgent", "add_arguments", "attach_robot", "buffer_key",
     "check_sender", "record_from_message", "relay_key", "service_setup", "sync_key", "telemetry_key",
 ]
 

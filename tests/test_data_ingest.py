@@ -1,0 +1,178 @@
+"""Bounded telemetry ingest (issue #12, item 4).
+
+A stranger flooding a cloud with telemetry batches drove its RSS from 103 MB to
+662 MB.  Now a tier takes batches of at most 256 records (refused from their
+headers, before decoding) and holds at most ``--ingest-queue`` records that are
+not yet durable; beyond that it answers busy, and robots keep their records
+and retry after a doubling backoff.  The real ``CloudData``, ``LeaderData`` and
+``TelemetryAgent`` code runs with fake queries (as in test_data_protocol.py),
+plus one real cloud process flooded at full speed.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import threading
+from pathlib import Path
+from types import SimpleNamespace
+
+import msgpack
+import pytest
+
+from scmr_mesh.data.record import batch_size, encode_records, make_record
+from scmr_mesh.mesh import data_service
+from scmr_mesh.mesh.data_service import CloudData, IngestGate, LeaderData, TelemetryAgent, telemetry_key
+
+
+class FakeQuery:
+    def __init__(self, payload: bytes, key_expr: str) -> None:
+        self.key_expr = key_expr
+        self._p = payload
+        self.done = threading.Event()
+        self.result = None
+
+    @property
+    def payload(self):
+        return SimpleNamespace(to_bytes=lambda: self._p)
+
+    def reply(self, key, data: bytes) -> None:
+        self.result = ("ok", msgpack.unpackb(data))
+        self.done.set()
+
+    def reply_err(self, data: bytes) -> None:
+        self.result = ("err", msgpack.unpackb(data))
+        self.done.set()
+
+    def drop(self) -> None:
+        pass
+
+
+def _batch(robot: str, first: int, n: int) -> bytes:
+    return encode_records([make_record(robot, s) for s in range(first, first + n)])
+
+
+def test_batch_size_reads_only_the_headers():
+    assert batch_size(_batch("r1", 1, 7)) == 7
+    assert batch_size(encode_records([make_record("r1", 1)], via="leader")) == 1
+    assert batch_size(b"\xc1junk") is None and batch_size(msgpack.packb([1, 2])) is None
+
+
+def test_a_cloud_answers_busy_beyond_its_ingest_queue_and_recovers(tmp_path, monkeypatch):
+    cloud = CloudData("c", tmp_path / "ods.sqlite", gate=IngestGate(max_pending=64))
+    held: list[concurrent.futures.Future] = []
+    real = cloud.ods.insert_async
+
+    def slow_insert(records, received_from):  # the store is slow: its commits wait for the test
+        fut = concurrent.futures.Future()
+        held.append((fut, records, received_from))
+        return fut
+
+    monkeypatch.setattr(cloud.ods, "insert_async", slow_insert)
+    key = telemetry_key("cloud", "c", "r1")
+    try:
+        q1 = FakeQuery(_batch("r1", 1, 64), key)
+        cloud._on_telemetry(q1)
+        assert not q1.done.is_set() and cloud.gate.pending == 64  # waiting for the store
+        q2 = FakeQuery(_batch("r1", 65, 1), key)
+        cloud._on_telemetry(q2)
+        kind, body = q2.result
+        assert kind == "err" and body["busy"] is True and body["retry_after_ms"] > 0
+        assert "64 telemetry records waiting to be stored (limit 64)" in body["error"]
+        fut, records, src = held.pop()
+        fut.set_result(real(records, received_from=src).result())  # the store catches up
+        assert q1.done.wait(10) and q1.result[0] == "ok" and cloud.gate.pending == 0
+        q3 = FakeQuery(_batch("r1", 65, 1), key)
+        cloud._on_telemetry(q3)
+        assert cloud.gate.pending == 1 and not q3.done.is_set()
+        assert cloud.gate.stats()["busy"] == 1 and cloud.gate.stats()["peak_pending"] == 64
+    finally:
+        for fut, *_ in held:
+            fut.cancel()
+        cloud.close()
+
+
+def test_an_oversized_batch_is_refused_before_it_is_decoded(tmp_path, monkeypatch):
+    cloud = CloudData("c", tmp_path / "ods.sqlite")
+    decoded = []
+    monkeypatch.setattr(data_service, "decode_batch", lambda p: decoded.append(p))
+    try:
+        q = FakeQuery(_batch("r1", 1, 1000), telemetry_key("cloud", "c", "r1"))
+        cloud._on_telemetry(q)
+        kind, body = q.result
+        assert kind == "err" and "busy" not in body
+        assert "1000 records" in body["error"] and "limit of 256 records" in body["error"]
+        big = FakeQuery(b"\x90" * (300 << 10), telemetry_key("cloud", "c", "r1"))
+        cloud._on_telemetry(big)
+        assert "307200 bytes exceeds" in big.result[1]["error"]
+        assert decoded == [] and cloud.gate.stats()["too_large"] == 2
+    finally:
+        cloud.close()
+
+
+def test_the_leaders_backlog_is_bounded_too(tmp_path):
+    leader = LeaderData("L", tmp_path / "relay", gate=IngestGate(max_pending=1))
+    gate_open = threading.Event()
+    leader._pool.submit(gate_open.wait)  # the leader's store thread is busy
+    try:
+        key = telemetry_key("leader", "L", "r1")
+        q1 = FakeQuery(_batch("r1", 1, 2), key)
+        leader._on_telemetry(q1)  # waits in the backlog
+        q2 = FakeQuery(_batch("r1", 3, 1), key)
+        leader._on_telemetry(q2)
+        assert q2.result[0] == "err" and q2.result[1]["busy"] is True
+        gate_open.set()
+        assert q1.done.wait(10) and q1.result[0] == "ok" and leader.gate.pending == 0
+    finally:
+        gate_open.set()
+        leader.close()
+
+
+def test_a_robot_keeps_its_records_and_backs_off_while_the_tier_is_busy(tmp_path):
+    answers = []
+
+    def ask(key, payload):
+        answers.append(len(answers))
+        if len(answers) <= 3:
+            return "err", {"error": "cloud c busy", "busy": True, "retry_after_ms": 50.0}
+        return "ok", {"acked": 1}
+
+    robot = SimpleNamespace(id="r1", _session=None, publish_telemetry=lambda m: None,
+                            view=SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("c",), leader=())))
+    agent = TelemetryAgent(robot, tmp_path / "q", autostart=False)
+    agent._ask = ask
+    msg = {"robot": "r1", "seq": 0, "t_unix_ns": 1, "pose": {"x": 0.0, "y": 0.0, "theta": 0.0}, "battery": 0.5,
+           "health": "ok", "results": {}}
+    try:
+        for _ in range(3):
+            agent.publish(msg)
+        waits = []
+        for _ in range(3):
+            assert agent.flush_once() == 0 and len(agent.queue) == 3  # kept
+            waits.append(agent.backoff_s)
+        # doubling (jittered 0.75-1.0): 0.4, 0.8, 1.6 s
+        assert 0.25 < waits[0] <= 0.4 and 0.55 < waits[1] <= 0.8 and 1.15 < waits[2] <= 1.6
+        assert agent.flush_once() == 3 and len(agent.queue) == 0 and agent.backoff_s == 0
+        assert agent.summary()["busy_answers"] == 3
+    finally:
+        agent.close(drain_s=0)
+
+
+def _vm(pid: int, field: str) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+    raise AssertionError(field)
+
+
+@pytest.mark.timeout(240)
+def test_a_flooded_cloud_stays_within_bounded_memory(tmp_path):
+    """Unpaced 200-record batches for 3 s (before the bounds: +470 MB in such a run)."""
+    from scmr_mesh.bench.ingest import flood_case
+
+    res = flood_case(rate_hz=0, records=200, duration_s=3.0, extra=[], workdir=tmp_path)
+    a = res["answers"]
+    assert res["cloud_alive"] and a["sent"] > 0 and a["busy"] > 0, res
+    assert a["ok"] + a["busy"] + a["refused"] + a["timeout"] == a["sent"], res
+    assert res["rss_rise_mb"] < 60, res
