@@ -269,3 +269,52 @@ def region_features_kernel(labels, img, grad, slot, k, off):
             for b in range(a):
                 m2[j, a, b] = m2[j, b, a]
     return sums, m1, m2, ns
+
+
+@njit(cache=True, nogil=True)
+def seed_inside_kernel(labels, img, grad, mus, icovs, limit, k, off):
+    """Per region, how many of its pixels lie inside some seed's ellipsoid.
+
+    Pixel features as in :func:`region_features_kernel`; seed ``j`` is the Gaussian
+    ``mus[j]`` (4,), ``icovs[j]`` (4, 4) (inverse covariance).  A pixel is inside when
+    ``(x - mu)^T icov (x - mu) <= limit`` for at least one seed.  Returns ``inside``
+    (k,) int64 counts.
+    """
+    h, w = labels.shape
+    lut = np.empty(256, np.float64)
+    for v in range(256):
+        lut[v] = math.log(v + off)
+    lsum = np.empty(766, np.float64)
+    for v in range(766):
+        lsum[v] = math.log(v / 3.0 + off)
+    tex = np.empty(2048, np.float64)
+    for v in range(2048):
+        tex[v] = math.log1p(v / 8.0)
+    s = mus.shape[0]
+    inside = np.zeros(k, np.int64)
+    x4 = np.empty(4, np.float64)
+    d = np.empty(4, np.float64)
+    for y in range(h):
+        for x in range(w):
+            cr = img[y, x, 0]
+            cg = img[y, x, 1]
+            cb = img[y, x, 2]
+            x4[0] = lut[cr] - lut[cg]
+            x4[1] = lut[cb] - lut[cg]
+            x4[2] = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
+            gv = grad[y, x]
+            gi = 2047 if not gv < 2047.0 else (0 if not gv > 0.0 else np.int32(gv + 0.5))
+            x4[3] = tex[gi]
+            for j in range(s):
+                for a in range(4):
+                    d[a] = x4[a] - mus[j, a]
+                q = 0.0
+                for a in range(4):
+                    t = 0.0
+                    for b in range(4):
+                        t += icovs[j, a, b] * d[b]
+                    q += d[a] * t
+                if q <= limit:
+                    inside[labels[y, x]] += 1
+                    break
+    return inside

@@ -29,7 +29,7 @@ import numpy as np
 
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
-from scmr_mesh.imaging.road_model import RoadParams, classify, tone_curve
+from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, classify, tone_curve
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
     bottom_centre,
@@ -80,16 +80,23 @@ def _clock() -> float:
     return time.perf_counter() * 1000.0
 
 
-#: ``best`` runs SRM with ``BEST_Q_FACTOR * q`` (512 for the default q = 32):
-#: Q = 32 merges the road with dark buildings and verges (measured, docs/ACCURACY.md).
-BEST_Q_FACTOR = 16
 #: The constants of ``best`` (chosen by leave-one-dataset-out cross-validation).
 DEFAULT_PARAMS = RoadParams()
 
 
-def srm_q(mode: str, q: float = 32) -> float:
-    """The SRM Q a mode runs with for the user's ``q``."""
-    return q * BEST_Q_FACTOR if mode == "best" else q
+def srm_q(mode: str, q: float = 32, params: RoadParams | None = None) -> float:
+    """The SRM Q a mode runs with for the user's ``q``.
+
+    ``thesis`` uses ``q`` as given.  ``best`` runs SRM on the half-size working frame
+    with ``params.q`` (4096) scaled by ``q / 32``, so the default ``q = 32`` gives ``params.q``.
+    """
+    if mode == "best":
+        try:
+            q = float(q)
+        except (TypeError, ValueError):
+            raise InputError(f"q must be a positive number, got {q!r}") from None
+        return (params or DEFAULT_PARAMS).q * q / 32.0
+    return q
 
 
 def segment_drivable(
@@ -107,7 +114,7 @@ def segment_drivable(
         ``"best"`` (most accurate) or ``"thesis"`` (the dissertation's rules).
     q : float, keyword-only
         SRM complexity parameter Q.  ``thesis`` uses it as given; ``best``
-        uses ``BEST_Q_FACTOR * q`` (finer regions, 512 by default).
+        runs SRM on the half-size working frame with ``params.q * q / 32`` (4096 by default).
     stages : bool, keyword-only
         Also return the intermediate images.
     params : RoadParams, optional, keyword-only
@@ -139,14 +146,15 @@ def segment_drivable(
     t["resize"] = t1 - t0
 
     params = (params or DEFAULT_PARAMS).check() if mode == "best" else None
+    if params is not None:
+        return _segment_best(frame, q, stages, params, t, t1)
     blurred = gaussian_blur_3x3(frame)
     t2 = _clock()
     t["blur"] = t2 - t1
 
-    seg = srm(tone_curve(blurred, params.gamma) if params else blurred, q=srm_q(mode, q))
-    full = mode == "thesis" or stages  # best needs only the bottom-centre cell of the SRM image
+    seg = srm(blurred, q=srm_q(mode, q))
     palette = np.rint(seg.means).clip(0, 255).astype(np.uint8)
-    srm_img = palette[seg.labels] if full else None
+    srm_img = palette[seg.labels]
     t3 = _clock()
     t["srm"] = t3 - t2
 
@@ -157,22 +165,15 @@ def segment_drivable(
     t4 = _clock()
     t["otsu"] = t4 - t3
 
-    grey = srm_img.sum(axis=2, dtype=np.int32) // 3 if full else None
-    edges = sobel_magnitude(grey) if full else None
+    grey = srm_img.sum(axis=2, dtype=np.int32) // 3
+    edges = sobel_magnitude(grey)
     t5 = _clock()
     t["edges"] = t5 - t4
 
-    if mode == "thesis":
-        otsu_bw = np.where(grey >= threshold, 255, 0).astype(np.uint8)
-        t6 = _clock()
-        t["classify"] = t6 - t5
-        mask = remove_sparse_pixels(otsu_bw, _inner_edges(edges), edge_threshold=THESIS_EDGE_THRESHOLD)
-    else:
-        otsu_bw = _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold) if stages else None
-        candidate, _info = classify(blurred, seg, params)
-        t6 = _clock()
-        t["classify"] = t6 - t5
-        mask = fill_columns(candidate, max_gap=int(params.gap))
+    otsu_bw = np.where(grey >= threshold, 255, 0).astype(np.uint8)
+    t6 = _clock()
+    t["classify"] = t6 - t5
+    mask = remove_sparse_pixels(otsu_bw, _inner_edges(edges), edge_threshold=THESIS_EDGE_THRESHOLD)
     t7 = _clock()
     t["sparse"] = t7 - t6
     t["total"] = t7 - t1
@@ -186,6 +187,61 @@ def segment_drivable(
             "otsu": otsu_bw,
             "histogram": hist,
             "edges": edges,
+            "channel": np.array(channel),
+        }
+    return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages)
+
+
+def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams, t: dict, t1: float) -> DrivableResult:
+    """``best`` on a 300x225 frame: half-size working frame, SRM, the road model, column fill, upsampled mask.
+
+    Stage names as in ``thesis``: ``blur`` is the area downsampling (a box low-pass that
+    replaces the 3x3 Gaussian), ``otsu`` the bottom-centre threshold (returned, not used),
+    ``edges`` empty, ``sparse`` the column fill and the upsampling to 300x225.
+    """
+    wh, ww = WORK_SHAPE
+    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    t2 = _clock()
+    t["blur"] = t2 - t1
+
+    seg = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=srm_q("best", q, params))
+    palette = np.rint(seg.means).clip(0, 255).astype(np.uint8)
+    t3 = _clock()
+    t["srm"] = t3 - t2
+
+    window = palette[bottom_centre(roi(seg.labels))]
+    channel = dominant_channel(window)
+    hist = histogram(np.ascontiguousarray(window[:, :, channel]))
+    threshold = otsu_threshold(hist)
+    t4 = _clock()
+    t["otsu"] = t4 - t3
+    t["edges"] = 0.0
+
+    candidate, _info = classify(small, seg, params)
+    t6 = _clock()
+    t["classify"] = t6 - t4
+    gap = int(round(params.gap * ww / FRAME_SHAPE[1]))
+    small_mask = fill_columns(candidate, max_gap=gap)
+    up = cv2.resize(small_mask, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_LINEAR)
+    mask = np.where(up >= 128, 255, 0).astype(np.uint8)
+    t7 = _clock()
+    t["sparse"] = t7 - t6
+    t["total"] = t7 - t1
+
+    out_stages = None
+    if stages:
+        def full(img: np.ndarray) -> np.ndarray:
+            return cv2.resize(img, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_NEAREST)
+
+        srm_img = full(palette[seg.labels])
+        grey = srm_img.sum(axis=2, dtype=np.int32) // 3
+        out_stages = {
+            "frame": frame,
+            "blur": full(small),
+            "srm": srm_img,
+            "otsu": _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold),
+            "histogram": hist,
+            "edges": sobel_magnitude(grey),
             "channel": np.array(channel),
         }
     return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages)

@@ -52,6 +52,13 @@ import numpy as np
 from scmr_mesh.errors import InputError
 
 
+#: ``best`` works on the frame area-downsampled to this size (rows, columns): half of 300x225.
+#: SRM's cost is linear in the pixel count, and the labels of a half-size frame hold the
+#: road as well as the full frame's (oracle IoU 0.92 at Q = 4096 against 0.90 at full size
+#: and Q = 1024, docs/ACCURACY.md).
+WORK_SHAPE = (112, 150)
+
+
 @dataclass(frozen=True)
 class RoadParams:
     """The constants of the self-supervised road model (defaults: chosen by cross-validation).
@@ -60,32 +67,43 @@ class RoadParams:
     ----------
     gamma : float
         Tone curve exponent of SRM's input (1 = linear).
+    q : float
+        SRM's Q on the half-size working frame.
     seed_share : float
         A region seeds the road model when it covers this share of the bottom-centre cell.
     p : float
-        Quantile of the chi-square(4) ellipsoid around a seed Gaussian that counts as road-like.
+        Quantile of the chi-square(4) ellipsoid around a seed Gaussian: a pixel inside
+        the ellipsoid of some seed looks like road.
+    frac : float
+        A region is road-like when at least this share of its pixels looks like road.
     noise : float
         Isotropic standard deviation added to every seed covariance (feature units).
     horizon : float
         Rows above this fraction of the height are never drivable (0 = no prior).
     gap : int
-        Longest run of non-road pixels the column fill bridges.
+        Longest run of non-road pixels (in 300x225 frame pixels) the column fill bridges.
     """
 
-    gamma: float = 0.35
+    gamma: float = 1.0
+    q: float = 4096.0
     seed_share: float = 0.10
     p: float = 0.95
+    frac: float = 0.3
     noise: float = 0.02
-    horizon: float = 0.5
+    horizon: float = 0.0
     gap: int = 20
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
             raise InputError(f"gamma must be in (0, 4], got {self.gamma}")
+        if not (self.q > 0 and math.isfinite(self.q)):
+            raise InputError(f"q must be a positive finite number, got {self.q}")
         if not 0 < self.seed_share <= 1:
             raise InputError(f"seed_share must be in (0, 1], got {self.seed_share}")
         if not 0 < self.p < 1:
             raise InputError(f"p must be in (0, 1), got {self.p}")
+        if not 0 < self.frac <= 1:
+            raise InputError(f"frac must be in (0, 1], got {self.frac}")
         if not self.noise > 0:
             raise InputError(f"noise must be > 0, got {self.noise}")
         if not 0 <= self.horizon < 1:
@@ -150,58 +168,76 @@ def tone_curve(image: np.ndarray, gamma: float) -> np.ndarray:
 _CHI2: dict = {}
 
 
-def classify(blurred: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, dict]:
-    """Candidate road pixels of a frame from its SRM regions (steps 2-5 before the column fill).
+def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray:
+    """The self-supervised seeds: regions covering ``share`` of the bottom-centre cell and touching its lower half.
+
+    The second condition is a ground-contact check: the road is the surface the robot
+    stands on, so in a forward camera it continues down to the cell's lower rows, while
+    a vehicle ahead stands *on* the road and ends above them (its lower edge is road).
+    When no region passes both tests the largest region of the cell is the seed.
+    """
+    from scmr_mesh.imaging.steps import bottom_centre, roi
+
+    cell = bottom_centre(roi(labels))
+    counts = np.bincount(cell.ravel(), minlength=n_regions)
+    low = np.bincount(cell[cell.shape[0] // 2:].ravel(), minlength=n_regions)
+    seeds = np.flatnonzero((counts >= share * cell.size) & (low > 0))
+    if seeds.size == 0:
+        seeds = np.array([int(np.argmax(counts))])
+    return seeds
+
+
+def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, dict]:
+    """Candidate road pixels of a working frame from its SRM regions (before the column fill).
 
     Parameters
     ----------
-    blurred : (H, W, 3) uint8
-        The blurred frame (features are measured on it, not on the tone-mapped one).
+    small : (h, w, 3) uint8
+        The working frame (features are measured on it, not on the tone-mapped one).
     seg : SrmResult
-        SRM of the tone-mapped frame.
+        SRM of the tone-mapped working frame.
     params : RoadParams
 
     Returns
     -------
-    candidate : (H, W) uint8
-        1 = road-like and connected to the bottom-centre cell.
+    candidate : (h, w) uint8
+        1 = road-like and 4-connected to a seed region.
     info : dict
-        ``seeds`` (region labels), ``road_regions`` (count).
+        ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
+        the share of its pixels inside a seed ellipsoid).
     """
-    from scmr_mesh.imaging._aot import region_features_kernel
-    from scmr_mesh.imaging.steps import bottom_centre, roi
+    from scmr_mesh.imaging._aot import region_features_kernel, seed_inside_kernel
 
     labels = seg.labels
     h, w = labels.shape
     k = seg.n_regions
-    cell = bottom_centre(roi(labels))
-    counts = np.bincount(cell.ravel(), minlength=k)
-    seeds = np.flatnonzero(counts >= params.seed_share * cell.size)
-    if seeds.size == 0:
-        seeds = np.array([int(np.argmax(counts))])
+    seeds = seed_regions(labels, k, params.seed_share)
     slot = np.full(k, -1, np.int32)
     slot[seeds] = np.arange(seeds.size, dtype=np.int32)
-    grey = cv2.cvtColor(blurred, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
     grad = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
-    sums, m1, m2, ns = region_features_kernel(labels, blurred, grad, slot, int(k), FEATURE_OFFSET)
-    means = sums[:, :N_FEATURES] / np.maximum(sums[:, N_FEATURES:], 1.0)
+    # one pass for the seeds' pixel moments (only the seed rows of its output are used)
+    _sums, m1, m2, ns = region_features_kernel(labels, small, grad, slot, int(k), FEATURE_OFFSET)
     limit = _CHI2.get(params.p)
     if limit is None:
         limit = _CHI2[params.p] = chi2_quantile(params.p, N_FEATURES)
-    road = np.zeros(k, bool)
     floor = np.eye(N_FEATURES) * params.noise**2
+    mus = np.empty((seeds.size, N_FEATURES))
+    icovs = np.empty((seeds.size, N_FEATURES, N_FEATURES))
     for j in range(seeds.size):
         n = ns[j]
         mu = m1[j] / n
         cov = (m2[j] - n * np.outer(mu, mu)) / (n - 1) if n > N_FEATURES else np.zeros((N_FEATURES, N_FEATURES))
-        icov = np.linalg.inv(cov + floor)
-        d = means - mu
-        road |= ((d @ icov) * d).sum(axis=1) <= limit
+        mus[j] = mu
+        icovs[j] = np.linalg.inv(cov + floor)
+    inside = seed_inside_kernel(labels, small, grad, mus, icovs, float(limit), int(k), FEATURE_OFFSET)
+    share = inside / np.maximum(seg.sizes, 1)
+    road = share >= params.frac
     road[seeds] = True
     cand = road.astype(np.uint8)[labels]
     if params.horizon > 0:
         cand[: int(params.horizon * h)] = 0
     n_comp, comp = cv2.connectedComponents(cand, connectivity=4)
-    hits = np.bincount(bottom_centre(roi(comp)).ravel(), minlength=n_comp)
+    hits = np.bincount(comp[np.isin(labels, seeds)], minlength=n_comp)
     hits[0] = 0
-    return (hits > 0).astype(np.uint8)[comp], {"seeds": seeds, "road_regions": int(road.sum())}
+    return (hits > 0).astype(np.uint8)[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share}
