@@ -213,108 +213,119 @@ def column_fill_kernel(candidate, max_gap):
 
 
 @njit(cache=True, nogil=True)
-def region_features_kernel(labels, img, grad, slot, k, off):
-    """Per-region feature sums and per-seed pixel moments in one pass.
+def _inv4(m):
+    # Gauss-Jordan with partial pivoting on a 4x4 matrix (symmetric positive definite here)
+    a = m.copy()
+    inv = np.eye(4)
+    for c in range(4):
+        piv = c
+        for r in range(c + 1, 4):
+            if abs(a[r, c]) > abs(a[piv, c]):
+                piv = r
+        if piv != c:
+            for j in range(4):
+                t = a[c, j]
+                a[c, j] = a[piv, j]
+                a[piv, j] = t
+                t = inv[c, j]
+                inv[c, j] = inv[piv, j]
+                inv[piv, j] = t
+        d = a[c, c]
+        for j in range(4):
+            a[c, j] /= d
+            inv[c, j] /= d
+        for r in range(4):
+            if r != c:
+                f = a[r, c]
+                if f != 0.0:
+                    for j in range(4):
+                        a[r, j] -= f * a[c, j]
+                        inv[r, j] -= f * inv[c, j]
+    return inv
 
-    Pixel features (f = channel + off): ``log(fR/fG)``, ``log(fB/fG)``,
-    ``log((fR+fG+fB)/3)``, ``log1p(round(grad)/8)`` (grad clipped to 0..2047),
-    all through lookup tables.  Returns ``sums`` (k, 5) float64
-    (the four feature sums and the pixel count of every region), and for the
-    regions with ``slot[r] >= 0``: ``m1`` (s, 4) sums, ``m2`` (s, 4, 4) sums
-    of outer products, ``ns`` (s,) pixel counts.
+
+@njit(cache=True, nogil=True)
+def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit):
+    """The road model of a frame in two passes over its pixels.
+
+    Pixel features (tables from ``road_model.feature_tables``): ``log(fR/fG)``, ``log(fB/fG)``,
+    ``log((fR+fG+fB)/3)`` with f = channel + offset, and ``log1p(round(grad)/8)`` (grad
+    clipped to 0..2047).  Pass 1 gathers the pixel moments of every seed region
+    (``slot[r] >= 0``): seed ``j`` is the Gaussian with the mean and the unbiased
+    covariance of its pixels plus ``noise2 * I``.  Pass 2 counts, per region, the pixels
+    inside some seed's ellipsoid ``(x - mu)^T C^-1 (x - mu) <= limit`` (pixels of a seed
+    region are not tested; the caller takes seeds as road).
+
+    Returns ``inside`` (k,) int64, ``mus`` (s, 4) and ``covs`` (s, 4, 4) float64.
     """
     h, w = labels.shape
-    lut = np.empty(256, np.float64)
-    for v in range(256):
-        lut[v] = math.log(v + off)
-    lsum = np.empty(766, np.float64)
-    for v in range(766):
-        lsum[v] = math.log(v / 3.0 + off)
-    tex = np.empty(2048, np.float64)
-    for v in range(2048):
-        tex[v] = math.log1p(v / 8.0)
     s = 0
     for r in range(k):
         if slot[r] + 1 > s:
             s = slot[r] + 1
-    sums = np.zeros((k, 5), np.float64)
+    feats = np.empty((h * w, 4), np.float64)
     m1 = np.zeros((s, 4), np.float64)
     m2 = np.zeros((s, 4, 4), np.float64)
     ns = np.zeros(s, np.float64)
-    x4 = np.empty(4, np.float64)
+    p = 0
     for y in range(h):
         for x in range(w):
-            r = labels[y, x]
             cr = img[y, x, 0]
             cg = img[y, x, 1]
             cb = img[y, x, 2]
-            x4[0] = lut[cr] - lut[cg]
-            x4[1] = lut[cb] - lut[cg]
-            x4[2] = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
+            f0 = lut[cr] - lut[cg]
+            f1 = lut[cb] - lut[cg]
+            f2 = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
             gv = grad[y, x]
             gi = 2047 if not gv < 2047.0 else (0 if not gv > 0.0 else np.int32(gv + 0.5))
-            x4[3] = tex[gi]
-            for c in range(4):
-                sums[r, c] += x4[c]
-            sums[r, 4] += 1.0
-            j = slot[r]
+            f3 = tex[gi]
+            feats[p, 0] = f0
+            feats[p, 1] = f1
+            feats[p, 2] = f2
+            feats[p, 3] = f3
+            j = slot[labels[y, x]]
             if j >= 0:
                 ns[j] += 1.0
                 for a in range(4):
-                    m1[j, a] += x4[a]
+                    fa = feats[p, a]
+                    m1[j, a] += fa
                     for b in range(a, 4):
-                        m2[j, a, b] += x4[a] * x4[b]
+                        m2[j, a, b] += fa * feats[p, b]
+            p += 1
+    mus = np.zeros((s, 4), np.float64)
+    covs = np.zeros((s, 4, 4), np.float64)
+    icovs = np.zeros((s, 4, 4), np.float64)
     for j in range(s):
+        n = ns[j]
+        if n > 0:
+            for a in range(4):
+                mus[j, a] = m1[j, a] / n
         for a in range(4):
-            for b in range(a):
-                m2[j, a, b] = m2[j, b, a]
-    return sums, m1, m2, ns
-
-
-@njit(cache=True, nogil=True)
-def seed_inside_kernel(labels, img, grad, mus, icovs, limit, k, off):
-    """Per region, how many of its pixels lie inside some seed's ellipsoid.
-
-    Pixel features as in :func:`region_features_kernel`; seed ``j`` is the Gaussian
-    ``mus[j]`` (4,), ``icovs[j]`` (4, 4) (inverse covariance).  A pixel is inside when
-    ``(x - mu)^T icov (x - mu) <= limit`` for at least one seed.  Returns ``inside``
-    (k,) int64 counts.
-    """
-    h, w = labels.shape
-    lut = np.empty(256, np.float64)
-    for v in range(256):
-        lut[v] = math.log(v + off)
-    lsum = np.empty(766, np.float64)
-    for v in range(766):
-        lsum[v] = math.log(v / 3.0 + off)
-    tex = np.empty(2048, np.float64)
-    for v in range(2048):
-        tex[v] = math.log1p(v / 8.0)
-    s = mus.shape[0]
+            for b in range(a, 4):
+                c = (m2[j, a, b] - n * mus[j, a] * mus[j, b]) / (n - 1.0) if n > 4 else 0.0
+                covs[j, a, b] = c
+                covs[j, b, a] = c
+        for a in range(4):
+            covs[j, a, a] += noise2
+        icovs[j] = _inv4(covs[j])
     inside = np.zeros(k, np.int64)
-    x4 = np.empty(4, np.float64)
     d = np.empty(4, np.float64)
+    p = 0
     for y in range(h):
         for x in range(w):
-            cr = img[y, x, 0]
-            cg = img[y, x, 1]
-            cb = img[y, x, 2]
-            x4[0] = lut[cr] - lut[cg]
-            x4[1] = lut[cb] - lut[cg]
-            x4[2] = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
-            gv = grad[y, x]
-            gi = 2047 if not gv < 2047.0 else (0 if not gv > 0.0 else np.int32(gv + 0.5))
-            x4[3] = tex[gi]
-            for j in range(s):
-                for a in range(4):
-                    d[a] = x4[a] - mus[j, a]
-                q = 0.0
-                for a in range(4):
-                    t = 0.0
-                    for b in range(4):
-                        t += icovs[j, a, b] * d[b]
-                    q += d[a] * t
-                if q <= limit:
-                    inside[labels[y, x]] += 1
-                    break
-    return inside
+            r = labels[y, x]
+            if slot[r] < 0:
+                for j in range(s):
+                    for a in range(4):
+                        d[a] = feats[p, a] - mus[j, a]
+                    q = 0.0
+                    for a in range(4):
+                        t = 0.0
+                        for b in range(4):
+                            t += icovs[j, a, b] * d[b]
+                        q += d[a] * t
+                    if q <= limit:
+                        inside[r] += 1
+                        break
+            p += 1
+    return inside, mus, covs

@@ -284,11 +284,10 @@ def format_table(result: dict) -> str:
 
 #: The values :func:`cross_validate` chooses ``best``'s constants from (every combination).
 CV_GRID: dict[str, tuple] = {
-    "gamma": (1.0, 0.5, 0.35),
-    "p": (0.95, 0.99),
-    "horizon": (0.0, 0.4, 0.5),
+    "q": (2048.0, 4096.0),
+    "p": (0.9, 0.95, 0.99),
+    "frac": (0.3, 0.5),
     "gap": (10, 20),
-    "seed_share": (0.1, 0.2),
 }
 
 

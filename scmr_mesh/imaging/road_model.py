@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 
 from scmr_mesh.errors import InputError
+from scmr_mesh.imaging.steps import bottom_centre, roi
 
 
 #: ``best`` works on the frame area-downsampled to this size (rows, columns): half of 300x225.
@@ -165,7 +166,27 @@ def tone_curve(image: np.ndarray, gamma: float) -> np.ndarray:
     return cv2.LUT(image, lut)
 
 
+def feature_tables(off: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lookup tables of the pixel features (plain numpy, built once per offset by the caller).
+
+    ``lut[v] = log(v + off)`` (v = 0..255), ``lsum[v] = log(v / 3 + off)`` (v = R+G+B = 0..765),
+    ``tex[v] = log1p(v / 8)`` (v = rounded Sobel magnitude, 0..2047).
+    """
+    lut = np.log(np.arange(256, dtype=np.float64) + off)
+    lsum = np.log(np.arange(766, dtype=np.float64) / 3.0 + off)
+    tex = np.log1p(np.arange(2048, dtype=np.float64) / 8.0)
+    return lut, lsum, tex
+
+
 _CHI2: dict = {}
+_TABLES: list = []
+
+
+def _tables() -> tuple:
+    """The pixel-feature lookup tables (built once)."""
+    if not _TABLES:
+        _TABLES.extend(feature_tables(FEATURE_OFFSET))
+    return tuple(_TABLES)
 
 
 def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray:
@@ -176,8 +197,6 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray
     a vehicle ahead stands *on* the road and ends above them (its lower edge is road).
     When no region passes both tests the largest region of the cell is the seed.
     """
-    from scmr_mesh.imaging.steps import bottom_centre, roi
-
     cell = bottom_centre(roi(labels))
     counts = np.bincount(cell.ravel(), minlength=n_regions)
     low = np.bincount(cell[cell.shape[0] // 2:].ravel(), minlength=n_regions)
@@ -206,7 +225,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
         the share of its pixels inside a seed ellipsoid).
     """
-    from scmr_mesh.imaging._aot import region_features_kernel, seed_inside_kernel
+    from scmr_mesh.imaging._aot import road_share_kernel
 
     labels = seg.labels
     h, w = labels.shape
@@ -216,21 +235,11 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     slot[seeds] = np.arange(seeds.size, dtype=np.int32)
     grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
     grad = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
-    # one pass for the seeds' pixel moments (only the seed rows of its output are used)
-    _sums, m1, m2, ns = region_features_kernel(labels, small, grad, slot, int(k), FEATURE_OFFSET)
     limit = _CHI2.get(params.p)
     if limit is None:
         limit = _CHI2[params.p] = chi2_quantile(params.p, N_FEATURES)
-    floor = np.eye(N_FEATURES) * params.noise**2
-    mus = np.empty((seeds.size, N_FEATURES))
-    icovs = np.empty((seeds.size, N_FEATURES, N_FEATURES))
-    for j in range(seeds.size):
-        n = ns[j]
-        mu = m1[j] / n
-        cov = (m2[j] - n * np.outer(mu, mu)) / (n - 1) if n > N_FEATURES else np.zeros((N_FEATURES, N_FEATURES))
-        mus[j] = mu
-        icovs[j] = np.linalg.inv(cov + floor)
-    inside = seed_inside_kernel(labels, small, grad, mus, icovs, float(limit), int(k), FEATURE_OFFSET)
+    inside, _mus, _covs = road_share_kernel(labels, small, grad, slot, int(k), *_tables(),
+                                            float(params.noise) ** 2, float(limit))
     share = inside / np.maximum(seg.sizes, 1)
     road = share >= params.frac
     road[seeds] = True
@@ -238,6 +247,10 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     if params.horizon > 0:
         cand[: int(params.horizon * h)] = 0
     n_comp, comp = cv2.connectedComponents(cand, connectivity=4)
-    hits = np.bincount(comp[np.isin(labels, seeds)], minlength=n_comp)
-    hits[0] = 0
-    return (hits > 0).astype(np.uint8)[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share}
+    # SRM regions are 4-connected, so a seed lies in one component: any of its cell pixels names it
+    cell_lab = bottom_centre(roi(labels))
+    cell_comp = bottom_centre(roi(comp))
+    keep = np.zeros(n_comp, np.uint8)
+    keep[cell_comp[slot[cell_lab] >= 0]] = 1
+    keep[0] = 0
+    return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share}
