@@ -209,7 +209,9 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     t3 = _clock()
     t["srm"] = t3 - t2
 
-    window = palette[bottom_centre(roi(seg.labels))]
+    # the thesis's bottom-centre cell of the 300x225 frame, read off the working labels
+    ry, rx = _cell_index()
+    window = palette[seg.labels[ry, rx]]
     channel = dominant_channel(window)
     hist = histogram(np.ascontiguousarray(window[:, :, channel]))
     threshold = otsu_threshold(hist)
@@ -245,6 +247,20 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
             "channel": np.array(channel),
         }
     return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages)
+
+
+_CELL_INDEX: list = []
+
+
+def _cell_index() -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices into the working frame of every pixel of the 300x225 bottom-centre cell."""
+    if not _CELL_INDEX:
+        h, w = FRAME_SHAPE
+        cr = bottom_centre(roi(np.broadcast_to(np.arange(h)[:, None], (h, w))))[:, 0]
+        cc = bottom_centre(roi(np.broadcast_to(np.arange(w)[None, :], (h, w))))[0]
+        wh, ww = WORK_SHAPE
+        _CELL_INDEX.extend(np.ix_(cr * wh // FRAME_SHAPE[0], cc * ww // FRAME_SHAPE[1]))
+    return _CELL_INDEX[0], _CELL_INDEX[1]
 
 
 def _inner_edges(edges: np.ndarray) -> np.ndarray:
