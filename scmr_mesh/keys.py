@@ -8,12 +8,17 @@ catalog with message formats is in ``docs/protocol.md``.
 key expression                              declared by                  carries
 ==========================================  ===========================  ============================
 ``scmr/drivable/cloud/<node>``              cloud service (queryable)    request -> reply | error
-``scmr/drivable/leader/<node>``             leader service (queryable)   request -> reply | error
+``scmr/drivable/leader/<node>``             the current leader (queryable)  request -> reply | error
+``scmr/drivable/peer/<robot>``              a robot serving peers        request -> reply | error
 ``scmr/alive/cloud/<node>``                 cloud (liveliness token)     presence of a cloud node
-``scmr/alive/leader/<node>``                leader (liveliness token)    presence of a leader node
+``scmr/alive/leader/<node>``                the leader (liveliness)      who leads (held while leading)
+``scmr/alive/candidate/<node>``             leader-capable node          presence of a candidate
+``scmr/alive/peer/<robot>``                 robot serving peers          presence of a peer server
 ``scmr/alive/robot/<robot>``                robot (liveliness token)     presence of a robot
 ``scmr/load/cloud/<node>``                  cloud (publisher)            load message (spreading)
 ``scmr/load/leader/<node>``                 leader (publisher)           load message
+``scmr/load/peer/<robot>``                  robot serving peers          load message (with capability)
+``scmr/r2r/candidate/<node>``               candidate (pub + queryable)  candidacy: term, rank inputs
 ``scmr/telemetry/<robot>``                  robot (publisher)            telemetry message
 ``scmr/results/<robot>``                    robot (publisher)            one record per request
 ``scmr/metrics/<node>``                     any peer (publisher)         free-form metrics
@@ -25,6 +30,12 @@ telemetry batches (the robot id is in the key so that access control can bind
 it to the sender's identity; :func:`data_telemetry`), ``relay`` the leader's
 forwarded batches to the cloud (:func:`data_relay`), ``buffer`` and ``sync``
 data-buffer reads.
+
+The R2R tier (docs/R2R.md): leadership is a role.  Every leader-capable node
+holds ``scmr/alive/candidate/<node>`` and publishes its candidacy; the
+elected one declares the leader queryable and token under its own name, so
+the leader's key changes when the lead passes on.  Candidates that do not
+lead serve other robots on ``scmr/drivable/peer/<robot>``.
 
 Tiers are distinct key spaces on purpose: a query on one shared key would go
 to both cloud and leader (zenoh facts sheet, section 2).  Node and robot names
@@ -41,11 +52,11 @@ from scmr_mesh.errors import InputError
 #: Root of every scmr key.
 ROOT = "scmr"
 #: Serving tiers, in the default order of preference.
-TIERS: tuple[str, ...] = ("cloud", "leader")
+TIERS: tuple[str, ...] = ("cloud", "leader", "peer")
 #: Where a request can end up: a serving tier or the robot itself.
-PLACEMENTS: tuple[str, ...] = ("cloud", "leader", "local")
+PLACEMENTS: tuple[str, ...] = ("cloud", "leader", "peer", "local")
 #: Roles that hold a liveliness token.
-ROLES: tuple[str, ...] = ("cloud", "leader", "robot")
+ROLES: tuple[str, ...] = ("cloud", "leader", "peer", "candidate", "robot")
 
 DRIVABLE = f"{ROOT}/drivable"
 ALIVE = f"{ROOT}/alive"
@@ -54,6 +65,7 @@ TELEMETRY = f"{ROOT}/telemetry"
 RESULTS = f"{ROOT}/results"
 METRICS = f"{ROOT}/metrics"
 DATA = f"{ROOT}/data"
+R2R = f"{ROOT}/r2r"
 
 #: Every drivable queryable.
 DRIVABLE_ALL = f"{DRIVABLE}/**"
@@ -65,6 +77,8 @@ LOAD_ALL = f"{LOAD}/**"
 TELEMETRY_ALL = f"{TELEMETRY}/*"
 #: Every results publication.
 RESULTS_ALL = f"{RESULTS}/*"
+#: Every candidacy publication / queryable of the R2R election.
+CANDIDATES_ALL = f"{R2R}/candidate/*"
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 
@@ -111,6 +125,15 @@ def drivable(tier: str, node: str) -> str:
 def drivable_tier(tier: str) -> str:
     """Key expression matching every node of one tier (``scmr/drivable/<tier>/*``)."""
     return f"{DRIVABLE}/{_tier(tier)}/*"
+
+
+def candidate(node: str) -> str:
+    """Key on which leader-capable ``node`` publishes (and answers) its candidacy.
+
+    >>> candidate("r2")
+    'scmr/r2r/candidate/r2'
+    """
+    return f"{R2R}/candidate/{check_name(node)}"
 
 
 def alive(role: str, node: str) -> str:

@@ -2,7 +2,7 @@
 
 Pure module (no Zenoh, no rerun).  Every message is a msgpack map with a wire
 version ``"v"`` (:data:`WIRE_VERSION`) and a ``"kind"``: ``request``,
-``reply``, ``error``, ``telemetry`` or ``load``.  Each kind is described by
+``reply``, ``error``, ``telemetry``, ``load`` or ``candidate``.  Each kind is described by
 ``schemas/<kind>.schema.json`` (JSON Schema 2020-12, plus one extra keyword,
 ``x-bytes``, for msgpack ``bin`` fields).  Both ends validate: the service
 checks requests before admitting them, the robot checks replies before it
@@ -40,7 +40,7 @@ from scmr_mesh.errors import WireError
 #: Version written in every message; a peer rejects other versions.
 WIRE_VERSION = 1
 #: Message kinds, each with ``schemas/<kind>.schema.json``.
-KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load")
+KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load", "candidate")
 #: Codes of error replies.
 ERROR_CODES: tuple[str, ...] = (
     "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired"
@@ -374,9 +374,14 @@ def make_telemetry(
     }
 
 
-def make_load(node: str, tier: str, *, workers: int, inflight: int, served: int) -> dict:
-    """Build a load message (see ``schemas/load.schema.json``)."""
-    return {
+def make_load(node: str, tier: str, *, workers: int, inflight: int, served: int,
+              clock_hz: float | None = None, power_w: float | None = None) -> dict:
+    """Build a load message (see ``schemas/load.schema.json``).
+
+    ``clock_hz`` and ``power_w`` (the server's energy profile) let robots
+    weigh a peer robot with the energy model before sending it a frame.
+    """
+    msg = {
         "v": WIRE_VERSION,
         "kind": "load",
         "node": node,
@@ -384,5 +389,50 @@ def make_load(node: str, tier: str, *, workers: int, inflight: int, served: int)
         "workers": int(workers),
         "inflight": int(inflight),
         "served": int(served),
+        "t_unix_ns": now_ns(),
+    }
+    if clock_hz is not None:
+        msg["clock_hz"] = float(clock_hz)
+    if power_w is not None:
+        msg["power_w"] = float(power_w)
+    return msg
+
+
+def make_candidate(node: str, *, term: int, leading: bool, clock_hz: float, power_w: float | None,
+                   battery: float, load: float, since_unix_ns: int | None = None,
+                   capability: str = "") -> dict:
+    """Build a candidacy message of the R2R election (``schemas/candidate.schema.json``).
+
+    Parameters
+    ----------
+    node : str
+        The candidate.
+    term : int
+        The highest term it has seen (its own term while it leads).
+    leading : bool
+        Whether it holds the lead now.
+    clock_hz, power_w : float
+        Capability from its energy profile (``power_w`` None when unknown).
+    battery : float
+        0..1.
+    load : float
+        In-flight requests per worker.
+    since_unix_ns : int, optional
+        When it took the lead (while leading).
+    capability : str
+        Where the capability came from (profile name or ``host``).
+    """
+    return {
+        "v": WIRE_VERSION,
+        "kind": "candidate",
+        "node": node,
+        "term": int(term),
+        "leading": bool(leading),
+        "since_unix_ns": None if since_unix_ns is None else int(since_unix_ns),
+        "clock_hz": float(clock_hz),
+        "power_w": None if power_w is None else float(power_w),
+        "battery": float(min(1.0, max(0.0, battery))),
+        "load": float(max(0.0, load)),
+        "capability": str(capability),
         "t_unix_ns": now_ns(),
     }

@@ -549,12 +549,15 @@ class TelemetryQueue:
         with self._lock:
             return self.max_bytes - self.stats_.pending_bytes
 
-    def pending(self, *, limit: int | None = None, max_bytes: int | None = None) -> list[tuple[int, bytes]]:
-        """The oldest unacknowledged ``(seq, payload)`` pairs, in seq order."""
+    def pending(self, *, limit: int | None = None, max_bytes: int | None = None,
+                after: int = 0) -> list[tuple[int, bytes]]:
+        """The oldest unacknowledged ``(seq, payload)`` pairs with ``seq > after``, in seq order."""
         out: list[tuple[int, bytes]] = []
         size = 0
         with self._lock:
             for seq, payload in self._pending:
+                if seq <= after:
+                    continue
                 if limit is not None and len(out) >= limit:
                     break
                 if max_bytes is not None and out and size + len(payload) > max_bytes:

@@ -56,13 +56,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_cloud)
 
     p = sub.add_parser(
-        "leader", help="run the robot leader: the same service on the leader tier (R2R), optionally also a robot",
+        "leader", help="run a dedicated leader candidate of the R2R tier, optionally also a robot",
         formatter_class=fmt,
-        description="Serve drivable-region requests on scmr/drivable/leader/NODE (token "
-                    "scmr/alive/leader/NODE): robots use it when no cloud node is alive.  With "
-                    "--images or --synthetic (and --out) the leader is also a robot with id NODE.",
+        description="A leader-capable node of the R2R tier (docs/R2R.md), ranked by --capability "
+                    "(default: the thesis's leader profile, 3.5 GHz).  Leadership is a role: the node "
+                    "runs in the election with every other candidate (robots started with "
+                    "--leader-capable); while elected it serves drivable-region requests on "
+                    "scmr/drivable/leader/NODE (token scmr/alive/leader/NODE) and the leader's data "
+                    "tier; otherwise it serves robots on scmr/drivable/peer/NODE and keeps a copy of "
+                    "the leader's data buffer.  With --images or --synthetic (and --out) it is also a "
+                    "robot with id NODE.",
         epilog=_PEER_EPILOG)
     _service_args(p)
+    _r2r_args(p, robot=False)
     _robot_args(p, leader=True)
     config.add_arguments(p)
     _data_args(p, "leader")
@@ -78,6 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog=_PEER_EPILOG)
     p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
     _robot_args(p, leader=False)
+    _r2r_args(p, robot=True)
     p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the robot is connected")
     p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
@@ -122,6 +129,73 @@ def _service_args(p: argparse.ArgumentParser) -> None:
     from scmr_mesh.qos import negotiator
 
     negotiator.add_arguments(p)
+
+
+def _r2r_args(p: argparse.ArgumentParser, *, robot: bool) -> None:
+    """Flags of a leader-capable node (docs/R2R.md)."""
+    g = p.add_argument_group("R2R tier (leadership is a role; docs/R2R.md)")
+    if robot:
+        g.add_argument("--leader-capable", action="store_true",
+                       help="run for the lead of the R2R tier: fork a warm worker pool, serve other robots "
+                            "on scmr/drivable/peer/ID while another node leads, take the lead when elected")
+        g.add_argument("--workers", type=ca.count("worker processes", hi=256, example="1"), default=1, metavar="N",
+                       help="with --leader-capable: worker processes of its pool (default 1)")
+        g.add_argument("--max-request-bytes", type=ca.count("bytes", hi=1 << 31, example="33554432"), default=None,
+                       metavar="N",
+                       help="with --leader-capable: larger requests get an 'oversized' error (default 32 MiB)")
+    g.add_argument("--capability", metavar="PROFILE", default=None,
+                   help="energy profile whose clock and power rank this node in the election (Table 4.3 "
+                        "names or --profiles-file); default: " + ("--profile, else this host's measured clock "
+                                                                  "with unknown power" if robot else "leader"))
+    g.add_argument("--serve-peers", action=argparse.BooleanOptionalAction, default=True,
+                   help="serve other robots on the peer tier while not leading (default on)")
+    g.add_argument("--leadership-log", type=ca.PathArg("out-file"), metavar="FILE",
+                   help="append this node's role changes here as JSON lines (default "
+                        "RUN/leadership/NODE.jsonl when a run dir is known, else OUT/leadership.jsonl)")
+
+
+def _capability(args, *, default: str | None):
+    from scmr_mesh.mesh.election import Capability
+
+    name = args.capability or getattr(args, "profile", None) or default
+    return Capability.from_profile(name, profiles_file=getattr(args, "profiles_file", None))
+
+
+def _leadership_log(args, node: str) -> Path | None:
+    from scmr_mesh.mesh.data_service import _run_dir_from
+
+    if args.leadership_log:
+        return Path(args.leadership_log)
+    run_dir = _run_dir_from(args)
+    if run_dir is not None:
+        return run_dir / "leadership" / f"{node}.jsonl"
+    if getattr(args, "out", None):
+        return Path(args.out) / "leadership.jsonl"
+    return None
+
+
+def _candidate_data_dir(args, node: str) -> Path | None:
+    """The relay queue folder of a candidate's data tier (None: data tier off)."""
+    from scmr_mesh.mesh.data_service import _run_dir_from, data_tier_off
+
+    if data_tier_off():
+        return None
+    if getattr(args, "relay_dir", None):
+        return Path(args.relay_dir)
+    return (_run_dir_from(args) or Path("runs")) / f"relay-{node}"
+
+
+def _run_candidate(args, node: str, *, capability_default: str | None, workers, body) -> int:
+    from scmr_mesh.mesh.peers import run_candidate
+    from scmr_mesh.qos import negotiator
+
+    capability = _capability(args, default=capability_default)
+    return run_candidate(node, _mesh(args), capability=capability, workers=workers, process=args.process,
+                         max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
+                         setup=negotiator.service_setup(args), serve_peers=args.serve_peers,
+                         data_dir=_candidate_data_dir(args, node), sync_period_s=getattr(args, "sync_period", 1.0),
+                         events_path=_leadership_log(args, node), verbose=bool(getattr(args, "verbose", 0)),
+                         budget_ms=getattr(args, "budget_ms", None))
 
 
 def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
@@ -206,8 +280,6 @@ def _cmd_cloud(args) -> int:
 
 
 def _cmd_leader(args) -> int:
-    from scmr_mesh.mesh.peers import run_service
-
     _setup_logging(args)
     body = None
     if args.images or args.synthetic:
@@ -217,12 +289,10 @@ def _cmd_leader(args) -> int:
         args.mode = args.mode or "best"
         _check_robot_args(args)
 
-        def body(session, stop):
-            return _robot_body(args, session, stop)
+        def body(session, stop, r2r):
+            return _robot_body(args, session, stop, r2r)
 
-    rc = run_service(args.node, _mesh(args), tier="leader", workers=args.workers, process=args.process,
-                     max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                     setup=_setup(args, "leader"), verbose=bool(args.verbose), budget_ms=args.budget_ms)
+    rc = _run_candidate(args, args.node, capability_default="leader", workers=args.workers, body=body)
     _raise_problem(args)
     return rc
 
@@ -233,6 +303,16 @@ def _cmd_robot(args) -> int:
 
     _setup_logging(args)
     _check_robot_args(args)
+    if args.leader_capable:
+        if args.workers is not None and args.workers < 1:
+            raise InputError(f"--workers must be >= 1, got {args.workers}")
+
+        def body(session, stop, r2r):
+            return _robot_body(args, session, stop, r2r)
+
+        rc = _run_candidate(args, args.id, capability_default=None, workers=args.workers, body=body)
+        _raise_problem(args)
+        return rc
     stop = StopFlag().install()
     clear_ready(args.ready_file)
     session = open_session(_mesh(args))
@@ -264,7 +344,7 @@ def _check_robot_args(args):
     return args._frames
 
 
-def _robot_body(args, session, stop: threading.Event) -> int:
+def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
     from scmr_mesh.mesh.peers import write_ready
     from scmr_mesh.mesh.robot import Robot, RobotOptions
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
@@ -282,12 +362,15 @@ def _robot_body(args, session, stop: threading.Event) -> int:
     try:
         rerun_viz = _robot_viz(args, robot)
         robot.attach(session)
+        if r2r is not None:  # the election ranks this candidate by its own battery
+            r2r.battery = robot.battery
         agent = _data_agent(robot, args)
         if opts.local_fallback:
             robot.warm_local()
         if getattr(args, "ready_file", None) and not hasattr(args, "node"):
             write_ready(args.ready_file, {"role": "robot", "node": args.id, "zid": str(session.info.zid()),
-                                          "keys": []})
+                                          "keys": [], "candidate": r2r is not None,
+                                          "leading": r2r is not None and r2r.role == "leader"})
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
             log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
         robot.prepare()

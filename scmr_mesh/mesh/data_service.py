@@ -11,6 +11,7 @@ key                                             queryable of         payload -> 
 ``scmr/data/cloud/<node>/relay``                cloud                leader's relayed batch -> ack (ODS)
 ``scmr/data/<tier>/<node>/buffer``              cloud and leader     ``{"sel": selector}`` -> items
 ``scmr/data/cloud/<node>/sync``                 cloud                ``{"epoch", "since"}`` -> delta
+``scmr/data/leader/<node>/sync``                the leader           the same, for the other candidates
 ==============================================  ===================  =====================================
 
 Identity: the robot id is in the telemetry key, and a tier refuses (error
@@ -39,6 +40,13 @@ Flow ("nothing lost"):
 5. The leader pulls the data buffer of every live cloud node every
    ``--sync-period`` seconds (delta since the last revision it saw of that
    node) and serves the same buffer queries when the cloud is gone.
+6. The R2R tier (docs/R2R.md): every leader-capable node keeps a
+   :class:`LeaderData`.  While another node leads it pulls the leader's buffer
+   (``scmr/data/leader/<leader>/sync``) every sync period (anti-entropy), so a
+   successor serves buffer reads at most one period old.  Robots keep each
+   telemetry record until a *cloud* has stored it (end to end): a leader's ack
+   only means "relayed", so records relayed through a leader that dies are
+   sent again to the cloud later, and the ODS counts them as duplicates.
 """
 
 from __future__ import annotations
@@ -127,9 +135,9 @@ def buffer_key(tier: str, node: str) -> str:
     return keys.data(tier, node, "buffer")
 
 
-def sync_key(node: str) -> str:
-    """``scmr/data/cloud/<node>/sync``."""
-    return keys.data("cloud", node, "sync")
+def sync_key(node: str, tier: str = "cloud") -> str:
+    """``scmr/data/<tier>/<node>/sync``: buffer deltas of a cloud node, or of the leader for its successors."""
+    return keys.data(tier, node, "sync")
 
 
 def _pack(obj: Any) -> bytes:
@@ -410,9 +418,14 @@ class LeaderData:
     """
 
     def __init__(self, node: str, relay_dir: str | Path, *, sync_period_s: float = 1.0,
-                 relay_max_bytes: int = 64 << 20, deadline_s: float = 1.0, gate: IngestGate | None = None) -> None:
+                 relay_max_bytes: int = 64 << 20, deadline_s: float = 1.0, gate: IngestGate | None = None,
+                 leading: bool = True) -> None:
         self.node = node
         self.gate = gate or IngestGate()
+        #: True while this node holds the lead: sync from the clouds; else from ``leader_of()``
+        self.leading = leading
+        #: ``fn() -> node or None``: the current leader (standby candidates sync from it)
+        self.leader_of: Callable[[], str | None] = lambda: None
         self.buffer = DataBuffer(node)
         self.relay = TelemetryQueue(relay_dir, max_bytes=relay_max_bytes)
         self.deadline_s = float(deadline_s)
@@ -433,7 +446,18 @@ class LeaderData:
 
     def queryables(self) -> list[tuple[str, Callable]]:
         return [(telemetry_key("leader", self.node), self._on_telemetry),
-                (buffer_key("leader", self.node), serve_buffer(self.buffer, "leader", self.node))]
+                (buffer_key("leader", self.node), serve_buffer(self.buffer, "leader", self.node)),
+                (sync_key(self.node, "leader"), self._on_sync)]
+
+    def _on_sync(self, query) -> None:
+        """Deltas of this leader's buffer, for the candidates that may succeed it."""
+        try:
+            req = _unpack(_payload(query)) if _payload(query) else {}
+            query.reply(query.key_expr, self.buffer.delta(int(req.get("since", 0)), epoch=req.get("epoch")))
+        except Exception as exc:
+            _answer(query, {"error": str(exc)}, error=True)
+        finally:
+            _drop(query)
 
     def _on_telemetry(self, query) -> None:
         # the fsync'd append runs on the leader's own thread, never on zenoh's; the backlog
@@ -510,17 +534,23 @@ class LeaderData:
                 return reply.ok.payload.to_bytes()
         return None
 
-    def _fetch_from(self, node: str, epoch: str | None, since: int) -> bytes | None:
-        return self._query(sync_key(node), _pack({"epoch": epoch, "since": since}))
+    def _fetch_from(self, node: str, epoch: str | None, since: int, tier: str = "cloud") -> bytes | None:
+        return self._query(sync_key(node, tier), _pack({"epoch": epoch, "since": since}))
 
     def sync_once(self) -> dict[str, bool]:
-        """Pull a delta from every live cloud node; return ``{node: answered}``."""
+        """Pull a delta from every live cloud node while leading, from the leader while standing by;
+        return ``{node: answered}``."""
+        if self.leading:
+            sources = [("cloud", node, node) for node in self._clouds()]
+        else:  # a standby candidate keeps a copy of the leader's buffer (anti-entropy)
+            lead = self.leader_of()
+            sources = [] if not lead or lead == self.node else [("leader", lead, f"leader:{lead}")]
         out = {}
-        for node in self._clouds():
-            sync = self.syncs.get(node)
+        for tier, node, name in sources:
+            sync = self.syncs.get(name)
             if sync is None:
-                sync = self.syncs[node] = BufferSync(
-                    self.buffer, lambda epoch, since, node=node: self._fetch_from(node, epoch, since),
+                sync = self.syncs[name] = BufferSync(
+                    self.buffer, lambda epoch, since, node=node, tier=tier: self._fetch_from(node, epoch, since, tier),
                     period_s=self.sync_period_s)
             out[node] = sync.pull_once() is not None
         return out
@@ -549,7 +579,7 @@ class LeaderData:
             self._stop.wait(0.05)
         next_sync = 0.0
         while not self._stop.is_set():
-            if getattr(svc, "session", None) is None:
+            if svc is not None and getattr(svc, "session", None) is None:
                 break
             now = time.monotonic()
             try:
@@ -562,8 +592,11 @@ class LeaderData:
                 log.debug("leader data loop: %s", exc)
             self._stop.wait(RETRY_PERIOD_S)
 
-    def start(self, svc) -> None:
-        """Sync and forward in a daemon thread once ``svc`` is attached to a session."""
+    def start(self, svc=None, *, session=None) -> None:
+        """Sync and forward in a daemon thread once ``svc`` is attached to a session
+        (or, for an R2R candidate whose service changes role, on ``session`` for good)."""
+        if session is not None:
+            self.session = session
         self._thread = threading.Thread(target=self._loop, args=(svc,), name="leader-data", daemon=True)
         self._thread.start()
 
@@ -602,6 +635,8 @@ class TelemetryAgent:
         self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
         self.deadline_s = deadline_ms / 1e3
         self.acked_by = {"cloud": 0, "leader": 0}
+        #: records up to this seq were relayed by a leader but not yet stored by a cloud (kept queued)
+        self._relayed_upto = 0
         self.refused_logged = 0
         self.publish_errors = 0
         self.busy_answers = 0      # batches a tier answered busy (kept, retried after a backoff)
@@ -678,40 +713,56 @@ class TelemetryAgent:
 
     def _targets(self) -> list[tuple[str, str]]:
         view = self.robot.view.snapshot(local=False)
-        return [("cloud", n) for n in sorted(view.cloud)] + [("leader", n) for n in sorted(view.leader)]
+        return [("cloud", n) for n in view.cloud] + [("leader", n) for n in view.leader]
 
     def flush_once(self) -> int:
-        """Send the oldest queued records to the first tier that stores them; return how many were acked."""
-        batch = self.queue.pending(limit=BATCH)
-        if not batch:
-            return 0
-        payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
+        """Send the oldest queued records to a tier that takes them; return how many it took.
+
+        A cloud's ack (records stored in the ODS) removes them from the queue.
+        A leader's ack only means *relayed*: the records stay queued (end to
+        end: a leader that dies with them loses nothing) and are not sent to a
+        leader again; they go to a cloud once one is alive.  A busy answer
+        keeps the records and backs off (doubling, jittered).
+        """
+        targets = self._targets()
+        clouds = [t for t in targets if t[0] == "cloud"]
+        leaders = [t for t in targets if t[0] == "leader"]
         busy_hint_ms = None
-        for tier, node in self._targets():
-            try:
-                ans = self._ask(telemetry_key(tier, node, self.robot.id), payload)
-            except Exception as exc:
-                log.debug("telemetry to %s/%s failed: %s", tier, node, exc)
+        for tier_targets, after in ((clouds, 0), (leaders, self._relayed_upto)):
+            if not tier_targets:
                 continue
-            if ans is None:
+            batch = self.queue.pending(limit=BATCH, after=after)
+            if not batch:
                 continue
-            kind, body = ans
-            if kind == "ok":
-                upto = batch[-1][0]
-                replayed = sum(1 for s, _ in batch if s <= self._replay_upto)
-                self.queue.ack(upto)
-                if replayed:
-                    self.queue.note_replayed(replayed)
-                self.acked_by[tier] += len(batch)
-                self._busy_streak = 0
-                self._not_before = 0.0
-                return len(batch)
-            if isinstance(body, dict) and body.get("busy"):
-                self.busy_answers += 1
-                busy_hint_ms = max(busy_hint_ms or 0.0, float(body.get("retry_after_ms") or 0.0))
-                log.info("robot %s: %s/%s busy: %s", self.robot.id, tier, node, body.get("error"))
-                continue
-            log.warning("robot %s: %s/%s did not store telemetry: %s", self.robot.id, tier, node, body)
+            payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
+            for tier, node in tier_targets:
+                try:
+                    ans = self._ask(telemetry_key(tier, node, self.robot.id), payload)
+                except Exception as exc:
+                    log.debug("telemetry to %s/%s failed: %s", tier, node, exc)
+                    continue
+                if ans is None:
+                    continue
+                kind, body = ans
+                if kind == "ok":
+                    upto = batch[-1][0]
+                    if tier == "cloud":
+                        replayed = sum(1 for s, _ in batch if s <= self._replay_upto)
+                        self.queue.ack(upto)
+                        if replayed:
+                            self.queue.note_replayed(replayed)
+                    else:
+                        self._relayed_upto = upto
+                    self.acked_by[tier] += len(batch)
+                    self._busy_streak = 0
+                    self._not_before = 0.0
+                    return len(batch)
+                if isinstance(body, dict) and body.get("busy"):
+                    self.busy_answers += 1
+                    busy_hint_ms = max(busy_hint_ms or 0.0, float(body.get("retry_after_ms") or 0.0))
+                    log.info("robot %s: %s/%s busy: %s", self.robot.id, tier, node, body.get("error"))
+                    continue
+                log.warning("robot %s: %s/%s did not store telemetry: %s", self.robot.id, tier, node, body)
         self._replay_upto = self.queue.next_seq - 1
         if busy_hint_ms is not None:  # kept; back off (doubling, jittered) before the next attempt
             self._busy_streak += 1
@@ -760,6 +811,15 @@ class TelemetryAgent:
                 return tier, node, ans[1]["items"]
         raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier alive'})")
 
+    def _drainable(self) -> bool:
+        """Whether a live tier could take some of the queued records now."""
+        if not len(self.queue):
+            return False
+        targets = self._targets()
+        if any(t == "cloud" for t, _ in targets):
+            return True
+        return bool(targets) and bool(self.queue.pending(limit=1, after=self._relayed_upto))
+
     # -- end
     def summary(self) -> dict:
         """The robot's telemetry counters (``OUT/telemetry.json``).
@@ -771,8 +831,10 @@ class TelemetryAgent:
         """
         st = self.queue.stats()
         lost = sorted(set(st.refused_seqs) | set(st.lost_seqs))
+        relayed = len(self.queue.pending(limit=None)) - len(self.queue.pending(limit=None, after=self._relayed_upto))
         return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
                 "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": len(lost),
+                "relayed_unstored": relayed,
                 "replayed": st.replayed, "acked_by": dict(self.acked_by), "busy_answers": self.busy_answers,
                 "torn_bytes": st.torn_bytes,
                 "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100],
@@ -782,7 +844,7 @@ class TelemetryAgent:
         """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
         end = time.monotonic() + drain_s
         started = self._thread.is_alive()
-        while started and len(self.queue) and time.monotonic() < end and self._targets():
+        while started and self._drainable() and time.monotonic() < end:
             self._wake.set()
             time.sleep(0.05)
         self._stop.set()
@@ -841,11 +903,14 @@ def add_arguments(parser, role: str) -> None:
         g.add_argument("--data-params", type=ca.PathArg("in-file", what="a JSON file of buffer entries"), metavar="FILE",
                        help="JSON object of shared entries for the data buffer (keys like "
                             "'maps/site' or 'params/speed')")
-    if role == "leader":
+    if role in ("leader", "robot"):
+        extra = "" if role == "leader" else "with --leader-capable: "
         g.add_argument("--sync-period", type=ca.positive("seconds", hi=3600, example="1"), default=1.0, metavar="S",
-                       help="seconds between pulls of the cloud's data buffer (default 1)")
+                       help=extra + "seconds between pulls of the data buffer: from the clouds while leading, from "
+                            "the leader otherwise (default 1)")
         g.add_argument("--relay-dir", type=ca.PathArg("out-dir"), metavar="DIR",
-                       help="on-disk queue of telemetry held for the cloud (default <run dir>/relay-NODE)")
+                       help=extra + "on-disk queue of telemetry held for the cloud while leading "
+                            "(default <run dir>/relay-NODE)")
     if role in ("cloud", "leader"):
         g.add_argument("--ingest-queue", type=ca.count("records", hi=10**7, example="4096"),
                        default=MAX_PENDING_RECORDS, metavar="N",

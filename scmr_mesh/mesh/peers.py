@@ -169,6 +169,110 @@ def run_service(
     return rc
 
 
+def run_candidate(
+    node: str,
+    mesh: MeshConfig,
+    *,
+    capability,
+    workers: int | None = None,
+    process: str | None = None,
+    max_request_bytes: int | None = None,
+    ready_file: str | None = None,
+    stop: StopFlag | None = None,
+    robot_body: Callable | None = None,
+    setup: Callable | None = None,
+    serve_peers: bool = True,
+    data_dir: str | Path | None = None,
+    sync_period_s: float = 1.0,
+    events_path: str | Path | None = None,
+    election: dict | None = None,
+    verbose: bool = False,
+    budget_ms: float | None = None,
+) -> int:
+    """Run a leader-capable node of the R2R tier until stopped (``scmr leader``,
+    ``scmr robot --leader-capable``).
+
+    The worker pool is forked and warmed before Zenoh starts; the node then
+    serves peers (unless ``serve_peers`` is off) and runs for the lead
+    (:class:`~scmr_mesh.mesh.r2r.R2RNode`).  The ready file is written once
+    the start-up grace has passed and the node has decided once; it says
+    whether the node leads.
+
+    Parameters
+    ----------
+    capability : scmr_mesh.mesh.election.Capability
+    robot_body : callable, optional
+        ``fn(session, stop_event, r2r) -> int`` run on the main thread (the
+        node is also a robot).
+    data_dir : path, optional
+        The relay queue of the node's data tier (``None``: data tier off).
+    events_path : path, optional
+        JSON lines of this node's role changes.
+
+    Returns
+    -------
+    int
+        Exit status (0 clean).
+    """
+    from scmr_mesh import wire
+    from scmr_mesh.mesh.r2r import R2RNode
+    from scmr_mesh.mesh.server import DEFAULT_BUDGET_MS, Service
+    from scmr_mesh.mesh.startup import clock as startup_clock
+    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+
+    clock = startup_clock()
+    mesh.build()
+    clock.mark("zenoh config")
+    stop = stop or StopFlag().install()
+    clear_ready(ready_file)
+    svc = Service(node, tier="peer", workers=workers, process=process or DEFAULT_PROCESS,
+                  max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES,
+                  budget_ms=DEFAULT_BUDGET_MS if budget_ms is None else budget_ms, clock=clock)
+    data = None
+    session = None
+    r2r = None
+    rc = 0
+    try:
+        if setup is not None:
+            setup(svc)
+        if data_dir is not None:
+            from scmr_mesh.mesh.data_service import LeaderData
+
+            data = LeaderData(node, data_dir, sync_period_s=sync_period_s, leading=False)
+        r2r = R2RNode(svc, data, capability=capability, serve_peers=serve_peers, events_path=events_path,
+                      election=election)
+        session = open_session(mesh)
+        clock.mark("zenoh session")
+        r2r.attach(session)
+        clock.mark("peer service and candidacy")
+        r2r.wait_settled()
+        clock.mark("election settled")
+        startup = clock.as_dict()
+        write_ready(ready_file, {"role": "candidate", "node": node, "zid": str(session.info.zid()),
+                                 "leading": r2r.role == "leader", "serves": r2r.role,
+                                 "keys": [svc.key], "workers": svc.worker_pids,
+                                 "capability": capability.source, "startup": startup})
+        log.info("candidate %s ready (zid %s), %s, %.0f ms after exec, %.0f ms of CPU%s", node, session.info.zid(),
+                 "leading" if r2r.role == "leader" else f"serving as {r2r.role}", startup["wall_ms"],
+                 startup["cpu_ms"], ":\n" + clock.format() if verbose else "")
+        if robot_body is not None:
+            rc = int(robot_body(session, stop.event, r2r) or 0)
+        else:
+            stop.event.wait()
+    finally:
+        log.info("candidate %s stopping", node)
+        if r2r is not None:
+            r2r.close()
+        elif data is not None:
+            data.close()
+        if session is not None:
+            close_session(session)
+        svc.shutdown()
+        clear_ready(ready_file)
+        stop.restore()
+    return rc
+
+
 def run_router(mesh: MeshConfig, *, ready_file: str | None = None, stop: StopFlag | None = None) -> int:
     """Run a zenoh router (a session in router mode) until stopped."""
     stop = stop or StopFlag().install()

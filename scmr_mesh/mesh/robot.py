@@ -7,12 +7,15 @@ writes the result to its inbox and one line of ``records.jsonl``.
 Routing
 -------
 The robot keeps a live view (:class:`LiveView`) of which nodes are alive,
-from a liveliness subscriber on ``scmr/alive/**`` (``history=True``), and of
-their load (``scmr/load/**``).  For each frame the *placement* function
-returns the tiers to try, in order; the default (:func:`default_placement`)
-is ``cloud`` if a cloud node is alive, then ``leader`` if one is alive, then
-``local`` when local fallback is on.  Within the cloud tier the least loaded
-alive node is tried first (then one more).  Each attempt is gated on the
+from a liveliness subscriber on ``scmr/alive/**`` (``history=True``), of
+their load (``scmr/load/**``) and of who leads the R2R tier (candidacies on
+``scmr/r2r/candidate/*``, docs/R2R.md).  For each frame the *placement*
+function returns the tiers to try, in order; the default
+(:func:`default_placement`) is ``cloud`` if a cloud node is alive, then the
+elected ``leader``, then (no cloud alive) ``peer`` robots with spare
+capacity, then ``local`` when local fallback is on.  Within the cloud tier the
+least loaded alive node is tried first (then one more); within the peer tier
+the least loaded, then fastest.  Each attempt is gated on the
 querier's matching status (a queryable is really there) and bounded by the
 per-request deadline (``--deadline-ms``): when it passes, or the server dies
 mid-request (no reply), or it answers with an error, the request is re-sent
@@ -28,7 +31,7 @@ Output (``--out DIR``)
 * ``DIR/inbox/<seq>.mask.png``: the (225, 300) mask, 255 = drivable.
 * ``DIR/records.jsonl``: one JSON object per finished request, flushed per
   line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
-  received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"local"|null),
+  received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"peer"|"local"|null),
   served_by, attempts [{tier, node, outcome, t_unix_ns}], error``.
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
@@ -41,7 +44,7 @@ Hooks
   is called after each request (rgb is the (H, W, 3) uint8 frame, mask the
   (225, 300) uint8 mask or None).  The viz engineer logs overlays from it.
 * ``Robot.placement``: ``fn(view: Reachable, frame: FrameInfo) -> sequence of
-  "cloud" | "leader" | "local"``, the tiers to try in order (energy policy).
+  "cloud" | "leader" | "peer" | "local"``, the tiers to try in order (energy policy).
 * ``Robot.annotators``: ``fn(record: dict, reply: dict | None)`` called before each
   record is written; may add keys (the energy placer adds ``energy_j`` and
   ``energy``).  ``reply`` is the decoded reply, or for local runs
@@ -79,21 +82,32 @@ class Reachable:
 
     Attributes
     ----------
-    cloud, leader : tuple of str
-        Alive nodes of each tier; cloud nodes sorted by load, least first.
+    cloud, leader, peer : tuple of str
+        Alive nodes of each tier.  Cloud nodes least loaded first; leaders
+        the elected one first (highest term, then rank: normally exactly one);
+        peers (robots serving robots; never this robot) with spare capacity
+        first, least loaded, then fastest.
     loads : dict
         node -> (inflight / workers) from the last load message.
     local : bool
         Whether this robot can run the pipeline itself.
+    clocks : dict
+        node -> clock (Hz) of its energy profile, from its load messages.
     """
 
     cloud: tuple[str, ...] = ()
     leader: tuple[str, ...] = ()
     loads: dict = field(default_factory=dict)
     local: bool = False
+    peer: tuple[str, ...] = ()
+    clocks: dict = field(default_factory=dict)
 
     def nodes(self, tier: str) -> tuple[str, ...]:
-        return self.cloud if tier == "cloud" else self.leader if tier == "leader" else ()
+        return getattr(self, tier, ()) if tier in keys.TIERS else ()
+
+    def saturated(self, node: str) -> bool:
+        """Whether ``node`` published a load of at least one request per worker."""
+        return self.loads.get(node, 0.0) >= 1.0
 
 
 @dataclass(frozen=True)
@@ -110,20 +124,39 @@ Placement = Callable[[Reachable, FrameInfo], Sequence[str]]
 
 
 def default_placement(view: Reachable, frame: FrameInfo) -> list[str]:
-    """Cloud if any cloud node is alive, then leader if alive, then local if able."""
-    order = [t for t in ("cloud", "leader") if view.nodes(t)]
+    """The tiers to try, in order.
+
+    Cloud if a cloud node is alive; then the leader; then, only when no cloud
+    is alive, peer robots with spare capacity (before the leader when the
+    leader is saturated, and in the gap while a new leader is elected); then
+    local execution if this robot can run it.
+    """
+    order = []
+    if view.cloud:
+        order.append("cloud")
+    spare_peers = [p for p in view.peer if not view.saturated(p)]
+    if not view.cloud and spare_peers and (not view.leader or view.saturated(view.leader[0])):
+        order.append("peer")
+    if view.leader:
+        order.append("leader")
+    if not view.cloud and view.peer and "peer" not in order:
+        order.append("peer")  # a busy leader answers "busy": then a peer
     if view.local:
         order.append("local")
     return order
 
 
 class LiveView:
-    """Which serving nodes are alive, and how loaded, from liveliness + load samples."""
+    """Which serving nodes are alive, how loaded, and who leads, from liveliness,
+    load samples and candidacies (the R2R election, :mod:`scmr_mesh.mesh.election`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, me: str | None = None) -> None:
+        self.me = me
         self._lock = threading.Lock()
         self._alive: dict[str, set[str]] = {t: set() for t in keys.ROLES}
         self._loads: dict[str, float] = {}
+        self._clocks: dict[str, float] = {}
+        self._cands: dict[str, Any] = {}  # node -> election.Candidacy
         self.changed = threading.Condition(self._lock)
         self._rr = itertools.count()
 
@@ -140,7 +173,10 @@ class LiveView:
                 bucket.add(node)
             else:
                 bucket.discard(node)
-                self._loads.pop(node, None)
+                if role != "candidate":
+                    self._loads.pop(node, None)
+                else:
+                    self._cands.pop(node, None)
             self.changed.notify_all()
         log.info("liveliness: %s %s %s", role, node, "up" if alive else "down")
 
@@ -153,11 +189,37 @@ class LiveView:
             return
         with self._lock:
             self._loads[msg["node"]] = msg["inflight"] / max(1, msg["workers"])
+            if "clock_hz" in msg:
+                self._clocks[msg["node"]] = float(msg["clock_hz"])
+
+    def on_candidate(self, sample) -> None:
+        """Candidacy subscriber callback: who claims the lead, with which term."""
+        from scmr_mesh.mesh.election import Candidacy
+
+        try:
+            c = Candidacy.from_message(wire.decode(sample.payload.to_bytes(), kind="candidate"))
+        except wire.WireProblem as exc:
+            log.debug("ignoring candidacy: %s", exc)
+            return
+        with self._lock:
+            self._cands[c.node] = c
 
     def mark_busy(self, node: str, amount: float = 1.0) -> None:
         """Raise a node's load estimate locally (until its next load message)."""
         with self._lock:
             self._loads[node] = self._loads.get(node, 0.0) + amount
+
+    def _leaders(self) -> list[str]:
+        """Alive leaders, the elected one first: highest term, then rank (unknown terms last)."""
+        from scmr_mesh.mesh.election import rank_key
+
+        def key(n: str):
+            c = self._cands.get(n)
+            if c is None or not c.leading:
+                return (1, 0, (), n)
+            return (0, -c.term, rank_key(c), n)
+
+        return sorted(self._alive["leader"], key=key)
 
     def snapshot(self, *, local: bool = False) -> Reachable:
         with self._lock:
@@ -169,7 +231,17 @@ class LiveView:
                 k = rr % len(clouds)
                 clouds = clouds[k:] + clouds[:k]
             clouds.sort(key=lambda n: loads.get(n, 0.0))
-            return Reachable(tuple(clouds), tuple(sorted(self._alive["leader"])), loads, local)
+            peers = sorted((p for p in self._alive["peer"] if p != self.me),
+                           key=lambda n: (loads.get(n, 0.0) >= 1.0, loads.get(n, 0.0),
+                                          -self._clocks.get(n, 0.0), n))
+            return Reachable(tuple(clouds), tuple(self._leaders()), loads, local, tuple(peers),
+                             dict(self._clocks))
+
+    def leader(self) -> str | None:
+        """The elected leader as this robot sees it (None when none is alive)."""
+        with self._lock:
+            leaders = self._leaders()
+        return leaders[0] if leaders else None
 
     def wait_for_tier(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s until some cloud or leader node is alive."""
@@ -370,7 +442,7 @@ class Robot:
         self.id = keys.check_name(robot_id, what="robot id")
         self.options = options or RobotOptions()
         self.placement: Placement = placement or default_placement
-        self.view = LiveView()
+        self.view = LiveView(self.id)
         self.out = Path(out_dir)
         self.outbox = self.out / "outbox"
         self.inbox = self.out / "inbox"
@@ -390,7 +462,7 @@ class Robot:
         self._res_pub = None
         self._local_fn = None
         self._local_ok: bool | None = None
-        self.stats = {"requests": 0, "succeeded": 0, "by_tier": {"cloud": 0, "leader": 0, "local": 0},
+        self.stats = {"requests": 0, "succeeded": 0, "by_tier": {"cloud": 0, "leader": 0, "peer": 0, "local": 0},
                       "last_tor_ms": None, "last_tier": None}
         self._t0 = time.monotonic()
         self._last_seq = 0
@@ -408,11 +480,16 @@ class Robot:
         if self._tele_pub is not None:
             self._tele_pub.put(wire.encode(message))
 
+    def battery(self) -> float:
+        """Simulated state of charge, 0..1: two hours of driving, and each local pipeline run costs 0.02 %."""
+        t = time.monotonic() - self._t0
+        return max(0.0, 1.0 - t / 7200.0 - 2e-4 * self.stats["by_tier"]["local"])
+
     def make_telemetry(self) -> dict:
         """The current telemetry message (simulated pose and battery, real results)."""
         t = time.monotonic() - self._t0
         pose = {"x": 10.0 * math.cos(0.05 * t), "y": 10.0 * math.sin(0.05 * t), "theta": (0.05 * t + math.pi / 2) % (2 * math.pi)}
-        battery = max(0.0, 1.0 - t / 7200.0 - 2e-4 * self.stats["by_tier"]["local"])
+        battery = self.battery()
         return wire.make_telemetry(self.id, self._last_seq, pose=pose, battery=battery, health=self._health,
                                    results=dict(self.stats, by_tier=dict(self.stats["by_tier"])))
 
@@ -422,6 +499,7 @@ class Robot:
         self._session = session
         self._subs.append(session.liveliness().declare_subscriber(keys.ALIVE_ALL, self.view.on_liveliness, history=True))
         self._subs.append(session.declare_subscriber(keys.LOAD_ALL, self.view.on_load))
+        self._subs.append(session.declare_subscriber(keys.CANDIDATES_ALL, self.view.on_candidate))
         self._tele_pub = session.declare_publisher(keys.telemetry(self.id))
         self._res_pub = session.declare_publisher(keys.results(self.id))
         self._token = session.liveliness().declare_token(keys.alive("robot", self.id))

@@ -176,7 +176,9 @@ class Service:
     ----------
     node : str
         Node name (a key chunk).
-    tier : {"cloud", "leader"}
+    tier : {"cloud", "leader", "peer"}
+        Can change while detached (:meth:`serve_as`): a leader-capable node
+        serves as ``peer`` and as ``leader`` with the same warm pool.
     workers : int
         Worker processes (default: CPU count).
     process : str
@@ -215,6 +217,8 @@ class Service:
         self.node = node
         self.tier = tier
         self.key = keys.drivable(tier, node)
+        #: (clock_hz, power_w) of this server's energy profile, published with its load
+        self.capability: tuple[float, float | None] | None = None
         self.max_request_bytes = int(max_request_bytes)
         if not budget_ms > 0:
             raise InputError(f"--budget-ms must be > 0, got {budget_ms}")
@@ -245,18 +249,33 @@ class Service:
             self._declared.append(self.session.declare_queryable(key, callback, complete=complete))
 
     # ------------------------------------------------------- life cycle
-    def attach(self, session, *, clock=None) -> None:
-        """Declare the queryable, extra queryables, the load publisher, then the token."""
+    def serve_as(self, tier: str, extra: list[tuple[str, Callable]] | None = None) -> None:
+        """Serve ``tier`` at the next :meth:`attach`, with these extra queryables (while detached)."""
+        if self.session is not None:
+            raise RuntimeError(f"{self.tier} {self.node}: detach before changing the tier")
+        if tier not in keys.TIERS:
+            raise InputError(f"tier must be one of {keys.TIERS}, got {tier!r}")
+        self.tier = self.state.tier = tier
+        self.key = keys.drivable(tier, self.node)
+        self._extra = [(k, cb, False) for k, cb in (extra or [])]
+
+    def attach(self, session, *, clock=None, warm: bool = True) -> None:
+        """Declare the queryable, extra queryables, the load publisher, then the token.
+
+        ``warm=False`` skips the warm-up query (the pool already served).
+        """
         self.session = session
+        self._stop.clear()
         self._declared.append(session.declare_queryable(self.key, self._on_query, complete=True))
         for key, cb, complete in self._extra:
             self._declared.append(session.declare_queryable(key, cb, complete=complete))
         self._load_pub = session.declare_publisher(keys.load(self.tier, self.node))
         if clock is not None:
             clock.mark("queryables")
-        self._warm_path(session)
-        if clock is not None:
-            clock.mark("warm-up query")
+        if warm:
+            self._warm_path(session)
+            if clock is not None:
+                clock.mark("warm-up query")
         # the token last: a robot that sees it finds the queryable in place
         self._token = session.liveliness().declare_token(keys.alive(self.tier, self.node))
         if clock is not None:
@@ -301,7 +320,7 @@ class Service:
         end = time.monotonic() + drain_s
         while time.monotonic() < end and (self.state.inflight > 0 or self._waiting() > 0):
             time.sleep(0.01)
-        if self.state.inflight or self._waiting():
+        if drain_s > 0 and (self.state.inflight or self._waiting()):
             log.warning("%s %s: stopping with %d requests unanswered", self.tier, self.node,
                         self.state.inflight + self._waiting())
         for obj in [*self._declared, self._load_pub]:
@@ -345,15 +364,18 @@ class Service:
             if now == last and st.inflight == 0:
                 continue  # idle: publish on change only
             last = now
-            msg = wire.make_load(self.node, self.tier, workers=st.workers, inflight=st.inflight, served=st.served)
+            cap = self.capability or (None, None)
+            msg = wire.make_load(self.node, self.tier, workers=st.workers, inflight=st.inflight, served=st.served,
+                                 clock_hz=cap[0], power_w=cap[1])
             try:
                 pub.put(wire.encode(msg))
             except Exception as exc:
                 log.debug("load publish failed: %s", exc)
 
     def _reply_error(self, query, code: str, message: str, request=None, retry_after_ms=None) -> None:
+        tier = (request or {}).get("_tier", self.tier) if isinstance(request, dict) else self.tier
         msg = wire.make_error(
-            code, message, served_by=self.node, tier=self.tier, request=request, retry_after_ms=retry_after_ms
+            code, message, served_by=self.node, tier=tier, request=request, retry_after_ms=retry_after_ms
         )
         with self.state.lock:
             if code == "busy":
@@ -381,6 +403,7 @@ class Service:
             except wire.WireProblem as exc:  # robot and seq echoed when they could be read
                 self._reply_error(query, exc.code, str(exc), exc.partial)
                 return
+            req["_tier"] = self.tier  # the tier it arrived on, even if the role changes meanwhile
             refusal = self.admission(req, self.state)
             if refusal is not None:
                 self._reply_error(query, refusal.code, refusal.message, req, refusal.retry_after_ms)
@@ -476,7 +499,7 @@ class Service:
                 threshold=out["threshold"],
                 timings_ms=out.get("timings_ms", {}),
                 served_by=self.node,
-                tier=self.tier,
+                tier=req.get("_tier", self.tier),
                 server_ms=(now - t_arrival) * 1e3,
                 queue_ms=max(0.0, (now - t_sub) * 1e3 - worker_ms),
             )

@@ -1,0 +1,476 @@
+"""Leadership of the R2R tier as a role: a deterministic election over live candidates.
+
+No external coordinator: every leader-capable node (a robot started with
+``--leader-capable`` or the dedicated ``scmr leader``) runs a
+:class:`Candidate`.  It holds the liveliness token
+``scmr/alive/candidate/<node>``, publishes its candidacy on
+``scmr/r2r/candidate/<node>`` (on every change and every heartbeat; the same
+key is a queryable answering it, so a newcomer learns every state at once) and
+applies the rule below whenever a token or a candidacy changes.  The holder of
+the lead declares the leader queryable and token (through the ``on_lead``
+callback); it gives them up through ``on_step_down``.
+
+The rule (pure: :func:`decide`, :func:`rank_key`, :func:`outranks`)
+------------------------------------------------------------------
+* **Rank** of a candidate, best first: eligible (battery >= :data:`LOW_BATTERY`)
+  before not; higher clock; lower compute power; higher battery (tenths);
+  lower load (quarters of a worker); then the smaller node id.  Buckets keep a
+  small change of battery or load from reordering candidates.
+* **Term**: every claim takes a term one above the highest term its claimant
+  has seen.  Between two leaders the higher term wins; at equal terms the
+  better rank wins.  The loser steps down at once.
+* **No preemption**: a live leader keeps the lead even when a better
+  candidate appears.  Only a vacancy (no live candidate claims the lead)
+  starts an election: the best-ranked live candidate claims at once; the
+  k-th best claims only after the vacancy has lasted ``k * claim_wait_s``
+  (covers a best candidate that cannot act).
+* **A blinking token does not make the lead flap**: when the leader's token
+  blinks off, the best other candidate claims term T+1; when the old leader
+  comes back with term T it sees T+1 and steps down.  The lead moved once
+  and stays; it never moves back because the old leader is better.
+
+Why it converges: candidates that see the same live set agree on the best,
+so at most one claims.  Views that differ (a partition, a half-open link)
+can make several claim; every pair of leaders that see each other compares
+(term, rank), a total order, so each sees the other's claim and all but the
+greatest step down.  During a partition each side keeps its own leader
+(that keeps each side served); after the heal the sides see each other again
+and one leader remains.  docs/R2R.md has the measured figures.
+
+Events
+------
+Each change of this node's role is appended as one JSON line to
+``events_path`` (``{"t_unix_ns", "node", "event": "lead" | "step_down",
+"term", "cause", "leaders_seen"}``); fleet and scenario reports derive the
+``leadership`` block from them (:mod:`scmr_mesh.qos.leadership`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Mapping
+
+from scmr_mesh import keys, wire
+
+log = logging.getLogger(__name__)
+
+#: Below this battery level a candidate is ranked after every candidate above it.
+LOW_BATTERY = 0.2
+#: Seconds between candidacy heartbeats.
+HEARTBEAT_S = 0.25
+#: The k-th best candidate claims a vacancy only after ``k * CLAIM_WAIT_S``.
+CLAIM_WAIT_S = 0.3
+#: After start, watch this long before claiming (let gossip connect the mesh).
+STARTUP_GRACE_S = 0.3
+
+
+# ------------------------------------------------------------------ pure rule
+@dataclass(frozen=True)
+class Candidacy:
+    """What a candidate tells the others (one ``candidate`` message)."""
+
+    node: str
+    term: int = 0
+    leading: bool = False
+    clock_hz: float = 1e9
+    power_w: float | None = None
+    battery: float = 1.0
+    load: float = 0.0
+    since_unix_ns: int | None = None
+    capability: str = ""
+
+    @classmethod
+    def from_message(cls, msg: Mapping) -> Candidacy:
+        return cls(node=msg["node"], term=int(msg["term"]), leading=bool(msg["leading"]),
+                   clock_hz=float(msg["clock_hz"]), power_w=msg.get("power_w"),
+                   battery=float(msg["battery"]), load=float(msg["load"]),
+                   since_unix_ns=msg.get("since_unix_ns"), capability=msg.get("capability", ""))
+
+    def to_message(self) -> dict:
+        return wire.make_candidate(self.node, term=self.term, leading=self.leading, clock_hz=self.clock_hz,
+                                   power_w=self.power_w, battery=self.battery, load=self.load,
+                                   since_unix_ns=self.since_unix_ns, capability=self.capability)
+
+
+def rank_key(c: Candidacy) -> tuple:
+    """Sort key of a candidate: the smallest key is the best candidate.
+
+    Examples
+    --------
+    >>> a = Candidacy("r1", clock_hz=2.5e9, power_w=93)
+    >>> b = Candidacy("r2", clock_hz=3.5e9, power_w=177)
+    >>> sorted([a, b], key=rank_key)[0].node
+    'r2'
+    """
+    return (
+        c.battery < LOW_BATTERY,
+        -round(c.clock_hz / 1e6),                       # MHz: capability from the energy profile
+        math.inf if c.power_w is None else round(c.power_w, 1),
+        -math.floor(c.battery * 10 + 1e-9),             # tenths of battery
+        math.floor(c.load * 4 + 1e-9),                  # quarters of a worker
+        c.node,
+    )
+
+
+def outranks(a: Candidacy, b: Candidacy) -> bool:
+    """Whether leader ``a`` wins over leader ``b``: higher term, else better rank."""
+    if a.term != b.term:
+        return a.term > b.term
+    return rank_key(a) < rank_key(b)
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What :func:`decide` tells a candidate to do."""
+
+    action: str  # "claim", "step_down" or "stay"
+    term: int = 0
+    reason: str = ""
+
+
+def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | None,
+           claim_wait_s: float = CLAIM_WAIT_S) -> Decision:
+    """Apply the election rule for ``me`` given the live ``others``.
+
+    Parameters
+    ----------
+    me : Candidacy
+        This node's candidacy (its ``term`` is the highest term it has seen).
+    others : iterable of Candidacy
+        Every other live candidate whose candidacy is known.
+    vacancy_s : float or None
+        How long no live leader has been seen (None: there is one).
+    claim_wait_s : float
+        The k-th best candidate claims after ``k * claim_wait_s``.
+
+    Returns
+    -------
+    Decision
+        ``claim`` (with the new term), ``step_down`` or ``stay``.
+    """
+    others = [o for o in others if o.node != me.node]
+    max_term = max([me.term, *(o.term for o in others)])
+    leaders = [o for o in others if o.leading]
+    if me.leading:
+        better = [lead for lead in leaders if outranks(lead, me)]
+        if better:
+            top = better[0]
+            for b in better[1:]:
+                if outranks(b, top):
+                    top = b
+            return Decision("step_down", max_term, f"outranked by {top.node} (term {top.term} vs {me.term})")
+        return Decision("stay", me.term, "leading")
+    if leaders:
+        return Decision("stay", max_term, "following " + ",".join(sorted(o.node for o in leaders)))
+    ranked = sorted([me, *others], key=rank_key)
+    k = ranked.index(me)
+    if k == 0:
+        return Decision("claim", max_term + 1, "vacancy; best-ranked live candidate")
+    if vacancy_s is not None and vacancy_s >= k * claim_wait_s:
+        return Decision("claim", max_term + 1,
+                        f"vacancy for {vacancy_s * 1e3:.0f} ms; {ranked[0].node} (ranked above) did not claim")
+    return Decision("stay", max_term, f"vacancy; waiting for {ranked[0].node}")
+
+
+def current_leader(candidacies: Iterable[Candidacy]) -> Candidacy | None:
+    """The leader robots should use among ``candidacies`` that claim the lead (highest term, then rank)."""
+    best = None
+    for c in candidacies:
+        if c.leading and (best is None or outranks(c, best)):
+            best = c
+    return best
+
+
+# ---------------------------------------------------------------- the agent
+@dataclass(frozen=True)
+class Capability:
+    """A candidate's serving capability, from an energy profile or the host."""
+
+    clock_hz: float
+    power_w: float | None
+    source: str
+
+    @classmethod
+    def from_profile(cls, name: str | None, *, profiles_file: str | None = None) -> Capability:
+        """From an energy profile (Table 4.3 or a user file); ``None``: this host's clock, power unknown."""
+        if name:
+            from scmr_mesh.energy import get_profile
+
+            p = get_profile(name, profiles_file=profiles_file)
+            return cls(float(p.clock_hz), float(p.p_compute_w), name)
+        from scmr_mesh.energy.measure import host_clock_hz
+
+        hz, _src = host_clock_hz()
+        return cls(float(hz), None, "host")
+
+
+class Candidate:
+    """One node's side of the election (see the module docstring).
+
+    Parameters
+    ----------
+    node : str
+        The candidate's name (a robot id or the leader's node name).
+    capability : Capability
+    on_lead : callable
+        ``fn(term)``: declare the leader queryable and token now.  Raising
+        aborts the claim (logged; the node stays a follower).
+    on_step_down : callable
+        ``fn(reason)``: give up the leader queryable and token now.
+    battery, load : callable, optional
+        Current battery (0..1) and load (in-flight per worker).
+    events_path : path, optional
+        JSON lines of this node's role changes.
+    grace_s, heartbeat_s, claim_wait_s : float
+        See :data:`STARTUP_GRACE_S`, :data:`HEARTBEAT_S`, :data:`CLAIM_WAIT_S`.
+    """
+
+    def __init__(self, node: str, capability: Capability, *, on_lead: Callable[[int], None],
+                 on_step_down: Callable[[str], None], battery: Callable[[], float] | None = None,
+                 load: Callable[[], float] | None = None, events_path: str | os.PathLike | None = None,
+                 grace_s: float = STARTUP_GRACE_S, heartbeat_s: float = HEARTBEAT_S,
+                 claim_wait_s: float = CLAIM_WAIT_S) -> None:
+        self.node = keys.check_name(node)
+        self.capability = capability
+        self.on_lead = on_lead
+        self.on_step_down = on_step_down
+        self._battery = battery or (lambda: 1.0)
+        self._load = load or (lambda: 0.0)
+        self.events_path = Path(events_path) if events_path else None
+        self.grace_s = grace_s
+        self.heartbeat_s = heartbeat_s
+        self.claim_wait_s = claim_wait_s
+        self._lock = threading.RLock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._tokens: set[str] = set()          # live candidate tokens (other nodes)
+        self._states: dict[str, Candidacy] = {}  # latest candidacy per other node
+        self.term = 0
+        self.leading = False
+        self.since_unix_ns: int | None = None
+        self._vacant_since: float | None = time.monotonic()
+        self._started = time.monotonic()
+        self._session = None
+        self._decl: list = []
+        self._token = None
+        self._pub = None
+        self._thread: threading.Thread | None = None
+        self.changes = 0
+
+    # ---------------------------------------------------------- state
+    def me(self) -> Candidacy:
+        return Candidacy(self.node, term=self.term, leading=self.leading, clock_hz=self.capability.clock_hz,
+                         power_w=self.capability.power_w, battery=float(self._battery()),
+                         load=float(self._load()), since_unix_ns=self.since_unix_ns,
+                         capability=self.capability.source)
+
+    def live_others(self) -> list[Candidacy]:
+        with self._lock:
+            return [s for n, s in self._states.items() if n in self._tokens]
+
+    def leader(self) -> str | None:
+        """The node this candidate currently considers the leader (itself included)."""
+        with self._lock:
+            if self.leading:
+                return self.node
+            lead = current_leader(self.live_others())
+            return None if lead is None else lead.node
+
+    # ------------------------------------------------------- callbacks
+    def _on_token(self, sample) -> None:
+        try:
+            _, role, node = keys.parse(str(sample.key_expr))
+        except Exception:
+            return
+        if role != "candidate" or node == self.node:
+            return
+        alive = str(sample.kind).endswith("PUT")
+        with self._lock:
+            if alive:
+                self._tokens.add(node)
+            else:
+                self._tokens.discard(node)
+                self._states.pop(node, None)
+        log.info("candidate %s: %s %s", self.node, node, "up" if alive else "gone")
+        self._wake.set()
+
+    def _on_state(self, sample) -> None:
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), kind="candidate")
+        except wire.WireProblem as exc:
+            log.debug("ignoring candidacy: %s", exc)
+            return
+        self._take(Candidacy.from_message(msg))
+
+    def _take(self, c: Candidacy) -> None:
+        if c.node == self.node:
+            return
+        with self._lock:
+            old = self._states.get(c.node)
+            self._states[c.node] = c
+            if c.term > self.term:
+                self.term = c.term if not self.leading else self.term
+        if old is None or old.leading != c.leading or old.term != c.term:
+            self._wake.set()
+
+    def _on_query(self, query) -> None:
+        try:
+            query.reply(keys.candidate(self.node), wire.encode(self.me().to_message()))
+        except Exception as exc:
+            log.debug("candidacy reply failed: %s", exc)
+        finally:
+            try:
+                query.drop()
+            except Exception:
+                pass
+
+    # ------------------------------------------------------- life cycle
+    def attach(self, session) -> None:
+        """Declare the candidacy (token, publisher, queryable), learn the others, start deciding."""
+        self._session = session
+        ls = session.liveliness()
+        self._decl.append(ls.declare_subscriber(f"{keys.ALIVE}/candidate/*", self._on_token, history=True))
+        self._decl.append(session.declare_subscriber(keys.CANDIDATES_ALL, self._on_state))
+        self._decl.append(session.declare_queryable(keys.candidate(self.node), self._on_query))
+        self._pub = session.declare_publisher(keys.candidate(self.node))
+        self._token = ls.declare_token(keys.alive("candidate", self.node))
+        self.refresh()
+        self._started = time.monotonic()
+        self._thread = threading.Thread(target=self._loop, name=f"election-{self.node}", daemon=True)
+        self._thread.start()
+
+    def refresh(self, timeout: float = 0.5) -> None:
+        """Ask every candidate for its candidacy now (a newcomer's catch-up)."""
+        try:
+            for reply in self._session.get(keys.CANDIDATES_ALL, timeout=timeout):
+                if reply.ok is None:
+                    continue
+                try:
+                    self._take(Candidacy.from_message(
+                        wire.decode(reply.ok.payload.to_bytes(), kind="candidate")))
+                except wire.WireProblem:
+                    continue
+        except Exception as exc:
+            log.debug("candidacy refresh failed: %s", exc)
+
+    def close(self, *, reason: str = "stopping") -> None:
+        """Give up the lead (if held) and every declaration."""
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        with self._lock:
+            if self.leading:
+                self._step_down(reason)
+        for obj in [self._token, self._pub, *self._decl]:
+            if obj is None:
+                continue
+            try:
+                obj.undeclare()
+            except Exception:
+                pass
+        self._token = self._pub = None
+        self._decl = []
+
+    # ---------------------------------------------------------- deciding
+    def _loop(self) -> None:
+        next_beat = 0.0
+        while not self._stop.is_set():
+            self._wake.wait(self.heartbeat_s / 2)
+            self._wake.clear()
+            if self._stop.is_set():
+                break
+            changed = False
+            try:
+                changed = self.evaluate()
+            except Exception:  # never let the election thread die
+                log.exception("candidate %s: election step failed", self.node)
+            now = time.monotonic()
+            if changed or now >= next_beat:
+                next_beat = now + self.heartbeat_s
+                self._publish()
+
+    def evaluate(self, now: float | None = None) -> bool:
+        """Apply :func:`decide` once; act on it.  Returns True when this node's role changed."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            others = self.live_others()
+            if self.leading or any(o.leading for o in others):
+                self._vacant_since = None
+            elif self._vacant_since is None:
+                self._vacant_since = now
+            if not self.leading and now - self._started < self.grace_s:
+                return False
+            vacancy = None if self._vacant_since is None else now - self._vacant_since
+            d = decide(self.me(), others, vacancy_s=vacancy, claim_wait_s=self.claim_wait_s)
+            if d.action == "claim":
+                return self._claim(d, others)
+            if d.action == "step_down":
+                self.term = d.term
+                self._step_down(d.reason)
+                return True
+            if d.term > self.term and not self.leading:
+                self.term = d.term
+            return False
+
+    def _claim(self, d: Decision, others: list[Candidacy]) -> bool:
+        try:
+            self.on_lead(d.term)
+        except Exception as exc:
+            log.error("candidate %s: could not take the lead (term %d): %s", self.node, d.term, exc)
+            return False
+        self.term = d.term
+        self.leading = True
+        self.since_unix_ns = time.time_ns()
+        self._vacant_since = None
+        self.changes += 1
+        log.warning("candidate %s: leading (term %d): %s", self.node, d.term, d.reason)
+        self._event("lead", d.reason, others)
+        self._publish()
+        return True
+
+    def _step_down(self, reason: str) -> None:
+        self.leading = False
+        self.since_unix_ns = None
+        self.changes += 1
+        try:
+            self.on_step_down(reason)
+        except Exception as exc:
+            log.error("candidate %s: stepping down failed: %s", self.node, exc)
+        log.warning("candidate %s: stepped down (term %d): %s", self.node, self.term, reason)
+        self._event("step_down", reason, self.live_others())
+        self._publish()
+
+    def _publish(self) -> None:
+        pub = self._pub
+        if pub is None:
+            return
+        try:
+            pub.put(wire.encode(self.me().to_message()))
+        except Exception as exc:
+            log.debug("candidacy publish failed: %s", exc)
+
+    def _event(self, event: str, cause: str, others: list[Candidacy]) -> None:
+        if self.events_path is None:
+            return
+        line = {"t_unix_ns": time.time_ns(), "node": self.node, "event": event, "term": self.term,
+                "cause": cause, "leaders_seen": sorted(o.node for o in others if o.leading)}
+        try:
+            self.events_path.parent.mkdir(parents=True, exist_ok=True)
+            with open(self.events_path, "a", encoding="utf-8") as f:
+                f.write(json.dumps(line) + "\n")
+        except OSError as exc:
+            log.warning("candidate %s: cannot write %s: %s", self.node, self.events_path, exc)
+
+
+__all__ = [
+    "CLAIM_WAIT_S", "Candidacy", "Candidate", "Capability", "Decision", "HEARTBEAT_S", "LOW_BATTERY",
+    "STARTUP_GRACE_S", "current_leader", "decide", "outranks", "rank_key",
+]
