@@ -133,7 +133,10 @@ def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path)
     assert _stored(ods_path, "r1") == list(range(1, sent + 1))  # each seq exactly once
     with OperationalDataStore(ods_path, readonly=True) as ods:
         via = {r["received_from"] for r in ods.range(robot="r1")}
-    assert via == {"cloud", "leader"}  # some records reached the store through the leader's relay
+    # end to end: what the leader relayed during the outage is stored once, whichever copy
+    # (the leader's relay or the robot's own resend after failback) reached the cloud first
+    assert via <= {"cloud", "leader"}
+    assert _summary(tmp_path, "r1")["acked_by"]["leader"] > 0  # the leader took records during the outage
 
 
 def test_robot_restarted_mid_outage_keeps_its_queue(peers, tmp_path):
