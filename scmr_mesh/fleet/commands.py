@@ -33,6 +33,13 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
                         "--server-arg=scmr_mesh.mesh.testing:stub_process)")
     p.add_argument("--robot-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for every robot (repeatable)")
+    g = p.add_argument_group("R2R tier (docs/R2R.md)")
+    g.add_argument("--leader-capable", type=int, default=2, metavar="N",
+                   help="the first N robots run for the lead besides the dedicated leader, and serve other "
+                        "robots while they do not lead (default: %(default)s)")
+    g.add_argument("--bootstrap", default="cloud", metavar="PEER",
+                   help="the one peer every robot is handed to connect to (cloud or leader); gossip scouting "
+                        "finds the rest (default: %(default)s)")
 
 
 def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | None) -> FleetConfig:
@@ -45,7 +52,8 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
         server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
-        rerun=_rerun_options(args),
+        rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
+        leader_crash_s=getattr(args, "leader_crash", None),
     )
 
 
@@ -98,6 +106,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--kill-cloud", type=ca.parsed(parse_kill, what="cloudI@SECONDS", example="cloud0@5", positive=False, keep_text=True), metavar="cloudI@S",
                    help="SIGKILL cloud node cloudI S s after the fleet is ready and leave it down (with "
                         "--clouds N > 1 the other nodes serve on), e.g. cloud0@5")
+    p.add_argument("--leader-crash", type=ca.non_negative("seconds", hi=86400, example="8"), metavar="S",
+                   help="SIGKILL whichever node leads the R2R tier S s after the fleet is ready (not restarted): "
+                        "another candidate takes the lead")
     p.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the report here")
     p.add_argument("--run-dir", type=ca.PathArg("out-dir", as_path=True, example="runs/my-run"), metavar="DIR", help="run directory (default: runs/<UTC timestamp>)")
     p.add_argument("--min-ror", type=ca.Number(lo=0, hi=1, what="RoR", example="1.0"), default=1.0, metavar="R",

@@ -19,8 +19,12 @@ def format_progress(p: Progress) -> str:
     """One line: time, phase, alive tiers, requests, RoR, ToR (last 200), answers per tier."""
     ror = f"{p.succeeded / p.requests:.3f}" if p.requests else "-"
     tor = "-" if p.tor_p50_ms is None else f"{p.tor_p50_ms:.1f}/{p.tor_p99_ms:.1f}"
-    tiers = " ".join(f"{k} {p.by_tier.get(k, 0)}" for k in ("cloud", "leader", "local", "failed"))
-    alive = ", ".join(f"{k} {'up' if v else 'DOWN'}" for k, v in p.alive.items())
+    tiers = " ".join(f"{k} {p.by_tier.get(k, 0)}" for k in ("cloud", "leader", "peer", "local", "failed"))
+    alive = ", ".join(f"{k} {'up' if v else 'DOWN'}" for k, v in p.alive.items() if k != "leader")
+    if p.leaders:
+        alive += f", leader {'+'.join(p.leaders)}" + (" (SPLIT)" if len(p.leaders) > 1 else "")
+    elif "leader" in p.alive:
+        alive += ", leader NONE"
     phase = "" if p.phase == "running" else f"{p.phase} | "
     return (f"[{p.elapsed_s:5.1f}/{p.duration_s:g} s] {phase}{alive} | {p.requests} req, RoR {ror}, "
             f"ToR p50/p99 {tor} ms | {tiers}")
@@ -38,14 +42,14 @@ def format_summary(report: Mapping[str, Any]) -> str:
         + (" (interrupted)" if report.get("interrupted") else ""),
         "",
         f"  {'robot':<8}{'requests':>9}{'ok':>7}{'RoR':>7}{'p50':>8}{'p90':>8}{'p99':>8}{'max':>8}"
-        f"{'cloud':>7}{'leader':>7}{'local':>7}{'failed':>7}",
+        f"{'cloud':>7}{'leader':>7}{'peer':>7}{'local':>7}{'failed':>7}",
     ]
 
     def row(name: str, s: Mapping[str, Any]) -> str:
         r = "-" if s["ror"] is None else f"{s['ror']:.3f}"
         tt, b = s["tor_ms"], s["by_tier"]
         return (f"  {name:<8}{s['requests']:>9}{s['succeeded']:>7}{r:>7}{_ms(tt['p50']):>8}{_ms(tt['p90']):>8}"
-                f"{_ms(tt['p99']):>8}{_ms(tt['max']):>8}{b['cloud']:>7}{b['leader']:>7}{b['local']:>7}"
+                f"{_ms(tt['p99']):>8}{_ms(tt['max']):>8}{b['cloud']:>7}{b['leader']:>7}{b.get('peer', 0):>7}{b['local']:>7}"
                 f"{b.get('failed', 0):>7}")
 
     for rid, s in report.get("per_robot", {}).items():
@@ -69,6 +73,7 @@ def format_summary(report: Mapping[str, Any]) -> str:
     if not report.get("faults"):
         lines.append("  no faults injected")
     lines.append("  " + format_telemetry(report.get("telemetry")))
+    lines.extend(format_leadership(report.get("leadership")))
     for p in report.get("problems") or []:
         lines.append(f"  PROBLEM: {p}")
     return "\n".join(lines)
@@ -88,6 +93,27 @@ def format_telemetry(tel: Mapping[str, Any] | None) -> str:
     if tel.get("error"):
         extra.append(tel["error"])
     return line + (f" ({'; '.join(extra)})" if extra else "")
+
+
+def format_leadership(lead: Mapping[str, Any] | None) -> list[str]:
+    """Lines naming who led the R2R tier and each change of the lead (docs/R2R.md)."""
+    if not lead:
+        return []
+    parts = []
+    for c in lead.get("changes", []):
+        if c["from"] is None and c["cause"] == "start":
+            parts.append(f"{c['to']} at {c['t_s']:.2f} s")
+        else:
+            gap = "" if c.get("succession_ms") is None else f", took {c['succession_ms']:.0f} ms"
+            gap += "" if c.get("wait_ms") is None else f", robots waited <= {c['wait_ms']:.0f} ms"
+            parts.append(f"{c['from'] or '-'} -> {c['to']} at {c['t_s']:.2f} s ({c['cause']}{gap})")
+    end = lead.get("leaders_at_end") or []
+    out = [f"  leadership: {'; '.join(parts) or 'no leader was elected'}",
+           f"  leader at the end: {', '.join(end) if end else 'none'}"
+           + (f" (TWO LEADERS: {len(end)})" if len(end) > 1 else "")]
+    if lead.get("converged_after_heal_ms") is not None:
+        out[-1] += f"; one leader {lead['converged_after_heal_ms']:.0f} ms after the heal"
+    return out
 
 
 class _ProgressPrinter:

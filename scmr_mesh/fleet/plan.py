@@ -75,6 +75,16 @@ class FleetConfig:
     rerun : scmr_mesh.viz.RerunOptions or None
         Show or record the run in rerun (``--save/--spawn/--serve/--connect``);
         ``None``: nothing rerun-related happens.
+    bootstrap : str
+        The one peer every robot (and the leader) is handed to connect to:
+        ``cloud`` (default), ``leader`` or a robot id; gossip scouting finds
+        every other peer (docs/R2R.md).
+    leader_capable : int
+        The first N robots run for the lead of the R2R tier (``--leader-capable``)
+        and serve other robots while they do not lead.
+    leader_crash_s : float or None
+        Seconds after the fleet is ready at which whichever node leads is
+        SIGKILLed (not restarted).
     """
 
     robots: int = 4
@@ -96,6 +106,9 @@ class FleetConfig:
     ready_timeout_s: float = 90.0
     python: str = sys.executable
     rerun: Any = None
+    bootstrap: str = CLOUD
+    leader_capable: int = 2
+    leader_crash_s: float | None = None
 
     def check(self) -> None:
         """Raise :class:`InputError` naming the bad value and the fix."""
@@ -128,6 +141,52 @@ class FleetConfig:
                 raise InputError("give either --kill-cloud or --cloud-outage, not both")
         if self.images is not None and not Path(self.images).is_dir():
             raise InputError(f"--images must be a folder of images, got {self.images} (not a folder)")
+        if self.leader_crash_s is not None and not 0 <= self.leader_crash_s < self.duration_s:
+            raise InputError(f"--leader-crash must be within 0 <= S < --duration ({self.duration_s:g}), "
+                             f"got {self.leader_crash_s:g}")
+        if not 0 <= self.leader_capable <= self.robots:
+            raise InputError(f"--leader-capable must be between 0 and --robots ({self.robots}), "
+                             f"got {self.leader_capable}")
+        names = [c for c, _ in cloud_peers(self.clouds)] + [LEADER] + robot_ids(self.robots)
+        if self.bootstrap not in names:
+            raise InputError(f"--bootstrap must name a peer of the fleet ({', '.join(names[:6])}...), "
+                             f"got {self.bootstrap!r}")
+        if self.bootstrap in robot_ids(self.robots):
+            raise InputError(f"--bootstrap {self.bootstrap}: robots start after the servers, so the servers "
+                             "could not reach it; use cloud or leader (scenarios can chain robots)")
+
+
+#: Table 4.3 profiles dealt to leader-capable robots (as their election capability), best first.
+CAPABILITY_PROFILES = ("robot4", "robot3", "robot2", "robot1")
+
+
+def fleet_topology(config: FleetConfig) -> dict[str, dict[str, Any]]:
+    """Each peer's role, what it is handed to connect to, and whether it runs for the lead (pure).
+
+    Every cloud node listens; the leader and every robot are handed the one
+    bootstrap peer (``config.bootstrap``; the leader, when it is the
+    bootstrap itself, is handed the first cloud), so each finds the rest by
+    gossip scouting.  Leader-capable robots rank by a Table 4.3 profile
+    (:data:`CAPABILITY_PROFILES`, best first); the dedicated leader by the
+    thesis's leader profile.
+
+    Examples
+    --------
+    >>> t = fleet_topology(FleetConfig(robots=3, leader_capable=1))
+    >>> t["r1"], t["r3"]["connect"]
+    ({'role': 'robot', 'connect': ['cloud'], 'leader_capable': True, 'capability': 'robot4'}, ['cloud'])
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for i, (name, _node) in enumerate(cloud_peers(config.clouds)):  # cloud1.. join through the first
+        out[name] = {"role": "cloud", "connect": [] if i == 0 else [CLOUD], "leader_capable": False,
+                     "capability": None}
+    leader_boot = config.bootstrap if config.bootstrap != LEADER else CLOUD
+    out[LEADER] = {"role": "leader", "connect": [leader_boot], "leader_capable": True, "capability": "leader"}
+    for i, rid in enumerate(robot_ids(config.robots)):
+        capable = i < config.leader_capable
+        out[rid] = {"role": "robot", "connect": [config.bootstrap], "leader_capable": capable,
+                    "capability": CAPABILITY_PROFILES[i % len(CAPABILITY_PROFILES)] if capable else None}
+    return out
 
 
 def parse_outage(text: str) -> tuple[float, float]:
@@ -201,8 +260,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     Returns
     -------
     dict
-        ``{name: PeerSpec}``, servers first (clouds, then the leader).  The
-        leader and every robot connect to every cloud node and to the leader.
+        ``{name: PeerSpec}``, servers first (clouds, then the leader).  Each
+        peer is handed only its connect list of :func:`fleet_topology` (one
+        bootstrap); gossip scouting links it to the others.
     """
     from scmr_mesh.fleet.procs import PeerSpec
 
@@ -214,9 +274,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
         common += ["--lease-ms", str(config.lease_ms)]
     base = [config.python, "-m", "scmr_mesh", "-v"]
     specs = {}
-    clouds = [name for name, _ in cloud_peers(config.clouds)]
-    servers = [(name, "cloud", node, []) for name, node in cloud_peers(config.clouds)]
-    servers.append((LEADER, "leader", "leader0", clouds))
+    topo = fleet_topology(config)
+    servers = [(name, "cloud", node, topo[name]["connect"]) for name, node in cloud_peers(config.clouds)]
+    servers.append((LEADER, "leader", "leader0", topo[LEADER]["connect"]))
     for name, cmd, node, connect in servers:
         argv = [*base, cmd, "--node", node, "--listen", ep(name)]
         for c in connect:
@@ -238,8 +298,10 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
         argv += ["--rate", f"{config.rate_hz:g}", "--duration", f"{config.duration_s:g}",
                  "--out", str(run_dir / "robots" / rid),
                  "--listen", ep(rid)]
-        for c in [*clouds, LEADER]:
+        for c in topo[rid]["connect"]:
             argv += ["--connect", ep(c)]
+        if topo[rid]["leader_capable"]:
+            argv += ["--leader-capable", "--capability", topo[rid]["capability"]]
         if config.deadline_ms is not None:
             argv += ["--deadline-ms", str(config.deadline_ms)]
         argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"), *config.robot_args]

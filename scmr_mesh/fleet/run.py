@@ -40,6 +40,7 @@ from scmr_mesh.fleet.plan import (
     FleetConfig,
     cloud_peers,
     ods_backend,
+    fleet_topology,
     plan_fleet,
     robot_ids,
 )
@@ -95,6 +96,7 @@ class Progress:
     alive: dict[str, bool]
     phase: str = "running"
     events: list[str] = field(default_factory=list)
+    leaders: list[str] = field(default_factory=list)
 
 
 def _free_ports(names: Sequence[str]) -> dict[str, int]:
@@ -217,6 +219,8 @@ class FleetRun:
         self.t_end: float | None = None
         self.started_unix_ns: int | None = None
         self.telemetry: dict | None = None
+        self.robots_done_unix_ns: int | None = None
+        self._killed_once = False  # --kill-cloud done
         self.fviz = None  # scmr_mesh.viz.FleetViz with rerun flags
         self.specs: dict = {}
         self.tails: dict[str, RecordTail] = {}
@@ -266,11 +270,14 @@ class FleetRun:
             for proc in self.sup.procs.values():  # note every (re)started peer's ready time for the report
                 proc.is_ready()
             self._kill_step(now)
+            self._leader_crash_step(now)
             n_seen = len(self.records)
             self._read_records()
             if self.fviz is not None:
                 alive = {("cloud", node): self._up(name) for name, node in self.cloud_nodes.items()}
-                alive[("leader", "leader0")] = self._up(LEADER)
+                leaders = set(self._leaders())
+                for node in self._candidates():  # who leads over time: 1 while a candidate holds the lead
+                    alive[("leader", node)] = node in leaders
                 self.fviz.update(alive=alive, records=self.records[n_seen:], faults=self.faults)
             exited = self.sup.exited()
             for name, rc in exited.items():
@@ -278,6 +285,7 @@ class FleetRun:
                     warned.add(name)
                     log.warning("peer %s exited with status %s; see %s", name, rc, self.specs[name].log_path)
             if all(r in exited for r in self.rids) and not self._outage_pending():
+                self.robots_done_unix_ns = time.time_ns()
                 break
             if now > config.duration_s + grace:
                 log.warning("robots still running %.0f s after the end; stopping them", grace)
@@ -370,6 +378,8 @@ class FleetRun:
         if self.telemetry is not None:
             report["telemetry"] = self.telemetry
         report["problems"] = fleet_problems(report)
+        report["topology"] = fleet_topology(config)
+        report["leadership"] = self._leadership()
         validate_report(report)
         (self.run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
         return report
@@ -416,7 +426,7 @@ class FleetRun:
         outage = self.config.cloud_outage
         if outage is None:
             return
-        fault = self.faults[0] if self.faults else None
+        fault = next((f for f in self.faults if f.get("tier") == "cloud"), None)
         if fault is None and now >= outage[0]:
             t_kill = min(self.sup.kill(c) for c in self.clouds)
             self.faults.append({"kind": "crash", "target": fault_target(self.cloud_nodes), "tier": "cloud",
@@ -434,10 +444,11 @@ class FleetRun:
     def _kill_step(self, now: float) -> None:
         """SIGKILL one cloud node (``--kill-cloud``) on schedule; it stays down."""
         kill = self.config.kill_cloud
-        if kill is None or any(f.get("kind") == "crash" for f in self.faults) or now < kill[1]:
+        if kill is None or self._killed_once or now < kill[1]:
             return
         name, node = list(self.cloud_nodes.items())[kill[0]]
         t_kill = self.sup.kill(name)
+        self._killed_once = True
         # the cloud tier stays (other nodes serve): a fault that takes away no tier
         self.faults.append({"kind": "crash", "target": node, "tier": "cloud" if self.config.clouds == 1 else None,
                             "start_unix_ns": t_kill, "end_unix_ns": None, "ready_unix_ns": None, "robots": None})
@@ -445,15 +456,31 @@ class FleetRun:
 
     def _killed(self, name: str) -> bool:
         kill = self.config.kill_cloud
-        return kill is not None and name == list(self.cloud_nodes)[kill[0]] and bool(self.faults)
+        return kill is not None and name == list(self.cloud_nodes)[kill[0]] and self._killed_once
+    def _leader_crash_step(self, now: float) -> None:
+        """SIGKILL whichever node leads at ``--leader-crash`` (once)."""
+        at = self.config.leader_crash_s
+        if at is None or now < at or any(f["kind"] == "crash" and f.get("tier") == "leader" for f in self.faults):
+            return
+        leaders = self._leaders()
+        if not leaders:
+            return  # nobody leads yet: try again at the next step
+        node = leaders[0]
+        peer = LEADER if node == "leader0" else node
+        t_kill = self.sup.kill(peer)
+        self.faults.append({"kind": "crash", "target": node, "tier": "leader", "start_unix_ns": t_kill,
+                            "end_unix_ns": None, "ready_unix_ns": None, "robots": None,
+                            "fallback": ["peer", "leader"]})
+        log.info("leader %s SIGKILLed at %.3f s", node, now)
 
     def _outage_pending(self) -> bool:
         """Whether the cloud is still down, to be restarted."""
-        return bool(self.faults) and self.faults[0]["end_unix_ns"] is None
+        return any(f.get("tier") == "cloud" and f["end_unix_ns"] is None for f in self.faults)
 
     def _expected_exit(self, name: str, rc: int | None) -> bool:
+        crashed = {f["target"] for f in self.faults if f["kind"] == "crash" and f.get("tier") == "leader"}
         return ((name in self.rids and rc == 0) or (name in self.clouds and self._outage_pending())
-                or self._killed(name))
+                or self._killed(name) or self._node(name) in crashed)
 
     def _read_records(self) -> None:
         for rid in self.rids:
@@ -464,9 +491,41 @@ class FleetRun:
         p = self.sup.procs.get(name)
         return p is not None and p.alive() and p.is_ready()
 
+    def _node(self, peer: str) -> str:
+        return self.cloud_nodes.get(peer) or ("leader0" if peer == LEADER else peer)
+
+    def _candidates(self) -> list[str]:
+        topo = fleet_topology(self.config)
+        return [self._node(p) for p, t in topo.items() if t["leader_capable"]]
+
+    def _leadership(self) -> dict[str, Any]:
+        """The report's ``leadership`` block from the candidates' role changes (scmr_mesh.qos.leadership)."""
+        import signal as _signal
+
+        from scmr_mesh.qos.leadership import leadership, read_events
+
+        ended = {}
+        for name, p in self.sup.procs.items():  # a killed candidate writes no step_down
+            kills = [t for sig, t in p.signalled if sig == _signal.SIGKILL]
+            if kills:
+                ended[self._node(name)] = kills[0]
+        return leadership(read_events(self.run_dir / "leadership"), self.records, self.faults,
+                          t0_unix_ns=self.started_unix_ns or 0, ended=ended,
+                          end_unix_ns=(self.started_unix_ns or 0) + int(self.config.duration_s * 1e9))
+
+    def _leaders(self) -> list[str]:
+        """Who leads now, from the candidates' role changes and the processes alive."""
+        from scmr_mesh.qos.leadership import read_events
+
+        leading: set[str] = set()
+        for e in read_events(self.run_dir / "leadership"):
+            (leading.add if e["event"] == "lead" else leading.discard)(e["node"])
+        dead = {self._node(n) for n, p in self.sup.procs.items() if not p.alive()}
+        return sorted(leading - dead)
+
     def _alive_tiers(self) -> dict[str, bool]:
         """``{"cloud": any cloud node up, "leader": leader up}``."""
-        return {CLOUD: any(self._up(c) for c in self.clouds), LEADER: self._up(LEADER)}
+        return {CLOUD: any(self._up(c) for c in self.clouds), LEADER: bool(self._leaders())}
 
     def _emit(self, phase: str, elapsed: float, alive: dict[str, bool]) -> None:
         if self.progress is None:
@@ -481,6 +540,7 @@ class FleetRun:
             tor_p50_ms=metrics.percentile(recent, 50) if recent else None,
             tor_p99_ms=metrics.percentile(recent, 99) if recent else None,
             by_tier=metrics.tier_counts(records), alive=alive, phase=phase,
+            leaders=self._leaders() if self.t_ready is not None else [],
         ))
 
 

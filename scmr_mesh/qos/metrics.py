@@ -73,7 +73,7 @@ __all__ = [
 ]
 
 #: Serving tiers, in the order a robot prefers them.
-TIERS: tuple[str, ...] = ("cloud", "leader", "local")
+TIERS: tuple[str, ...] = ("cloud", "leader", "peer", "local")
 
 Record = Mapping[str, Any]
 Fault = Mapping[str, Any]
@@ -167,7 +167,7 @@ def ror(records: Iterable[Record]) -> float | None:
 def tier_counts(records: Iterable[Record]) -> dict[str, int]:
     """Succeeded requests per serving tier, plus ``"failed"``.
 
-    Keys are always ``cloud``, ``leader``, ``local`` and ``failed``; a
+    Keys are always ``cloud``, ``leader``, ``peer``, ``local`` and ``failed``; a
     succeeded request with another tier name adds that key.
     """
     counts = {t: 0 for t in TIERS}

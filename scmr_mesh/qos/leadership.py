@@ -1,0 +1,262 @@
+"""Who led the R2R tier, and how well it passed on: the report's ``leadership`` block (pure).
+
+Inputs are what a run leaves behind: each candidate's role changes (JSON
+lines written by :class:`scmr_mesh.mesh.election.Candidate`:
+``{"t_unix_ns", "node", "event": "lead" | "step_down", "term", "cause"}``),
+the robots' records (``tier``, ``served_by``, ``received_unix_ns``) and the
+faults the runner injected (``kind``, ``target`` / ``peer``, ``start_unix_ns``,
+``end_unix_ns``).
+
+A process that is killed writes no ``step_down``: its lead ends at the crash
+fault that killed it, or at the end of its process (``ended`` below).
+
+Output (:func:`leadership`)::
+
+    {"changes": [{"t_s", "from", "to", "term", "gap_ms", "cause"}],
+     "leaders_at_end": [...], "converged_after_heal_ms": float | None,
+     "leaders_over_time": [{"t_s", "leaders": [...]}]}
+
+``succession_ms`` is the time from the old leader's loss (its crash, the
+start of the link fault that cut it off, its stop) to the new leader's claim;
+``wait_ms`` is the longest a robot waited for the new leader after the loss
+(from the loss, or from its first request after it, to the new leader's first
+answer to it).  ``gap_ms`` has a floor of one request period (a robot at 2 Hz
+asks every 500 ms); ``succession_ms`` and ``wait_ms`` do not.
+
+``cause`` is ``start`` (the first leader), ``crash`` (the old leader's
+process was killed), ``link`` (the old leader was cut off by a link fault or
+a partition: the lead moved on at its lease), ``heal`` (two leaders met after
+a partition healed and one stepped down) or ``stop`` (the old leader stepped
+down or stopped for another reason).  ``gap_ms`` is the largest per-robot gap
+between the last answer of the old leader and the first answer of the new one
+(None when no robot got answers from both).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+LINK_FAULTS = ("link_down", "partition", "bandwidth", "latency", "loss")
+
+
+def read_events(folder: str | Path) -> list[dict]:
+    """Every role change in ``folder/*.jsonl``, by time (unreadable lines skipped)."""
+    out: list[dict] = []
+    folder = Path(folder)
+    if not folder.is_dir():
+        return out
+    for f in sorted(folder.glob("*.jsonl")):
+        for line in f.read_text(errors="replace").splitlines():
+            try:
+                e = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(e, dict) and e.get("event") in ("lead", "step_down") and "t_unix_ns" in e:
+                out.append(e)
+    out.sort(key=lambda e: (e["t_unix_ns"], e["event"] != "step_down"))
+    return out
+
+
+def _fault_peers(f: Mapping[str, Any]) -> set[str]:
+    names = set()
+    for k in ("target", "peer"):
+        if f.get(k):
+            names.add(str(f[k]))
+    for k in ("link",):
+        if f.get(k):
+            names.update(f[k])
+    for g in f.get("groups") or ():
+        names.update(g)
+    return names
+
+
+def _cut_off(f: Mapping[str, Any], node: str) -> bool:
+    """Whether link fault ``f`` separates ``node`` from someone."""
+    if f.get("kind") not in LINK_FAULTS:
+        return False
+    if f.get("link"):
+        return node in f["link"]
+    groups = f.get("groups") or ()
+    return any(node in g for g in groups) and len(groups) > 1
+
+
+def _answers(records: Iterable[Mapping[str, Any]], node: str) -> dict[str, list[int]]:
+    by_robot: dict[str, list[int]] = {}
+    for r in records:
+        if r.get("ok") and r.get("tier") == "leader" and r.get("served_by") == node and r.get("received_unix_ns"):
+            by_robot.setdefault(r["robot"], []).append(int(r["received_unix_ns"]))
+    for v in by_robot.values():
+        v.sort()
+    return by_robot
+
+
+def gap_ms(records: Sequence[Mapping[str, Any]], old: str | None, new: str, t_ns: int) -> float | None:
+    """Largest per-robot gap between the old leader's last answer before ``t_ns`` and the new one's first after."""
+    if old is None:
+        return None
+    a_old, a_new = _answers(records, old), _answers(records, new)
+    gaps = []
+    for robot, olds in a_old.items():
+        before = [t for t in olds if t <= t_ns]
+        after = [t for t in a_new.get(robot, []) if t >= (before[-1] if before else t_ns)]
+        if before and after:
+            gaps.append((after[0] - before[-1]) / 1e6)
+    return max(gaps) if gaps else None
+
+
+def succession_ms(t_lost: int | None, t_new: int) -> float | None:
+    """From the old leader's loss (crash, stop) to the new leader's claim (ms)."""
+    return None if t_lost is None else (t_new - t_lost) / 1e6
+
+
+def wait_ms(records: Sequence[Mapping[str, Any]], t_lost: int | None, new: str) -> float | None:
+    """Longest a robot waited for a leader after the loss: per robot, from ``max(loss, its first request
+    sent after the loss)`` to the new leader's first answer; the largest over robots (None: no robot)."""
+    if t_lost is None:
+        return None
+    waits = []
+    for robot, answers in _answers(records, new).items():
+        sent_after = [int(r["sent_unix_ns"]) for r in records
+                      if r.get("robot") == robot and r.get("sent_unix_ns") and int(r["sent_unix_ns"]) >= t_lost]
+        # a request in flight at the loss counts from the loss
+        inflight = [r for r in records if r.get("robot") == robot and r.get("sent_unix_ns")
+                    and int(r["sent_unix_ns"]) < t_lost <= int(r.get("received_unix_ns") or 0)]
+        start = t_lost if inflight else (min(sent_after) if sent_after else None)
+        after = [t for t in answers if start is not None and t >= start]
+        if after:
+            waits.append((after[0] - start) / 1e6)
+    return max(waits) if waits else None
+
+
+def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[str, Any]],
+               faults: Sequence[Mapping[str, Any]], *, t0_unix_ns: int,
+               ended: Mapping[str, int] | None = None, end_unix_ns: int | None = None) -> dict[str, Any]:
+    """The ``leadership`` block of a report (see the module docstring).
+
+    Parameters
+    ----------
+    events : sequence of dict
+        Role changes of every candidate (:func:`read_events`).
+    records : sequence of dict
+        Every robot record of the run.
+    faults : sequence of dict
+        Injected faults with ``kind``, ``start_unix_ns``, ``end_unix_ns`` and
+        the peers they touch (``target``/``peer``, ``link`` or ``groups``).
+    t0_unix_ns : int
+        Time zero of ``t_s``.
+    ended : mapping, optional
+        node -> when its process ended without a ``step_down`` (killed).
+    end_unix_ns : int, optional
+        The end of the run: changes after it (peers stepping down as they
+        stop) are left out, so ``leaders_at_end`` is who led when the robots
+        finished.
+    """
+    ended = dict(ended or {})
+    crashes = [f for f in faults if f.get("kind") == "crash"]
+    for f in crashes:
+        for n in _fault_peers(f):
+            t = f.get("start_unix_ns")
+            if t is not None and (n not in ended or t < ended[n]):
+                ended.setdefault(n, t)
+    # the timeline: lead and step_down events, plus process ends
+    timeline: list[tuple[int, str, str, Mapping[str, Any] | None]] = []
+    def within(t: int) -> bool:
+        return end_unix_ns is None or t <= end_unix_ns
+
+    for e in events:
+        if within(int(e["t_unix_ns"])):
+            timeline.append((int(e["t_unix_ns"]), e["event"], e["node"], e))
+    for n, t in ended.items():
+        if within(int(t)):
+            timeline.append((int(t), "ended", n, None))
+    timeline.sort(key=lambda x: (x[0], {"ended": 0, "step_down": 1, "lead": 2}[x[1]]))
+    leading: dict[str, int] = {}       # node -> term
+    last_lost: list[tuple[int, str, str]] = []  # (t, node, how) of leads that ended
+    changes: list[dict[str, Any]] = []
+    over_time: list[dict[str, Any]] = []
+    heals = sorted(int(f["end_unix_ns"]) for f in faults
+                   if f.get("kind") in ("partition", "link_down") and f.get("end_unix_ns"))
+
+    def note(t: int) -> None:
+        state = sorted(leading)
+        if not over_time or over_time[-1]["leaders"] != state:
+            over_time.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "leaders": state})
+
+    def cause_of_loss(node: str, t_lost: int) -> str:
+        for f in crashes:
+            if node in _fault_peers(f) and f.get("start_unix_ns") is not None \
+                    and abs(int(f["start_unix_ns"]) - t_lost) < 5e9 and int(f["start_unix_ns"]) <= t_lost + 1e9:
+                return "crash"
+        return "stop"
+
+    for t, kind, node, e in timeline:
+        if kind == "lead":
+            if node in leading:
+                continue
+            term = int(e.get("term", 0)) if e else 0
+            active = [f for f in faults if f.get("start_unix_ns") is not None and f["start_unix_ns"] <= t
+                      and (f.get("end_unix_ns") is None or f["end_unix_ns"] >= t)]
+            prev, cause, t_lost = None, "start", None
+            if last_lost:  # the lead ended (crash, stop) and passes on
+                t_lost, prev, cause = last_lost.pop()
+                last_lost.clear()
+                if cause == "stop" and any(_cut_off(f, prev) for f in active):
+                    cause = "link"
+            elif leading:  # another leader lives: cut off (its side keeps it) or a start-up race
+                cut = sorted(n for n in leading if any(_cut_off(f, n) for f in active))
+                if cut:
+                    prev, cause = cut[0], "link"
+                    t_lost = max(int(f["start_unix_ns"]) for f in active if _cut_off(f, prev))
+            changes.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "from": prev, "to": node, "term": term,
+                            "gap_ms": None if prev is None else _round(gap_ms(records, prev, node, t)),
+                            "cause": cause, "succession_ms": _round(succession_ms(t_lost, t)),
+                            "wait_ms": _round(wait_ms(records, t_lost, node))})
+            leading[node] = term
+        elif kind == "step_down":
+            if node not in leading:
+                continue
+            leading.pop(node)
+            winner = (e or {}).get("cause", "")
+            to = next((n for n in leading if n in winner), None)
+            if to is not None and any(h <= t for h in heals):
+                changes.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "from": node, "to": to,
+                                "term": leading[to], "gap_ms": _round(gap_ms(records, node, to, t)),
+                                "cause": "heal", "succession_ms": 0.0, "wait_ms": None})
+            elif to is None:
+                last_lost.append((t, node, "stop"))
+        elif kind == "ended":
+            if node in leading:
+                leading.pop(node)
+                last_lost.append((t, node, cause_of_loss(node, t)))
+        note(t)
+    converged = None
+    for h in heals:
+        # the first moment at or after the heal with at most one leader
+        state_at = None
+        for p in over_time:
+            if (t0_unix_ns + p["t_s"] * 1e9) <= h:
+                state_at = p
+        if state_at is not None and len(state_at["leaders"]) <= 1:
+            c = 0.0
+        else:
+            after = [p for p in over_time if t0_unix_ns + p["t_s"] * 1e9 > h and len(p["leaders"]) <= 1]
+            c = None if not after else (t0_unix_ns + after[0]["t_s"] * 1e9 - h) / 1e6
+        if c is not None:
+            converged = c if converged is None else max(converged, c)
+        elif converged is None:
+            converged = None
+    return {
+        "changes": changes,
+        "leaders_at_end": sorted(leading),
+        "converged_after_heal_ms": _round(converged),
+        "leaders_over_time": over_time,
+    }
+
+
+def _round(x: float | None) -> float | None:
+    return None if x is None else round(float(x), 1)
+
+
+__all__ = ["LINK_FAULTS", "gap_ms", "leadership", "read_events"]
