@@ -32,7 +32,8 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
         res = run_scenario(sc, backend=backend, out_dir=base / f"run{i + 1}", data_dir=args.data,
                            progress=lambda m: _err(f"  {m}"), ready_timeout=args.ready_timeout)
         rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
-                           notes=res.notes, telemetry=res.telemetry)
+                           notes=res.notes, telemetry=res.telemetry, leadership=res.leadership(),
+                           topology=res.topology)
         write_report(rep, base / f"run{i + 1}")
         runs.append(rep)
     over = [g for r in runs for f in r["faults"] for g in (f["failover_by_robot"] or {}).values() if g is not None]

@@ -72,14 +72,17 @@ def _fault_peers(f: Mapping[str, Any]) -> set[str]:
     return names
 
 
-def _cut_off(f: Mapping[str, Any], node: str) -> bool:
-    """Whether link fault ``f`` separates ``node`` from someone."""
-    if f.get("kind") not in LINK_FAULTS:
+def _cut_off(f: Mapping[str, Any], node: str, other: str | None = None) -> bool:
+    """Whether link fault ``f`` separates ``node`` from ``other`` (from anyone when ``other`` is None)."""
+    if f.get("kind") not in ("link_down", "partition"):
         return False
     if f.get("link"):
-        return node in f["link"]
-    groups = f.get("groups") or ()
-    return any(node in g for g in groups) and len(groups) > 1
+        return node in f["link"] and (other is None or other in f["link"])
+    groups = [set(g) for g in f.get("groups") or ()]
+    mine = next((g for g in groups if node in g), None)
+    if mine is None or len(groups) < 2:
+        return False
+    return other is None or (other not in mine and any(other in g for g in groups))
 
 
 def _answers(records: Iterable[Mapping[str, Any]], node: str) -> dict[str, list[int]]:
@@ -202,13 +205,13 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
             if last_lost:  # the lead ended (crash, stop) and passes on
                 t_lost, prev, cause = last_lost.pop()
                 last_lost.clear()
-                if cause == "stop" and any(_cut_off(f, prev) for f in active):
+                if cause == "stop" and any(_cut_off(f, prev, node) for f in active):
                     cause = "link"
             elif leading:  # another leader lives: cut off (its side keeps it) or a start-up race
-                cut = sorted(n for n in leading if any(_cut_off(f, n) for f in active))
+                cut = sorted(n for n in leading if any(_cut_off(f, n, node) for f in active))
                 if cut:
                     prev, cause = cut[0], "link"
-                    t_lost = max(int(f["start_unix_ns"]) for f in active if _cut_off(f, prev))
+                    t_lost = max(int(f["start_unix_ns"]) for f in active if _cut_off(f, prev, node))
             changes.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "from": prev, "to": node, "term": term,
                             "gap_ms": None if prev is None else _round(gap_ms(records, prev, node, t)),
                             "cause": cause, "succession_ms": _round(succession_ms(t_lost, t)),

@@ -145,7 +145,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         cand = default_data_dir().parent / "thesis_table_4_2.csv"
         thesis = cand if cand.is_file() else None
     report = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
-                          notes=res.notes, thesis_csv=thesis, telemetry=res.telemetry)
+                          notes=res.notes, thesis_csv=thesis, telemetry=res.telemetry,
+                          leadership=res.leadership(), topology=res.topology)
     paths = write_report(report, out, json_path=Path(args.json) if args.json else None)
     s = report["summary"]
     _out(f"{sc.name} ({backend}): {s['requests']} requests, RoR {s['ror'] if s['ror'] is None else round(s['ror'], 3)}, "
@@ -153,9 +154,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
          f"{s['tor_ms']['p99'] and round(s['tor_ms']['p99'], 1)} ms, tiers {s['by_tier']}")
     for f in report["faults"]:
         _out(f"  fault {f['label']}: failover gap {f['failover_gap_ms']} ms, failback gap {f['failback_gap_ms']} ms")
-    from scmr_mesh.fleet.output import format_telemetry
+    from scmr_mesh.fleet.output import format_leadership, format_telemetry
 
     _out("  " + format_telemetry(report.get("telemetry")))
+    for line in format_leadership(report.get("leadership")):
+        _out(line)
     for e in report["expectations"]:
         _out(f"  expectation {e['name']}: observed {e['observed']} -> {'held' if e['held'] else 'FAILED'}")
     for n in report["notes"]:

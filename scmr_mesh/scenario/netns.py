@@ -217,8 +217,12 @@ class NetnsBackend:
         return [self.layout.endpoint(peer)]
 
     def connect(self, peer: str) -> list[str]:
-        """Endpoints ``peer`` connects to (its outgoing links)."""
-        return [self.layout.endpoint(b) for a, b in self.scenario.links if a == peer]
+        """Endpoints ``peer`` is handed: its bootstrap (gossip finds the rest; paths are real)."""
+        return [self.layout.endpoint(b) for b in self.connect_names(peer)]
+
+    def connect_names(self, peer: str) -> list[str]:
+        """The peers ``peer`` is handed (the report's ``topology``)."""
+        return list(self.scenario.bootstraps.get(peer, ()))
 
     def extra_cfg(self, peer: str) -> list[str]:
         """Extra ``--cfg`` overrides for ``peer`` (none: gossip may run, paths are real)."""

@@ -252,13 +252,17 @@ class LinkProxy:
 
 
 class ProxyBackend:
-    """Run a scenario on loopback with a :class:`LinkProxy` per declared link.
+    """Run a scenario on loopback with a :class:`LinkProxy` per link.
 
-    Every peer listens on its own ``127.0.0.1`` port; for link ``(a, b)``, ``a``
-    connects to the proxy in front of ``b``.  Gossip is turned off
+    Every peer listens on its own ``127.0.0.1`` port.  When the scenario has
+    link faults (or lists ``topology.links``), every link ``(a, b)`` gets a
+    proxy that ``a`` connects to in front of ``b``, and gossip is turned off
     (``--cfg scouting/gossip/enabled:false``) so peers cannot find paths around
-    the proxies.  Loss faults are skipped (TCP hides loss); latency and
-    bandwidth are emulated in the proxy.
+    the proxies: without ``topology.links`` every pair of peers is linked
+    through its own proxy, the paths gossip would have found.  A scenario with
+    only process faults (crashes) needs no proxy: each peer is handed its one
+    bootstrap and gossip scouting runs as on real hosts.  Loss faults are
+    skipped (TCP hides loss); latency and bandwidth are emulated in the proxy.
     """
 
     name = "proxy"
@@ -269,7 +273,19 @@ class ProxyBackend:
         self.proxies: dict[tuple[str, str], LinkProxy] = {}
         self.notes: list[str] = []
 
+    @property
+    def gossip(self) -> bool:
+        """Whether peers find each other by gossip (no link faults to route through proxies)."""
+        return not (self.scenario.link_faults or self.scenario.explicit_links)
+
     def setup(self) -> None:
+        if self.gossip:
+            self.notes.append("proxy backend: no link faults, so no proxies: each peer was handed its bootstrap "
+                              "and gossip scouting linked the rest")
+            return
+        if not self.scenario.explicit_links:
+            self.notes.append("proxy backend: gossip off; every pair of peers linked through its own proxy "
+                              "(the links gossip would find), so link faults act on every path")
         for a, b in self.scenario.links:
             px = LinkProxy(("127.0.0.1", self.ports[b]), name=f"{a}-{b}")
             px.start()
@@ -282,10 +298,18 @@ class ProxyBackend:
         return [f"tcp/127.0.0.1:{self.ports[peer]}"]
 
     def connect(self, peer: str) -> list[str]:
+        if self.gossip:
+            return [f"tcp/127.0.0.1:{self.ports[b]}" for b in self.scenario.bootstraps.get(peer, ())]
         return [px.endpoint for (a, _b), px in self.proxies.items() if a == peer]
 
+    def connect_names(self, peer: str) -> list[str]:
+        """The peers ``peer`` is handed (the report's ``topology``)."""
+        if self.gossip:
+            return list(self.scenario.bootstraps.get(peer, ()))
+        return [b for (a, b) in self.proxies if a == peer]
+
     def extra_cfg(self, peer: str) -> list[str]:
-        return ["scouting/gossip/enabled:false"]
+        return [] if self.gossip else ["scouting/gossip/enabled:false"]
 
     def apply(self, event: Event) -> list[str]:
         notes = []

@@ -58,6 +58,25 @@ def _metric_values(summary: Mapping[str, Any], telemetry: Mapping[str, Any] | No
         "cloud_answers": tiers.get("cloud", 0),
         # not counted (None) fails its expectation: a loss that cannot be ruled out is not "0 lost"
         "telemetry_lost": None if telemetry is None or telemetry.get("lost") is None else telemetry["lost"],
+        "peer_answers": tiers.get("peer", 0),
+        "local_answers": tiers.get("local", 0),
+        **_leadership_values(summary.get("leadership")),
+    }
+
+
+def _leadership_values(lead: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Expectation metrics of the R2R tier (None when the run has no leadership block)."""
+    if lead is None:
+        return {}
+    moves = [c for c in lead["changes"] if c["from"] is not None]
+    succ = [c.get("succession_ms") for c in moves if c["cause"] in ("crash", "link", "stop")]
+    waits = [c.get("wait_ms") for c in moves if c.get("wait_ms") is not None]
+    return {
+        "leader_changes": len(moves),
+        "leaders_at_end": len(lead["leaders_at_end"]),
+        "max_succession_ms": None if any(s is None for s in succ) else (max(succ) if succ else 0.0),
+        "max_leader_wait_ms": max(waits) if waits else 0.0,
+        "converged_after_heal_ms": lead.get("converged_after_heal_ms"),
     }
 
 
@@ -157,6 +176,8 @@ def build_report(
     notes: Sequence[str] = (),
     thesis_csv: Path | None = None,
     telemetry: Mapping[str, Any] | None = None,
+    leadership: Mapping[str, Any] | None = None,
+    topology: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The report as a JSON-able dict (pure).
 
@@ -181,6 +202,8 @@ def build_report(
         expectation ``telemetry_lost <= 0`` (None: not counted, which fails
         it); when None, :func:`write_report` still takes it from the run's
         ``telemetry.json`` for the report's table.
+    leadership, topology : dict, keyword-only
+        ``RunResult.leadership()`` and ``RunResult.topology`` (docs/R2R.md).
 
     Returns
     -------
@@ -215,7 +238,7 @@ def build_report(
             "restart_ready_after_ms": None if f.get("ready_unix_ns") is None or f.get("end_unix_ns") is None
             else (int(f["ready_unix_ns"]) - int(f["end_unix_ns"])) / 1e6,
         })
-    expectations = check_expectations(scenario, summ, telemetry)
+    expectations = check_expectations(scenario, {**summ, "leadership": leadership}, telemetry)
     requests = []
     for r in records:
         row = {k: r.get(k) for k in REQUEST_FIELDS}
@@ -245,6 +268,8 @@ def build_report(
         "thesis": thesis_table(thesis_csv),
         "notes": list(notes),
         "telemetry": dict(telemetry) if telemetry is not None else None,
+        "leadership": dict(leadership) if leadership is not None else None,
+        "topology": dict(topology) if topology is not None else None,
         "requests": requests,
     }
 
@@ -264,6 +289,33 @@ def _during(d: Mapping[str, Any] | None) -> str:
         return "-"
     tiers = ", ".join(f"{k} {v}" for k, v in d["by_tier"].items() if v)
     return f"{d['requests']} of {','.join(d['robots'])}, {_fmt(d['tor_ms'].get('p50'))}, {tiers or '-'}"
+
+
+def _leadership_md(lead: Mapping[str, Any] | None, topo: Mapping[str, Any] | None) -> list[str]:
+    L: list[str] = []
+    if lead is not None:
+        end = lead.get("leaders_at_end") or []
+        L += ["", "## Leadership of the R2R tier", "",
+              f"Leader at the end: **{', '.join(end) or 'none'}**"
+              + (f" (**{len(end)} leaders**)" if len(end) > 1 else "")
+              + ("" if lead.get("converged_after_heal_ms") is None else
+                 f"; one leader {lead['converged_after_heal_ms']:.0f} ms after the heal") + ".", "",
+              "| at s | from | to | term | cause | new leader after ms | robots waited ms | gap ms |",
+              "|---|---|---|---|---|---|---|---|"]
+        for c in lead.get("changes", []):
+            L.append(f"| {_fmt(c['t_s'], 3)} | {_fmt(c['from'])} | {c['to']} | {_fmt(c.get('term'))} | {c['cause']} | "
+                     f"{_fmt(c.get('succession_ms'))} | {_fmt(c.get('wait_ms'))} | {_fmt(c.get('gap_ms'))} |")
+        if not lead.get("changes"):
+            L.append("| (no leader was elected) | | | | | | | |")
+        L += ["", "*new leader after*: from the old leader's loss to the new leader's claim; *robots waited*: the "
+              "longest a robot waited for the new leader; *gap*: the largest per-robot time between the old "
+              "leader's last answer and the new one's first (includes the request period)."]
+    if topo:
+        L += ["", "## Topology", "", "| node | role | handed | runs for the lead |", "|---|---|---|---|"]
+        for n, t in topo.items():
+            cap = f"yes ({t.get('capability') or 'host'})" if t.get("leader_capable") else "no"
+            L.append(f"| {n} | {t['role']} | {', '.join(t['connect']) or '(listens)'} | {cap} |")
+    return L
 
 
 def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
@@ -287,13 +339,15 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     for tier, n in s["by_tier"].items():
         t = report["per_tier"].get(tier, {})
         L.append(f"| {tier} | {n} | {_fmt(t.get('p50'))} | {_fmt(t.get('p99'))} |")
-    L += ["", "### Per robot", "", "| robot | requests | RoR | ToR p50 ms | ToR p99 ms | cloud | leader | local | failed |",
-          "|---|---|---|---|---|---|---|---|---|"]
+    L += ["", "### Per robot", "",
+          "| robot | requests | RoR | ToR p50 ms | ToR p99 ms | cloud | leader | peer | local | failed |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
     for rid, g in report["per_robot"].items():
         bt = g["by_tier"]
         L.append(f"| {rid} | {g['requests']} | {_fmt(g['ror'], 3)} | {_fmt(g['tor_ms'].get('p50'))} | "
                  f"{_fmt(g['tor_ms'].get('p99'))} | {bt.get('cloud', 0)} | {bt.get('leader', 0)} | "
-                 f"{bt.get('local', 0)} | {bt.get('failed', 0)} |")
+                 f"{bt.get('peer', 0)} | {bt.get('local', 0)} | {bt.get('failed', 0)} |")
+    L += _leadership_md(report.get("leadership"), report.get("topology"))
     L += ["", "## Faults", "", "| fault | applied at s | lifted at s | tier lost | failover gap ms | failback gap ms "
           "| during: requests, ToR p50 ms, tiers |", "|---|---|---|---|---|---|---|"]
     for f in report["faults"]:

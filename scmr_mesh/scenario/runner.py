@@ -55,7 +55,9 @@ def fault_tier(scenario: Scenario, fault: Fault) -> tuple[str | None, list[str] 
         return (role, None) if role in ("cloud", "leader") else (None, None)
     if fault.kind in ("link_down", "partition"):
         pairs = set(affected_pairs(fault))
-        for tier, servers in (("cloud", scenario.clouds), ("leader", (scenario.leader,))):
+        for tier, servers in (("cloud", scenario.clouds), ("leader", (scenario.leader,) if scenario.leader else ())):
+            if not servers:
+                continue
             cut = [r for r in robots if all(tuple(sorted((r, s))) in pairs for s in servers)]
             if cut:
                 return tier, (None if len(cut) == len(robots) else cut)
@@ -91,6 +93,21 @@ class RunResult:
     #: The data tier's count ({"sent", "stored", "duplicates", "lost", "per_robot"}), also in
     #: ``out_dir/telemetry.json``; None when it could not be counted (docs/DATA.md).
     telemetry: dict[str, Any] | None = None
+    #: Each peer's role, what it was handed to connect to, and whether it ran for the lead.
+    topology: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: When the first robot was started (robots stop ``duration_s`` after their start).
+    robots_started_unix_ns: int | None = None
+
+    def leadership(self) -> dict[str, Any]:
+        """The ``leadership`` block from the candidates' role changes (``out_dir/leadership``)."""
+        from scmr_mesh.qos.leadership import leadership, read_events
+
+        faults = [{**f, "peer": af.fault.peer, "groups": af.fault.groups}
+                  for f, af in zip(self.metric_faults(), self.faults)]
+        return leadership(read_events(self.out_dir / "leadership"), self.records, faults,
+                          t0_unix_ns=self.t0_unix_ns,
+                          end_unix_ns=(self.robots_started_unix_ns or self.t0_unix_ns)
+                          + int(self.scenario.duration_s * 1e9) - int(0.2e9))
 
     def metric_faults(self) -> list[dict[str, Any]]:
         """Faults as :func:`scmr_mesh.qos.metrics.summarize` takes them."""
@@ -103,6 +120,7 @@ class RunResult:
                 "kind": af.fault.kind, "target": target, "label": af.fault.label, "tier": tier,
                 "link": list(af.fault.link) if af.fault.link else None,
                 "robots": robots, "at_s": af.fault.at_s, "for_s": af.fault.for_s,
+                **({"fallback": ["peer", "leader"]} if tier == "leader" else {}),
                 "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
                 else self.t0_unix_ns + int(af.fault.at_s * 1e9),
                 "end_unix_ns": af.end_unix_ns, "notes": af.notes, "ready_unix_ns": af.ready_unix_ns,
@@ -223,6 +241,8 @@ def run_scenario(
         ready.parent.mkdir(parents=True, exist_ok=True)
         if role in ("cloud", "leader"):
             argv = base + [role, "--node", peer] + common(peer)
+            if role == "leader":
+                argv += ["--capability", scenario.leader_capability]
             if scenario.process:
                 argv += ["--process", scenario.process]
         else:
@@ -241,6 +261,12 @@ def run_scenario(
                 argv += ["--deadline-ms", str(r.deadline_ms)]
             if not r.local_fallback:
                 argv += ["--no-local-fallback"]
+            if r.leader_capable:
+                argv += ["--leader-capable"]
+                if r.capability:
+                    argv += ["--capability", r.capability]
+                elif r.profile:
+                    argv += ["--capability", r.profile]
             if scenario.process:
                 argv += ["--process", scenario.process]
             argv += ["--seed", str(scenario.seed), "--quiet"]
@@ -254,6 +280,7 @@ def run_scenario(
     sup = Supervisor(term_timeout=5.0)
     names: dict[str, str] = {}
     telemetry = None
+    robots_started: int | None = None
     with _signals_to_interrupt():
         try:
             rid = getattr(be, "run_id", "")
@@ -267,6 +294,7 @@ def run_scenario(
                 names[p] = spec.name
             sup.wait_ready([names[p] for p in servers], timeout=ready_timeout)
             say(f"servers ready: {', '.join(servers)}; starting {len(scenario.robots)} robots")
+            robots_started = time.time_ns()
             for r in scenario.robots:
                 spec = spec_for(r.id)
                 sup.start(spec)
@@ -304,10 +332,17 @@ def run_scenario(
         notes.extend(n for n in af.notes if n not in notes)
     records = _read_records(out_dir / "robots")
     say(f"done: {len(records)} requests recorded")
+    capable = set(scenario.candidates)
+    topology = {p.name: {"role": p.role, "connect": be.connect_names(p.name), "leader_capable": p.name in capable,
+                         "capability": (scenario.leader_capability if p.role == "leader" else
+                                        next((r.capability or r.profile for r in scenario.robots if r.id == p.name
+                                              and r.leader_capable), None))}
+                for p in scenario.peers}
     return RunResult(scenario=scenario, backend=backend, out_dir=out_dir, t0_unix_ns=t0, records=records,
                      faults=applied, notes=notes, run_id=getattr(be, "run_id", ""),
+                     robots_started_unix_ns=robots_started,
                      peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()},
-                     telemetry=telemetry)
+                     telemetry=telemetry, topology=topology)
 
 
 def _count_telemetry(out_dir: Path, scenario: Scenario, sup, names: dict[str, str],

@@ -15,8 +15,15 @@ Example
 ...     "fleet": {"robots": [{"id": "robot1", "synthetic": "road"}]}})
 >>> [p.name for p in sc.peers]
 ['cloud', 'leader', 'robot1']
+>>> sc.bootstraps
+{'cloud': (), 'leader': ('cloud',), 'robot1': ('cloud',)}
 >>> sc.links
-(('robot1', 'cloud'), ('robot1', 'leader'), ('leader', 'cloud'))
+(('leader', 'cloud'), ('robot1', 'cloud'), ('robot1', 'leader'))
+
+Every peer is handed one bootstrap (``bootstraps``) and finds the others by
+gossip scouting, so every pair of peers is a link a fault can name
+(``links``).  A scenario that lists ``topology.links`` gets exactly those
+links and connections instead.
 """
 
 from __future__ import annotations
@@ -82,6 +89,9 @@ class RobotSpec:
     deadline_ms: int | None = None
     local_fallback: bool = True
     energy_placement: bool = False
+    leader_capable: bool = False
+    capability: str | None = None
+    bootstrap: str | None = None
 
 
 @dataclass(frozen=True)
@@ -160,7 +170,7 @@ class Scenario:
     duration_s: float
     robots: tuple[RobotSpec, ...]
     clouds: tuple[str, ...] = ("cloud",)
-    leader: str = "leader"
+    leader: str | None = "leader"
     lease_ms: int = 500
     description: str = ""
     image_sets: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
@@ -169,6 +179,9 @@ class Scenario:
     expectations: tuple[Expectation, ...] = ()
     process: str | None = None
     source: str = "<dict>"
+    bootstraps: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
+    leader_capability: str = "leader"
+    explicit_links: bool = False
 
     @property
     def checked_expectations(self) -> tuple[Expectation, ...]:
@@ -178,12 +191,22 @@ class Scenario:
 
     @property
     def peers(self) -> tuple[PeerSpec, ...]:
-        """Every peer in start order: clouds, the leader, then the robots."""
+        """Every peer in start order: clouds, the leader (if any), then the robots."""
         return (
             tuple(PeerSpec(c, "cloud") for c in self.clouds)
-            + (PeerSpec(self.leader, "leader"),)
+            + ((PeerSpec(self.leader, "leader"),) if self.leader else ())
             + tuple(PeerSpec(r.id, "robot") for r in self.robots)
         )
+
+    @property
+    def candidates(self) -> tuple[str, ...]:
+        """The leader-capable peers: the dedicated leader and robots with ``leader_capable``."""
+        return ((self.leader,) if self.leader else ()) + tuple(r.id for r in self.robots if r.leader_capable)
+
+    @property
+    def link_faults(self) -> bool:
+        """Whether any fault acts on links (then the proxy backend needs a proxy per link)."""
+        return any(f.kind in ("link_down", "partition", "bandwidth", "latency", "loss") for f in self.faults)
 
     @property
     def peer_names(self) -> tuple[str, ...]:
@@ -283,7 +306,7 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
     _validate_schema(data, source)
     fleet = data["fleet"]
     clouds = tuple(fleet.get("clouds", ["cloud"]))
-    leader = fleet.get("leader", "leader")
+    leader = fleet.get("leader", "leader") or None
     image_sets = {k: tuple(v) for k, v in (data.get("image_sets") or {}).items()}
     robots = []
     for i, r in enumerate(fleet["robots"]):
@@ -297,8 +320,10 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         robots.append(RobotSpec(id=r["id"], profile=r.get("profile"), image_set=r.get("image_set"),
                                 synthetic=r.get("synthetic"), rate_hz=float(r.get("rate_hz", 2.0)),
                                 deadline_ms=r.get("deadline_ms"), local_fallback=bool(r.get("local_fallback", True)),
-                                energy_placement=bool(r.get("energy_placement", False))))
-    names = list(clouds) + [leader] + [r.id for r in robots]
+                                energy_placement=bool(r.get("energy_placement", False)),
+                                leader_capable=bool(r.get("leader_capable", False)),
+                                capability=r.get("capability"), bootstrap=r.get("bootstrap")))
+    names = list(clouds) + ([leader] if leader else []) + [r.id for r in robots]
     seen: set[str] = set()
     for n in names:
         if n in seen:
@@ -310,7 +335,16 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         if name not in known:
             raise _err(source, fld, f"unknown peer {name!r}", f"use one of {', '.join(names)}")
 
+    for i, r in enumerate(robots):
+        if r.bootstrap is not None:
+            check_peer(f"fleet.robots[{i}].bootstrap", r.bootstrap)
+            if r.bootstrap == r.id:
+                raise _err(source, f"fleet.robots[{i}].bootstrap", f"robot {r.id!r} cannot bootstrap to itself",
+                           "name another peer (a cloud, the leader or another robot)")
+    if fleet.get("leader_bootstrap") is not None:
+        check_peer("fleet.leader_bootstrap", fleet["leader_bootstrap"])
     topo = data.get("topology") or {}
+    explicit = "links" in topo
     if "links" in topo:
         links = []
         for i, (a, b) in enumerate(topo["links"]):
@@ -322,10 +356,11 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
                 raise _err(source, f"topology.links[{i}]", f"link {a}-{b} declared twice", "declare each link once")
             links.append((a, b))
         links_t = tuple(links)
+        bootstraps = {n: tuple(b for a, b in links_t if a == n) for n in names}
     else:
-        links_t = tuple(
-            [(r.id, t) for r in robots for t in (*clouds, leader)] + [(leader, c) for c in clouds]
-        )
+        bootstraps = _default_bootstraps(clouds, leader, robots, fleet.get("leader_bootstrap"))
+        # every pair is a potential (gossip) link; the later-started peer connects to the earlier one
+        links_t = tuple((names[i], names[j]) for i in range(len(names)) for j in range(i))
     link_set = {frozenset(x) for x in links_t}
 
     duration = float(data["duration_s"])
@@ -342,7 +377,7 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
                 check_peer(f"{where}.link", n)
             if frozenset(link) not in link_set:
                 raise _err(source, f"{where}.link", f"{link[0]}-{link[1]} is not a link of the topology",
-                           "name a pair listed in topology.links (or in the default links: robots-clouds, robots-leader, leader-clouds)")
+                           "name a pair listed in topology.links (without topology.links every pair is a link)")
         groups = tuple(tuple(g) for g in f["groups"]) if "groups" in f else None
         if groups:
             flat: list[str] = []
@@ -370,8 +405,30 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         clouds=clouds, leader=leader, lease_ms=int(data.get("lease_ms", 500)),
         description=data.get("description", ""), image_sets=image_sets, links=links_t,
         faults=tuple(sorted(faults, key=lambda x: x.at_s)), expectations=expectations,
-        process=data.get("process"), source=source,
+        process=data.get("process"), source=source, bootstraps=bootstraps,
+        leader_capability=fleet.get("leader_capability", "leader"), explicit_links=explicit,
     )
+
+
+def _default_bootstraps(clouds: tuple[str, ...], leader: str | None, robots: list[RobotSpec],
+                        leader_bootstrap: str | None) -> dict[str, tuple[str, ...]]:
+    """Whom each peer is handed: one bootstrap, gossip finds the rest.
+
+    Clouds after the first join through the first; the leader is handed
+    ``leader_bootstrap`` or the first cloud; a robot its ``bootstrap``, else the
+    first cloud, else the leader, else the first robot (which listens only).
+    """
+    out: dict[str, tuple[str, ...]] = {}
+    for i, c in enumerate(clouds):
+        out[c] = () if i == 0 else (clouds[0],)
+    if leader:
+        boot = leader_bootstrap or (clouds[0] if clouds else None)
+        out[leader] = (boot,) if boot else ()
+    default = clouds[0] if clouds else leader if leader else (robots[0].id if robots else None)
+    for r in robots:
+        boot = r.bootstrap or (default if default != r.id else None)
+        out[r.id] = (boot,) if boot else ()
+    return out
 
 
 def load_scenario(path: str | Path) -> Scenario:
