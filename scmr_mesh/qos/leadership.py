@@ -114,13 +114,17 @@ def succession_ms(t_lost: int | None, t_new: int) -> float | None:
     return None if t_lost is None else (t_new - t_lost) / 1e6
 
 
-def wait_ms(records: Sequence[Mapping[str, Any]], t_lost: int | None, new: str) -> float | None:
+def wait_ms(records: Sequence[Mapping[str, Any]], t_lost: int | None, new: str,
+            until: int | None = None) -> float | None:
     """Longest a robot waited for a leader after the loss: per robot, from ``max(loss, its first request
-    sent after the loss)`` to the new leader's first answer; the largest over robots (None: no robot)."""
+    sent after the loss)`` to the new leader's first answer; the largest over the robots the new leader
+    answered before ``until`` (the next change: robots on the far side of a partition do not count)."""
     if t_lost is None:
         return None
     waits = []
     for robot, answers in _answers(records, new).items():
+        if until is not None and (not answers or answers[0] > until):
+            continue
         sent_after = [int(r["sent_unix_ns"]) for r in records
                       if r.get("robot") == robot and r.get("sent_unix_ns") and int(r["sent_unix_ns"]) >= t_lost]
         # a request in flight at the loss counts from the loss
@@ -234,6 +238,14 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
                 leading.pop(node)
                 last_lost.append((t, node, cause_of_loss(node, t)))
         note(t)
+    # robots waited: only those the new leader served before the next change
+    for i, c in enumerate(changes):
+        if c.get("wait_ms") is None or c["cause"] == "heal":
+            continue
+        t_c = t0_unix_ns + int(c["t_s"] * 1e9)
+        nxt = [t0_unix_ns + int(x["t_s"] * 1e9) for x in changes[i + 1:]]
+        t_lost = t_c - int((c.get("succession_ms") or 0) * 1e6)
+        c["wait_ms"] = _round(wait_ms(records, t_lost, c["to"], until=min(nxt) if nxt else None))
     converged = None
     for h in heals:
         # the first moment at or after the heal with at most one leader
