@@ -186,8 +186,11 @@ def test_a_successor_serves_the_data_buffer_it_copied_from_the_leader(peers, tmp
         agent = TelemetryAgent(probe, tmp_path / "probe" / "q", deadline_ms=500)
         wait_for(lambda: len(peers.records("r2")) >= 5, timeout=60, what="r2 records")
         peers.kill("cloud")
-        wait_for(lambda: agent.fetch("state/r2")[:2] == ("leader", "leader0"), timeout=30,
-                 what="the leader answering buffer reads")
+        def leader_has_r2():
+            tier, node, items = agent.fetch("state/r2")
+            return (tier, node) == ("leader", "leader0") and "state/r2" in items
+
+        wait_for(leader_has_r2, timeout=30, what="the leader answering buffer reads with r2's state")
         seq_at_leader = agent.fetch("state/r2")[2]["state/r2"]["seq"]
         time.sleep(0.8)  # > 2 sync periods of r1
         peers.kill("leader0")

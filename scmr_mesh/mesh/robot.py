@@ -243,6 +243,24 @@ class LiveView:
             leaders = self._leaders()
         return leaders[0] if leaders else None
 
+    def candidates(self) -> list[str]:
+        """Live leader-capable nodes other than this robot."""
+        with self._lock:
+            return sorted(n for n in self._alive["candidate"] if n != self.me)
+
+    def wait_for_server(self, tried: set, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until a serving node not in ``tried`` ((tier, node) pairs) is alive."""
+        end = time.monotonic() + timeout
+        with self._lock:
+            while True:
+                if any((t, n) not in tried and n != self.me for t in ("cloud", "leader", "peer")
+                       for n in self._alive.get(t, ())):
+                    return True
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self.changed.wait(left)
+
     def wait_for_tier(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s until some cloud or leader node is alive."""
         end = time.monotonic() + timeout
@@ -712,22 +730,35 @@ class Robot:
                 bytes_up += len(payload) * len(targets)
                 winner = self._send(targets, payload, attempts)
             plan = [t for t in plan if t == "local"] if winner is None else []
+        tried: set[tuple[str, str]] = set()
+        t_end = time.monotonic() + opts.deadline_ms / 1e3
+
+        def attempt(tier: str, node: str):
+            nonlocal bytes_up
+            tried.add((tier, node))
+            before = len(attempts)
+            w = self._send([(tier, node)], payload, attempts)
+            if attempts[before]["outcome"] != "unreachable":
+                bytes_up += len(payload)
+            if w is None and attempts[before]["outcome"] == "error:busy":
+                self.view.mark_busy(node)
+            return w
+
         for tier in plan:
             if winner is not None:
                 break
             if tier == "local":
-                winner = self._run_local(frame, attempts)
+                # the view may have changed while the plan was tried (a new leader was elected, a peer
+                # freed up): try what is new before computing alone; in an election, wait for it briefly
+                winner = self._retry_fresh(attempt, tried, t_end)
+                if winner is None:
+                    winner = self._run_local(frame, attempts)
                 continue
             nodes = self.view.snapshot(local=False).nodes(tier) or view.nodes(tier)
             for node in nodes[: opts.max_nodes_per_tier]:
-                before = len(attempts)
-                winner = self._send([(tier, node)], payload, attempts)
-                if attempts[before]["outcome"] != "unreachable":
-                    bytes_up += len(payload)
+                winner = attempt(tier, node)
                 if winner is not None:
                     break
-                if attempts[before]["outcome"] == "error:busy":
-                    self.view.mark_busy(node)
         received_ns = time.time_ns()
         tor_ms = (time.perf_counter() - t_start) * 1e3
         tier = served_by = None
@@ -789,6 +820,31 @@ class Robot:
                 except Exception:
                     log.exception("observer %r failed", fn)
         return record
+
+    #: Longest a robot waits for an election in progress before computing a frame alone (s).
+    ELECTION_WAIT_S = 0.3
+
+    def _retry_fresh(self, attempt, tried: set, t_end: float) -> tuple | None:
+        """Before local execution: try remote nodes that appeared since the plan was made.
+
+        When no untried node is alive but leader-capable nodes are (a lead is
+        passing on), wait up to :data:`ELECTION_WAIT_S` (within the request's
+        deadline) for the new leader or a free peer.
+        """
+        waited = False
+        while True:
+            fresh = self.view.snapshot(local=False)
+            new = [(t, n) for t in ("cloud", "leader", "peer") for n in fresh.nodes(t)[:2] if (t, n) not in tried]
+            for t, n in new:
+                w = attempt(t, n)
+                if w is not None:
+                    return w
+            if new or waited or not self.view.candidates():
+                return None
+            waited = True
+            left = min(self.ELECTION_WAIT_S, t_end - time.monotonic())
+            if left <= 0 or not self.view.wait_for_server(tried, left):
+                return None
 
     def _run_local(self, frame: Frame, attempts: list) -> tuple | None:
         att = {"tier": "local", "node": self.id, "outcome": "pending", "t_unix_ns": time.time_ns()}

@@ -221,6 +221,7 @@ def run_scenario(
     notes: list[str] = []
     base = [python, "-m", "scmr_mesh"]
     starts: dict[str, int] = {}
+    handed: dict[str, list[str]] = {}
 
     def common(peer: str) -> list[str]:
         a: list[str] = []
@@ -272,6 +273,7 @@ def run_scenario(
             argv += ["--seed", str(scenario.seed), "--quiet"]
             argv += common(peer)
         argv += ["--ready-file", str(ready)]
+        handed[peer + suffix] = argv[len(base):]  # what each peer was told (checked by tests; peers.json)
         env = {"SCMR_SCENARIO_SEED": str(scenario.seed)}
         return PeerSpec(peer + suffix, be.wrap(peer, argv), log_path=out_dir / "logs" / f"{peer}{suffix}.log",
                         ready_file=ready, env=env)
@@ -331,6 +333,7 @@ def run_scenario(
     for af in applied:
         notes.extend(n for n in af.notes if n not in notes)
     records = _read_records(out_dir / "robots")
+    (out_dir / "peers.json").write_text(json.dumps(handed, indent=1) + "\n")
     say(f"done: {len(records)} requests recorded")
     capable = set(scenario.candidates)
     topology = {p.name: {"role": p.role, "connect": be.connect_names(p.name), "leader_capable": p.name in capable,

@@ -1,0 +1,107 @@
+"""The shipped R2R scenarios, run for real (stub processing, so the mesh is what is measured).
+
+netns: a silent drop of the leader and a split fleet (kernel blackhole routes
+between namespaces); proxy: the gossip-discovery and leader-crash files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from scmr_mesh.scenario.report import build_report
+from scmr_mesh.scenario.runner import run_scenario
+from scmr_mesh.scenario.spec import load_scenario, parse_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+STUB = "scmr_mesh.mesh.testing:stub_process"
+
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces need root")
+
+
+def _run(sc, backend, tmp_path):
+    res = run_scenario(sc, backend=backend, out_dir=tmp_path, ready_timeout=120)
+    rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
+                       notes=res.notes, leadership=res.leadership(), topology=res.topology)
+    return res, rep
+
+
+def _shipped(name: str, **changes):
+    sc = load_scenario(ROOT / "peers" / "scenarios" / f"{name}.toml")
+    return dataclasses.replace(sc, process=STUB, **changes)
+
+
+@pytest.mark.netns
+@needs_root
+def test_silent_drop_of_the_leader_passes_the_lead(tmp_path):
+    sc = parse_scenario({
+        "name": "leader-drop", "seed": 21, "duration_s": 8, "lease_ms": 200, "process": STUB,
+        "fleet": {"clouds": [], "robots": [
+            {"id": "robot1", "synthetic": "stub", "rate_hz": 5, "leader_capable": True, "capability": "robot4"},
+            {"id": "robot2", "synthetic": "stub", "rate_hz": 5, "leader_capable": True, "capability": "robot3"},
+            {"id": "robot3", "synthetic": "stub", "rate_hz": 5}]},
+        "faults": [{"kind": "partition", "at_s": 3.0, "groups": [["leader"], ["robot1", "robot2", "robot3"]]}],
+    })
+    res, rep = _run(sc, "netns", tmp_path)
+    lead = rep["leadership"]
+    moves = [c for c in lead["changes"] if c["from"] is not None]
+    assert moves and moves[0]["from"] == "leader" and moves[0]["to"] == "robot1", lead
+    assert moves[0]["cause"] == "link"
+    assert moves[0]["succession_ms"] is not None and moves[0]["succession_ms"] > 0
+    assert rep["summary"]["ror"] == 1.0
+    # the lead moved on the robots' side: robot3 is served by robot1 after the cut
+    t_cut = res.t0_unix_ns + 3e9
+    late = [r for r in res.records if r["robot"] == "robot3" and t_cut + 1.5e9 < r["sent_unix_ns"] < t_cut + 3.5e9]
+    assert late and all(r["tier"] == "leader" and r["served_by"] == "robot1" for r in late)
+    assert rep["summary"]["by_tier"]["local"] == 0  # peers served the gap
+
+
+@pytest.mark.netns
+@needs_root
+def test_split_fleet_elects_on_both_sides_and_one_leader_remains(tmp_path):
+    sc = _shipped("split-fleet", duration_s=11.0, faults=(
+        dataclasses.replace(load_scenario(ROOT / "peers" / "scenarios" / "split-fleet.toml").faults[0],
+                            at_s=3.0, for_s=4.0),))
+    res, rep = _run(sc, "netns", tmp_path)
+    lead = rep["leadership"]
+    during = [c for c in lead["changes"] if c["cause"] == "link"]
+    assert during and during[0]["to"] == "robot3", lead  # the side without the leader elected its own
+    assert len(lead["leaders_at_end"]) == 1, lead
+    assert lead["converged_after_heal_ms"] is not None
+    assert [c for c in lead["changes"] if c["cause"] == "heal"], lead
+    assert rep["summary"]["ror"] == 1.0
+
+
+def test_gossip_discovery_hands_each_robot_only_its_bootstrap(tmp_path):
+    sc = _shipped("gossip-discovery", duration_s=9.0, faults=(
+        dataclasses.replace(load_scenario(ROOT / "peers" / "scenarios" / "gossip-discovery.toml").faults[0],
+                            at_s=4.0),))
+    res, rep = _run(sc, "proxy", tmp_path)
+    handed = json.loads((tmp_path / "peers.json").read_text())
+
+    def opt(argv, flag):
+        return [argv[i + 1] for i, a in enumerate(argv) if a == flag]
+
+    listen = {name: opt(argv, "--listen") for name, argv in handed.items()}
+    for r in sc.robots:
+        connect = opt(handed[r.id], "--connect")
+        assert connect == listen[r.bootstrap], (r.id, connect, r.bootstrap)  # one endpoint: its bootstrap
+    assert rep["topology"]["robot3"]["connect"] == ["robot2"]
+    # every robot was served by the leader it found by gossip after the cloud crashed
+    t_crash = res.t0_unix_ns + 4e9
+    for r in sc.robots:
+        after = [x for x in res.records if x["robot"] == r.id and x["sent_unix_ns"] > t_crash + 1e9]
+        assert after and {x["tier"] for x in after} == {"leader"}, (r.id, {x["tier"] for x in after})
+    assert all(e["held"] for e in rep["expectations"]), rep["expectations"]
+
+
+def test_leader_crash_scenario_on_the_proxy_backend(tmp_path):
+    res, rep = _run(_shipped("leader-crash"), "proxy", tmp_path)
+    assert all(e["held"] for e in rep["expectations"]), rep["expectations"]
+    crash = [c for c in rep["leadership"]["changes"] if c["cause"] == "crash"]
+    assert crash and crash[0]["from"] == "leader" and crash[0]["to"] == "robot1"
+    assert any("gossip off" in n for n in res.notes)  # link faults: every pair through its own proxy
