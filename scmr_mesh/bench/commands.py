@@ -16,6 +16,7 @@ overload     :mod:`scmr_mesh.bench.overload`       the negotiator against FIFO u
 tls          :mod:`scmr_mesh.bench.tls`            the cost of authentication per query
 viz          :mod:`scmr_mesh.bench.viz`            rerun logging per request
 zenoh        :mod:`scmr_mesh.bench.zenoh`          the probes behind docs/ZENOH.md
+r2r          :mod:`scmr_mesh.bench.r2r`            gossip discovery, succession after a crash
 ===========  ====================================  =================================
 """
 
@@ -80,6 +81,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     add_tls(bench)
     add_viz(bench)
     add_zenoh(bench)
+    add_r2r(bench)
 
 
 def add_pipeline(bench: argparse._SubParsersAction) -> None:
@@ -378,3 +380,20 @@ def add_zenoh(bench: argparse._SubParsersAction) -> None:
     b.add_argument("probe", choices=("detect", "stress", "reconnect", "failover", "redundant", "latency", "routers"))
     b.add_argument("probe_args", nargs=argparse.REMAINDER, help="options of the probe")
     b.set_defaults(func=_handler("zenoh", "cmd_bench_zenoh"))
+
+
+def add_r2r(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench r2r``."""
+    b = bench.add_parser(
+        "r2r", help="R2R tier: gossip discovery from one bootstrap, succession after a leader crash",
+        description="Measure, over --repeat runs on loopback: (1) discovery: robots handed a single bootstrap "
+                    "in a chain; ms from zenoh.open to seeing the leader's token and to a direct link to every "
+                    "peer; (2) succession: a dedicated leader, two leader-capable robots and a robot (real "
+                    "processes, stub processing); the leader is SIGKILLed; ms to the new leader's claim and to "
+                    "the robot's first answer from it.  Medians, p99 and max measured in one run (docs/R2R.md).")
+    b.add_argument("--repeat", type=int, default=5, metavar="N", help="runs of each measurement (default 5)")
+    b.add_argument("--robots", type=int, default=4, metavar="N", help="robots in the discovery chain (default 4)")
+    b.add_argument("--lease-ms", type=int, default=500, metavar="MS", help="zenoh lease (default 500)")
+    b.add_argument("--no-crash", action="store_true", help="only the discovery measurement")
+    b.add_argument("--json", metavar="FILE", help="also write the JSON here")
+    b.set_defaults(func=_handler("r2r", "cmd_bench_r2r"))

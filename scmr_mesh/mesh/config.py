@@ -65,6 +65,12 @@ DEFAULTS: dict[str, Any] = {
     "transport/shared_memory/enabled": False,
     # every peer refuses oversized messages in the transport (issue #12, docs/ZENOH.md section 9)
     MAX_MESSAGE_KEY: MAX_MESSAGE_BYTES,
+    # zenoh.open() waits up to scouting/delay (500 ms) for the peers gossip announced to be
+    # connected; with to_peer "greater-zid" the lower-zid side never dials, so in 9 of 24
+    # measured joins open() sat the full 500 ms.  Off: open() returns in ~0.5 ms and the
+    # leader's token still arrives in ~5 ms (docs/R2R.md "Discovery"); peers gate every request
+    # on liveliness and querier matching, so nothing is sent before the links exist.
+    "open/return_conditions/connect_scouted": False,
 }
 
 MODES = ("peer", "client", "router")
