@@ -33,7 +33,12 @@ def test_plan_wires_robots_to_cloud_and_leader(tmp_path):
     r2 = specs["r2"].argv
     assert r2[r2.index("--listen") + 1] == "tcp/127.0.0.1:7004"
     connects = [r2[i + 1] for i, a in enumerate(r2) if a == "--connect"]
-    assert connects == ["tcp/127.0.0.1:7001", "tcp/127.0.0.1:7002"]
+    assert connects == ["tcp/127.0.0.1:7001"]  # one bootstrap (the cloud): gossip finds the leader
+    leader = specs["leader"].argv
+    assert [leader[i + 1] for i, a in enumerate(leader) if a == "--connect"] == ["tcp/127.0.0.1:7001"]
+    # the first two robots run for the lead, ranked by Table 4.3 profiles; r3 does not
+    assert "--leader-capable" in specs["r1"].argv and r2[r2.index("--capability") + 1] == "robot3"
+    assert "--leader-capable" not in specs["r3"].argv
     assert r2[r2.index("--synthetic") + 1] == "b"  # kinds dealt round-robin
     assert specs["r3"].argv[specs["r3"].argv.index("--synthetic") + 1] == "a"
     assert r2[r2.index("--duration") + 1] == "7" and r2[r2.index("--rate") + 1] == "2.5"
@@ -56,10 +61,10 @@ def test_plan_with_several_clouds(tmp_path):
     def connects(argv):
         return [argv[i + 1] for i, a in enumerate(argv) if a == "--connect"]
 
-    clouds = ["tcp/127.0.0.1:7001", "tcp/127.0.0.1:7002", "tcp/127.0.0.1:7003"]
-    assert connects(specs["leader"].argv) == clouds  # the leader syncs from and relays to any cloud
-    assert connects(specs["r2"].argv) == [*clouds, "tcp/127.0.0.1:7004"]
-    assert connects(specs["cloud1"].argv) == []
+    first = ["tcp/127.0.0.1:7001"]  # one bootstrap each; gossip links every peer to every other
+    assert connects(specs["leader"].argv) == first
+    assert connects(specs["r2"].argv) == first
+    assert connects(specs["cloud1"].argv) == first and connects(specs["cloud"].argv) == []
 
 
 @pytest.mark.parametrize("n", [0, 17])
@@ -230,9 +235,14 @@ def test_progress_line_puts_alive_tiers_first():
     from scmr_mesh.fleet import Progress, format_progress
 
     line = format_progress(Progress(10.6, 20, 4, 3, 7.5, 40.0, {"cloud": 2, "leader": 1, "failed": 1},
-                                    {"cloud": False, "leader": True}))
-    assert line.startswith("[ 10.6/20 s] cloud DOWN, leader up | 4 req, RoR 0.750, ToR p50/p99 7.5/40.0 ms")
-    assert line.endswith("cloud 2 leader 1 local 0 failed 1")
+                                    {"cloud": False, "leader": True}, leaders=["r1"]))
+    assert line.startswith("[ 10.6/20 s] cloud DOWN, leader r1 | 4 req, RoR 0.750, ToR p50/p99 7.5/40.0 ms")
+    assert line.endswith("cloud 2 leader 1 peer 0 local 0 failed 1")
+    none = format_progress(Progress(1, 20, 0, 0, None, None, {}, {"cloud": True, "leader": False}))
+    assert "cloud up, leader NONE |" in none
+    split = format_progress(Progress(1, 20, 0, 0, None, None, {}, {"cloud": False, "leader": True},
+                                     leaders=["leader0", "r3"]))
+    assert "leader leader0+r3 (SPLIT)" in split
     assert "starting" in format_progress(Progress(0, 20, 0, 0, None, None, {}, {}, phase="starting"))
 
 

@@ -65,7 +65,7 @@ def test_tor_ror_and_tiers_count_only_what_they_should():
     # ToR of the 4 succeeded requests: 10, 20, 30, 40
     assert s["tor_ms"]["p50"] == 25 and s["tor_ms"]["max"] == 40 and s["tor_ms"]["mean"] == 25
     assert s["tor_ms"]["p90"] == pytest.approx(37)
-    assert s["by_tier"] == {"cloud": 2, "leader": 1, "local": 1, "failed": 1}
+    assert s["by_tier"] == {"cloud": 2, "leader": 1, "peer": 0, "local": 1, "failed": 1}
     assert s["robots"] == 3
     assert s["per_robot"]["b"]["ror"] == 0.5 and s["per_robot"]["b"]["tor_ms"]["p50"] == 30
     assert s["per_tier"]["cloud"]["max"] == 20

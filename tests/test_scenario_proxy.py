@@ -146,11 +146,12 @@ def test_bad_mode_is_an_error(proxy):
 
 def test_backend_wires_links_through_proxies_and_applies_events():
     sc = parse_scenario({"name": "p", "seed": 0, "duration_s": 5,
-                         "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"}]}})
+                         "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"}]},
+                         "faults": [{"kind": "link_down", "at_s": 1, "for_s": 1, "link": ["robot1", "cloud"]}]})
     be = ProxyBackend(sc)
     be.setup()
     try:
-        assert len(be.proxies) == len(sc.links)
+        assert len(be.proxies) == len(sc.links) == 3  # link faults: every pair through its own proxy
         # robot1 connects only to proxies, never to the servers' own ports
         eps = be.connect("robot1")
         assert len(eps) == 2 and not set(eps) & {be.listen("cloud")[0], be.listen("leader")[0]}
@@ -160,6 +161,21 @@ def test_backend_wires_links_through_proxies_and_applies_events():
         assert be.proxies[("robot1", "leader")].mode == "forward"
         be.apply(Event(2.0, "unblock", ("cloud", "robot1"), fault=0, lift=True))
         assert be.proxies[("robot1", "cloud")].mode == "forward"
+    finally:
+        be.teardown()
+
+
+def test_backend_without_link_faults_hands_each_peer_its_bootstrap_and_keeps_gossip():
+    sc = parse_scenario({"name": "p", "seed": 0, "duration_s": 5,
+                         "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"},
+                                              {"id": "robot2", "synthetic": "stub", "bootstrap": "robot1"}]},
+                         "faults": [{"kind": "crash", "at_s": 1, "peer": "cloud"}]})
+    be = ProxyBackend(sc)
+    be.setup()
+    try:
+        assert be.proxies == {} and be.extra_cfg("robot2") == []
+        assert be.connect("robot2") == be.listen("robot1") and be.connect("robot1") == be.listen("cloud")
+        assert be.connect_names("robot2") == ["robot1"]
     finally:
         be.teardown()
 

@@ -27,7 +27,8 @@ GOOD = {
 
 def test_shipped_scenarios_are_the_six_and_valid():
     names = {p.stem for p in SHIPPED}
-    assert names == {"baseline", "cloud-link-drop", "cloud-crash", "partition", "flapping-link", "bandwidth-sweep"}
+    assert names == {"baseline", "cloud-link-drop", "cloud-crash", "partition", "flapping-link", "bandwidth-sweep",
+                     "leader-crash", "split-fleet", "gossip-discovery", "cascade"}
     for p in SHIPPED:
         sc = load_scenario(p)
         assert sc.name == p.stem
@@ -67,7 +68,10 @@ BAD = [
     (_mut(["faults", 0, "link"], delete=True), "faults[0]", "add the missing field"),
     (_mut(["faults", 0, "peer"], "cloud"), "faults[0]", "allowed here"),
     (_mut(["faults", 0, "link"], ["robot1", "mars"]), "faults[0].link", "use one of"),
-    (_mut(["faults", 0, "link"], ["robot1", "robot2"]), "faults[0].link", "topology.links"),
+    (_mut(["faults", 0, "link"], ["robot1", "robot2"]) | {"topology": {"links": [["robot1", "cloud"]]}},
+     "faults[0].link", "topology.links"),
+    (_mut(["fleet", "robots", 0, "bootstrap"], "mars"), "fleet.robots[0].bootstrap", "use one of"),
+    (_mut(["fleet", "robots", 0, "bootstrap"], "robot1"), "fleet.robots[0].bootstrap", "another peer"),
     (_mut(["faults", 0, "at_s"], 10), "faults[0].at_s", "below duration_s"),
     (_mut(["faults", 1, "for_s"], delete=True) | {"faults": GOOD["faults"] + [
         {"kind": "crash", "at_s": 5, "peer": "cloud"}, {"kind": "crash", "at_s": 6, "peer": "cloud"}]},

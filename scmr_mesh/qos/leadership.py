@@ -169,6 +169,13 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
                 ended.setdefault(n, t)
     # the timeline: lead and step_down events, plus process ends
     timeline: list[tuple[int, str, str, Mapping[str, Any] | None]] = []
+    # the run ends at end_unix_ns, or when the first candidate stops (a graceful stop comes only
+    # at the end: robots finishing their run; crashes are SIGKILLs and write nothing)
+    stops = [int(e["t_unix_ns"]) for e in events
+             if e.get("event") == "step_down" and str(e.get("cause", "")).startswith("stopping")]
+    if stops:
+        end_unix_ns = min(stops) - 1 if end_unix_ns is None else min(end_unix_ns, min(stops) - 1)
+
     def within(t: int) -> bool:
         return end_unix_ns is None or t <= end_unix_ns
 
