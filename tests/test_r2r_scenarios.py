@@ -26,7 +26,8 @@ needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces ne
 def _run(sc, backend, tmp_path):
     res = run_scenario(sc, backend=backend, out_dir=tmp_path, ready_timeout=120)
     rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
-                       notes=res.notes, leadership=res.leadership(), topology=res.topology)
+                       notes=res.notes, telemetry=res.telemetry, leadership=res.leadership(),
+                       topology=res.topology)
     return res, rep
 
 
@@ -76,7 +77,7 @@ def test_split_fleet_elects_on_both_sides_and_one_leader_remains(tmp_path):
 
 
 def test_gossip_discovery_hands_each_robot_only_its_bootstrap(tmp_path):
-    sc = _shipped("gossip-discovery", duration_s=9.0, faults=(
+    sc = _shipped("gossip-discovery", duration_s=10.0, faults=(
         dataclasses.replace(load_scenario(ROOT / "peers" / "scenarios" / "gossip-discovery.toml").faults[0],
                             at_s=4.0),))
     res, rep = _run(sc, "proxy", tmp_path)
@@ -90,10 +91,10 @@ def test_gossip_discovery_hands_each_robot_only_its_bootstrap(tmp_path):
         connect = opt(handed[r.id], "--connect")
         assert connect == listen[r.bootstrap], (r.id, connect, r.bootstrap)  # one endpoint: its bootstrap
     assert rep["topology"]["robot3"]["connect"] == ["robot2"]
-    # every robot was served by the leader it found by gossip after the cloud crashed
+    # every robot was served by the leader it found by gossip while the cloud was down (4 s to 8 s)
     t_crash = res.t0_unix_ns + 4e9
     for r in sc.robots:
-        after = [x for x in res.records if x["robot"] == r.id and x["sent_unix_ns"] > t_crash + 1e9]
+        after = [x for x in res.records if x["robot"] == r.id and t_crash + 1e9 < x["sent_unix_ns"] < t_crash + 3.5e9]
         assert after and {x["tier"] for x in after} == {"leader"}, (r.id, {x["tier"] for x in after})
     assert all(e["held"] for e in rep["expectations"]), rep["expectations"]
 

@@ -79,9 +79,10 @@ class FleetConfig:
         The one peer every robot (and the leader) is handed to connect to:
         ``cloud`` (default), ``leader`` or a robot id; gossip scouting finds
         every other peer (docs/R2R.md).
-    leader_capable : int
+    leader_capable : int or None
         The first N robots run for the lead of the R2R tier (``--leader-capable``)
-        and serve other robots while they do not lead.
+        and serve other robots while they do not lead (default: two, or every
+        robot of a smaller fleet).
     leader_crash_s : float or None
         Seconds after the fleet is ready at which whichever node leads is
         SIGKILLed (not restarted).
@@ -107,7 +108,7 @@ class FleetConfig:
     python: str = sys.executable
     rerun: Any = None
     bootstrap: str = CLOUD
-    leader_capable: int = 2
+    leader_capable: int | None = None
     leader_crash_s: float | None = None
 
     def check(self) -> None:
@@ -144,9 +145,14 @@ class FleetConfig:
         if self.leader_crash_s is not None and not 0 <= self.leader_crash_s < self.duration_s:
             raise InputError(f"--leader-crash must be within 0 <= S < --duration ({self.duration_s:g}), "
                              f"got {self.leader_crash_s:g}")
-        if not 0 <= self.leader_capable <= self.robots:
+        if self.leader_capable is not None and not 0 <= self.leader_capable <= self.robots:
             raise InputError(f"--leader-capable must be between 0 and --robots ({self.robots}), "
                              f"got {self.leader_capable}")
+
+    @property
+    def capable_robots(self) -> int:
+        """How many robots run for the lead (``leader_capable``, default min(2, robots))."""
+        return min(2, self.robots) if self.leader_capable is None else self.leader_capable
         names = [c for c, _ in cloud_peers(self.clouds)] + [LEADER] + robot_ids(self.robots)
         if self.bootstrap not in names:
             raise InputError(f"--bootstrap must name a peer of the fleet ({', '.join(names[:6])}...), "
@@ -183,7 +189,7 @@ def fleet_topology(config: FleetConfig) -> dict[str, dict[str, Any]]:
     leader_boot = config.bootstrap if config.bootstrap != LEADER else CLOUD
     out[LEADER] = {"role": "leader", "connect": [leader_boot], "leader_capable": True, "capability": "leader"}
     for i, rid in enumerate(robot_ids(config.robots)):
-        capable = i < config.leader_capable
+        capable = i < config.capable_robots
         out[rid] = {"role": "robot", "connect": [config.bootstrap], "leader_capable": capable,
                     "capability": CAPABILITY_PROFILES[i % len(CAPABILITY_PROFILES)] if capable else None}
     return out

@@ -185,9 +185,14 @@ class Scenario:
 
     @property
     def checked_expectations(self) -> tuple[Expectation, ...]:
-        """The declared expectations plus :data:`DEFAULT_EXPECTATIONS` on metrics not declared."""
+        """The declared expectations plus :data:`DEFAULT_EXPECTATIONS` on metrics not declared.
+
+        A fleet with no cloud has no store: its telemetry stays queued on the
+        robots, so the default ``telemetry_lost <= 0`` does not apply to it.
+        """
         mine = {e.metric for e in self.expectations}
-        return self.expectations + tuple(e for e in DEFAULT_EXPECTATIONS if e.metric not in mine)
+        return self.expectations + tuple(e for e in DEFAULT_EXPECTATIONS if e.metric not in mine
+                                         and (self.clouds or e.metric != "telemetry_lost"))
 
     @property
     def peers(self) -> tuple[PeerSpec, ...]:
