@@ -34,7 +34,7 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
     p.add_argument("--robot-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for every robot (repeatable)")
     g = p.add_argument_group("R2R tier (docs/R2R.md)")
-    g.add_argument("--leader-capable", type=int, default=None, metavar="N",
+    g.add_argument("--leader-capable", type=ca.count("robots", lo=0, hi=10000, example="2"), default=None, metavar="N",
                    help="the first N robots run for the lead besides the dedicated leader, and serve other "
                         "robots while they do not lead (default: 2, or every robot of a smaller fleet)")
     g.add_argument("--bootstrap", default="cloud", metavar="PEER",
