@@ -391,9 +391,12 @@ def add_r2r(bench: argparse._SubParsersAction) -> None:
                     "peer; (2) succession: a dedicated leader, two leader-capable robots and a robot (real "
                     "processes, stub processing); the leader is SIGKILLed; ms to the new leader's claim and to "
                     "the robot's first answer from it.  Medians, p99 and max measured in one run (docs/R2R.md).")
-    b.add_argument("--repeat", type=int, default=5, metavar="N", help="runs of each measurement (default 5)")
-    b.add_argument("--robots", type=int, default=4, metavar="N", help="robots in the discovery chain (default 4)")
-    b.add_argument("--lease-ms", type=int, default=500, metavar="MS", help="zenoh lease (default 500)")
+    b.add_argument("--repeat", type=ca.count("runs", hi=1000, example="5"), default=5, metavar="N",
+                   help="runs of each measurement (default 5)")
+    b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
+                   help="robots in the discovery chain (default 4)")
+    b.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=600000, example="500"), default=500,
+                   metavar="MS", help="zenoh lease (default 500)")
     b.add_argument("--no-crash", action="store_true", help="only the discovery measurement")
-    b.add_argument("--json", metavar="FILE", help="also write the JSON here")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
     b.set_defaults(func=_handler("r2r", "cmd_bench_r2r"))
