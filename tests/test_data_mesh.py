@@ -11,7 +11,6 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -74,6 +73,16 @@ def peers(tmp_path):
         p.stop_all()
 
 
+def _leader_items(agent, selector: str) -> dict:
+    """The leader L's own buffer (asked directly, whichever tier is alive)."""
+    import msgpack
+
+    from scmr_mesh.mesh.data_service import buffer_key
+
+    ans = agent._ask(buffer_key("leader", "L"), msgpack.packb({"sel": selector}))
+    return ans[1]["items"] if ans is not None and ans[0] == "ok" else {}
+
+
 def _stored(ods_path: Path, robot: str) -> list[int]:
     if not ods_path.exists():
         return []
@@ -109,16 +118,20 @@ def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path)
         # the cloud's buffer serves the latest state; the leader pulls it in batches
         tier, node, items = agent.fetch("state/r1")
         assert (tier, node) == ("cloud", "c1") and items["state/r1"]["robot"] == "r1"
-        time.sleep(0.8)  # > 2 sync periods
+        # the leader has pulled the cloud's buffer (a condition, not "> 2 sync periods" of sleep)
+        wait_for(lambda: {"maps/site", "state/r1"} <= set(_leader_items(agent, "**")), timeout=30,
+                 what="the leader's synced copy of the cloud's buffer")
         stop_peer(cloud, sig=signal.SIGKILL)
         wait_for(lambda: not probe.view.snapshot().cloud, timeout=10, what="the probe to see the cloud go")
         tier, node, items = agent.fetch("state/r1")
         assert (tier, node) == ("leader", "L")  # same query, answered by the leader's copy
         assert agent.fetch("maps/*")[2] == {"maps/site": {"lanes": 2}}  # shared data pulled in the sync
         seq_at_leader = items["state/r1"]["seq"]
-        time.sleep(1.5)  # r1 keeps sending telemetry to the leader during the outage
+        # r1 keeps sending telemetry to the leader during the outage: the leader stores what it receives
+        wait_for(lambda: _leader_items(agent, "state/r1").get("state/r1", {}).get("seq", 0) > seq_at_leader,
+                 timeout=30, what="the leader's state/r1 to advance")
         _, _, items = agent.fetch("state/r1")
-        assert items["state/r1"]["seq"] > seq_at_leader  # the leader stores what it receives
+        assert items["state/r1"]["seq"] > seq_at_leader
         cloud = peers.service("cloud", "c1", pc, **cloud_args)  # failback, same ODS file
         assert r1.wait(timeout=30) == 0, peers.log("r1")
         sent = _summary(tmp_path, "r1")["sent"]

@@ -219,7 +219,18 @@ def test_service_survives_a_dead_worker(cloud):
     proc, q = cloud
     worker = json.loads(proc.ready_file.read_text())["workers"][0]
     os.kill(worker, signal.SIGKILL)
-    time.sleep(0.3)
+
+    def dead() -> bool:  # gone, or a zombie waiting for the pool to reap it
+        try:
+            with open(f"/proc/{worker}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+        except OSError:
+            return True
+
+    deadline = time.monotonic() + 30
+    while not dead() and time.monotonic() < deadline:  # the condition, not a fixed sleep
+        time.sleep(0.01)
+    assert dead()
     outcomes = []
     for seq in range(3):
         kind, msg = _ask(q, wire.encode(_good(10_000 + seq)))

@@ -15,6 +15,7 @@ import textwrap
 
 import pytest
 
+from scmr_mesh.mesh.testing import wait_for
 from scmr_mesh.scenario.netns import (
     NetnsBackend,
     cleanup_stale,
@@ -119,18 +120,50 @@ def test_netem_detection_skips_latency_with_a_note():
         be.teardown()
 
 
-def test_cleanup_removes_stale_namespaces_and_their_processes():
+@pytest.mark.parametrize("entered", [True, False], ids=["inside", "racing-ip-netns-exec"])
+def test_cleanup_removes_stale_namespaces_and_their_processes(entered):
+    """Also when the cleanup runs before `ip netns exec` has entered the namespace (issue #12, item 8):
+    the process is killed while entering, or cannot enter a namespace whose name is gone."""
     prefix = f"scmrs-stale{secrets.token_hex(2)}"
     ns = f"{prefix}-x"
     run_cmd(("ip", "netns", "add", ns))
     p = subprocess.Popen(["ip", "netns", "exec", ns, "sleep", "60"])
     try:
+        if entered:  # the condition, not a sleep: its pid is listed inside the namespace
+            wait_for(lambda: str(p.pid) in run_cmd(("ip", "netns", "pids", ns)).split(), timeout=30,
+                     what="sleep inside the namespace")
         assert cleanup_stale(prefix) == [ns]
-        assert p.wait(timeout=10) != 0  # killed
+        assert p.wait(timeout=10) != 0  # killed, or refused to enter
         assert ns not in list_namespaces()
     finally:
         if p.poll() is None:
             p.kill()
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def test_cleanup_kills_a_process_that_enters_while_it_runs():
+    """The race made deterministic: a process enters right after the cleanup listed the namespace's pids
+    (as `ip netns exec` may): the sweep by the namespace's inode after the delete still kills it."""
+    prefix = f"scmrs-late{secrets.token_hex(2)}"
+    ns = f"{prefix}-x"
+    run_cmd(("ip", "netns", "add", ns))
+    late = []
+
+    def run(cmd):
+        out = run_cmd(cmd)
+        if tuple(cmd[:3]) == ("ip", "netns", "pids") and not late:
+            late.append(subprocess.Popen(["ip", "netns", "exec", ns, "sleep", "60"]))
+            wait_for(lambda: str(late[0].pid) in run_cmd(("ip", "netns", "pids", ns)).split(), timeout=30,
+                     what="sleep inside the namespace")
+        return out
+
+    try:
+        assert cleanup_stale(prefix, run=run) == [ns]
+        assert late and late[0].wait(timeout=10) != 0  # killed, although the name is gone
+    finally:
+        for p in late:
+            if p.poll() is None:
+                p.kill()
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 

@@ -18,7 +18,7 @@ Run directory layout::
         logs/<peer>.log             stdout+stderr of cloud, cloud1.., leader, r1..rN
         robots/<id>/records.jsonl   one JSON record per finished request
         robots/<id>/inbox/*.png     the masks each robot received
-        ready/<peer>.ready          readiness files
+        ready/<peer>.ready          readiness files; ready/fleet.ready once the whole fleet runs
 """
 
 from __future__ import annotations
@@ -48,6 +48,8 @@ from scmr_mesh.fleet.plan import (
 log = logging.getLogger(__name__)
 
 REPORT_SCHEMA = Path(__file__).resolve().parents[2] / "schemas" / "report.schema.json"
+#: Written in ``RUN/ready/`` once every peer of the fleet is ready (the run has started).
+FLEET_READY = "fleet.ready"
 
 
 class RecordTail:
@@ -257,6 +259,8 @@ class FleetRun:
         self.sup.wait_ready(self.rids, timeout=config.ready_timeout_s)
         self.t_ready = time.monotonic()
         self.started_unix_ns = time.time_ns()
+        # for scripts and tests: the whole fleet runs (from now on Ctrl-C/SIGTERM writes a report)
+        (run_dir / "ready" / FLEET_READY).write_text(f"{self.started_unix_ns}\n")
 
     def drive(self) -> None:
         """Until every robot has finished: inject the outage on schedule, follow records, show progress."""

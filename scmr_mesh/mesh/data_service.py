@@ -1029,20 +1029,31 @@ def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float =
         No tier alive after ``wait_s``, or none answered.
     """
     from scmr_mesh.mesh.config import close_session, open_session
-    from scmr_mesh.mesh.robot import LiveView
 
     session = open_session(mesh)
-    sub = None
     try:
-        view = LiveView()
-        sub = session.liveliness().declare_subscriber(keys.ALIVE_ALL, view.on_liveliness, history=True)
-        if not view.wait_for_tier(wait_s):
-            raise MeshError(f"no cloud or leader alive after {wait_s:g} s (connect={mesh.connect}); "
-                            "check --connect and that the peers run")
-        time.sleep(0.1)  # let the rest of the tokens' history arrive
-        snap = view.snapshot()
+        # a liveliness query answers with every token alive now (complete when it returns), so
+        # a cloud is never passed over for a leader whose token happened to arrive first
+        end = time.monotonic() + wait_s
+        alive: dict[str, set[str]] = {"cloud": set(), "leader": set()}
+        while True:
+            left = end - time.monotonic()
+            for reply in session.liveliness().get(keys.ALIVE_ALL, timeout=max(0.05, min(1.0, left))):
+                if reply.ok is not None:
+                    try:
+                        _, tier, node = keys.parse(str(reply.ok.key_expr))
+                    except Exception:
+                        continue
+                    if tier in alive:
+                        alive[tier].add(node)
+            if alive["cloud"] or alive["leader"]:
+                break
+            if time.monotonic() >= end:
+                raise MeshError(f"no cloud or leader alive after {wait_s:g} s (connect={mesh.connect}); "
+                                "check --connect and that the peers run")
+            time.sleep(0.05)
         tried = []
-        for tier, node in [("cloud", n) for n in sorted(snap.cloud)] + [("leader", n) for n in sorted(snap.leader)]:
+        for tier, node in [("cloud", n) for n in sorted(alive["cloud"])] + [("leader", n) for n in sorted(alive["leader"])]:
             got = None
             for reply in session.get(buffer_key(tier, node), payload=_pack({"sel": selector}),
                                      timeout=deadline_ms / 1e3):
@@ -1053,10 +1064,5 @@ def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float =
             tried.append(f"{tier}/{node}={'no reply' if got is None else 'error'}")
         raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier'})")
     finally:
-        if sub is not None:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
         close_session(session)
 

@@ -22,6 +22,7 @@ import secrets
 import shutil
 import signal
 import subprocess
+from pathlib import Path
 from typing import Callable, Sequence
 
 from scmr_mesh.errors import ScenarioError
@@ -106,17 +107,51 @@ def list_namespaces(prefix: str = NS_PREFIX, *, run: Runner = run_cmd) -> list[s
     return [n for n in names if n.startswith(prefix)]
 
 
-def _kill_pids_in(ns: str, run: Runner) -> int:
+def _ns_inode(ns: str) -> tuple[int, int] | None:
+    """``(st_dev, st_ino)`` of a named namespace (what ``/proc/<pid>/ns/net`` of its processes shows)."""
     try:
-        out = run(("ip", "netns", "pids", ns))
-    except ScenarioError:
-        return 0
-    n = 0
-    for tok in out.split():
+        st = os.stat(f"/run/netns/{ns}")
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _sweep(ns: str, ino: tuple[int, int] | None) -> set[int]:
+    """Pids inside namespace ``ns`` (by its inode, so also after its name is gone) or entering it
+    (``ip netns exec NS ...`` between opening the namespace and ``setns``)."""
+    found: set[int] = set()
+    me = os.getpid()
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit() or int(d.name) == me:
+            continue
         try:
-            os.kill(int(tok), signal.SIGKILL)
+            if ino is not None:
+                st = os.stat(d / "ns" / "net")
+                if (st.st_dev, st.st_ino) == ino:
+                    found.add(int(d.name))
+                    continue
+            argv = (d / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if argv[:4] == [b"ip", b"netns", b"exec", ns.encode()] or (
+                len(argv) > 4 and argv[0].endswith(b"/ip") and argv[1:4] == [b"netns", b"exec", ns.encode()]):
+            found.add(int(d.name))
+    return found
+
+
+def _kill_pids_in(ns: str, run: Runner, ino: tuple[int, int] | None = None) -> int:
+    pids: set[int] = set()
+    try:
+        pids |= {int(t) for t in run(("ip", "netns", "pids", ns)).split() if t.isdigit()}
+    except ScenarioError:
+        pass
+    pids |= _sweep(ns, ino)
+    n = 0
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
             n += 1
-        except (ValueError, ProcessLookupError, PermissionError):
+        except (ProcessLookupError, PermissionError):
             pass
     return n
 
@@ -125,21 +160,52 @@ def cleanup_stale(prefix: str = NS_PREFIX, *, run: Runner = run_cmd) -> list[str
     """Kill processes in, and delete, every namespace starting with ``prefix``.
 
     Only namespaces this package creates carry the ``scmrs-`` prefix.  Returns
-    the names removed.
+    the names removed.  A process still entering a namespace (``ip netns exec``
+    between opening it and ``setns``) is killed too, and after the name is
+    deleted the namespace is swept again by its inode until nothing is left in
+    it, so nothing keeps running in a namespace nobody can name any more.
     """
     if not prefix.startswith(NS_PREFIX):
         raise ScenarioError(f"refusing to clean namespaces with prefix {prefix!r}; it must start with {NS_PREFIX!r}")
     removed = []
     for ns in list_namespaces(prefix, run=run):
-        killed = _kill_pids_in(ns, run)
-        if killed:
-            log.info("killed %d process(es) in %s", killed, ns)
+        ino = _ns_inode(ns)
+        killed = _kill_pids_in(ns, run, ino)
         try:
             run(("ip", "netns", "del", ns))
             removed.append(ns)
         except ScenarioError as exc:
             log.warning("could not delete %s: %s", ns, exc)
+        for _ in range(50):  # a process that entered while we were killing: sweep until none is left
+            late = _sweep(ns, ino)
+            if not late:
+                break
+            for pid in late:
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                    killed += 1
+                except (ProcessLookupError, PermissionError):
+                    pass
+            for pid in late:  # wait for them to be gone (reaped by their parent or zombies)
+                _wait_gone(pid)
+        if killed:
+            log.info("killed %d process(es) in %s", killed, ns)
     return removed
+
+
+def _wait_gone(pid: int, timeout: float = 5.0) -> None:
+    """Wait until ``pid`` has exited (a zombie counts as exited)."""
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    return
+        except OSError:
+            return
+        time.sleep(0.01)
 
 
 _NETEM: bool | None = None
