@@ -245,14 +245,16 @@ def _inv4(m):
 
 
 @njit(cache=True, nogil=True)
-def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit):
+def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit, shade_dir, shade2, shade_from):
     """The road model of a frame in two passes over its pixels.
 
     Pixel features (tables from ``road_model.feature_tables``): ``log(fR/fG)``, ``log(fB/fG)``,
     ``log((fR+fG+fB)/3)`` with f = channel + offset, and ``log1p(round(grad)/8)`` (grad
     clipped to 0..2047).  Pass 1 gathers the pixel moments of every seed region
     (``slot[r] >= 0``): seed ``j`` is the Gaussian with the mean and the unbiased
-    covariance of its pixels plus ``noise2 * I``.  Pass 2 counts, per region, the pixels
+    covariance of its pixels plus ``noise2 * I`` plus ``shade2 * v v^T`` (``v`` = ``shade_dir``,
+    the direction in which shade moves a surface's features) for a seed whose mean log
+    brightness is at least ``shade_from`` (a sunlit seed).  Pass 2 counts, per region, the pixels
     inside some seed's ellipsoid ``(x - mu)^T C^-1 (x - mu) <= limit`` (pixels of a seed
     region are not tested; the caller takes seeds as road).
 
@@ -307,6 +309,9 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit)
                 covs[j, b, a] = c
         for a in range(4):
             covs[j, a, a] += noise2
+            if mus[j, 2] >= shade_from:
+                for b in range(4):
+                    covs[j, a, b] += shade2 * shade_dir[a] * shade_dir[b]
         icovs[j] = _inv4(covs[j])
     inside = np.zeros(k, np.int64)
     d = np.empty(4, np.float64)

@@ -79,6 +79,12 @@ class RoadParams:
         A region is road-like when at least this share of its pixels looks like road.
     noise : float
         Isotropic standard deviation added to every seed covariance (feature units).
+    shade : float
+        Standard deviation (feature units) added to every seed Gaussian along
+        :data:`SHADE_DIRECTION`, so the road in shade and in sun is one surface (0 = off).
+    sunlit : float
+        A seed whose mean grey level is at least this is taken to be in sunlight and gets
+        the shade term; a darker seed (overcast, dusk, a tunnel) does not.
     horizon : float
         Rows above this fraction of the height are never drivable (0 = no prior).
     gap : int
@@ -88,9 +94,11 @@ class RoadParams:
     gamma: float = 1.0
     q: float = 4096.0
     seed_share: float = 0.10
-    p: float = 0.95
+    p: float = 0.9
     frac: float = 0.3
     noise: float = 0.02
+    shade: float = 0.2
+    sunlit: float = 80.0
     horizon: float = 0.0
     gap: int = 20
 
@@ -107,6 +115,10 @@ class RoadParams:
             raise InputError(f"frac must be in (0, 1], got {self.frac}")
         if not self.noise > 0:
             raise InputError(f"noise must be > 0, got {self.noise}")
+        if not (0 <= self.shade and math.isfinite(self.shade)):
+            raise InputError(f"shade must be a finite number >= 0, got {self.shade}")
+        if not (0 <= self.sunlit <= 255):
+            raise InputError(f"sunlit must be a grey level in [0, 255], got {self.sunlit}")
         if not 0 <= self.horizon < 1:
             raise InputError(f"horizon must be in [0, 1), got {self.horizon}")
         if int(self.gap) < 0:
@@ -121,6 +133,13 @@ class RoadParams:
 #: so a near-black pixel's chromaticity does not explode.
 FEATURE_OFFSET = 10.0
 N_FEATURES = 4
+
+#: How shade moves a surface's features (log R/G, log B/G, log brightness, texture), as a unit
+#: vector: in the shadow of a clear sky's sun a grey surface keeps about 0.25 / 0.3 / 0.45 of
+#: its red / green / blue light (skylight only), so log R/G falls by 0.18, log B/G rises by 0.41
+#: and log brightness falls by about 1.2 (Finlayson et al.'s illuminant direction; Alvarez and
+#: Lopez use the same idea for shadow-invariant road detection).  Texture does not change.
+SHADE_DIRECTION = np.array([-0.18, 0.41, -1.2, 0.0]) / math.sqrt(0.18**2 + 0.41**2 + 1.2**2)
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -239,7 +258,9 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     if limit is None:
         limit = _CHI2[params.p] = chi2_quantile(params.p, N_FEATURES)
     inside, _mus, _covs = road_share_kernel(labels, small, grad, slot, int(k), *_tables(),
-                                            float(params.noise) ** 2, float(limit))
+                                            float(params.noise) ** 2, float(limit), SHADE_DIRECTION,
+                                            float(params.shade) ** 2,
+                                            math.log(params.sunlit + FEATURE_OFFSET))
     share = inside / np.maximum(seg.sizes, 1)
     road = share >= params.frac
     road[seeds] = True

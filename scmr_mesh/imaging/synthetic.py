@@ -3,8 +3,11 @@
 Each scene is drawn in a simple pinhole perspective: a horizon row, a
 vanishing point, and a drivable surface whose borders converge on it.
 Textures are multi-scale value noise, the lighting falls off with distance,
-and there are distractors (lane markings that *are* drivable, cars, rocks and
-doors that are not), so segmentation is not trivial.  Everything is derived
+outdoor scenes get soft cast shadows (darker and bluer, still drivable), and
+there are distractors (lane markings that *are* drivable, cars, rocks and
+doors that are not), so segmentation is not trivial.  Then a camera model:
+exposure and white balance per frame, fine surface grain, cos^4 lens
+vignetting, optical blur, signal-dependent (shot + read) sensor noise.  Everything is derived
 from ``numpy.random.default_rng(seed)``: the same ``(kind, seed, size)``
 always gives the same pixels.
 
@@ -93,11 +96,60 @@ def make_scene(kind: str, *, seed: int = 0, width: int = 300, height: int = 225)
         "desert": _desert,
     }[kind]
     truth = draw(rng, img, yy, xx, w, h)
-    # sensor noise and a slight blur, as a camera would give
-    img += rng.normal(0.0, 4.0, img.shape).astype(np.float32)
-    img = cv2.GaussianBlur(img, (3, 3), 0.7)
-    rgb = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    if kind in _OUTDOOR:
+        _cast_shadows(rng, img, yy, xx, w, h)
+    rgb = _camera(rng, img, yy, xx, w, h)
     return rgb, np.where(truth, 255, 0).astype(np.uint8)
+
+
+#: Scenes lit by the sun, which get cast shadows.
+_OUTDOOR = ("structured_road", "dirt_road", "desert")
+
+
+def _cast_shadows(rng, img, yy, xx, w, h) -> None:
+    """Soft shadows of things beside the path (trees, poles, buildings) across the lower image.
+
+    Sunlit surfaces in shadow keep only the sky's light: darker and bluer (R 0.62, G 0.66,
+    B 0.78 of the sunlit value), the ratios of skylight to sun plus skylight on a clear day.
+    Shadows change no label: a shaded road is still road.
+    """
+    n = int(rng.integers(0, 3))
+    if n == 0:
+        return
+    shade = np.zeros((h, w), np.float32)
+    for _ in range(n):
+        # a band from one side, slanted, with a wobbly soft edge
+        y0 = rng.uniform(0.55, 0.95) * h
+        slope = rng.uniform(-0.35, 0.35)
+        thick = rng.uniform(0.04, 0.12) * h
+        reach = rng.uniform(0.35, 0.8) * w
+        from_left = rng.uniform() < 0.5
+        along = xx if from_left else (w - 1 - xx)
+        centre = y0 + slope * (xx - w / 2) + 4 * _noise(rng, 1, w, 15)[0][None, :]
+        band = np.clip(1.0 - np.abs(yy - centre) / thick, 0, 1) * np.clip((reach - along) / 12.0, 0, 1)
+        shade = np.maximum(shade, np.clip(band * 3.0, 0, 1))
+    shade = cv2.GaussianBlur(shade, (0, 0), 2.0)
+    gain = np.array([0.62, 0.66, 0.78], np.float32)
+    factor = 1.0 - shade[..., None] * (1.0 - gain[None, None, :])
+    img *= factor
+
+
+def _camera(rng, img, yy, xx, w, h) -> np.ndarray:
+    """What a cheap robot camera does to the scene's radiance: exposure and white balance,
+    lens vignetting, optical blur, signal-dependent sensor noise, 8-bit quantisation."""
+    # exposure and white balance of this frame
+    img *= rng.uniform(0.85, 1.1) * rng.uniform(0.95, 1.05, 3).astype(np.float32)
+    # fine grain of every surface (gravel, asphalt aggregate, dust): 1-2 px texture
+    img *= (1.0 + 0.05 * _noise(rng, h, w, 1.5))[..., None]
+    # vignetting: cos^4 falloff of a lens with a ~70 degree diagonal field of view
+    r2 = ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / float((w / 2) ** 2 + (h / 2) ** 2)
+    vig = 1.0 / (1.0 + 0.5 * r2) ** 2
+    img *= vig[..., None]
+    img = cv2.GaussianBlur(img, (3, 3), 0.7)
+    # shot noise (variance grows with the signal) plus read noise
+    sigma = np.sqrt(np.clip(img, 0, None) * 0.08 + 4.0)
+    img += rng.normal(0.0, 1.0, img.shape).astype(np.float32) * sigma
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
 
 
 # ----------------------------------------------------------------- geometry
@@ -204,8 +256,15 @@ def _tunnel(rng, img, yy, xx, w, h):
     _paint(img, wall, rock, _texture(rng, h, w, [(25, 8), (15, 2)]), light)
     floor = (yy >= hz) & _between(xx, floor_l, floor_r) & (r > 0.08)
     fcol = np.array(rock) * rng.uniform(0.7, 0.9) + rng.uniform(-10, 10, 3)
-    flight = 0.3 + 0.9 * t
+    # lamps every few metres light the floor fairly evenly: a gentle falloff with
+    # distance and pools of light under each lamp
+    depth = 1.0 / np.maximum(t, 0.03)
+    pools = 0.12 * np.cos(depth * 2.0 + rng.uniform(0, 6)) ** 2
+    flight = 0.65 + 0.45 * t + pools
     _paint(img, floor, fcol, _texture(rng, h, w, [(10, 12), (6, 2)]), flight)
+    # a dark gutter where the floor meets the wall
+    for edge in (floor_l, floor_r):
+        img[(yy >= hz) & (np.abs(xx - edge) < 0.5 + 2.5 * t) & (r > 0.08)] *= 0.45
     # lamps along the crown
     for k in range(5):
         d = (k + 1) / 6
@@ -239,7 +298,7 @@ def _hallway(rng, img, yy, xx, w, h):
     rows = (np.mod(depth * 1.5, 1.0) < 0.06 * np.maximum(depth, 1) ** 0.2) & floor
     u = (xx - vp) / np.maximum(t, 1e-3)
     cols = (np.mod(u / 40.0, 1.0) < 0.05) & floor
-    img[rows | cols] *= 0.8
+    img[rows | cols] *= 0.9  # grout between the tiles
     # skirting boards (not drivable: they are on the wall side of the edge)
     for edge, sgn in ((floor_l, -1), (floor_r, 1)):
         skirt = (yy >= hz) & (np.abs(xx - (edge + sgn * (1 + 4 * t))) < (1 + 4 * t)) & ~floor
