@@ -6,31 +6,22 @@ cross-validation (:func:`scmr_mesh.imaging.evaluate.cross_validate`, ``scmr
 eval --cv``), and docs/ACCURACY.md reports the cross-validated scores beside
 the in-sample ones.
 
-Steps, on the blurred 300x225 frame:
+Steps, on the frame area-downsampled to 150x112 (:data:`WORK_SHAPE`):
 
-1. **Regions.**  SRM (Q = 16 x q = 512) on the frame put through a power-law tone curve
-   ``255 (v / 255) ** gamma`` (gamma = 0.35): SRM's merge bound is in absolute
-   grey levels, so in a dark frame the road, the pavement and the building
-   bases differ by less than the bound and merge; on a perceptual scale they
-   do not (Weber's law).
-2. **Self-supervised seeds.**  The regions that cover at least ``seed_share``
-   of the thesis's bottom-centre cell (rows 83-100 %, columns 33-67 %) are
-   taken to be road, as Stanley's vision system took the patch the laser
-   scanners had found drivable (Dahlkamp et al. 2006).
-3. **A per-frame appearance model.**  Each seed region gives one Gaussian
-   (mean and covariance of its pixels) over four pixel features: two
-   log-chromaticities ``log(R/G)``, ``log(B/G)`` (unchanged by the
-   illuminant's brightness: Alvarez et al.'s illuminant-invariant idea), the
-   log-brightness, and log texture (Sobel magnitude).  The mixture of the
-   seeds' Gaussians is the road model (Dahlkamp et al. keep several road
-   Gaussians for the same reason: shade, puddles, wheel tracks).
-4. **Classification.**  A region is road-like when its mean feature vector
-   lies inside the ``p``-quantile ellipsoid (chi-square with 4 degrees of
-   freedom) of some seed Gaussian; a small isotropic ``noise`` term keeps a
-   nearly uniform seed from rejecting everything.
-5. **Geometry.**  Rows above ``horizon`` of the height are dropped; only
-   road-like pixels 4-connected to the bottom-centre cell stay; a bottom-up
-   column fill bridges gaps of up to ``gap`` pixels (lane markings).
+1. **Regions.**  SRM with Q = 4096 (``RoadParams.q``).
+2. **Self-supervised seeds** (:func:`seed_regions`).  The regions that cover at least
+   ``seed_share`` of the thesis's bottom-centre cell and reach its lower half (ground
+   contact: a vehicle ahead ends above it) are taken to be road, as Stanley's vision
+   system took the patch the laser scanners had found drivable (Dahlkamp et al. 2006).
+3. **A per-frame appearance model.**  Each seed region gives one Gaussian (mean and
+   covariance of its pixels) over four pixel features: ``log(R/G)``, ``log(B/G)``
+   (Alvarez et al.'s illuminant-invariant idea), log-brightness and log texture
+   (Sobel magnitude).  A sunlit seed's Gaussian is widened along
+   :data:`SHADE_DIRECTION`, so the same surface in shade still matches.
+4. **Classification.**  A region is road-like when at least ``frac`` of its pixels lie
+   inside the ``p``-quantile chi-square(4) ellipsoid of some seed.
+5. **Geometry.**  Only road-like regions 4-connected to a seed stay; the caller's column
+   fill bridges lane markings.
 
 References
 ----------
