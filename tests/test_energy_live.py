@@ -43,6 +43,25 @@ def test_never_plans_an_unreachable_tier():
     assert "local" not in placer(View(cloud=("c1",), local=False), Frame(4, 100_000))
 
 
+def test_peer_robots_are_weighed_with_their_own_clock_and_only_without_a_cloud():
+    from scmr_mesh.energy.placement import LinkEstimate, Task, energy_terms
+    from scmr_mesh.mesh.robot import Reachable
+
+    placer = EnergyPlacer(PROFILES["robot1"], host_hz=2e9)
+    no_cloud = Reachable(peer=("r4",), clocks={"r4": PROFILES["robot4"].clock_hz}, local=True)
+    plan = placer(no_cloud, Frame(0, 100_000))
+    assert "peer" in plan
+    p, _ = placer._pending[0]
+    peer = next(o for o in p.options if o["tier"] == "peer")
+    assert peer["remote_hz"] == PROFILES["robot4"].clock_hz  # the peer's clock, from its load message
+    want = energy_terms(Task(placer.task_for(100_000).cycles, 100_000, placer.task_for(100_000).bytes_down),
+                        PROFILES["robot1"], LinkEstimate(ASSUMED_LINK.up_Bps, ASSUMED_LINK.down_Bps,
+                                                         remote_hz=PROFILES["robot4"].clock_hz), tier="peer")
+    assert peer["robot_energy_j"] == pytest.approx(want["e_cloud_j"])
+    with_cloud = Reachable(cloud=("c1",), peer=("r4",), clocks={"r4": 2.83e9}, local=True)
+    assert "peer" not in placer(with_cloud, Frame(1, 100_000))
+
+
 def test_learns_link_cycles_and_reply_size_and_records_energy():
     prof = PROFILES["robot1"]
     placer = EnergyPlacer(prof, host_hz=2e9, robot_id="r1")

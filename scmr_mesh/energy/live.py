@@ -31,6 +31,7 @@ true on those records).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 from typing import Any
@@ -147,6 +148,13 @@ class EnergyPlacer:
     def _link(self, tier: str) -> LinkEstimate:
         return self.links.estimate(tier) or self.assumed_link
 
+    @staticmethod
+    def _peer_clock(view: Any) -> float | None:
+        """Clock (Hz) of the first peer the view offers (spare capacity first), if it published one."""
+        peers = view.nodes("peer") if hasattr(view, "nodes") else ()
+        clocks = getattr(view, "clocks", {}) or {}
+        return clocks.get(peers[0]) if peers else None
+
     # ---------------------------------------------------------- the hook
     def __call__(self, view: Any, frame: Any) -> list[str]:
         """``Robot.placement``: the tiers to try for ``frame``, best first.
@@ -155,9 +163,14 @@ class EnergyPlacer:
         and ``bytes``.
         """
         reachable = [t for t in REMOTE_TIERS if view.nodes(t)]
+        if "peer" in reachable and "cloud" in reachable:
+            reachable.remove("peer")  # robots serve robots only while no cloud is alive (docs/R2R.md)
         with self._lock:
             task = self.task_for(frame.bytes)
             links = {t: self._link(t) for t in REMOTE_TIERS}
+            peer_hz = self._peer_clock(view)
+            if peer_hz is not None:  # E_saved with the best spare peer's own clock (its load message)
+                links["peer"] = dataclasses.replace(links["peer"], remote_hz=peer_hz)
             p = choose_placement(
                 task, self.profile, reachable=reachable, links=links, dvs=self.dvs, cloud_factor=self.cloud_factor
             )

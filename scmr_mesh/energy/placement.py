@@ -40,8 +40,8 @@ __all__ = ["REMOTE_TIERS", "Task", "LinkEstimate", "Placement", "energy_terms", 
 
 log = logging.getLogger(__name__)
 
-#: Remote tiers in the order they are evaluated.
-REMOTE_TIERS = ("cloud", "leader")
+#: Remote tiers in the order they are evaluated (``peer``: another robot of the R2R tier).
+REMOTE_TIERS = ("cloud", "leader", "peer")
 _TASK_FIELDS = ("cycles", "bytes_up", "bytes_down", "deadline_s")
 
 
@@ -166,6 +166,8 @@ def _remote_hz(tier: str, profile: Profile, link: LinkEstimate, cloud_factor: fl
         return link.remote_hz
     if tier == "leader":
         return PROFILES["leader"].clock_hz
+    if tier == "peer":  # a robot like this one, unless its load message said its clock
+        return profile.clock_hz
     return cloud_factor * profile.clock_hz
 
 

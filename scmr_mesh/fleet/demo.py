@@ -1,10 +1,12 @@
 """``scmr demo``: the fleet demo on one host (what ``make demo`` runs).
 
-A cloud, a leader and 4 robots on loopback send built-in synthetic scenes
+A cloud, a dedicated leader and 4 robots (r1 and r2 leader-capable) on
+loopback send built-in synthetic scenes
 (:data:`scmr_mesh.imaging.synthetic.SCENE_KINDS`, one kind per robot) at 5 Hz
-for 20 s; the cloud is SIGKILLed at 6 s and restarted at 10 s (a cold start
-of the cloud takes seconds on a busy 2-core box, so the run goes on long
-enough to see it answer again).  Nothing to
+for 20 s; the cloud is SIGKILLed at 6 s and restarted at 10 s, and at 8 s,
+while the cloud is out, whichever node leads is SIGKILLed too: a robot takes
+the lead (docs/R2R.md).  The run goes on long enough to see the restarted
+cloud answer again.  Nothing to
 install or download.  At the end it prints the report table and where the
 report, logs, masks and pictures are:
 
@@ -28,7 +30,8 @@ from scmr_mesh import cliargs as ca
 __all__ = ["register", "render_overlays", "render_timeline"]
 
 #: BGR colours of the serving tiers in the pictures.
-TIER_BGR = {"cloud": (200, 120, 20), "leader": (0, 140, 255), "local": (170, 40, 170), None: (0, 0, 230)}
+TIER_BGR = {"cloud": (200, 120, 20), "leader": (0, 140, 255), "peer": (60, 170, 60), "local": (170, 40, 170),
+            None: (0, 0, 230)}
 
 
 def _outage(text: str) -> tuple[float, float]:
@@ -42,9 +45,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "demo",
         help="the fleet demo on one host (what `make demo` runs)",
         description=(
-            "Run a cloud, a leader and 4 robots on loopback on built-in synthetic scenes, kill the "
-            "cloud in the middle (SIGKILL at 6 s, restart at 10 s of a 20 s run, leaving time for "
-            "the restarted cloud to start up and answer again), and write the "
+            "Run a cloud, a dedicated leader and 4 robots (the first two leader-capable) on loopback on "
+            "built-in synthetic scenes, kill the cloud in the middle (SIGKILL at 6 s, restart at 10 s of a "
+            "20 s run, leaving time for the restarted cloud to start up and answer again) and, while it is "
+            "out, the node that leads (at 8 s: a robot takes the lead), and write the "
             "report, the peers' logs, every mask and two pictures (ToR timeline by tier, overlays "
             "before/during/after the outage).  Takes 30-50 s.  Exit 1 if a request or a "
             "telemetry record was lost, or a peer failed (the summary's PROBLEM lines)."
@@ -57,6 +61,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=5.0, metavar="HZ", help="frames/s per robot (default: %(default)s)")
     p.add_argument("--cloud-outage", type=ca.parsed(_outage, what="START:END seconds with 0 <= START < END", example="6:10", positive=False, keep_text=True), default="6:10", metavar="START:END",
                    help="cloud SIGKILL and restart times in s (default: %(default)s)")
+    p.add_argument("--leader-crash", type=ca.non_negative("seconds", hi=604800, example="8"), default=8.0, metavar="S",
+                   help="SIGKILL whichever node leads at S s (default: %(default)s; another candidate takes "
+                        "the lead)")
+    p.add_argument("--no-leader-crash", action="store_true", help="do not crash the leader")
     p.add_argument("--quiet", action="store_true", help="no live progress")
     from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only when used
 
@@ -83,17 +91,23 @@ def _clear_previous(out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scmr_mesh.errors import InputError
     from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
     from scmr_mesh.fleet.plan import FleetConfig, parse_outage
 
     out = Path(args.out)
     _clear_previous(out)
     rerun = _rerun_options(args, out)
+    crash = None if args.no_leader_crash else args.leader_crash
+    if crash is not None and crash >= args.duration:
+        raise InputError(f"--leader-crash {crash:g} is not before the end of the run (--duration {args.duration:g}); "
+                         "give a time inside the run or --no-leader-crash")
     config = FleetConfig(robots=args.robots, duration_s=args.duration, rate_hz=args.rate,
-                         cloud_outage=parse_outage(args.cloud_outage), run_dir=out, rerun=rerun)
+                         cloud_outage=parse_outage(args.cloud_outage), run_dir=out, rerun=rerun,
+                         leader_crash_s=crash)
     print(f"scmr demo: cloud, leader and {args.robots} robots on loopback for {args.duration:g} s; "
-          f"the cloud is killed at {config.cloud_outage[0]:g} s and restarted at {config.cloud_outage[1]:g} s",
-          file=sys.stderr)
+          f"the cloud is killed at {config.cloud_outage[0]:g} s and restarted at {config.cloud_outage[1]:g} s"
+          + (f"; the leader is killed at {crash:g} s" if crash is not None else ""), file=sys.stderr)
     report = run_with_output(config, quiet=args.quiet)
     records = _load_records(out)
     pics = out / "pictures"
@@ -172,8 +186,15 @@ def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, A
     def Y(ms: float) -> int:
         return int(height - bottom - min(ms, y_max) / y_max * (height - top - bottom))
 
+    moves = {c["from"]: c["to"] for c in (report.get("leadership") or {}).get("changes", []) if c.get("from")}
     for f in report.get("faults", []):
         a = (f["start_unix_ns"] - t_ref) / 1e9
+        if f.get("tier") == "leader":  # the lead passes on: a marker, not a lost tier
+            cv2.line(img, (X(a), top), (X(a), height - bottom), TIER_BGR["leader"], 1)
+            label = f"leader {f['target']} killed" + (f" -> {moves[f['target']]} leads" if f["target"] in moves else "")
+            cv2.putText(img, label, (X(a) + 4, top + 30), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 90, 160), 1,
+                        cv2.LINE_AA)
+            continue
         b = ((f["end_unix_ns"] - t_ref) / 1e9) if f.get("end_unix_ns") else t_max
         cv2.rectangle(img, (X(a), top), (X(b), height - bottom), (225, 225, 225), -1)
         cv2.putText(img, f"{f['target']} down", (X(a) + 4, top + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
@@ -202,7 +223,7 @@ def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, A
         tor = r.get("tor_ms") or 0.0
         cv2.circle(img, (X(x), Y(tor)), 3, colour, -1, cv2.LINE_AA)
     lx = left + 10
-    for name in ("cloud", "leader", "local", None):
+    for name in ("cloud", "leader", "peer", "local", None):
         label = name or "failed"
         cv2.circle(img, (lx, top - 8), 5, TIER_BGR[name], -1)
         cv2.putText(img, label, (lx + 10, top - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)

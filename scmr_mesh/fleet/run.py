@@ -472,8 +472,8 @@ class FleetRun:
         node = leaders[0]
         peer = LEADER if node == "leader0" else node
         t_kill = self.sup.kill(peer)
-        self.faults.append({"kind": "crash", "target": node, "tier": "leader", "start_unix_ns": t_kill,
-                            "end_unix_ns": None, "ready_unix_ns": None, "robots": None,
+        self.faults.append({"kind": "crash", "target": node, "peer": peer, "tier": "leader",
+                            "start_unix_ns": t_kill, "end_unix_ns": None, "ready_unix_ns": None, "robots": None,
                             "fallback": ["peer", "leader"]})
         log.info("leader %s SIGKILLed at %.3f s", node, now)
 
@@ -579,9 +579,12 @@ def fleet_problems(report: Mapping[str, Any]) -> list[str]:
             out.append(f"{label} was restarted at {(f['end_unix_ns'] - t0) / 1e9:.2f} s but never became "
                        "ready" + (f" (it exited with status {rc})" if rc not in (None, 0) else "")
                        + (f"; see {p['log']}" if p.get("log") else ""))
+    # peers a fault killed on purpose (a leader crash, --kill-cloud) and nobody restarted
+    killed = {str(f.get(k)) for f in report.get("faults") or [] if f.get("kind") == "crash"
+              and f.get("end_unix_ns") is None for k in ("peer", "target") if f.get(k)}
     for name, p in peers.items():
         rc = p.get("exit")
-        if rc not in (None, 0):
+        if rc not in (None, 0) and not (rc == -9 and name in killed):
             what = f"killed by signal {-rc}" if rc < 0 else f"exited with status {rc}"
             out.append(f"peer {name} {what}; see {p.get('log')}")
     tel = report.get("telemetry")

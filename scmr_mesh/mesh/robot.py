@@ -749,8 +749,11 @@ class Robot:
                 break
             if tier == "local":
                 # the view may have changed while the plan was tried (a new leader was elected, a peer
-                # freed up): try what is new before computing alone; in an election, wait for it briefly
-                winner = self._retry_fresh(attempt, tried, t_end)
+                # freed up): try what is new before computing alone; in an election, wait for it briefly.
+                # Not when the placement chose local while remote nodes were there (the energy policy).
+                nothing_remote = not (view.cloud or view.leader or view.peer)
+                if any(a["tier"] != "local" for a in attempts) or nothing_remote:
+                    winner = self._retry_fresh(attempt, tried, t_end)
                 if winner is None:
                     winner = self._run_local(frame, attempts)
                 continue

@@ -18,9 +18,9 @@ Output (:func:`leadership`)::
 
 ``succession_ms`` is the time from the old leader's loss (its crash, the
 start of the link fault that cut it off, its stop) to the new leader's claim;
-``wait_ms`` is the longest a robot waited for the new leader after the loss
-(from the loss, or from its first request after it, to the new leader's first
-answer to it).  ``gap_ms`` has a floor of one request period (a robot at 2 Hz
+``wait_ms`` is the longest a robot went without the R2R tier after the loss
+(from the loss, or from its first request after it, to the first answer of
+the new leader or of a peer robot).  ``gap_ms`` has a floor of one request period (a robot at 2 Hz
 asks every 500 ms); ``succession_ms`` and ``wait_ms`` do not.
 
 ``cause`` is ``start`` (the first leader), ``crash`` (the old leader's
@@ -114,16 +114,31 @@ def succession_ms(t_lost: int | None, t_new: int) -> float | None:
     return None if t_lost is None else (t_new - t_lost) / 1e6
 
 
+def _r2r_answers(records: Iterable[Mapping[str, Any]], new: str) -> dict[str, list[int]]:
+    """Per robot, when the new leader or a peer robot answered it."""
+    by_robot: dict[str, list[int]] = {}
+    for r in records:
+        if r.get("ok") and r.get("received_unix_ns") and (
+                (r.get("tier") == "leader" and r.get("served_by") == new) or r.get("tier") == "peer"):
+            by_robot.setdefault(r["robot"], []).append(int(r["received_unix_ns"]))
+    for v in by_robot.values():
+        v.sort()
+    return by_robot
+
+
 def wait_ms(records: Sequence[Mapping[str, Any]], t_lost: int | None, new: str,
             until: int | None = None) -> float | None:
-    """Longest a robot waited for a leader after the loss: per robot, from ``max(loss, its first request
-    sent after the loss)`` to the new leader's first answer; the largest over the robots the new leader
-    answered before ``until`` (the next change: robots on the far side of a partition do not count)."""
+    """Longest a robot went without the R2R tier after the loss: per robot, from ``max(loss, its first
+    request sent after the loss)`` to the first answer of the new leader or of a peer robot; the largest
+    over the robots the new leader answered before ``until`` (the next change: robots on the far side of
+    a partition do not count)."""
     if t_lost is None:
         return None
     waits = []
-    for robot, answers in _answers(records, new).items():
-        if until is not None and (not answers or answers[0] > until):
+    served = _answers(records, new)
+    for robot, answers in _r2r_answers(records, new).items():
+        first_lead = served.get(robot, [])
+        if until is not None and (not first_lead or first_lead[0] > until):
             continue
         sent_after = [int(r["sent_unix_ns"]) for r in records
                       if r.get("robot") == robot and r.get("sent_unix_ns") and int(r["sent_unix_ns"]) >= t_lost]

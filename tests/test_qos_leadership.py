@@ -1,0 +1,71 @@
+"""The report's leadership block (scmr_mesh/qos/leadership.py), on hand-made timelines."""
+
+from __future__ import annotations
+
+from scmr_mesh.qos.leadership import gap_ms, leadership, wait_ms
+
+S = 1_000_000_000
+T0 = 100 * S
+
+
+def ev(t_s, node, event, term, cause=""):
+    return {"t_unix_ns": T0 + int(t_s * S), "node": node, "event": event, "term": term, "cause": cause}
+
+
+def rec(robot, t_s, tier, served_by, tor_ms=10.0):
+    sent = T0 + int(t_s * S)
+    return {"robot": robot, "ok": True, "tier": tier, "served_by": served_by, "sent_unix_ns": sent,
+            "received_unix_ns": sent + int(tor_ms * 1e6), "tor_ms": tor_ms}
+
+
+def test_a_crash_passes_the_lead_with_its_times():
+    events = [ev(0.0, "L", "lead", 1), ev(5.03, "r1", "lead", 2)]
+    faults = [{"kind": "crash", "target": "L", "start_unix_ns": T0 + 5 * S, "end_unix_ns": None}]
+    records = ([rec("r2", t / 10, "leader", "L") for t in range(10, 50, 5)]
+               + [rec("r2", 5.0, "peer", "r3")] + [rec("r2", t / 10, "leader", "r1") for t in range(55, 80, 5)])
+    out = leadership(events, records, faults, t0_unix_ns=T0)
+    start, move = out["changes"]
+    assert start == {"t_s": 0.0, "from": None, "to": "L", "term": 1, "gap_ms": None, "cause": "start",
+                     "succession_ms": None, "wait_ms": None}
+    assert (move["from"], move["to"], move["cause"], move["term"]) == ("L", "r1", "crash", 2)
+    assert move["succession_ms"] == 30.0
+    # r2's last answer from L at 4.5 s (+10 ms), first from r1 at 5.5 s (+10 ms): 1000 ms, a request period
+    assert move["gap_ms"] == 1000.0
+    # it was served by a peer at 5.0 s: it went 10 ms without the tier (its request sent at the crash)
+    assert move["wait_ms"] == 10.0
+    assert out["leaders_at_end"] == ["r1"]
+    assert out["converged_after_heal_ms"] is None
+
+
+def test_a_partition_elects_on_the_far_side_and_the_heal_leaves_one():
+    faults = [{"kind": "partition", "groups": [["L", "r1"], ["r3", "r4"]],
+               "start_unix_ns": T0 + 4 * S, "end_unix_ns": T0 + 10 * S}]
+    events = [ev(0, "L", "lead", 1), ev(4.3, "r3", "lead", 2),
+              ev(10.15, "L", "step_down", 2, "outranked by r3 (term 2 vs 1)")]
+    out = leadership(events, [], faults, t0_unix_ns=T0)
+    link = out["changes"][1]
+    assert (link["from"], link["to"], link["cause"]) == ("L", "r3", "link")
+    assert link["succession_ms"] == 300.0  # from the start of the cut
+    heal = out["changes"][2]
+    assert (heal["from"], heal["to"], heal["cause"]) == ("L", "r3", "heal")
+    assert out["leaders_at_end"] == ["r3"]
+    assert out["converged_after_heal_ms"] == 150.0
+    assert [p["leaders"] for p in out["leaders_over_time"]] == [["L"], ["L", "r3"], ["r3"]]
+
+
+def test_changes_after_the_first_graceful_stop_are_the_end_of_the_run():
+    events = [ev(0, "L", "lead", 1), ev(9.0, "L", "step_down", 1, "stopping"), ev(9.01, "r1", "lead", 2)]
+    out = leadership(events, [], [], t0_unix_ns=T0)
+    assert [c["to"] for c in out["changes"]] == ["L"] and out["leaders_at_end"] == ["L"]
+
+
+def test_two_leaders_left_are_reported_as_two():
+    events = [ev(0, "L", "lead", 1), ev(1, "r1", "lead", 1)]
+    out = leadership(events, [], [], t0_unix_ns=T0)
+    assert out["leaders_at_end"] == ["L", "r1"]
+
+
+def test_gap_and_wait_need_answers_from_both():
+    assert gap_ms([], "L", "r1", T0) is None
+    assert wait_ms([], T0, "r1") is None
+    assert gap_ms([rec("a", 1, "leader", "L")], None, "r1", T0) is None
