@@ -432,7 +432,7 @@ class Service:
     def _negotiate(self, query, req: dict, t_arrival: float) -> None:
         neg = self.negotiator
         d = neg.offer((req["robot"], req["seq"]), req["priority"], robot=req["robot"],
-                      payload=(query, req, t_arrival))
+                      payload=(query, req, t_arrival), size=len(req["image"]))
         for e in d.refused:
             q, r, _ = e.payload
             self._reply_error(

@@ -14,7 +14,12 @@ request rate:
   never displaced by one of lower or equal priority;
 * an optional ``per_robot`` quota bounds how many waiting requests one robot may hold,
   so one robot flooding the cloud cannot fill the queue;
-* free workers take the highest priority first, oldest first among equals.
+* free workers take the highest priority first, oldest first among equals;
+* optionally (``ranking=UtilityRanking(...)``) requests are ranked instead by their
+  **utility** of thesis Eq 3.14, ``u_i = 1 / (w_t * max_j t_ij + w_e * sum_j e_ij)``, with
+  ``t_ij`` the request's predicted service time here (learnt online from its size,
+  :class:`ServiceTimeModel`) and ``e_ij`` its expense at this server's prices (CPU seconds
+  and megabytes); willingness to pay then breaks ties.
 
 Every refused or displaced request must get an explicit "busy" answer at once
 (:class:`Decision` lists them), so a robot falls back to the leader or to local
@@ -47,11 +52,12 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import math
 import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, Hashable
+from typing import Any, Callable, Hashable, Sequence
 
 from scmr_mesh import cliargs as ca
 
@@ -63,6 +69,120 @@ REASON_DISPLACED = "displaced"  # pushed out of the queue by a higher-priority r
 REASON_MINIMUM = "minimum"      # priority below the negotiator's minimum
 REASON_QUOTA = "quota"          # the robot already holds its share of the queue
 REASON_CLOSED = "closed"        # the negotiator was closed
+
+
+def utility(times_s: Sequence[float], expenses: Sequence[float], *, w_time: float, w_expense: float) -> float:
+    """Utility of a task (thesis Eq 3.14): ``1 / (w_t * max_j t_ij + w_e * sum_j e_ij)``.
+
+    Parameters
+    ----------
+    times_s : sequence of float
+        ``t_ij``: completion time of each of the task's requests (s); the task
+        completes with its slowest request.
+    expenses : sequence of float
+        ``e_ij``: expense of the task on each resource ``j`` (price x amount used).
+    w_time, w_expense : float, keyword-only
+        ``omega_t`` and ``omega_e``: how much completion time and expense weigh (>= 0,
+        not both 0).
+
+    Returns
+    -------
+    float
+        The utility (``inf`` for a task that costs nothing).
+
+    Examples
+    --------
+    >>> utility([0.2, 0.5], [1.0, 3.0], w_time=2.0, w_expense=0.25)   # 1 / (2*0.5 + 0.25*4)
+    0.5
+    """
+    if w_time < 0 or w_expense < 0 or (w_time == 0 and w_expense == 0):
+        raise ValueError(f"weights must be >= 0 and not both 0, got w_time={w_time}, w_expense={w_expense}")
+    cost = w_time * max(times_s, default=0.0) + w_expense * sum(expenses)
+    return math.inf if cost <= 0 else 1.0 / cost
+
+
+class ServiceTimeModel:
+    """Predicts a request's service time from its size: an online least-squares line.
+
+    ``t = a + b * bytes``, fitted with exponential forgetting (``memory`` requests)
+    from the service times :meth:`Negotiator.done` reports.  Until two sizes have
+    been seen it predicts the mean (``prior_s`` before any observation).
+
+    Examples
+    --------
+    >>> m = ServiceTimeModel(prior_s=0.05)
+    >>> for size, t in [(1000, 0.011), (3000, 0.013), (2000, 0.012)]:
+    ...     m.observe(size, t)
+    >>> round(m.predict(5000), 4)
+    0.015
+    """
+
+    def __init__(self, *, prior_s: float = 0.05, memory: float = 200.0) -> None:
+        self.prior_s = float(prior_s)
+        self._decay = 1.0 - 1.0 / max(float(memory), 1.0)
+        self._n = self._sx = self._sy = self._sxx = self._sxy = 0.0
+
+    def observe(self, size: float, service_s: float) -> None:
+        """One finished request of ``size`` bytes that took ``service_s``."""
+        d = self._decay
+        x, y = float(size), float(service_s)
+        self._n = d * self._n + 1.0
+        self._sx = d * self._sx + x
+        self._sy = d * self._sy + y
+        self._sxx = d * self._sxx + x * x
+        self._sxy = d * self._sxy + x * y
+
+    def predict(self, size: float | None) -> float:
+        """Predicted service time of a request of ``size`` bytes (s, >= 0)."""
+        if self._n <= 0:
+            return self.prior_s
+        mean_y = self._sy / self._n
+        var = self._sxx / self._n - (self._sx / self._n) ** 2
+        if size is None or var <= 1e-9 * max(1.0, (self._sx / self._n) ** 2):
+            return max(0.0, mean_y)
+        b = (self._sxy / self._n - (self._sx / self._n) * mean_y) / var
+        a = mean_y - b * self._sx / self._n
+        return max(0.0, a + b * float(size))
+
+
+@dataclass(frozen=True)
+class UtilityRanking:
+    """Rank requests by their Eq 3.14 utility at this server (the thesis's CPU and bandwidth elements).
+
+    A request here is a task of one request on one resource (this server), so
+    ``max_j t_ij`` is its predicted service time ``t`` and ``sum_j e_ij`` its
+    expense ``price_per_s * t + price_per_mb * megabytes``.  Higher utility is
+    served first; willingness to pay breaks ties.  With ``price_per_mb = 0`` the
+    ranking is shortest-predicted-job first.
+
+    Parameters
+    ----------
+    w_time, w_expense : float
+        ``omega_t``, ``omega_e`` of Eq 3.14.
+    price_per_s : float
+        This resource's price per second of service (``p_j`` for CPU).
+    price_per_mb : float
+        Its price per megabyte (2**20 bytes) received (bandwidth).
+    """
+
+    w_time: float = 1.0
+    w_expense: float = 1.0
+    price_per_s: float = 1.0
+    price_per_mb: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("w_time", "w_expense", "price_per_s", "price_per_mb"):
+            v = getattr(self, name)
+            if not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v}")
+        if self.w_time == 0 and self.w_expense == 0:
+            raise ValueError("w_time and w_expense cannot both be 0")
+
+    def score(self, est_s: float, size: float | None) -> float:
+        """The utility of serving a request predicted to take ``est_s`` seconds, of ``size`` bytes."""
+        mb = (size or 0) / 1048576.0
+        return utility([est_s], [self.price_per_s * est_s + self.price_per_mb * mb],
+                       w_time=self.w_time, w_expense=self.w_expense)
 
 
 @dataclass(order=False)
@@ -94,6 +214,14 @@ class Entry:
     arrived: float = 0.0
     seq: int = 0
     reason: str | None = None
+    size: int | None = None
+    #: Eq 3.14 utility when the negotiator ranks by utility (None: ranked by priority).
+    utility: float | None = None
+
+    @property
+    def key(self) -> tuple:
+        """What ranks the entry (higher first): ``(utility, priority)`` or ``(priority,)``."""
+        return (self.priority,) if self.utility is None else (self.utility, self.priority)
 
 
 @dataclass
@@ -146,6 +274,8 @@ class Negotiator:
         Requests below this priority are refused at once.
     per_robot : int or None, keyword-only
         Most waiting requests per robot (None: no quota).
+    ranking : UtilityRanking or None, keyword-only
+        Rank by Eq 3.14 utility instead of by priority (None: by priority, Table 3.6).
     clock : callable, keyword-only
         Monotonic clock in seconds (injectable for tests).
 
@@ -162,6 +292,7 @@ class Negotiator:
         workers: int = 1,
         min_priority: int = 0,
         per_robot: int | None = None,
+        ranking: UtilityRanking | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if capacity < 0:
@@ -174,14 +305,16 @@ class Negotiator:
         self.workers = int(workers)
         self.min_priority = int(min_priority)
         self.per_robot = per_robot
+        self.ranking = ranking
+        self.service_model = ServiceTimeModel()
         self._clock = clock
         self._cond = threading.Condition()
         self._seq = itertools.count()
         # Two heaps over the same waiting entries, lazily cleaned: ``_best`` pops the
         # next to serve (max priority, then oldest), ``_worst`` finds the one to displace
         # (min priority, then newest).  ``_waiting`` maps seq -> entry for live ones.
-        self._best: list[tuple[int, int, Entry]] = []
-        self._worst: list[tuple[int, int, Entry]] = []
+        self._best: list[tuple[tuple, int, Entry]] = []
+        self._worst: list[tuple[tuple, int, Entry]] = []
         self._waiting: dict[int, Entry] = {}
         self._per_robot: Counter = Counter()
         self._in_service = 0
@@ -203,7 +336,7 @@ class Negotiator:
     def waiting_entries(self) -> list[Entry]:
         """Waiting requests in service order (highest priority, then oldest)."""
         with self._cond:
-            return sorted(self._waiting.values(), key=lambda e: (-e.priority, e.seq))
+            return sorted(self._waiting.values(), key=lambda e: (tuple(-k for k in e.key), e.seq))
 
     def retry_after_ms(self) -> float:
         """Estimated time until a worker could take a newly queued request, in ms."""
@@ -217,8 +350,8 @@ class Negotiator:
     # -- internals -------------------------------------------------------------------
     def _push(self, e: Entry) -> None:
         self._waiting[e.seq] = e
-        heapq.heappush(self._best, (-e.priority, e.seq, e))
-        heapq.heappush(self._worst, (e.priority, -e.seq, e))
+        heapq.heappush(self._best, (tuple(-k for k in e.key), e.seq, e))
+        heapq.heappush(self._worst, (e.key, -e.seq, e))
         if e.robot is not None:
             self._per_robot[e.robot] += 1
         self.stats.max_waiting = max(self.stats.max_waiting, len(self._waiting))
@@ -256,7 +389,8 @@ class Negotiator:
 
     # -- the protocol ----------------------------------------------------------------
     def offer(
-        self, request_id: Hashable, priority: int, *, robot: str | None = None, payload: Any = None
+        self, request_id: Hashable, priority: int, *, robot: str | None = None, payload: Any = None,
+        size: int | None = None,
     ) -> Decision:
         """Rank a new request: admit it (maybe displacing a lower one) or refuse it.
 
@@ -268,6 +402,8 @@ class Negotiator:
         robot : str, optional, keyword-only
         payload : Any, optional, keyword-only
             Kept on the entry (for example the query to answer later).
+        size : int, optional, keyword-only
+            The request's size in bytes (predicts its service time for the utility ranking).
 
         Returns
         -------
@@ -275,7 +411,9 @@ class Negotiator:
             ``refused`` lists every entry that must be answered "busy" now.
         """
         with self._cond:
-            e = Entry(request_id, int(priority), robot, payload, self._clock(), next(self._seq))
+            e = Entry(request_id, int(priority), robot, payload, self._clock(), next(self._seq), size=size)
+            if self.ranking is not None:
+                e.utility = self.ranking.score(self.service_model.predict(size), size)
             self.stats.offered += 1
             retry = self._retry_after_locked()
             if self._closed:
@@ -294,7 +432,7 @@ class Negotiator:
             refused: list[Entry] = []
             if len(self._waiting) >= limit:
                 worst = self._peek_worst()
-                if worst is None or worst.priority >= e.priority:
+                if worst is None or worst.key >= e.key:
                     return Decision(e, False, [self._refuse(e, REASON_FULL)], retry)
                 self._forget(worst)
                 refused.append(self._refuse(worst, REASON_DISPLACED))
@@ -351,6 +489,8 @@ class Negotiator:
             self.stats.served += 1
             if service_s is not None and service_s >= 0:
                 self._service_s = 0.8 * self._service_s + 0.2 * service_s
+                if entry is not None and entry.size is not None:
+                    self.service_model.observe(entry.size, service_s)
             self._cond.notify()
 
     def close(self) -> list[Entry]:
@@ -390,7 +530,7 @@ def jain_index(values) -> float:
 
 # --------------------------------------------------------------------------- CLI glue
 def add_arguments(parser) -> None:
-    """Add ``--queue``, ``--min-priority`` and ``--per-robot`` to a service's parser."""
+    """Add ``--queue``, ``--min-priority``, ``--per-robot`` and the ``--rank`` flags to a service's parser."""
     g = parser.add_argument_group("request negotiator (thesis Table 3.6)")
     g.add_argument(
         "--queue", type=ca.count("waiting requests", lo=0, hi=100000, example="16"), default=None, metavar="N",
@@ -402,6 +542,17 @@ def add_arguments(parser) -> None:
                    help="with --queue: refuse requests below priority P at once (default 0)")
     g.add_argument("--per-robot", type=ca.count("requests", hi=100000), default=None, metavar="N",
                    help="with --queue: at most N waiting requests per robot (default: no quota)")
+    g.add_argument("--rank", choices=("priority", "utility"), default="priority",
+                   help="with --queue: serve by willingness to pay (priority, Table 3.6; default) or by the "
+                        "Eq 3.14 utility 1/(w_t * t + w_e * expense), t = the request's predicted service time "
+                        "(learnt from its size), expense = --price-cpu * t + --price-mb * megabytes")
+    num = ca.non_negative("weight", hi=1e9, example="1")
+    g.add_argument("--w-time", type=num, default=1.0, metavar="W", help="with --rank utility: omega_t (default 1)")
+    g.add_argument("--w-expense", type=num, default=1.0, metavar="W", help="with --rank utility: omega_e (default 1)")
+    g.add_argument("--price-cpu", type=num, default=1.0, metavar="P",
+                   help="with --rank utility: this server's price per second of service (default 1)")
+    g.add_argument("--price-mb", type=num, default=0.0, metavar="P",
+                   help="with --rank utility: its price per megabyte received (default 0: shortest job first)")
 
 
 def service_setup(args) -> Callable[[Any], None] | None:
@@ -413,13 +564,22 @@ def service_setup(args) -> Callable[[Any], None] | None:
         Through :class:`Negotiator` on bad values (the CLI reports them).
     """
     capacity = getattr(args, "queue", None)
+    rank = getattr(args, "rank", "priority")
     if capacity is None:
-        if getattr(args, "per_robot", None) is not None or getattr(args, "min_priority", 0):
+        if getattr(args, "per_robot", None) is not None or getattr(args, "min_priority", 0) or rank != "priority":
             from scmr_mesh.errors import InputError
 
-            raise InputError("--min-priority and --per-robot only apply with --queue N; add --queue")
+            raise InputError("--min-priority, --per-robot and --rank only apply with --queue N; add --queue")
         return None
     from scmr_mesh.errors import InputError
+
+    ranking = None
+    if rank == "utility":
+        try:
+            ranking = UtilityRanking(w_time=args.w_time, w_expense=args.w_expense,
+                                     price_per_s=args.price_cpu, price_per_mb=args.price_mb)
+        except ValueError as exc:
+            raise InputError(f"--rank utility: {exc}; give --w-time or --w-expense > 0") from None
 
     if capacity < 0:
         raise InputError(f"--queue must be >= 0, got {capacity}")
@@ -429,10 +589,11 @@ def service_setup(args) -> Callable[[Any], None] | None:
     def setup(service) -> None:
         service.use_negotiator(
             Negotiator(capacity=capacity, workers=service.state.workers,
-                       min_priority=args.min_priority, per_robot=args.per_robot)
+                       min_priority=args.min_priority, per_robot=args.per_robot, ranking=ranking)
         )
-        log.info("negotiator: queue %d, %d workers, min priority %d, per-robot %s",
-                 capacity, service.state.workers, args.min_priority, args.per_robot)
+        log.info("negotiator: queue %d, %d workers, min priority %d, per-robot %s, rank by %s",
+                 capacity, service.state.workers, args.min_priority, args.per_robot,
+                 "priority" if ranking is None else f"utility ({ranking})")
 
     return setup
 
