@@ -19,7 +19,7 @@ import math
 from collections import defaultdict
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterable, Mapping
 
 from scmr_mesh.energy.model import _check_positive
 from scmr_mesh.energy.placement import REMOTE_TIERS, LinkEstimate, Placement
@@ -193,3 +193,49 @@ class EnergyLedger:
             "deadline_missed": self._missed,
             "per_tier": {t: {"energy_j": self._energy[t], "requests": self._count[t]} for t in sorted(self._energy)},
         }
+
+
+def energy_by_robot(records: Iterable[Mapping[str, Any]], profiles: Mapping[str, str]) -> dict[str, Any]:
+    """Robot energy and where each task ran, per robot, from fleet records (pure).
+
+    Parameters
+    ----------
+    records : iterable of dict
+        The robots' ``records.jsonl`` rows; a robot that ran the energy policy
+        (``scmr robot --profile``) writes ``energy_j`` and ``energy`` on each.
+    profiles : mapping
+        ``{robot: profile name}`` of the robots that were given a profile.
+
+    Returns
+    -------
+    dict
+        ``{robot: {"profile", "total_j", "tasks", "ran": {tier: {"tasks", "energy_j"}},
+        "planned_elsewhere", "deadline_missed", "probes", "costed"}}``: ``ran`` counts
+        each finished request under the tier that answered it (``failed`` when none
+        did); ``planned_elsewhere`` counts the requests that ran on another tier than
+        the policy chose (failover); ``costed`` the records that carried ``energy_j``.
+    """
+    out: dict[str, Any] = {}
+    for robot, prof in profiles.items():
+        out[robot] = {"profile": prof, "total_j": 0.0, "tasks": 0, "ran": {}, "planned_elsewhere": 0,
+                      "deadline_missed": 0, "probes": 0, "costed": 0}
+    for r in records:
+        robot = str(r.get("robot"))
+        if robot not in out:
+            continue
+        o = out[robot]
+        tier = (r.get("tier") or "failed") if r.get("ok") else "failed"
+        slot = o["ran"].setdefault(tier, {"tasks": 0, "energy_j": 0.0})
+        slot["tasks"] += 1
+        o["tasks"] += 1
+        if r.get("energy_j") is not None:
+            e = float(r["energy_j"])
+            slot["energy_j"] += e
+            o["total_j"] += e
+            o["costed"] += 1
+        info = r.get("energy") or {}
+        if info.get("planned_tier") is not None and info.get("planned_tier") != tier:
+            o["planned_elsewhere"] += 1
+        o["deadline_missed"] += int(bool(info.get("deadline_missed")))
+        o["probes"] += int(bool(info.get("probe")))
+    return out

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from scmr_mesh import cliargs as ca
 from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
-from scmr_mesh.fleet.plan import ODS_BACKENDS, FleetConfig, parse_kill, parse_outage
+from scmr_mesh.fleet.plan import ODS_BACKENDS, TABLE_4_3_ROBOTS, FleetConfig, parse_kill, parse_outage
 
 
 def _outage(text: str) -> tuple[float, float]:
@@ -33,6 +33,14 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
                         "--server-arg=scmr_mesh.mesh.testing:stub_process)")
     p.add_argument("--robot-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for every robot (repeatable)")
+    p.add_argument("--profiles", nargs="?", const=",".join(TABLE_4_3_ROBOTS), default=None, metavar="NAMES",
+                   type=ca.parsed(_profile_list, what="comma-separated Table 4.3 profile names (or the flag alone "
+                                  "for robot1..robot4)", example="robot1,robot4"),
+                   help="deal energy profiles to the robots round-robin (default list: Table 4.3's "
+                        "robot1,robot2,robot3,robot4) and turn on energy placement: each robot's energy model "
+                        "(Eq 4.2-4.6) chooses per frame where it runs; the summary shows energy per robot and "
+                        "where each task ran.  Without it robots offload every frame (cloud, then leader, "
+                        "then peers, then local) and no energy is modelled")
     g = p.add_argument_group("R2R tier (docs/R2R.md)")
     g.add_argument("--leader-capable", type=ca.count("robots", lo=0, hi=10000, example="2"), default=None, metavar="N",
                    help="the first N robots run for the lead besides the dedicated leader, and serve other "
@@ -40,6 +48,16 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
     g.add_argument("--bootstrap", default="cloud", metavar="PEER",
                    help="the one peer every robot is handed to connect to (cloud or leader); gossip scouting "
                         "finds the rest (default: %(default)s)")
+
+
+def _profile_list(text: str) -> tuple[str, ...]:
+    from scmr_mesh.energy import PROFILES
+
+    names = tuple(n.strip() for n in str(text).split(",") if n.strip())
+    bad = [n for n in names if n not in PROFILES] or ([] if names else [text])
+    if bad:
+        raise ValueError(f"unknown profile {bad[0]!r} (Table 4.3 has {', '.join(PROFILES)})")
+    return names
 
 
 def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | None) -> FleetConfig:
@@ -53,7 +71,7 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
         server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
         rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
-        leader_crash_s=getattr(args, "leader_crash", None),
+        leader_crash_s=getattr(args, "leader_crash", None), profiles=getattr(args, "profiles", None) or (),
     )
 
 
@@ -75,6 +93,7 @@ stored, duplicates, lost).
 
 Example:
   scmr up --robots 4 --duration 20 --cloud-outage 8:14 --json report.json
+  scmr up --robots 4 --profiles --duration 20     # Table 4.3 profiles, energy placement
   scmr up --robots 8 --clouds 2 --duration 20
 """
 

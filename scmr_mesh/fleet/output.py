@@ -72,11 +72,31 @@ def format_summary(report: Mapping[str, Any]) -> str:
                         if f.get("restart_to_ready_ms") is not None else ""))
     if not report.get("faults"):
         lines.append("  no faults injected")
+    lines.extend(format_energy(report.get("energy")))
     lines.append("  " + format_telemetry(report.get("telemetry")))
     lines.extend(format_leadership(report.get("leadership")))
     for p in report.get("problems") or []:
         lines.append(f"  PROBLEM: {p}")
     return "\n".join(lines)
+
+
+def format_energy(energy: Mapping[str, Any] | None) -> list[str]:
+    """Energy per robot and where its tasks ran (``scmr up --profiles``); nothing without it."""
+    if not energy:
+        return ["  energy: not modelled (no --profiles: robots offloaded every frame, cloud first)"]
+    lines = [f"  energy ({energy.get('placement', 'energy model')}); robot energy in J, tasks per tier where they ran:"]
+    for rid, e in (energy.get("per_robot") or {}).items():
+        ran = ", ".join(f"{t} {v['tasks']} ({v['energy_j']:.2f} J)" for t, v in sorted(e["ran"].items()))
+        extra = []
+        if e.get("planned_elsewhere"):
+            extra.append(f"{e['planned_elsewhere']} ran elsewhere than planned (failover)")
+        if e.get("deadline_missed"):
+            extra.append(f"{e['deadline_missed']} planned past the deadline")
+        if e.get("costed", 0) < e.get("tasks", 0):
+            extra.append(f"{e['tasks'] - e['costed']} not costed")
+        lines.append(f"    {rid:<6} {e['profile']:<8} {e['total_j']:>10.2f} J  {ran or 'no task'}"
+                     + (f"; {'; '.join(extra)}" if extra else ""))
+    return lines
 
 
 def format_telemetry(tel: Mapping[str, Any] | None) -> str:

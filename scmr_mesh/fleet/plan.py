@@ -86,6 +86,11 @@ class FleetConfig:
     leader_crash_s : float or None
         Seconds after the fleet is ready at which whichever node leads is
         SIGKILLed (not restarted).
+    profiles : sequence of str
+        Energy profiles dealt to the robots round-robin (``--profiles``: Table
+        4.3's robot1..robot4 by default); each robot then runs ``--profile
+        NAME`` and the energy model places its frames (docs/ENERGY.md).
+        Empty (the default): no energy model, robots offload every frame.
     """
 
     robots: int = 4
@@ -110,6 +115,7 @@ class FleetConfig:
     bootstrap: str = CLOUD
     leader_capable: int | None = None
     leader_crash_s: float | None = None
+    profiles: Sequence[str] = ()
 
     def check(self) -> None:
         """Raise :class:`InputError` naming the bad value and the fix."""
@@ -148,11 +154,6 @@ class FleetConfig:
         if self.leader_capable is not None and not 0 <= self.leader_capable <= self.robots:
             raise InputError(f"--leader-capable must be between 0 and --robots ({self.robots}), "
                              f"got {self.leader_capable}")
-
-    @property
-    def capable_robots(self) -> int:
-        """How many robots run for the lead (``leader_capable``, default min(2, robots))."""
-        return min(2, self.robots) if self.leader_capable is None else self.leader_capable
         names = [c for c, _ in cloud_peers(self.clouds)] + [LEADER] + robot_ids(self.robots)
         if self.bootstrap not in names:
             raise InputError(f"--bootstrap must name a peer of the fleet ({', '.join(names[:6])}...), "
@@ -160,10 +161,36 @@ class FleetConfig:
         if self.bootstrap in robot_ids(self.robots):
             raise InputError(f"--bootstrap {self.bootstrap}: robots start after the servers, so the servers "
                              "could not reach it; use cloud or leader (scenarios can chain robots)")
+        if self.profiles:
+            from scmr_mesh.energy import PROFILES
+
+            unknown = [p for p in self.profiles if p not in PROFILES]
+            if unknown:
+                raise InputError(f"--profiles: unknown profile {unknown[0]!r}; use Table 4.3 names "
+                                 f"({', '.join(PROFILES)}), e.g. --profiles robot1,robot4")
+
+    @property
+    def capable_robots(self) -> int:
+        """How many robots run for the lead (``leader_capable``, default min(2, robots))."""
+        return min(2, self.robots) if self.leader_capable is None else self.leader_capable
 
 
 #: Table 4.3 profiles dealt to leader-capable robots (as their election capability), best first.
 CAPABILITY_PROFILES = ("robot4", "robot3", "robot2", "robot1")
+#: Table 4.3 robot profiles ``scmr up --profiles`` deals to robots r1, r2, ... round-robin.
+TABLE_4_3_ROBOTS = ("robot1", "robot2", "robot3", "robot4")
+
+
+def robot_profiles(config: FleetConfig) -> dict[str, str]:
+    """Each robot's energy profile (``{}`` without ``--profiles``): dealt round-robin.
+
+    Examples
+    --------
+    >>> robot_profiles(FleetConfig(robots=5, profiles=TABLE_4_3_ROBOTS))["r5"]
+    'robot1'
+    """
+    ps = list(config.profiles)
+    return {rid: ps[i % len(ps)] for i, rid in enumerate(robot_ids(config.robots))} if ps else {}
 
 
 def fleet_topology(config: FleetConfig) -> dict[str, dict[str, Any]]:
@@ -295,6 +322,7 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
         specs[name] = PeerSpec(name, argv, log_path=run_dir / "logs" / f"{name}.log",
                                ready_file=run_dir / "ready" / f"{name}.ready")
     kinds = list(config.synthetic) or _default_kinds()
+    profiles = robot_profiles(config)
     for i, rid in enumerate(robot_ids(config.robots)):
         argv = [*base, "robot", "--id", rid]
         if config.images is not None:
@@ -310,6 +338,8 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
             argv += ["--leader-capable", "--capability", topo[rid]["capability"]]
         if config.deadline_ms is not None:
             argv += ["--deadline-ms", str(config.deadline_ms)]
+        if rid in profiles:
+            argv += ["--profile", profiles[rid]]
         argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"), *config.robot_args]
         specs[rid] = PeerSpec(rid, argv, log_path=run_dir / "logs" / f"{rid}.log",
                               ready_file=run_dir / "ready" / f"{rid}.ready")

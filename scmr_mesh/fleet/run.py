@@ -43,6 +43,7 @@ from scmr_mesh.fleet.plan import (
     fleet_topology,
     plan_fleet,
     robot_ids,
+    robot_profiles,
 )
 
 log = logging.getLogger(__name__)
@@ -383,6 +384,12 @@ class FleetRun:
             report["telemetry"] = self.telemetry
         report["problems"] = fleet_problems(report)
         report["topology"] = fleet_topology(config)
+        profiles = robot_profiles(config)
+        if profiles:  # --profiles: the energy model placed each frame (docs/ENERGY.md)
+            from scmr_mesh.energy.measure import energy_by_robot
+
+            report["energy"] = {"placement": "energy model (Eq 4.2-4.6), Table 4.3 profiles",
+                                "per_robot": energy_by_robot(records, profiles)}
         report["leadership"] = self._leadership()
         validate_report(report)
         (self.run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
