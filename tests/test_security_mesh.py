@@ -55,8 +55,13 @@ def agent(argv: list[str]) -> int:
     ap.add_argument("--query", action="append", default=[])
     ap.add_argument("--token", action="append", default=[])
     ap.add_argument("--alive", default=None, help="liveliness key expr to list")
-    ap.add_argument("--delay", type=float, default=0.0)
+    ap.add_argument("--delay", type=float, default=0.0,
+                    help="seconds to wait before acting (peers that are expected never to connect)")
+    ap.add_argument("--peers", type=int, default=None,
+                    help="before acting, wait until this many peers are connected (at most 60 s)")
     ap.add_argument("--duration", type=float, default=2.0)
+    ap.add_argument("--hold", action="store_true",
+                    help="after the duration, keep serving until stdin is closed (the harness decides when)")
     a = ap.parse_args(argv)
     lock = threading.Lock()
 
@@ -78,6 +83,10 @@ def agent(argv: list[str]) -> int:
         for k in a.token:
             keep.append(s.liveliness().declare_token(k))
         out(ev="ready")
+        if a.peers is not None:  # a condition: the links this peer is expected to have
+            end = time.time() + 60
+            while len(list(s.info.peers_zid())) < a.peers and time.time() < end:
+                time.sleep(0.02)
         time.sleep(a.delay)
         out(ev="peers", n=len(list(s.info.peers_zid())))
         if a.alive:
@@ -90,72 +99,110 @@ def agent(argv: list[str]) -> int:
                 res = [r.ok.payload.to_bytes().decode() if r.ok else "ERR" for r in s.get(k, timeout=0.5)]
                 out(ev="reply", key=k, replies=res)
             time.sleep(0.15)
+        if a.hold:
+            sys.stdin.read()  # until the harness closes stdin: everyone else has finished
         out(ev="done")
     return 0
 
 
 # ----------------------------------------------------------------------------- harness
-def _start(args: list[str]) -> subprocess.Popen:
-    env = dict(os.environ)
-    env.pop("RUST_LOG", None)
-    return subprocess.Popen(
-        [sys.executable, str(HERE), "agent", *args],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
-        start_new_session=True, env=env,
-    )
+class Agent:
+    """A running agent process whose JSON lines are collected as they come."""
 
+    def __init__(self, args: list[str]) -> None:
+        import threading
 
-def _events(proc: subprocess.Popen, timeout: float) -> list[dict]:
-    try:
-        out, _ = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, _ = proc.communicate()
-    evs = []
-    for line in out.splitlines():
+        env = dict(os.environ)
+        env.pop("RUST_LOG", None)
+        self.proc = subprocess.Popen(
+            [sys.executable, str(HERE), "agent", *args],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+            start_new_session=True, env=env,
+        )
+        self.events: list[dict] = []
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            try:
+                self.events.append(json.loads(line))
+            except ValueError:
+                pass
+
+    def wait_event(self, ev: str, timeout: float = 60.0) -> None:
+        """Wait for a line ``{"ev": ev}`` (the condition), e.g. "ready"."""
+        end = time.monotonic() + timeout
+        while not any(e.get("ev") == ev for e in self.events):
+            if self.proc.poll() is not None and not self._reader.is_alive():
+                raise AssertionError(f"agent exited before {ev!r}: {self.events}")
+            if time.monotonic() > end:
+                raise AssertionError(f"agent did not say {ev!r} within {timeout:g} s: {self.events}")
+            time.sleep(0.02)
+
+    def finish(self, timeout: float = 60.0) -> list[dict]:
+        """Close stdin (ends --hold), wait for the process, return its events."""
         try:
-            evs.append(json.loads(line))
-        except ValueError:
+            self.proc.stdin.close()
+        except OSError:
             pass
-    return evs
+        try:
+            self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        self._reader.join(timeout=10)
+        return self.events
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
 
 
 def _run_scenario(creds: Path, other_ca: Path, *, acl: bool) -> dict[str, list[dict]]:
-    """Cloud + robot1 + rogue + two strangers, concurrently; returns each one's events."""
+    """Cloud + robot1 + rogue + two strangers, concurrently; returns each one's events.
+
+    Ordered by conditions, not by timing: the cloud and the rogue serve until every
+    other agent is done (``--hold``), robot1 acts once it has its 2 links (``--peers``);
+    only the strangers, who must never connect, act after a fixed delay.
+    """
     pc, pr, prg = free_port(), free_port(), free_port()
     cloud_ep, robot_ep, rogue_ep = (f"tcp/127.0.0.1:{p}" for p in (pc, pr, prg))
     base = ["--creds", str(creds)] + (["--acl"] if acl else [])
-    procs: dict[str, subprocess.Popen] = {}
+    agents: dict[str, Agent] = {}
     try:
-        procs["cloud"] = _start(base + [
+        agents["cloud"] = Agent(base + [
             "--id", "cloud", "--listen", cloud_ep, "--serve", "scmr/drivable/cloud/cloud",
-            "--sub", "scmr/telemetry/*", "--token", "scmr/alive/cloud/cloud", "--duration", "4.2"])
-        time.sleep(0.3)
-        procs["rogue"] = _start(base + [
+            "--sub", "scmr/telemetry/*", "--token", "scmr/alive/cloud/cloud", "--duration", "0", "--hold"])
+        agents["cloud"].wait_event("ready")
+        agents["rogue"] = Agent(base + [
             "--id", "rogue", "--listen", rogue_ep, "--connect", cloud_ep, "--connect", robot_ep,
             "--serve", "scmr/drivable/leader/leader", "--serve", "scmr/drivable/cloud/cloud",
             "--token", "scmr/alive/cloud/fake", "--sub", "scmr/telemetry/*",
-            "--pub", "scmr/telemetry/robot1", "--delay", "0.5", "--duration", "3.0"])
-        procs["robot1"] = _start(base + [
+            "--pub", "scmr/telemetry/robot1", "--peers", "1", "--duration", "1.5", "--hold"])
+        agents["rogue"].wait_event("ready")
+        agents["robot1"] = Agent(base + [
             "--id", "robot1", "--listen", robot_ep, "--connect", cloud_ep, "--connect", rogue_ep,
             "--pub", "scmr/telemetry/robot1", "--pub", "scmr/telemetry/robot2",
             "--query", "scmr/drivable/cloud/cloud", "--query", "scmr/drivable/leader/leader",
-            "--alive", "scmr/alive/**", "--delay", "1.2", "--duration", "1.5"])
+            "--alive", "scmr/alive/**", "--peers", "2", "--duration", "1.5"])
         # strangers: no TLS at all; TLS with a certificate from another CA (CN robot1)
-        procs["plain"] = _start([
+        agents["plain"] = Agent([
             "--kind", "none", "--id", "plain", "--connect", cloud_ep, "--connect", robot_ep,
             "--pub", "scmr/telemetry/robot1", "--query", "scmr/drivable/cloud/cloud",
             "--delay", "1.0", "--duration", "1.0"])
-        procs["forged"] = _start([
+        agents["forged"] = Agent([
             "--creds", str(other_ca), "--id", "robot1", "--connect", cloud_ep, "--connect", robot_ep,
             "--pub", "scmr/telemetry/robot2", "--query", "scmr/drivable/cloud/cloud",
             "--delay", "1.0", "--duration", "1.0"])
-        return {name: _events(p, timeout=15) for name, p in procs.items()}
+        out = {name: agents[name].finish() for name in ("robot1", "plain", "forged")}
+        out["rogue"] = agents["rogue"].finish()
+        out["cloud"] = agents["cloud"].finish()
+        return out
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+        for a in agents.values():
+            a.kill()
 
 
 @pytest.fixture(scope="module")
@@ -241,30 +288,28 @@ def test_usrpwd_keeps_out_peers_without_password(credentials, tmp_path):
     creds, _ = credentials
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
-    procs = {}
+    agents: dict[str, Agent] = {}
     try:
-        procs["cloud"] = _start(["--kind", "usrpwd", "--creds", str(creds), "--id", "cloud",
-                                 "--listen", ep, "--serve", "scmr/drivable/cloud/cloud", "--duration", "2.5"])
-        time.sleep(0.3)
-        procs["robot1"] = _start(["--kind", "usrpwd", "--creds", str(creds), "--id", "robot1",
+        agents["cloud"] = Agent(["--kind", "usrpwd", "--creds", str(creds), "--id", "cloud",
+                                 "--listen", ep, "--serve", "scmr/drivable/cloud/cloud", "--duration", "0", "--hold"])
+        agents["cloud"].wait_event("ready")
+        agents["robot1"] = Agent(["--kind", "usrpwd", "--creds", str(creds), "--id", "robot1",
                                   "--connect", ep, "--query", "scmr/drivable/cloud/cloud",
-                                  "--delay", "0.5", "--duration", "0.6"])
-        procs["none"] = _start(["--kind", "none", "--id", "x", "--connect", ep,
+                                  "--peers", "1", "--duration", "0.6"])
+        agents["none"] = Agent(["--kind", "none", "--id", "x", "--connect", ep,
                                 "--query", "scmr/drivable/cloud/cloud", "--delay", "0.5", "--duration", "0.6"])
         # robot2's name with robot1's password
         wrong = tmp_path / "wrong"
         import shutil
         shutil.copytree(creds, wrong)
         (wrong / "robot2" / "password").write_text((creds / "robot1" / "password").read_text())
-        procs["wrong"] = _start(["--kind", "usrpwd", "--creds", str(wrong), "--id", "robot2",
+        agents["wrong"] = Agent(["--kind", "usrpwd", "--creds", str(wrong), "--id", "robot2",
                                  "--connect", ep, "--query", "scmr/drivable/cloud/cloud",
                                  "--delay", "0.5", "--duration", "0.6"])
-        evs = {k: _events(p, timeout=10) for k, p in procs.items()}
+        evs = {k: agents[k].finish() for k in ("robot1", "none", "wrong", "cloud")}
     finally:
-        for p in procs.values():
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+        for a in agents.values():
+            a.kill()
     assert _peers(evs["robot1"]) == [1]
     assert "served-by-cloud" in _replies(evs["robot1"], "scmr/drivable/cloud/cloud")
     for k in ("none", "wrong"):
@@ -299,10 +344,12 @@ def test_real_peers_with_security_profile(credentials, tmp_path, repo_root):
         wait_for(lambda: (tmp_path / "c.ready").exists() or cloud.poll() is not None, timeout=60, what="cloud")
         assert cloud.poll() is None, (tmp_path / "c.log").read_text()[-1500:]
         common = ["--connect", ep, "--synthetic", "stub", "--count", "3", "--rate", "10",
-                  "--no-local-fallback", "--quiet", "--wait-ms", "1500"]
+                  "--no-local-fallback", "--quiet"]
+        # the good robot waits for the cloud's token (a condition; returns when seen), the bad one
+        # never sees it: it waits 1.5 s and then fails every request
         good = spawn_peer(["robot", "--id", "robot1", "--security", profile, "--out", str(tmp_path / "r1"),
-                           *common], log_path=tmp_path / "r1.log", env=env)
-        bad = spawn_peer(["robot", "--id", "robot2", "--out", str(tmp_path / "r2"), *common],
+                           *common, "--wait-ms", "60000"], log_path=tmp_path / "r1.log", env=env)
+        bad = spawn_peer(["robot", "--id", "robot2", "--out", str(tmp_path / "r2"), *common, "--wait-ms", "1500"],
                          log_path=tmp_path / "r2.log", env=env)
         peers += [good, bad]
         wait_for(lambda: good.poll() is not None and bad.poll() is not None, timeout=40, what="robots")
