@@ -301,15 +301,28 @@ def open_session(mc: MeshConfig):
     from scmr_mesh.errors import MeshError
 
     conf = mc.build()
+    lease = _get(conf, "transport/link/tx/lease")
     os.environ.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME_DEFAULT)
     _zenoh_logging()
     try:
-        return zenoh.open(conf)
+        session = zenoh.open(conf)
     except Exception as exc:
         raise MeshError(
             f"cannot open a zenoh session (listen={mc.listen}, connect={mc.connect}): {exc}; "
             "check that the listen port is free and the endpoints are well formed"
         ) from None
+    # a silently dead TCP link must not hold zenoh's threads for its 10 s linger
+    # (zenoh issues #1101, #2718; docs/ZENOH.md section 8)
+    from scmr_mesh.mesh import tcpguard
+
+    g = tcpguard.guard(session, lease if isinstance(lease, int) else None)
+    if g is not None:
+        _GUARDS[id(session)] = g
+    return session
+
+
+#: The TCP link guard of each open session (by ``id``), closed with it.
+_GUARDS: dict[int, Any] = {}
 
 
 #: zenoh's runtime threads (read once per process from ``$ZENOH_RUNTIME`` at the
@@ -340,6 +353,9 @@ def _zenoh_logging() -> None:
 
 def close_session(session) -> None:
     """Close ``session``, never raising (close can time out on a dead endpoint)."""
+    g = _GUARDS.pop(id(session), None)
+    if g is not None:
+        g.close()
     try:
         session.close()
     except Exception as exc:  # zenoh: "close operation timed out!"
