@@ -19,8 +19,9 @@ one gets an error reply (``malformed``, ``oversized``, ``wrong_version``) and
 the service keeps serving.  Then the *admission function* decides; a refused
 request gets its error reply (``busy`` by default when the request would
 be answered later than the service's latency budget, :func:`default_admission`).  Admitted requests go to the
-pool; the reply is sent from the pool's callback thread (``query.reply`` then
-``query.drop``), so zenoh's threads never wait for the pipeline.
+pool.  Every reply, good or error, is sent by a :class:`Replier` thread
+(``query.reply`` then ``query.drop``), so neither zenoh's callback thread nor
+the pool's waits for the pipeline or for a reply stuck on a dead link.
 
 Hooks for other areas
 ---------------------
@@ -55,6 +56,61 @@ log = logging.getLogger(__name__)
 
 #: How often (s) a service publishes its load.
 LOAD_PERIOD_S = 0.1
+
+
+#: Threads that send replies (see :class:`Replier`).
+REPLY_THREADS = 4
+
+
+class Replier:
+    """Sends replies from its own threads.
+
+    A reply inherits its query's congestion control; to a robot whose link just
+    died silently a ``block`` reply can wait for queue space until zenoh gives
+    up on the link (``wait_before_close``).  Sent from zenoh's callback thread
+    that would stall the reception of every other query; sent from the worker
+    pool's callback thread it would hold every other finished frame.  So both
+    only queue the send here, and ``threads`` senders work through the queue:
+    one stuck reply holds one sender, not the service.
+    """
+
+    def __init__(self, threads: int = REPLY_THREADS) -> None:
+        import queue as _queue
+
+        self._q: _queue.SimpleQueue = _queue.SimpleQueue()
+        self.pending = 0
+        self._lock = threading.Lock()
+        self._threads = [threading.Thread(target=self._run, name=f"scmr-reply-{i}", daemon=True)
+                         for i in range(max(1, int(threads)))]
+        for t in self._threads:
+            t.start()
+
+    def send(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` (which sends one reply) on a sender thread."""
+        with self._lock:
+            self.pending += 1
+        self._q.put(fn)
+
+    def _run(self) -> None:
+        while True:
+            fn = self._q.get()
+            if fn is None:
+                return
+            try:
+                fn()
+            except Exception:  # a send never takes a sender down
+                log.exception("reply failed")
+            finally:
+                with self._lock:
+                    self.pending -= 1
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Send what is queued (up to ``timeout``), then stop the senders."""
+        for _ in self._threads:
+            self._q.put(None)
+        end = time.monotonic() + timeout
+        for t in self._threads:
+            t.join(timeout=max(0.0, end - time.monotonic()))
 
 
 @dataclass
@@ -232,6 +288,7 @@ class Service:
         self._load_pub = None
         self._stop = threading.Event()
         self._load_thread: threading.Thread | None = None
+        self.replier = Replier()
         self.pool = WorkerPool(workers, process=process, clock=clock)
         self.worker_pids = self.pool.start()
         if clock is not None:
@@ -302,6 +359,9 @@ class Service:
                 ok = reply.ok is not None
         except Exception as exc:
             log.warning("warm-up query failed: %s", exc)
+        end = time.monotonic() + 5.0
+        while self.replier.pending and time.monotonic() < end:  # its sender counts it as served
+            time.sleep(0.001)
         with self.state.lock:
             self.state.served = 0
         log.info("%s %s warm-up query %s in %.1f ms", self.tier, self.node, "ok" if ok else "FAILED",
@@ -318,11 +378,12 @@ class Service:
             except Exception as exc:
                 log.debug("undeclare token: %s", exc)
         end = time.monotonic() + drain_s
-        while time.monotonic() < end and (self.state.inflight > 0 or self._waiting() > 0):
+        while time.monotonic() < end and (self.state.inflight > 0 or self._waiting() > 0
+                                          or self.replier.pending > 0):
             time.sleep(0.01)
-        if drain_s > 0 and (self.state.inflight or self._waiting()):
+        if drain_s > 0 and (self.state.inflight or self._waiting() or self.replier.pending):
             log.warning("%s %s: stopping with %d requests unanswered", self.tier, self.node,
-                        self.state.inflight + self._waiting())
+                        self.state.inflight + self._waiting() + self.replier.pending)
         for obj in [*self._declared, self._load_pub]:
             if obj is None:
                 continue
@@ -350,6 +411,7 @@ class Service:
             for e in self.negotiator.close():
                 query, req, _ = e.payload
                 self._reply_error(query, "unavailable", "service shutting down; send it to another tier", req)
+        self.replier.close()
         self.pool.shutdown()
 
     # ------------------------------------------------------------ serving
@@ -383,12 +445,17 @@ class Service:
             else:
                 self.state.errors += 1
         log.info("error reply %s to %s/%s: %s", code, msg["robot"], msg["seq"], message)
-        try:
-            query.reply_err(wire.encode(msg))
-        except Exception as exc:
-            log.warning("could not send error reply: %s", exc)
-        finally:
-            _drop(query)
+        payload = wire.encode(msg)
+
+        def send() -> None:
+            try:
+                query.reply_err(payload)
+            except Exception as exc:
+                log.warning("could not send error reply: %s", exc)
+            finally:
+                _drop(query)
+
+        self.replier.send(send)
 
     def _on_query(self, query) -> None:
         t_arrival = time.perf_counter()
@@ -503,13 +570,23 @@ class Service:
                 server_ms=(now - t_arrival) * 1e3,
                 queue_ms=max(0.0, (now - t_sub) * 1e3 - worker_ms),
             )
-            query.reply(query.key_expr, wire.encode(reply))
-            with self.state.lock:
-                self.state.served += 1
+            payload = wire.encode(reply)
         except Exception as exc:
             log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
-        finally:
             _drop(query)
+            return
+
+        def send() -> None:
+            try:
+                query.reply(query.key_expr, payload)
+                with self.state.lock:
+                    self.state.served += 1
+            except Exception as exc:
+                log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
+            finally:
+                _drop(query)
+
+        self.replier.send(send)
 
 
 def _image_message(req: dict, exc: Exception) -> str:

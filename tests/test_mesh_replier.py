@@ -1,0 +1,76 @@
+"""Replies are sent off zenoh's callback thread and the pool's: a reply stuck on a
+dead link (congestion control 'block' waits for queue space) holds one sender
+thread, not the service (issue 14; docs/ZENOH.md section 8)."""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import Future
+
+import pytest
+
+from scmr_mesh import wire
+from scmr_mesh.mesh.server import Service
+from scmr_mesh.mesh.testing import STUB, wait_for
+
+
+class FakeQuery:
+    def __init__(self, block: threading.Event | None = None) -> None:
+        self.block = block
+        self.sent: list[tuple[str, bytes]] = []
+        self.dropped = False
+        self.key_expr = "scmr/drivable/cloud/c1"
+
+    def reply(self, key, payload):
+        if self.block is not None:
+            self.block.wait(30)
+        self.sent.append(("ok", payload))
+
+    def reply_err(self, payload):
+        if self.block is not None:
+            self.block.wait(30)
+        self.sent.append(("err", payload))
+
+    def drop(self):
+        self.dropped = True
+
+
+@pytest.fixture(scope="module")
+def service():
+    svc = Service("c1", tier="cloud", workers=1, process=STUB)
+    yield svc
+    svc.shutdown()
+
+
+def _done(out: dict) -> Future:
+    f: Future = Future()
+    f.set_result(out)
+    return f
+
+
+OUT = {"mask_png": b"\x89PNG\r\n\x1a\n....", "shape": (225, 300), "threshold": 7, "timings_ms": {}, "worker_ms": 3.0}
+
+
+def test_a_stuck_reply_holds_neither_the_caller_nor_the_other_replies(service):
+    release = threading.Event()
+    stuck, fine = FakeQuery(block=release), FakeQuery()
+    req = wire.make_request("r1", 1, b"x", encoding="png")
+    try:
+        with service.state.lock:
+            service.state.inflight += 2
+        caller = threading.Thread(target=service._finish, args=(stuck, req, _done(OUT), 0.0, 0.0))
+        caller.start()
+        caller.join(timeout=10)
+        assert not caller.is_alive(), "_finish waited for a reply stuck on a dead link"
+        service._finish(fine, dict(req, seq=2), _done(OUT), 0.0, 0.0)
+        wait_for(lambda: fine.sent, timeout=10, what="the other reply")
+        assert fine.sent[0][0] == "ok" and fine.dropped and not stuck.sent
+        # error replies (sent from zenoh's callback thread) do not wait either
+        err = threading.Thread(target=service._reply_error, args=(FakeQuery(block=release), "busy", "later", req))
+        err.start()
+        err.join(timeout=10)
+        assert not err.is_alive()
+    finally:
+        release.set()
+    wait_for(lambda: stuck.sent and service.replier.pending == 0, timeout=10, what="the stuck reply to go out")
+    assert wire.decode(stuck.sent[0][1], kind="reply")["seq"] == 1 and stuck.dropped
