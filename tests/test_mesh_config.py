@@ -85,9 +85,9 @@ def test_example_peer_configs_load(repo_root):
 def test_wait_before_close_follows_the_lease_unless_pinned(tmp_path):
     from scmr_mesh.mesh.config import WAIT_BEFORE_CLOSE_KEY as key
 
-    # default lease 500 ms -> 500 ms; --lease-ms wins over the default (both in microseconds)
-    assert _get(build_config(MeshConfig()), key) == 500_000
-    assert _get(build_config(MeshConfig(lease_ms=150)), key) == 150_000
+    # half the lease: default 500 ms -> 250 ms; --lease-ms wins over the default (in microseconds)
+    assert _get(build_config(MeshConfig()), key) == 250_000
+    assert _get(build_config(MeshConfig(lease_ms=150)), key) == 75_000
     # an explicit --cfg or a config file keeps its own value
     assert _get(build_config(MeshConfig(lease_ms=150, cfg=[f"{key}:2000000"])), key) == 2_000_000
     f = tmp_path / "z.json5"

@@ -41,8 +41,8 @@ PEER = r"""
 import json, os, sys, threading, time
 import zenoh
 from scmr_mesh.mesh.config import MeshConfig, open_session
-role, name, listen, connect, lease, out, delay, payload, period = sys.argv[1:10]
-cfg = sys.argv[10:]
+role, name, listen, connect, lease, out, delay, payload, period, cc = sys.argv[1:11]
+cfg = sys.argv[11:]
 s = open_session(MeshConfig(listen=[listen], connect=[c for c in connect.split(",") if c], lease_ms=int(lease), cfg=cfg))
 f = open(out, "a", buffering=1)
 def emit(**kw):
@@ -65,8 +65,9 @@ if role != "robot":
     except KeyboardInterrupt:
         pass
 else:
-    qc = s.declare_querier("scmr/drivable/cloud/cloud", timeout=1.0)
-    ql = s.declare_querier("scmr/drivable/leader/leader", timeout=1.0)
+    cc = zenoh.CongestionControl.BLOCK if cc == "block" else zenoh.CongestionControl.DROP
+    qc = s.declare_querier("scmr/drivable/cloud/cloud", timeout=1.0, congestion_control=cc)
+    ql = s.declare_querier("scmr/drivable/leader/leader", timeout=1.0, congestion_control=cc)
     data = os.urandom(int(payload))
     seq = 0
     try:
@@ -94,7 +95,7 @@ def _ip(*argv: str) -> None:
 
 
 def run_once(*, at_s: float = 3.0, for_s: float = 4.0, lease_ms: int = 150, payload: int = 3_000_000,
-             period: float = 0.1, delay: float = 0.03, cfg: list[str] | None = None) -> dict:
+             period: float = 0.1, delay: float = 0.03, cfg: list[str] | None = None, block: bool = False) -> dict:
     """One run; returns ``{"robots": {id: {"first_leader_ms", "other_links_dropped"}}, "worst_ms"}``."""
     peers = ["cloud", "leader", "robot1", "robot2", "robot3", "robot4"]
     tag = secrets.token_hex(2)
@@ -123,7 +124,7 @@ def run_once(*, at_s: float = 3.0, for_s: float = 4.0, lease_ms: int = 150, payl
         def start(p: str, role: str, connect: list[str]) -> None:
             argv = ["ip", "netns", "exec", ns[p], sys.executable, "-c", PEER, role, p, ep[p],
                     ",".join(ep[c] for c in connect), str(lease_ms), str(work / f"{p}.jsonl"), str(delay),
-                    str(payload), str(period), *(cfg or [])]
+                    str(payload), str(period), "block" if block else "drop", *(cfg or [])]
             procs.append(subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=open(work / f"{p}.err", "w"),
                                           start_new_session=True))
 
@@ -179,14 +180,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--period", type=float, default=0.1, help="seconds between a robot's requests (default 0.1)")
     p.add_argument("--delay", type=float, default=0.03, help="server answer delay in seconds (default 0.03)")
     p.add_argument("--cfg", action="append", default=[], metavar="KEY:JSON5", help="zenoh override for every peer")
+    p.add_argument("--block", action="store_true",
+                   help="robots query with congestion control block (as before issue 14) instead of drop (what scmr robots do)")
     a = p.parse_args(argv)
     if os.geteuid() != 0:
         print("txstall: error: needs root (network namespaces)", file=sys.stderr)
         return 1
     for i in range(a.runs):
         res = run_once(at_s=a.at, for_s=a.for_s, lease_ms=a.lease_ms, payload=a.payload, period=a.period,
-                       delay=a.delay, cfg=a.cfg)
-        print(json.dumps(dict(res, run=i, cfg=a.cfg, zenoh_runtime=os.environ.get("ZENOH_RUNTIME"))), flush=True)
+                       delay=a.delay, cfg=a.cfg, block=a.block)
+        print(json.dumps(dict(res, run=i, cfg=a.cfg, block=a.block, zenoh_runtime=os.environ.get("ZENOH_RUNTIME"),
+                              tcp_user_timeout_ms=os.environ.get("SCMR_TCP_USER_TIMEOUT_MS"))), flush=True)
     return 0
 
 

@@ -11,8 +11,8 @@ other through the leader), lease 500 ms with 4 keep-alives (silent link loss
 seen in ~400 ms, no false expiries), fast reconnect ``connect/retry
 {50, 50, 1}`` (a dead endpoint is retried every 50 ms), shared memory off and ``transport/unicast/open_timeout`` 1000 ms (bounds
 ``close()``), and ``wait_before_close`` (how long a reliable send may wait for
-queue space) equal to the lease, so a send on a silently dead link gives up
-after one lease instead of zenoh's 5 s, during which the whole process stopped
+queue space) half the lease, so a send on a silently dead link gives up
+within the lease instead of zenoh's 5 s, during which the whole process stopped
 sending (docs/ZENOH.md section 8).  Zenoh itself does not validate the lease: ``keep_alive`` 0
 panics in Rust and lease 0 loops, so :func:`check` rejects both.
 """
@@ -180,12 +180,14 @@ def build_config(mc: MeshConfig):
         _insert(conf, MAX_MESSAGE_KEY, json.dumps(int(mc.max_message_bytes)), source="--max-request-bytes")
     if not wbc_pinned:
         # A send blocked on a silently dead link holds zenoh's pipeline lock: the
-        # link cannot be torn down and zenoh's single TX thread stalls, so every
-        # other link of the process goes quiet too (docs/ZENOH.md section 8).
-        # Give up on a link that takes no data for one lease, as the lease does.
+        # link cannot be torn down and zenoh's TX thread stalls, so every other
+        # link of the process goes quiet too (docs/ZENOH.md section 8).  Frames and
+        # their replies use congestion control drop (the robot's queriers), so what
+        # still blocks is small (declarations, tokens): give up on a link that takes
+        # none of it for half a lease, before the lease itself expires.
         lease = _get(conf, "transport/link/tx/lease")
         if isinstance(lease, int) and lease > 0:
-            _insert(conf, WAIT_BEFORE_CLOSE_KEY, json.dumps(lease * 1000), source="lease")
+            _insert(conf, WAIT_BEFORE_CLOSE_KEY, json.dumps(max(10, lease // 2) * 1000), source="lease")
     if mc.security:
         from scmr_mesh.mesh.security import apply_security
         from scmr_mesh.security.profile import load_profile

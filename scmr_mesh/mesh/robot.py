@@ -473,6 +473,7 @@ class Robot:
         self._observers: list[Callable] = []
         self.annotators: list[Callable[[dict, Any], None]] = []
         self._queriers: dict[str, Any] = {}
+        self._tier_threads: dict[str, Any] = {}  # tier -> its sender thread (_tier_send)
         self._session = None
         self._subs: list[Any] = []
         self._token = None
@@ -524,6 +525,8 @@ class Robot:
 
     def close(self) -> None:
         """Undeclare everything this robot declared and close the records file."""
+        for ex in self._tier_threads.values():
+            ex.shutdown(wait=False, cancel_futures=True)
         for obj in [self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub]:
             if obj is None:
                 continue
@@ -550,6 +553,10 @@ class Robot:
                 target=zenoh.QueryTarget.BEST_MATCHING,
                 consolidation=zenoh.ConsolidationMode.NONE,
                 timeout=self.options.deadline_ms / 1e3,
+                # drop, not block: a frame sent into a silently dead link must not wait for
+                # queue space (block waited up to wait_before_close holding the link's
+                # pipeline lock); the reply inherits it (docs/ZENOH.md section 8)
+                congestion_control=zenoh.CongestionControl.DROP,
             )
             self._queriers[key] = q
         return q
@@ -642,16 +649,7 @@ class Robot:
             sendable.append((att, q))
         if len(sendable) == 1:
             att, q = sendable[0]
-            winner = None
-            try:
-                for reply in q.get(payload=payload):  # ends at the querier timeout = deadline
-                    w = self._judge(att, reply)
-                    winner = winner or w
-            except Exception as exc:
-                att["outcome"] = f"error:send ({exc})"
-            if att["outcome"] == "pending":
-                att["outcome"] = "no_reply"
-            return winner
+            return self._tier_send(att, q, payload)
         results: queue.Queue = queue.Queue()
         live = []
         for att, q in sendable:
@@ -696,6 +694,46 @@ class Robot:
                 except Exception:
                     pass
         return winner
+
+    # ------------------------------------------- one sender thread per tier
+    def _tier_send(self, att: dict, q, payload: bytes) -> tuple | None:
+        """Send one query on its tier's own thread and wait for the outcome here.
+
+        Cloud and leader queries never share a thread: a send held up by one
+        tier's dead link holds that tier's thread, and the request gives up on it
+        after the deadline and goes on to the next tier (issue 14, docs/ZENOH.md
+        section 8).  The attempt record is only written here, on the request thread.
+        """
+        from concurrent.futures import ThreadPoolExecutor
+        from concurrent.futures import TimeoutError as FutureTimeout
+
+        tier = att["tier"]
+        ex = self._tier_threads.get(tier)
+        if ex is None:
+            ex = self._tier_threads[tier] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}")
+        try:
+            fut = ex.submit(self._collect, dict(att), q, payload)
+            scratch, winner = fut.result(timeout=self.options.deadline_ms / 1e3 + 0.25)
+        except FutureTimeout:
+            att["outcome"] = "timeout"  # the tier's thread is still held by zenoh
+            return None
+        except RuntimeError as exc:  # closed while sending
+            att["outcome"] = f"error:send ({exc})"
+            return None
+        att.update(scratch)
+        return winner
+
+    def _collect(self, att: dict, q, payload: bytes) -> tuple[dict, tuple | None]:
+        winner = None
+        try:
+            for reply in q.get(payload=payload):  # ends at the querier timeout = deadline
+                w = self._judge(att, reply)
+                winner = winner or w
+        except Exception as exc:
+            att["outcome"] = f"error:send ({exc})"
+        if att["outcome"] == "pending":
+            att["outcome"] = "no_reply"
+        return att, winner
 
     def request(self, seq: int, frame: Frame) -> dict:
         """Process one frame through the mesh (or locally); return its record.

@@ -1,0 +1,80 @@
+"""How a robot sends a frame query (issue 14, docs/ZENOH.md section 8): with
+congestion control 'drop' (the reply inherits it), each tier from its own
+thread, so a send held up on one tier's dead link cannot hold the others."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+from conftest import free_port
+
+from scmr_mesh import keys, wire
+from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+from scmr_mesh.mesh.robot import Robot, RobotOptions
+from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, synthetic_png, wait_for
+
+
+class Reply:
+    def __init__(self, payload: bytes) -> None:
+        self.ok = type("Sample", (), {"payload": type("Z", (), {"to_bytes": lambda s: payload})()})()
+        self.err = None
+
+
+class FakeQuerier:
+    def __init__(self, robot: str, block: threading.Event | None = None) -> None:
+        self.block, self.robot, self.threads = block, robot, []
+
+    def get(self, payload):
+        self.threads.append(threading.current_thread().name)
+        if self.block is not None:
+            self.block.wait(30)  # a push waiting for queue space on a dead link
+        req = wire.decode(payload, kind="request")
+        rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n..", shape=(225, 300), threshold=1,
+                              timings_ms={}, served_by="n", tier="leader", server_ms=1.0)
+        return iter([Reply(wire.encode(rep))])
+
+
+def test_a_held_up_tier_does_not_hold_the_request_or_the_other_tier(tmp_path):
+    robot = Robot("r1", tmp_path, options=RobotOptions(deadline_ms=300))
+    release = threading.Event()
+    payload = wire.encode(wire.make_request("r1", 1, b"x", encoding="png"))
+    cloud, leader = FakeQuerier("r1", block=release), FakeQuerier("r1")
+    try:
+        att = {"tier": "cloud", "node": "c1", "outcome": "pending"}
+        assert robot._tier_send(att, cloud, payload) is None
+        assert att["outcome"] == "timeout"  # given up after the deadline, cloud thread still held
+        att2 = {"tier": "leader", "node": "L1", "outcome": "pending"}
+        winner = robot._tier_send(att2, leader, payload)
+        assert winner is not None and winner[:2] == ("leader", "L1") and att2["outcome"] == "ok"
+        assert cloud.threads[0].startswith("scmr-cloud") and leader.threads[0].startswith("scmr-leader")
+        assert att["outcome"] == "timeout"  # the late cloud thread did not touch the record
+    finally:
+        release.set()
+        robot.close()
+
+
+def test_frame_queries_and_their_replies_use_drop(tmp_path):
+    import zenoh
+
+    port = free_port()
+    ready = tmp_path / "c.ready"
+    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+                    "--process", STUB, "--ready-file", str(ready)], log_path=tmp_path / "c.log")
+    try:
+        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=120, what="cloud ready")
+        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
+        robot = Robot("r1", tmp_path / "r1")
+        try:
+            robot._session = session
+            q = robot._querier("cloud", "c1")
+            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
+            req = wire.make_request("r1", 1, synthetic_png(1), encoding="png")
+            replies = list(q.get(payload=wire.encode(req)))
+            assert len(replies) == 1 and replies[0].ok is not None
+            assert replies[0].ok.congestion_control == zenoh.CongestionControl.DROP
+        finally:
+            robot._session = None
+            close_session(session)
+    finally:
+        assert stop_peer(p) == 0
