@@ -180,6 +180,7 @@ def test_lingering_close_on_a_dead_link_ends_with_the_guard(repo_root):
             results[guard] = json.loads(cl.stdout.strip().splitlines()[-1])
             srv.kill()
             srv.wait(timeout=10)
+        print("lingering close on a blackholed connection:", results)
         # the mechanism (zenoh's 10 s linger on a silent peer): close waits for the route to come back
         assert results[False]["returned_before_route_back"] is False, results
         # with TCP_USER_TIMEOUT the kernel gives up on the connection and close returns while it is down
