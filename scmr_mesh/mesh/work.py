@@ -133,11 +133,16 @@ def warm_png() -> bytes:
 
 
 def _warm_pipeline() -> None:
-    # every step of a request in both modes: PNG decode, the kernels (AOT
-    # module loaded, or numba compiled / loaded from its cache), PNG encode
+    # every step of a request: PNG decode, the kernels (AOT module loaded, or
+    # numba compiled / loaded from its cache), PNG encode.  With the AOT kernels
+    # the thesis mode's first frame costs ~1.6 ms more, not worth 7 ms of every
+    # start; the numba JIT would compile its kernels then, so warm it too.
+    from scmr_mesh.imaging import _aot
+
     png = warm_png()
-    for mode in ("best", "thesis"):
-        process_frame(png, encoding="png", shape=None, mode=mode)
+    process_frame(png, encoding="png", shape=None, mode="best")
+    if not _aot.status().startswith("aot"):
+        process_frame(png, encoding="png", shape=None, mode="thesis")
 
 
 process_frame.preload = _load_pipeline  # type: ignore[attr-defined]
