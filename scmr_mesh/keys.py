@@ -7,9 +7,10 @@ catalog with message formats is in ``docs/protocol.md``.
 ==========================================  ===========================  ============================
 key expression                              declared by                  carries
 ==========================================  ===========================  ============================
-``scmr/drivable/cloud/<node>``              cloud service (queryable)    request -> reply | error
-``scmr/drivable/leader/<node>``             the current leader (queryable)  request -> reply | error
-``scmr/drivable/peer/<robot>``              a robot serving peers        request -> reply | error
+``scmr/drivable/cloud/<node>/<robot>``      cloud service (queryable     request of <robot> -> reply | error
+                                            on ``.../<node>/*``)
+``scmr/drivable/leader/<node>/<robot>``     the current leader           request -> reply | error
+``scmr/drivable/peer/<node>/<robot>``       a robot serving peers        request -> reply | error
 ``scmr/alive/cloud/<node>``                 cloud (liveliness token)     presence of a cloud node
 ``scmr/alive/leader/<node>``                the leader (liveliness)      who leads (held while leading)
 ``scmr/alive/candidate/<node>``             leader-capable node          presence of a candidate
@@ -24,6 +25,12 @@ key expression                              declared by                  carries
 ``scmr/metrics/<node>``                     any peer (publisher)         free-form metrics
 ``scmr/data/<tier>/<node>/**``              services (extra queryables)  data-buffer queries
 ==========================================  ===========================  ============================
+
+A frame request goes to ``scmr/drivable/<tier>/<node>/<robot>``: the sender's
+id is the last chunk, so access control lets robot X query only keys ending
+in ``/X``, and the service refuses a request whose ``robot`` field differs
+(:func:`drivable_request`, :func:`request_robot`).  Services reply on the
+concrete key the request came on.
 
 Under ``scmr/data/<tier>/<node>/``: ``telemetry/<robot>`` carries one robot's
 telemetry batches (the robot id is in the key so that access control can bind
@@ -114,7 +121,7 @@ def _tier(tier: str) -> str:
 
 
 def drivable(tier: str, node: str) -> str:
-    """Key of the drivable-region queryable of ``node`` serving ``tier``.
+    """Prefix of the drivable-region service of ``node`` serving ``tier``.
 
     >>> drivable("cloud", "c1")
     'scmr/drivable/cloud/c1'
@@ -122,9 +129,57 @@ def drivable(tier: str, node: str) -> str:
     return f"{DRIVABLE}/{_tier(tier)}/{check_name(node)}"
 
 
+def drivable_serve(tier: str, node: str) -> str:
+    """Key expression of ``node``'s drivable queryable: one key per requesting robot.
+
+    >>> drivable_serve("cloud", "c1")
+    'scmr/drivable/cloud/c1/*'
+    """
+    return f"{drivable(tier, node)}/*"
+
+
+def drivable_request(tier: str, node: str, robot: str) -> str:
+    """Key on which ``robot`` sends its frame requests to ``node`` of ``tier``.
+
+    >>> drivable_request("leader", "L", "r1")
+    'scmr/drivable/leader/L/r1'
+    """
+    return f"{drivable(tier, node)}/{check_name(robot, what='robot id')}"
+
+
+def request_target(key: str) -> tuple[str, str, str] | None:
+    """``(tier, node, robot)`` of a concrete request key ``scmr/drivable/<tier>/<node>/<robot>``.
+
+    None unless ``key`` has exactly that shape with plain chunks: a wildcard
+    (``*``, ``**``, ``$*``) names no node or robot.
+
+    >>> request_target("scmr/drivable/cloud/c1/r1")
+    ('cloud', 'c1', 'r1')
+    >>> request_target("scmr/drivable/**") is None
+    True
+    """
+    parts = str(key).split("/")
+    if (len(parts) != 5 or f"{parts[0]}/{parts[1]}" != DRIVABLE or parts[2] not in TIERS
+            or not _NAME_RE.match(parts[3]) or not _NAME_RE.match(parts[4])):
+        return None
+    return parts[2], parts[3], parts[4]
+
+
 def drivable_tier(tier: str) -> str:
     """Key expression matching every node of one tier (``scmr/drivable/<tier>/*``)."""
     return f"{DRIVABLE}/{_tier(tier)}/*"
+
+
+def candidate_node(key: str) -> str | None:
+    """The node named by a candidacy key ``scmr/r2r/candidate/<node>`` (None if not concrete).
+
+    >>> candidate_node("scmr/r2r/candidate/r2")
+    'r2'
+    """
+    parts = str(key).split("/")
+    if len(parts) != 4 or f"{parts[0]}/{parts[1]}" != R2R or parts[2] != "candidate" or not _NAME_RE.match(parts[3]):
+        return None
+    return parts[3]
 
 
 def candidate(node: str) -> str:

@@ -43,8 +43,12 @@ WIRE_VERSION = 1
 KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load", "candidate")
 #: Codes of error replies.
 ERROR_CODES: tuple[str, ...] = (
-    "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired"
+    "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired", "forbidden"
 )
+#: Zenoh encoding of every scmr message (msgpack maps); JSON payloads (``scmr/results/*``)
+#: declare ``application/json``, so generic Zenoh tools can show either.
+MSGPACK_ENCODING = "application/msgpack"
+JSON_ENCODING = "application/json"
 #: Default largest request payload a service accepts (bytes): a 4K raw RGB
 #: frame is 24.9 MB, so 32 MiB admits any sane frame and bounds memory.
 MAX_REQUEST_BYTES = 32 * 1024 * 1024

@@ -65,7 +65,7 @@ def test_a_peer_command_loads_only_its_own_module():
     assert r.stdout.strip() == "['scmr_mesh.mesh.commands']"
 
 
-@pytest.mark.parametrize("argv", [["cloud", "--help"], ["bench", "mesh", "--help"], ["-v", "up", "--help"]])
+@pytest.mark.parametrize("argv", [["cloud", "--insecure", "--help"], ["bench", "mesh", "--help"], ["-v", "up", "--help"]])
 def test_help_through_the_short_parser(argv, capsys):
     assert main(argv) == 0
     assert "usage: scmr " + next(a for a in argv if not a.startswith("-")) in capsys.readouterr().out

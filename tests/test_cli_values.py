@@ -212,13 +212,13 @@ def _scmr(*args: str, cwd=None, timeout: float = 60) -> subprocess.CompletedProc
 
 
 @pytest.mark.parametrize("args,flag", [
-    (["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--rate", "inf"], "--rate"),
-    (["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--rate", "nan"], "--rate"),
-    (["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--duration", "nan"], "--duration"),
-    (["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--priority", "-1"], "--priority"),
-    (["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--priority", "2000000"], "--priority"),
-    (["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--deadline-ms", "nan"], "--deadline-ms"),
-    (["cloud", "--node", "c1", "--max-request-bytes", "-1"], "--max-request-bytes"),
+    (["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--rate", "inf"], "--rate"),
+    (["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--rate", "nan"], "--rate"),
+    (["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--duration", "nan"], "--duration"),
+    (["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--priority", "-1"], "--priority"),
+    (["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--priority", "2000000"], "--priority"),
+    (["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r", "--deadline-ms", "nan"], "--deadline-ms"),
+    (["cloud", "--insecure", "--node", "c1", "--max-request-bytes", "-1"], "--max-request-bytes"),
     (["up", "--robots", "1", "--duration", "1", "--synthetic", "stub", "--rate", "inf"], "--rate"),
     (["up", "--robots", "1", "--synthetic", "stub", "--duration", "nan"], "--duration"),
 ])
@@ -247,7 +247,7 @@ def test_up_refuses_a_run_dir_on_a_read_only_file_system(tmp_path):
 def test_a_ready_file_in_a_missing_folder_is_created(tmp_path):
     """A missing folder with a writable ancestor is usable: the peer creates it."""
     ready = tmp_path / "not" / "yet" / "r1.ready"
-    r = _scmr("robot", "--id", "r1", "--synthetic", "stub", "--process", "scmr_mesh.mesh.testing:stub_process",
+    r = _scmr("robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--process", "scmr_mesh.mesh.testing:stub_process",
               "--out", str(tmp_path / "r1"), "--count", "1", "--wait-ms", "0", "--connect", "tcp/127.0.0.1:1",
               "--ready-file", str(ready), "--log-file", str(tmp_path / "logs" / "r1.log"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr + (tmp_path / "logs" / "r1.log").read_text()

@@ -147,7 +147,7 @@ def test_a_robot_on_a_full_disk_keeps_sending_and_reports_the_loss(tmp_path):
         qdir = tmp_path / "mnt" / "q"
         out_dir = tmp_path / "r1"
         dead = f"tcp/127.0.0.1:{free_port()}"
-        p = subprocess.run([sys.executable, "-m", "scmr_mesh", "robot", "--id", "r1", "--synthetic", "stub",
+        p = subprocess.run([sys.executable, "-m", "scmr_mesh", "robot", "--insecure", "--id", "r1", "--synthetic", "stub",
                             "--process", STUB, "--out", str(out_dir), "--connect", dead, "--count", "60",
                             "--rate", "200", "--wait-ms", "0", "--quiet", "--telemetry-queue", str(qdir)],
                            capture_output=True, text=True, timeout=120)

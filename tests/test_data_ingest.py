@@ -36,11 +36,11 @@ class FakeQuery:
     def payload(self):
         return SimpleNamespace(to_bytes=lambda: self._p)
 
-    def reply(self, key, data: bytes) -> None:
+    def reply(self, key, data: bytes, *, encoding=None) -> None:
         self.result = ("ok", msgpack.unpackb(data))
         self.done.set()
 
-    def reply_err(self, data: bytes) -> None:
+    def reply_err(self, data: bytes, *, encoding=None) -> None:
         self.result = ("err", msgpack.unpackb(data))
         self.done.set()
 

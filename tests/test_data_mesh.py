@@ -35,7 +35,7 @@ class Peers:
 
     def service(self, role: str, node: str, port: int, *, connect=(), extra=()):
         ready = self.tmp / f"{node}.ready"
-        args = [role, "--node", node, "--listen", _ep(port), "--workers", "1", "--process", STUB,
+        args = [role, "--insecure", "--node", node, "--listen", _ep(port), "--workers", "1", "--process", STUB,
                 "--lease-ms", LEASE, "--ready-file", str(ready), *extra]
         for ep in connect:
             args += ["--connect", ep]
@@ -47,7 +47,7 @@ class Peers:
 
     def robot(self, rid: str, connect, *extra, name: str | None = None):
         name = name or rid  # a restarted robot may get a new output folder (the scenario runner does)
-        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / name), "--process", STUB,
+        args = ["robot", "--insecure", "--id", rid, "--synthetic", "stub", "--out", str(self.tmp / name), "--process", STUB,
                 "--lease-ms", LEASE, "--quiet", *extra]
         for ep in connect:
             args += ["--connect", ep]
@@ -203,7 +203,7 @@ def test_robot_restarted_mid_outage_keeps_its_queue(peers, tmp_path):
 def test_bad_data_params_stop_the_cloud_with_one_line(tmp_path):
     bad = tmp_path / "params.json"
     bad.write_text("[1, 2]")
-    out = subprocess.run([sys.executable, "-m", "scmr_mesh", "cloud", "--node", "c9", "--workers", "1",
+    out = subprocess.run([sys.executable, "-m", "scmr_mesh", "cloud", "--insecure", "--node", "c9", "--workers", "1",
                           "--process", STUB, "--listen", _ep(free_port()), "--ods", str(tmp_path / "o.sqlite"),
                           "--data-params", str(bad)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 1, out.stderr

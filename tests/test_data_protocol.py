@@ -38,11 +38,11 @@ class FakeQuery:
     def payload(self):
         return SimpleNamespace(to_bytes=lambda: self._p)
 
-    def reply(self, key, data: bytes) -> None:
+    def reply(self, key, data: bytes, *, encoding=None) -> None:
         self.result = ("ok", data)
         self.done.set()
 
-    def reply_err(self, data: bytes) -> None:
+    def reply_err(self, data: bytes, *, encoding=None) -> None:
         self.result = ("err", data)
         self.done.set()
 

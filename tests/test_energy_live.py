@@ -120,7 +120,7 @@ def test_probes_an_unmeasured_tier_when_local_keeps_winning():
 
 # ----------------------------------------------------------- real processes
 def _robot(tmp, rid, connect, extra):
-    args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(tmp / rid), "--process", STUB,
+    args = ["robot", "--insecure", "--id", rid, "--synthetic", "stub", "--out", str(tmp / rid), "--process", STUB,
             "--lease-ms", "300", *extra]
     for ep in connect:
         args += ["--connect", ep]
@@ -133,7 +133,7 @@ def test_robot_with_profile_offloads_and_records_energy(tmp_path):
     ready = tmp_path / "c1.ready"
     procs = []
     try:
-        cloud = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+        cloud = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                             "--process", STUB, "--lease-ms", "300", "--ready-file", str(ready)],
                            log_path=tmp_path / "c1.log")
         procs.append(cloud)

@@ -38,7 +38,7 @@ def cloud(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fuzz")
     port = free_port()
     ready = tmp / "c.ready"
-    p = spawn_peer(["cloud", "--node", "fz", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    p = spawn_peer(["cloud", "--insecure", "--node", "fz", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                     "--max-request-bytes", str(LIMIT), "--ready-file", str(ready),
                     "--ods", str(tmp / "ods.sqlite")],
                    log_path=tmp / "c.log")
@@ -48,7 +48,7 @@ def cloud(tmp_path_factory):
         assert p.poll() is None, (tmp / "c.log").read_text()[-2000:]
         session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=500))
         try:
-            q = session.declare_querier(keys.drivable("cloud", "fz"), timeout=10.0)
+            q = session.declare_querier(keys.drivable_request("cloud", "fz", "good"), timeout=10.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
             yield p, q
         finally:

@@ -157,9 +157,12 @@ def test_bench_pipeline_runs_in_its_own_process(tmp_path):
         assert all(v >= 0 for v in doc[key].values())
     assert doc["p99_ms"]["total"] >= doc["median_ms"]["total"]
     dec = doc["decode"]
-    assert set(dec["median_ms"]) == {"png", "jpeg", "bomb 3840x2160", "bomb 7000x7000"}
+    assert set(dec["median_ms"]) == {"png", "jpeg", "bomb 3840x2160", "bomb 7000x7000", "png bomb 3840x2160",
+                                     "png 1280x960 (largest accepted)"}
     assert dec["bytes"]["jpeg"] < dec["bytes"]["png"] and dec["bytes"]["bomb 7000x7000"] < 1000
-    assert dec["bombs"] == {"bomb 3840x2160": "decoded at reduced scale", "bomb 7000x7000": "refused from its header"}
+    assert dec["bombs"] == {"bomb 3840x2160": "decoded at reduced scale", "bomb 7000x7000": "refused from its header",
+                            "png bomb 3840x2160": "refused from its header",
+                            "png 1280x960 (largest accepted)": "decoded in full"}
     assert dec["peak_rss_growth_mb"] < 20
     assert "reference" not in doc
     assert "timed 8/8 runs" in r.stderr

@@ -223,6 +223,17 @@ def test_progressive_jpeg_cap():
     assert decode_frame(prog).shape == (225, 300, 3)
 
 
+def test_services_refuse_large_png_frames_from_the_header():
+    from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS, encode_png
+
+    big = encode_png(np.zeros((961, 1280, 3), np.uint8))
+    assert decode_frame(big).shape == (225, 300, 3)  # local tools keep the 4K limit
+    with pytest.raises(ImageDecodeError, match="1280x961 = 1230080 pixels, more than the 1228800.*send the frame as JPEG"):
+        decode_frame(big, max_png_pixels=MAX_PNG_FRAME_PIXELS)
+    assert decode_frame(encode_png(np.zeros((960, 1280, 3), np.uint8)),
+                        max_png_pixels=MAX_PNG_FRAME_PIXELS).shape == (225, 300, 3)
+
+
 def test_encode_jpeg_checks_quality():
     with pytest.raises(InputError, match="quality must be 1..100, got 0"):
         encode_jpeg(_smooth(8, 8), quality=0)
@@ -233,23 +244,32 @@ import json, resource, time
 import cv2
 from scmr_mesh.imaging.testing import jpeg_bomb
 from scmr_mesh.errors import ImageDecodeError
-from scmr_mesh.imaging.codec import decode_frame
+from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS, decode_frame, encode_png
+import numpy as np
 cv2.setNumThreads(1)
 decode_frame(jpeg_bomb(640, 480))  # load libjpeg and the code paths once
-out = {}
-for name, (w, h, prog) in {"7000x7000": (7000, 7000, False), "3840x2160": (3840, 2160, False),
-                           "1920x1080 progressive": (1920, 1080, True)}.items():
-    data = jpeg_bomb(w, h, progressive=prog)
+decode_frame(encode_png(np.zeros((48, 64, 3), np.uint8)))  # and libpng
+
+
+def measure(data):
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     c0 = time.process_time()
     try:
-        decode_frame(data)
+        decode_frame(data, max_png_pixels=MAX_PNG_FRAME_PIXELS)  # what a service's workers run
         result = "decoded"
     except ImageDecodeError as exc:
         result = "refused"
     cpu_ms = (time.process_time() - c0) * 1e3
     rss_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
-    out[name] = {"bytes": len(data), "cpu_ms": cpu_ms, "peak_growth_mb": rss_mb, "result": result}
+    return {"bytes": len(data), "cpu_ms": cpu_ms, "peak_growth_mb": rss_mb, "result": result}
+
+
+out = {}
+for name, (h, w) in {"png 3840x2160": (2160, 3840), "png 1280x960": (960, 1280)}.items():
+    out[name] = measure(encode_png(np.zeros((h, w, 3), np.uint8)))  # a PNG of zeros: ~1000:1
+for name, (w, h, prog) in {"7000x7000": (7000, 7000, False), "3840x2160": (3840, 2160, False),
+                           "1920x1080 progressive": (1920, 1080, True)}.items():
+    out[name] = measure(jpeg_bomb(w, h, progressive=prog))
 print(json.dumps(out))
 """
 
@@ -273,7 +293,9 @@ def test_decompression_bomb_costs_little(tmp_path):
     assert res["7000x7000"]["result"] == "refused"
     assert res["3840x2160"]["result"] == "decoded"
     assert res["1920x1080 progressive"]["result"] == "decoded"
+    # PNG has no reduced decode: a service refuses PNG frames above 1280x960 from the header
+    assert res["png 3840x2160"]["result"] == "refused" and res["png 1280x960"]["result"] == "decoded"
     for name, r in res.items():
-        assert r["bytes"] < 1000, (name, r)
+        assert r["bytes"] < (30_000 if name.startswith("png") else 1000), (name, r)
         assert r["peak_growth_mb"] < 20, (name, r)
         assert r["cpu_ms"] < 100, (name, r)

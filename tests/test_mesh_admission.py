@@ -74,7 +74,7 @@ def test_overloaded_cloud_answers_busy_before_the_queue_grows(tmp_path):
     # (A third may be admitted if the first finishes before the last request arrives.)
     port = free_port()
     ready = tmp_path / "c.ready"
-    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                     "--process", SLOW, "--budget-ms", "900", "--ready-file", str(ready)],
                    log_path=tmp_path / "c.log", env={"SCMR_STUB_DELAY_MS": "400"})
     try:
@@ -82,7 +82,7 @@ def test_overloaded_cloud_answers_busy_before_the_queue_grows(tmp_path):
         assert p.poll() is None, (tmp_path / "c.log").read_text()
         session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
         try:
-            q = session.declare_querier(keys.drivable("cloud", "c1"), timeout=30.0)
+            q = session.declare_querier(keys.drivable_request("cloud", "c1", "t1"), timeout=30.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
             results: dict[int, tuple[str, float]] = {}
             lock = threading.Lock()

@@ -104,7 +104,7 @@ def test_bad_setting_fails_before_the_service_starts(tmp_path):
                        cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert r.returncode == 1  # the flag is refused by its argparse type (scmr_mesh.cliargs)
     assert r.stderr.startswith("scmr: error: --lease-ms 0: out of range")
-    r = subprocess.run([sys.executable, "-m", "scmr_mesh", "cloud", "--node", "c", "--cfg", "transport/link/tx/lease:0"],
+    r = subprocess.run([sys.executable, "-m", "scmr_mesh", "cloud", "--insecure", "--node", "c", "--cfg", "transport/link/tx/lease:0"],
                        cwd=tmp_path, capture_output=True, text=True, timeout=60)
     assert r.returncode == 1  # the same setting through --cfg: refused by the config check, still before anything
     assert "lease must be an integer >= 10 ms, got 0" in r.stderr

@@ -70,7 +70,7 @@ def test_bad_quality_is_refused_at_once(folder, bad):
 
 
 def test_robot_cli_refuses_bad_quality_in_one_line(folder, capsys):
-    rc = main(["robot", "--id", "r1", "--images", str(folder), "--out", str(folder / "out"),
+    rc = main(["robot", "--insecure", "--id", "r1", "--images", str(folder), "--out", str(folder / "out"),
                "--jpeg-quality", "101"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and len(err) == 1 and "--jpeg-quality" in err[0], err

@@ -21,7 +21,7 @@ def cloud(tmp_path_factory):
     tmp_path = tmp_path_factory.mktemp("malformed")
     port = free_port()
     ready = tmp_path / "c.ready"
-    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                     "--process", STUB, "--max-request-bytes", str(LIMIT), "--ready-file", str(ready)],
                    log_path=tmp_path / "c.log")
     try:
@@ -29,7 +29,7 @@ def cloud(tmp_path_factory):
         assert p.poll() is None, (tmp_path / "c.log").read_text()
         session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
         try:
-            q = session.declare_querier(keys.drivable("cloud", "c1"), timeout=30.0)
+            q = session.declare_querier(keys.drivable_request("cloud", "c1", "t1"), timeout=30.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
             yield p, q
         finally:
@@ -145,7 +145,7 @@ def test_robot_publishes_valid_telemetry_results_and_load(cloud, tmp_path):
                 session.declare_subscriber(keys.RESULTS_ALL, keep("results")),
                 session.declare_subscriber(keys.LOAD_ALL, keep("load"))]
         time.sleep(0.3)
-        r = spawn_peer(["robot", "--id", "tr1", "--synthetic", "stub", "--count", "4", "--rate", "20",
+        r = spawn_peer(["robot", "--insecure", "--id", "tr1", "--synthetic", "stub", "--count", "4", "--rate", "20",
                         "--out", str(tmp_path / "tr1"), "--connect", ep, "--no-local-fallback"],
                        log_path=tmp_path / "tr1.log")
         assert r.wait(timeout=60) == 0, (tmp_path / "tr1.log").read_text()
@@ -174,14 +174,14 @@ def test_requests_past_their_deadline_are_not_processed(tmp_path):
 
     port = free_port()
     ready = tmp_path / "slow.ready"
-    p = spawn_peer(["cloud", "--node", "slow", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    p = spawn_peer(["cloud", "--insecure", "--node", "slow", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                     "--process", SLOW, "--budget-ms", "100000", "--ready-file", str(ready)],
                    log_path=tmp_path / "slow.log", env={"SCMR_STUB_DELAY_MS": "1000"})  # queue them: no busy
     try:
         wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what="slow cloud ready")
         session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
         try:
-            q = session.declare_querier(keys.drivable("cloud", "slow"), timeout=10.0)
+            q = session.declare_querier(keys.drivable_request("cloud", "slow", "t1"), timeout=10.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
             pending = [q.get(payload=wire.encode(wire.make_request("t1", i, synthetic_png(i), deadline_ms=300)))
                        for i in range(3)]

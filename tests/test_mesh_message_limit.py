@@ -45,7 +45,7 @@ def _vm(pid: int, field: str) -> int:
 def test_a_300_mb_query_is_dropped_by_the_transport_with_bounded_memory(tmp_path):
     port = free_port()
     ready = tmp_path / "c.ready"
-    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                     "--process", STUB, "--ready-file", str(ready), "--ods", str(tmp_path / "ods.sqlite")],
                    log_path=tmp_path / "c.log")
     try:
@@ -57,7 +57,7 @@ def test_a_300_mb_query_is_dropped_by_the_transport_with_bounded_memory(tmp_path
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("transport/shared_memory/enabled", "false")
         with zenoh.open(conf) as s:
-            key = keys.drivable("cloud", "c1")
+            key = keys.drivable_request("cloud", "c1", "t1")
             q = s.declare_querier(key, timeout=30.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="the cloud's queryable")
             good = wire.encode(wire.make_request("t1", 1, synthetic_png(1)))

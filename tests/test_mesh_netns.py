@@ -91,15 +91,15 @@ def test_robot_reaches_cloud_only_through_routers_and_fails_over(two_sites, tmp_
         return json.loads(f.read_text())
 
     try:
-        rb = start(ns_b, "rb", ["router", "--listen", f"tcp/10.77.0.2:{pb}", "--listen", lo(pb_lo), *common])
-        ra = start(ns_a, "ra", ["router", "--listen", lo(pa), "--connect", f"tcp/10.77.0.2:{pb}", *common])
+        rb = start(ns_b, "rb", ["router", "--insecure", "--listen", f"tcp/10.77.0.2:{pb}", "--listen", lo(pb_lo), *common])
+        ra = start(ns_a, "ra", ["router", "--insecure", "--listen", lo(pa), "--connect", f"tcp/10.77.0.2:{pb}", *common])
         ready("rb", rb), ready("ra", ra)
         svc = ["--workers", "1", "--process", STUB, *common]
-        cloud = start(ns_b, "c1", ["cloud", "--node", "c1", "--listen", lo(pc), "--connect", lo(pb_lo), *svc])
-        leader = start(ns_a, "L1", ["leader", "--node", "L1", "--listen", lo(pl), "--connect", lo(pa), *svc])
+        cloud = start(ns_b, "c1", ["cloud", "--insecure", "--node", "c1", "--listen", lo(pc), "--connect", lo(pb_lo), *svc])
+        leader = start(ns_a, "L1", ["leader", "--insecure", "--node", "L1", "--listen", lo(pl), "--connect", lo(pa), *svc])
         cloud_zid = ready("c1", cloud)["zid"]
         ready("L1", leader)
-        robot = start(ns_a, "r1", ["robot", "--id", "r1", "--synthetic", "stub", "--out", str(tmp_path / "r1"),
+        robot = start(ns_a, "r1", ["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", str(tmp_path / "r1"),
                                    "--listen", lo(pr), "--connect", lo(pa), "--count", "30", "--rate", "10",
                                    "--no-local-fallback", "--wait-ms", "10000", *common])
         recs = lambda: read_records(tmp_path / "r1" / "records.jsonl")  # noqa: E731

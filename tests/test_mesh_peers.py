@@ -36,7 +36,7 @@ class Fleet:
 
     def service(self, role: str, node: str, port: int, *, connect=(), process=STUB, extra=(), env=None, wait=True):
         ready = self.tmp / f"{node}.ready"
-        args = [role, "--node", node, "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+        args = [role, "--insecure", "--node", node, "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                 "--process", process, "--lease-ms", LEASE, "--ready-file", str(ready), *extra]
         for ep in connect:
             args += ["--connect", ep]
@@ -49,7 +49,7 @@ class Fleet:
 
     def robot(self, rid: str, connect, *, extra=()):
         source = [] if "--images" in extra else ["--synthetic", "stub"]
-        args = ["robot", "--id", rid, *source, "--out", str(self.tmp / rid), "--process", STUB,
+        args = ["robot", "--insecure", "--id", rid, *source, "--out", str(self.tmp / rid), "--process", STUB,
                 "--lease-ms", LEASE, *extra]
         for ep in connect:
             args += ["--connect", ep]

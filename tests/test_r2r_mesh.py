@@ -45,16 +45,16 @@ class Peers:
         return p
 
     def cloud(self, name="cloud", *, wait=True):
-        return self._spawn(name, ["cloud", "--node", name, "--workers", "1", "--process", STUB], wait=wait)
+        return self._spawn(name, ["cloud", "--insecure", "--node", name, "--workers", "1", "--process", STUB], wait=wait)
 
     def leader(self, name="leader0", *, boot=(), wait=True):
-        args = ["leader", "--node", name, "--workers", "1", "--process", STUB]
+        args = ["leader", "--insecure", "--node", name, "--workers", "1", "--process", STUB]
         for b in boot:
             args += ["--connect", self.ep(b)]
         return self._spawn(name, args, wait=wait)
 
     def robot(self, rid, *, boot=(), capable=None, extra=(), wait=True):
-        args = ["robot", "--id", rid, "--synthetic", "stub", "--out", str(self.run / "robots" / rid),
+        args = ["robot", "--insecure", "--id", rid, "--synthetic", "stub", "--out", str(self.run / "robots" / rid),
                 "--process", STUB, "--rate", "10", *extra]
         if capable:
             args += ["--leader-capable", "--capability", capable]

@@ -90,13 +90,13 @@ def test_database_down_mid_run_robot_keeps_records_until_it_is_back(tmp_path):
     qdir = tmp_path / "queue"
     try:
         ready = tmp_path / "cloud.ready"
-        cloud = spawn_peer(["cloud", "--node", "cloud0", "--listen", _ep(cport), "--workers", "1", "--process",
+        cloud = spawn_peer(["cloud", "--insecure", "--node", "cloud0", "--listen", _ep(cport), "--workers", "1", "--process",
                             STUB, "--lease-ms", LEASE, "--ready-file", str(ready), "--ods", dsn],
                            log_path=tmp_path / "cloud.log")
         procs.append(cloud)
         wait_for(lambda: ready.exists() or cloud.poll() is not None, timeout=60, what="cloud ready")
         assert cloud.poll() is None, (tmp_path / "cloud.log").read_text()
-        robot = spawn_peer(["robot", "--id", "r1", "--synthetic", "stub", "--rate", "10", "--duration", "60",
+        robot = spawn_peer(["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--rate", "10", "--duration", "60",
                             "--out", str(tmp_path / "r1"), "--process", STUB, "--no-local-fallback",
                             "--lease-ms", LEASE, "--quiet", "--telemetry-queue", str(qdir), "--connect", _ep(cport)],
                            log_path=tmp_path / "r1.log")
@@ -158,7 +158,7 @@ def test_leader_syncs_from_every_live_cloud_not_only_the_first_by_name(tmp_path)
 
     def start(role, node, *extra):
         ready = tmp_path / f"{node}.ready"
-        p = spawn_peer([role, "--node", node, "--listen", _ep(ports[node]), "--workers", "1", "--process", STUB,
+        p = spawn_peer([role, "--insecure", "--node", node, "--listen", _ep(ports[node]), "--workers", "1", "--process", STUB,
                         "--lease-ms", LEASE, "--ready-file", str(ready), *extra], log_path=tmp_path / f"{node}.log")
         procs.append(p)
         wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what=f"{node} ready")

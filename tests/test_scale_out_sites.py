@@ -77,24 +77,24 @@ def test_clouds_at_two_sites_share_one_postgres_and_survive_a_node_crash(tmp_pat
             wait_for(lambda: f.exists() or p.poll() is not None, timeout=120, what=f"{name} ready")
             assert p.poll() is None, (tmp_path / f"{name}.log").read_text()
 
-        rb = start(ns_b, "rb", ["router", "--listen", f"tcp/0.0.0.0:{ports['rb']}", *common])
-        rc = start(ns_c, "rc", ["router", "--listen", f"tcp/0.0.0.0:{ports['rc']}",
+        rb = start(ns_b, "rb", ["router", "--insecure", "--listen", f"tcp/0.0.0.0:{ports['rb']}", *common])
+        rc = start(ns_c, "rc", ["router", "--insecure", "--listen", f"tcp/0.0.0.0:{ports['rc']}",
                                 "--connect", f"tcp/{b_c}:{ports['rb']}", *common])
-        ra = start(ns_a, "ra", ["router", "--listen", f"tcp/0.0.0.0:{ports['ra']}",
+        ra = start(ns_a, "ra", ["router", "--insecure", "--listen", f"tcp/0.0.0.0:{ports['ra']}",
                                 "--connect", f"tcp/{b_a}:{ports['rb']}", "--connect", f"tcp/{c_a}:{ports['rc']}",
                                 *common])
         for name, p in (("rb", rb), ("rc", rc), ("ra", ra)):
             ready(name, p)
         svc = ["--workers", "1", "--process", STUB, *common]
-        c0 = start(ns_b, "cloud0", ["cloud", "--node", "cloud0", "--listen", lo(ports["cloud0"]),
+        c0 = start(ns_b, "cloud0", ["cloud", "--insecure", "--node", "cloud0", "--listen", lo(ports["cloud0"]),
                                     "--connect", lo(ports["rb"]), "--ods", dsn_tcp, *svc])
-        c1 = start(ns_c, "cloud1", ["cloud", "--node", "cloud1", "--listen", lo(ports["cloud1"]),
+        c1 = start(ns_c, "cloud1", ["cloud", "--insecure", "--node", "cloud1", "--listen", lo(ports["cloud1"]),
                                     "--connect", lo(ports["rc"]), "--ods", dsn_tcp, *svc])
-        ld = start(ns_a, "leader0", ["leader", "--node", "leader0", "--listen", lo(ports["leader0"]),
+        ld = start(ns_a, "leader0", ["leader", "--insecure", "--node", "leader0", "--listen", lo(ports["leader0"]),
                                      "--connect", lo(ports["ra"]), "--relay-dir", str(tmp_path / "relay"), *svc])
         for name, p in (("cloud0", c0), ("cloud1", c1), ("leader0", ld)):
             ready(name, p)
-        robot = start(ns_a, "r1", ["robot", "--id", "r1", "--synthetic", "stub", "--out", str(tmp_path / "r1"),
+        robot = start(ns_a, "r1", ["robot", "--insecure", "--id", "r1", "--synthetic", "stub", "--out", str(tmp_path / "r1"),
                                    "--listen", lo(ports["r1"]), "--connect", lo(ports["ra"]), "--count", "60",
                                    "--rate", "10", "--no-local-fallback", "--wait-ms", "10000",
                                    "--telemetry-queue", str(tmp_path / "queue"), *common])

@@ -84,7 +84,30 @@ def test_bad_peer_lists_are_named(spec, match):
 
 @given(st.text(max_size=12))
 def test_role_inference_is_total(name):
-    assert infer_role(name) in ("cloud", "leader", "robot")
+    assert infer_role(name) in ("cloud", "leader", "robot", "router")
+
+
+def test_lead_grants_and_priority_caps_are_kept_in_fleet_json(tmp_path):
+    d = tmp_path / "c"
+    create_credentials(d, "cloud,leader,r1=robot+leader-capable,r2,router0", priority={"r2": 7})
+    fleet = load_fleet(d)
+    assert fleet.leaders == ["leader", "r1"] and fleet.trusted == ["cloud", "router0"]
+    assert fleet.priority_cap("r2") == 7 and fleet.priority_cap("r1") == 0 and fleet.priority_cap("nobody") == 0
+    assert fleet.priority_cap("cloud") is None
+    assert fleet.may_serve("cloud", "cloud") and not fleet.may_serve("cloud", "r1")
+    assert fleet.may_serve("leader", "r1") and fleet.may_serve("peer", "leader") and not fleet.may_serve("peer", "r2")
+    assert not fleet.may_serve("leader", "stranger")
+    with pytest.raises(InputError, match="only a robot takes"):
+        parse_peers("c=cloud+leader-capable")
+    with pytest.raises(InputError, match="not in --peers"):
+        parse_peers("r1", priority={"r9": 3})
+
+
+def test_version_1_fleet_files_still_load(tmp_path):
+    (tmp_path / "fleet.json").write_text('{"version": 1, "peers": [{"name": "c", "role": "cloud"}, '
+                                         '{"name": "L", "role": "leader"}, {"name": "r", "role": "robot"}]}')
+    fleet = load_fleet(tmp_path)
+    assert fleet.leaders == ["L"] and fleet.priority_cap("r") is None
 
 
 def test_fleet_file_errors_name_file_and_fix(tmp_path):
@@ -99,7 +122,9 @@ def test_fleet_file_errors_name_file_and_fix(tmp_path):
 
 
 def _who_may(acl, subject_name, flow, message, key):
-    """Evaluate our ACL for one (subject, flow, message, key) like zenoh does (allow-list)."""
+    """Evaluate our ACL for one (subject, flow, message, key) like zenoh does: allow-list, and a
+    rule applies when its key expression includes the message's (a wildcard query is not let
+    through by a rule that merely intersects it, docs/SECURITY.md fact 8)."""
     subjects = {s["id"] for s in acl["subjects"]
                 if subject_name in s.get("cert_common_names", []) + s.get("usernames", [])}
     rules = {r["id"]: r for r in acl["rules"]}
@@ -109,43 +134,90 @@ def _who_may(acl, subject_name, flow, message, key):
         for rid in pol["rules"]:
             r = rules[rid]
             if flow in r["flows"] and message in r["messages"] and any(
-                    zenoh.KeyExpr(k).intersects(zenoh.KeyExpr(key)) for k in r["key_exprs"]):
+                    zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in r["key_exprs"]):
                 return True
     return acl["default_permission"] == "allow"
 
 
+def _sent(acl, sender, receiver, message, key):
+    """A message passes only when the sender's egress (subject = receiver) and the receiver's
+    ingress (subject = sender) allow it: every node enforces the same rules."""
+    return _who_may(acl, receiver, "egress", message, key) and _who_may(acl, sender, "ingress", message, key)
+
+
+FLEET = Fleet((Peer("cloud", "cloud"), Peer("leader", "leader", leader_capable=True), Peer("r1", "robot"),
+               Peer("r2", "robot"), Peer("r3", "robot", leader_capable=True), Peer("router0", "router")))
+
+
 def test_acl_policy_table():
-    fleet = Fleet((Peer("cloud", "cloud"), Peer("leader", "leader"), Peer("r1", "robot"), Peer("r2", "robot")))
-    acl = build_acl(fleet, kind="tls")
+    acl = build_acl(FLEET, kind="tls")
     assert acl["default_permission"] == "deny"
-    may = lambda *a: _who_may(acl, *a)  # noqa: E731
-    # servers: everything under scmr/**
-    assert may("leader", "ingress", "declare_queryable", "scmr/drivable/leader/L")
-    assert may("cloud", "egress", "query", "scmr/data/cloud/c/sync")
-    # robots: query the service, get replies, publish their own telemetry only
-    assert may("r1", "ingress", "query", "scmr/drivable/cloud/c")
-    assert may("r1", "egress", "reply", "scmr/drivable/cloud/c")
-    assert may("r1", "ingress", "put", "scmr/telemetry/r1")
-    assert not may("r1", "ingress", "put", "scmr/telemetry/r2")
-    assert not may("r1", "ingress", "declare_queryable", "scmr/drivable/leader/L")
-    assert not may("r1", "egress", "query", "scmr/drivable/cloud/c")
-    assert not may("r1", "ingress", "reply", "scmr/drivable/cloud/c")
-    assert not may("r1", "ingress", "liveliness_token", "scmr/alive/cloud/fake")
-    assert may("r1", "ingress", "liveliness_token", "scmr/alive/robot/r1")
-    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/sync")
-    # telemetry batches: only on the robot's own key (the service checks the records match it)
-    assert may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry/r1")
-    assert may("r1", "ingress", "query", "scmr/data/leader/L/telemetry/r1")
-    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry/r2")
-    assert not may("r2", "ingress", "query", "scmr/data/cloud/c/telemetry/r1")
-    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/telemetry")
-    assert not may("r1", "ingress", "query", "scmr/data/cloud/c/relay")
-    assert may("cloud", "ingress", "query", "scmr/data/cloud/c/relay")  # only servers relay
-    assert may("r2", "egress", "declare_queryable", "scmr/data/cloud/c/telemetry/*")
-    assert may("r2", "egress", "reply", "scmr/data/cloud/c/telemetry/r2")
-    assert may("r1", "ingress", "query", "scmr/data/cloud/c/buffer")
-    assert not may("r1", "ingress", "declare_subscriber", "scmr/telemetry/r2")
-    assert not may("stranger", "ingress", "query", "scmr/drivable/cloud/c")
+    sent = lambda *a: _sent(acl, *a)  # noqa: E731
+    # cloud and router: trusted with everything
+    assert sent("cloud", "r1", "declare_queryable", "scmr/drivable/cloud/cloud/*")
+    assert sent("router0", "cloud", "query", "scmr/drivable/cloud/cloud/r1")
+    # frame requests: only on the sender's own key, to any tier; replies only to that key
+    assert sent("r1", "cloud", "query", "scmr/drivable/cloud/cloud/r1")
+    assert sent("cloud", "r1", "reply", "scmr/drivable/cloud/cloud/r1")
+    assert not sent("r1", "cloud", "query", "scmr/drivable/cloud/cloud/r2")
+    assert not sent("r1", "cloud", "query", "scmr/drivable/cloud/cloud/*")
+    assert not sent("r1", "cloud", "query", "scmr/drivable/**")
+    assert sent("r1", "leader", "query", "scmr/drivable/leader/leader/r1")
+    assert sent("r1", "r3", "query", "scmr/drivable/peer/r3/r1")
+    assert not sent("r1", "r2", "query", "scmr/drivable/peer/r2/r1")  # r2 is no peer server
+    # serving: a robot certificate is no cloud, no leader, no peer server unless leader-capable
+    for tier in ("cloud", "leader", "peer"):
+        assert not sent("r1", "r2", "declare_queryable", f"scmr/drivable/{tier}/r1/*")
+        assert not sent("r1", "r2", "reply", f"scmr/drivable/{tier}/r1/r2")
+        assert not sent("r1", "r2", "liveliness_token", f"scmr/alive/{tier}/r1")
+    assert not sent("r3", "r1", "declare_queryable", "scmr/drivable/cloud/r3/*")
+    assert not sent("r3", "r1", "liveliness_token", "scmr/alive/cloud/r3")
+    assert not sent("leader", "r1", "liveliness_token", "scmr/alive/cloud/leader")
+    # leader-capable identities serve the leader and peer tiers, under their own name only
+    for who in ("r3", "leader"):
+        for tier in ("leader", "peer"):
+            assert sent(who, "r1", "declare_queryable", f"scmr/drivable/{tier}/{who}/*")
+            assert sent(who, "r1", "reply", f"scmr/drivable/{tier}/{who}/r1")
+            assert sent(who, "r1", "liveliness_token", f"scmr/alive/{tier}/{who}")
+            assert sent(who, "r1", "put", f"scmr/load/{tier}/{who}")
+        assert sent(who, "r1", "liveliness_token", f"scmr/alive/candidate/{who}")
+        assert sent(who, "r1", "put", f"scmr/r2r/candidate/{who}")
+        assert sent(who, "cloud", "query", "scmr/data/cloud/cloud/relay")
+        assert sent(who, "cloud", "query", "scmr/data/cloud/cloud/sync")
+    assert not sent("r3", "r1", "declare_queryable", "scmr/drivable/leader/leader/*")
+    assert not sent("r3", "r1", "liveliness_token", "scmr/alive/leader/leader")
+    # candidacy bound to the publisher; a plain robot cannot run for the lead
+    assert not sent("r3", "r1", "put", "scmr/r2r/candidate/leader")
+    assert not sent("r1", "r3", "put", "scmr/r2r/candidate/r1")
+    assert not sent("r1", "r3", "liveliness_token", "scmr/alive/candidate/r1")
+    assert not sent("r1", "r3", "declare_queryable", "scmr/r2r/candidate/r1")
+    assert sent("r3", "leader", "query", "scmr/r2r/candidate/*")  # a candidate's catch-up
+    assert sent("leader", "r3", "reply", "scmr/r2r/candidate/leader")
+    assert not sent("r1", "r3", "reply", "scmr/r2r/candidate/r1")
+    # standby candidates pull the leader's data; plain robots do not
+    assert sent("r3", "leader", "query", "scmr/data/leader/leader/sync")
+    assert sent("leader", "r3", "reply", "scmr/data/leader/leader/sync")
+    assert not sent("r1", "leader", "query", "scmr/data/leader/leader/sync")
+    assert not sent("r1", "cloud", "query", "scmr/data/cloud/cloud/sync")
+    assert not sent("r1", "cloud", "query", "scmr/data/cloud/cloud/relay")
+    # telemetry: own publications, own batches; buffers readable; nobody reads others' telemetry
+    assert sent("r1", "cloud", "put", "scmr/telemetry/r1")
+    assert not sent("r1", "cloud", "put", "scmr/telemetry/r2")
+    assert sent("r1", "cloud", "query", "scmr/data/cloud/cloud/telemetry/r1")
+    assert sent("r1", "r3", "query", "scmr/data/leader/r3/telemetry/r1")
+    assert not sent("r1", "cloud", "query", "scmr/data/cloud/cloud/telemetry/r2")
+    assert not sent("r1", "cloud", "query", "scmr/data/cloud/cloud/telemetry/*")
+    assert sent("r1", "cloud", "query", "scmr/data/cloud/cloud/buffer")
+    assert not sent("r1", "cloud", "declare_subscriber", "scmr/telemetry/r2")
+    assert not sent("r1", "r2", "declare_subscriber", "scmr/telemetry/*")
+    assert sent("r1", "cloud", "declare_subscriber", "scmr/load/**")
+    # liveliness: everyone watches; tokens only under one's own name
+    assert sent("r1", "cloud", "liveliness_token", "scmr/alive/robot/r1")
+    assert not sent("r1", "cloud", "liveliness_token", "scmr/alive/robot/r2")
+    assert sent("r1", "r2", "declare_liveliness_subscriber", "scmr/alive/**")
+    # strangers: nothing
+    assert not _who_may(acl, "stranger", "ingress", "query", "scmr/drivable/cloud/cloud/stranger")
+    assert not _who_may(acl, "stranger", "egress", "liveliness_token", "scmr/alive/cloud/cloud")
     # only known message kinds
     assert {m for r in acl["rules"] for m in r["messages"]} <= set(ALL_MESSAGES)
 
@@ -212,6 +284,10 @@ def test_certs_command(tmp_path, capsys):
     assert scmr(["certs", "--out", str(tmp_path / "c"), "--peers", "cloud,robot1",
                  "--acl-json", str(tmp_path / "acl.json")]) == 0
     assert "robot1\trobot" in capsys.readouterr().out
+    assert scmr(["certs", "--out", str(tmp_path / "e"), "--peers", "cloud,r1=robot+leader-capable,r2",
+                 "--priority-cap", "r2=5"]) == 0
+    out = capsys.readouterr().out
+    assert "r1\trobot" in out and "leader-capable" in out and "priority<=5" in out
     assert json.loads((tmp_path / "acl.json").read_text())["default_permission"] == "deny"
     assert scmr(["certs", "--out", str(tmp_path / "c"), "--peers", "cloud"]) == 1
     assert "not empty" in capsys.readouterr().err

@@ -173,28 +173,28 @@ def _run_scenario(creds: Path, other_ca: Path, *, acl: bool) -> dict[str, list[d
     agents: dict[str, Agent] = {}
     try:
         agents["cloud"] = Agent(base + [
-            "--id", "cloud", "--listen", cloud_ep, "--serve", "scmr/drivable/cloud/cloud",
+            "--id", "cloud", "--listen", cloud_ep, "--serve", "scmr/drivable/cloud/cloud/*",
             "--sub", "scmr/telemetry/*", "--token", "scmr/alive/cloud/cloud", "--duration", "0", "--hold"])
         agents["cloud"].wait_event("ready")
         agents["rogue"] = Agent(base + [
             "--id", "rogue", "--listen", rogue_ep, "--connect", cloud_ep, "--connect", robot_ep,
-            "--serve", "scmr/drivable/leader/leader", "--serve", "scmr/drivable/cloud/cloud",
+            "--serve", "scmr/drivable/leader/leader/*", "--serve", "scmr/drivable/cloud/cloud/*",
             "--token", "scmr/alive/cloud/fake", "--sub", "scmr/telemetry/*",
             "--pub", "scmr/telemetry/robot1", "--peers", "1", "--duration", "1.5", "--hold"])
         agents["rogue"].wait_event("ready")
         agents["robot1"] = Agent(base + [
             "--id", "robot1", "--listen", robot_ep, "--connect", cloud_ep, "--connect", rogue_ep,
             "--pub", "scmr/telemetry/robot1", "--pub", "scmr/telemetry/robot2",
-            "--query", "scmr/drivable/cloud/cloud", "--query", "scmr/drivable/leader/leader",
+            "--query", "scmr/drivable/cloud/cloud/robot1", "--query", "scmr/drivable/leader/leader/robot1",
             "--alive", "scmr/alive/**", "--peers", "2", "--duration", "1.5"])
         # strangers: no TLS at all; TLS with a certificate from another CA (CN robot1)
         agents["plain"] = Agent([
             "--kind", "none", "--id", "plain", "--connect", cloud_ep, "--connect", robot_ep,
-            "--pub", "scmr/telemetry/robot1", "--query", "scmr/drivable/cloud/cloud",
+            "--pub", "scmr/telemetry/robot1", "--query", "scmr/drivable/cloud/cloud/robot1",
             "--delay", "1.0", "--duration", "1.0"])
         agents["forged"] = Agent([
             "--creds", str(other_ca), "--id", "robot1", "--connect", cloud_ep, "--connect", robot_ep,
-            "--pub", "scmr/telemetry/robot2", "--query", "scmr/drivable/cloud/cloud",
+            "--pub", "scmr/telemetry/robot2", "--query", "scmr/drivable/cloud/cloud/robot1",
             "--delay", "1.0", "--duration", "1.0"])
         out = {name: agents[name].finish() for name in ("robot1", "plain", "forged")}
         out["rogue"] = agents["rogue"].finish()
@@ -239,7 +239,7 @@ def _peers(evs):
 
 # ----------------------------------------------------------------------------- tests
 def test_credentialed_robot_is_served(secured):
-    got = _replies(secured["robot1"], "scmr/drivable/cloud/cloud")
+    got = _replies(secured["robot1"], "scmr/drivable/cloud/cloud/robot1")
     assert got and set(got) == {"served-by-cloud"}
     assert ("scmr/telemetry/robot1", "from-robot1") in _samples(secured["cloud"])
 
@@ -248,7 +248,7 @@ def test_credentialed_robot_is_served(secured):
 def test_peer_without_credentials_cannot_join(secured, stranger):
     evs = secured[stranger]
     assert _peers(evs) == [0], f"{stranger} joined the mesh: {evs}"
-    assert _replies(evs, "scmr/drivable/cloud/cloud") == []
+    assert _replies(evs, "scmr/drivable/cloud/cloud/robot1") == []
     assert f"from-{stranger}" not in [p for _, p in _samples(secured["cloud"])]
     # the forged peer claims to be robot1 and publishes robot2's telemetry: never seen
     assert ("scmr/telemetry/robot2", "from-robot1") not in _samples(secured["cloud"])
@@ -271,10 +271,10 @@ def test_robot_cannot_read_other_robots_telemetry(secured, control):
 def test_rogue_drivable_queryable_never_answers(secured, control):
     robot = secured["robot1"]
     assert _peers(robot) == [2]  # the rogue holds a valid certificate and is connected
-    assert _replies(robot, "scmr/drivable/leader/leader") == []
-    assert "served-by-rogue" not in _replies(robot, "scmr/drivable/cloud/cloud")
+    assert _replies(robot, "scmr/drivable/leader/leader/robot1") == []
+    assert "served-by-rogue" not in _replies(robot, "scmr/drivable/cloud/cloud/robot1")
     # control: without ACL the rogue answers the robot
-    assert "served-by-rogue" in _replies(control["robot1"], "scmr/drivable/leader/leader")
+    assert "served-by-rogue" in _replies(control["robot1"], "scmr/drivable/leader/leader/robot1")
 
 
 def test_rogue_cannot_fake_a_cloud_liveliness_token(secured, control):
@@ -291,30 +291,30 @@ def test_usrpwd_keeps_out_peers_without_password(credentials, tmp_path):
     agents: dict[str, Agent] = {}
     try:
         agents["cloud"] = Agent(["--kind", "usrpwd", "--creds", str(creds), "--id", "cloud",
-                                 "--listen", ep, "--serve", "scmr/drivable/cloud/cloud", "--duration", "0", "--hold"])
+                                 "--listen", ep, "--serve", "scmr/drivable/cloud/cloud/*", "--duration", "0", "--hold"])
         agents["cloud"].wait_event("ready")
         agents["robot1"] = Agent(["--kind", "usrpwd", "--creds", str(creds), "--id", "robot1",
-                                  "--connect", ep, "--query", "scmr/drivable/cloud/cloud",
+                                  "--connect", ep, "--query", "scmr/drivable/cloud/cloud/robot1",
                                   "--peers", "1", "--duration", "0.6"])
         agents["none"] = Agent(["--kind", "none", "--id", "x", "--connect", ep,
-                                "--query", "scmr/drivable/cloud/cloud", "--delay", "0.5", "--duration", "0.6"])
+                                "--query", "scmr/drivable/cloud/cloud/robot1", "--delay", "0.5", "--duration", "0.6"])
         # robot2's name with robot1's password
         wrong = tmp_path / "wrong"
         import shutil
         shutil.copytree(creds, wrong)
         (wrong / "robot2" / "password").write_text((creds / "robot1" / "password").read_text())
         agents["wrong"] = Agent(["--kind", "usrpwd", "--creds", str(wrong), "--id", "robot2",
-                                 "--connect", ep, "--query", "scmr/drivable/cloud/cloud",
+                                 "--connect", ep, "--query", "scmr/drivable/cloud/cloud/robot1",
                                  "--delay", "0.5", "--duration", "0.6"])
         evs = {k: agents[k].finish() for k in ("robot1", "none", "wrong", "cloud")}
     finally:
         for a in agents.values():
             a.kill()
     assert _peers(evs["robot1"]) == [1]
-    assert "served-by-cloud" in _replies(evs["robot1"], "scmr/drivable/cloud/cloud")
+    assert "served-by-cloud" in _replies(evs["robot1"], "scmr/drivable/cloud/cloud/robot1")
     for k in ("none", "wrong"):
         assert _peers(evs[k]) == [0], k
-        assert _replies(evs[k], "scmr/drivable/cloud/cloud") == [], k
+        assert _replies(evs[k], "scmr/drivable/cloud/cloud/robot1") == [], k
 
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "agent":

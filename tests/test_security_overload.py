@@ -47,12 +47,12 @@ def test_busy_is_explicit_and_robots_fall_back_at_once(tmp_path):
     cloud_ep, leader_ep = f"tcp/127.0.0.1:{pc}", f"tcp/127.0.0.1:{pl}"
     peers = []
     try:
-        cloud = spawn_peer(["cloud", "--node", "c1", "--listen", cloud_ep, "--workers", "1", "--process", SLOW,
+        cloud = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", cloud_ep, "--workers", "1", "--process", SLOW,
                             "--queue", "0", "--ready-file", str(tmp_path / "c.ready"),
                             "--ods", str(tmp_path / "ods.sqlite")],
                            log_path=tmp_path / "c.log", env={"SCMR_STUB_DELAY_MS": "150"})
         peers.append(cloud)
-        leader = spawn_peer(["leader", "--node", "L", "--listen", leader_ep, "--connect", cloud_ep, "--workers", "1",
+        leader = spawn_peer(["leader", "--insecure", "--node", "L", "--listen", leader_ep, "--connect", cloud_ep, "--workers", "1",
                              "--process", STUB, "--ready-file", str(tmp_path / "l.ready")],
                             log_path=tmp_path / "l.log")
         peers.append(leader)
@@ -62,7 +62,7 @@ def test_busy_is_explicit_and_robots_fall_back_at_once(tmp_path):
         robots = []
         for k in range(3):
             robots.append(spawn_peer(
-                ["robot", "--id", f"r{k}", "--connect", cloud_ep, "--connect", leader_ep, "--synthetic", "stub",
+                ["robot", "--insecure", "--id", f"r{k}", "--connect", cloud_ep, "--connect", leader_ep, "--synthetic", "stub",
                  "--rate", "10", "--duration", "1.5", "--priority", str(10 * (k % 2)), "--no-local-fallback",
                  "--quiet", "--out", str(tmp_path / f"r{k}")],
                 log_path=tmp_path / f"r{k}.log"))

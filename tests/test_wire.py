@@ -153,6 +153,8 @@ def test_msgpack_bin_and_str_are_distinct():
 # ------------------------------------------------------------------ keys
 def test_keys_catalog():
     assert keys.drivable("cloud", "c1") == "scmr/drivable/cloud/c1"
+    assert keys.drivable_request("cloud", "c1", "r1") == "scmr/drivable/cloud/c1/r1"
+    assert keys.drivable_serve("cloud", "c1") == "scmr/drivable/cloud/c1/*"
     assert keys.drivable("leader", "L") == "scmr/drivable/leader/L"
     assert keys.alive("cloud", "c1") != keys.alive("leader", "c1")
     assert keys.parse(keys.alive("leader", "L")) == ("alive", "leader", "L")

@@ -58,6 +58,13 @@ def _frame_size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _insecure_arg(p: argparse.ArgumentParser) -> None:
+    """``--insecure`` for a bench that starts peers (secured by default, as ``scmr up``)."""
+    p.add_argument("--insecure", action="store_true",
+                   help="start the peers without authentication (default: a development CA and one certificate "
+                        "per peer in the run folder, mutual TLS and the fleet's access rules, as scmr up does)")
+
+
 def _handler(module: str, func: str) -> Callable[[argparse.Namespace], int]:
     """A handler that imports ``scmr_mesh.bench.<module>`` only when the target runs."""
 
@@ -95,8 +102,9 @@ def add_pipeline(bench: argparse._SubParsersAction) -> None:
             "Time the pipeline on one core (sched_setaffinity, numba and OpenCV at 1 thread) after "
             "JIT warm-up.  'total' = 300x225 RGB array to mask.  A separate pass times decode_frame "
             "(bytes to the 300x225 frame) per encoding: each frame as PNG and as JPEG (quality 90), "
-            "and two decompression bombs (a ~700-byte JPEG claiming 3840x2160, decoded at 1/8 scale, "
-            "and one claiming 7000x7000, refused).  Frames come from --images (PNG/JPEG folder) or "
+            "and decompression bombs as a service decodes them (a ~700-byte JPEG claiming 3840x2160, decoded at "
+            "1/8 scale; one claiming 7000x7000, refused; a 28 KB PNG of zeros claiming 3840x2160, refused, and "
+            "the largest PNG a service accepts, 1280x960, decoded in full).  Frames come from --images (PNG/JPEG folder) or "
             "built-in synthetic scenes."
         ),
     )
@@ -289,6 +297,7 @@ def add_ingest(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--unbounded", action="store_true", help="also run each case with the bounds lifted")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the results here")
     b.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _insecure_arg(b)
     b.set_defaults(func=_handler("ingest", "cmd_bench_ingest"))
 
 
@@ -307,6 +316,7 @@ def add_overload(bench: argparse._SubParsersAction) -> None:
         ),
     )
     _add_overload_arguments(b)
+    _insecure_arg(b)
     b.set_defaults(func=_handler("overload", "run_overload_cli"))
 
 
@@ -336,9 +346,18 @@ def add_tls(bench: argparse._SubParsersAction) -> None:
         description=(
             "Measure the cost of authentication: median and p99 round trip of a query carrying "
             "--payload bytes between two zenoh sessions on loopback (shared memory off), with no "
-            "security, usrpwd, mutual TLS, and mutual TLS with the fleet ACL."
+            "security, usrpwd, mutual TLS, and mutual TLS with the fleet ACL; then whole fleets as "
+            "`scmr up` runs them (cloud, leader, --fleet-robots robots sending synthetic JPEG frames at "
+            "5 Hz to the stub service, so the transport is what is measured), secured (the default) and "
+            "--insecure, alternately, --fleet-runs times each: ToR median/p99, RoR and start-up time."
         ),
     )
+    t.add_argument("--fleet-runs", type=ca.count("runs", lo=0, hi=100, example="2"), default=2, metavar="N",
+                   help="fleet runs per mode (default 2; 0 skips the fleets)")
+    t.add_argument("--fleet-robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
+                   help="robots per fleet run (default 4)")
+    t.add_argument("--fleet-duration", type=ca.positive("seconds", hi=3600, example="10"), default=10.0, metavar="S",
+                   help="seconds each fleet run sends frames (default 10)")
     t.add_argument("--payload", type=ca.count("bytes", hi=1 << 30), default=200_000, metavar="BYTES", help="query payload (default 200000)")
     t.add_argument("--queries", type=ca.count("queries", hi=10**6), default=300, metavar="N", help="timed queries per kind (default 300)")
     t.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="write the results here")
@@ -399,4 +418,5 @@ def add_r2r(bench: argparse._SubParsersAction) -> None:
                    metavar="MS", help="zenoh lease (default 500)")
     b.add_argument("--no-crash", action="store_true", help="only the discovery measurement")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
+    _insecure_arg(b)
     b.set_defaults(func=_handler("r2r", "cmd_bench_r2r"))

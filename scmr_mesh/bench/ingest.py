@@ -51,11 +51,11 @@ def _payloads(records: int, k: int = 8) -> list[bytes]:
 
 
 def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[str], workdir: Path,
-               say=lambda m: None) -> dict:
+               say=lambda m: None, insecure: bool = False) -> dict:
     """One case: a fresh cloud flooded at ``rate_hz`` batches/s of ``records`` records for ``duration_s``."""
     import zenoh
 
-    from scmr_mesh.mesh.config import MeshConfig, open_session
+    from scmr_mesh.mesh.config import open_session
     from scmr_mesh.mesh.data_service import telemetry_key
     from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, wait_for
 
@@ -66,7 +66,10 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
         port = s.getsockname()[1]
     tag = f"{int(rate_hz)}hz-{records}r{'-unbounded' if extra else ''}"
     ready = workdir / f"{tag}.ready"
-    cloud = spawn_peer(["cloud", "--node", "c1", "--workers", "1", "--process", STUB, "--listen",
+    from scmr_mesh.bench.secure import bench_security
+
+    sec = bench_security(workdir / tag, "c1=cloud,flood=robot", insecure=insecure)
+    cloud = spawn_peer(["cloud", *sec.args, "--node", "c1", "--workers", "1", "--process", STUB, "--listen",
                         f"tcp/127.0.0.1:{port}", "--ready-file", str(ready), "--ods", str(workdir / f"{tag}.sqlite"),
                         *extra], log_path=workdir / f"{tag}.log")
     payloads = _payloads(records)
@@ -77,7 +80,7 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
         wait_for(lambda: ready.exists() or cloud.poll() is not None, timeout=120, what="cloud ready")
         if cloud.poll() is not None:
             raise InputError(f"the cloud did not start; see {workdir / f'{tag}.log'}")
-        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+        session = open_session(sec.mesh("flood", connect=[f"tcp/127.0.0.1:{port}"]))
         try:
             key = telemetry_key("cloud", "c1", "flood")
             q = session.declare_querier(key, timeout=10.0)
@@ -174,7 +177,7 @@ def cmd_bench_ingest(args) -> int:
             for rate in rates:
                 for extra in ([[], UNBOUNDED] if args.unbounded else [[]]):
                     cases.append(flood_case(rate_hz=rate, records=records, duration_s=args.duration, extra=extra,
-                                            workdir=Path(tmp), say=say))
+                                            workdir=Path(tmp), say=say, insecure=args.insecure))
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
     bounded = [c for c in cases if c["bounded"]]

@@ -115,7 +115,7 @@ def _tree_cpu_s(pid: int) -> float:
 
 
 def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, concurrency: int | None = None,
-                     progress=None) -> dict[str, Any]:
+                     progress=None, insecure: bool = False) -> dict[str, Any]:
     """Saturate one ``scmr cloud`` (real pipeline) with a closed loop of requests.
 
     ``concurrency`` senders (default 2 x workers) each send the next frame (the
@@ -129,7 +129,7 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
     from scmr_mesh import keys, wire
     from scmr_mesh.fleet.run import _free_ports
     from scmr_mesh.imaging.synthetic import SCENE_KINDS
-    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+    from scmr_mesh.mesh.config import close_session, open_session
     from scmr_mesh.mesh.robot import frames_from_args
     from scmr_mesh.mesh.testing import spawn_peer, stop_peer, wait_for
     from scmr_mesh.qos import metrics
@@ -143,7 +143,10 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
     for i, kind in enumerate(SCENE_KINDS):
         it = frames_from_args(None, kind, seed=i)
         frames += [next(it) for _ in range(4)]
-    proc = spawn_peer(["cloud", "--node", "cap0", "--listen", f"tcp/127.0.0.1:{port}", "--workers", str(workers),
+    from scmr_mesh.bench.secure import bench_security
+
+    sec = bench_security(run_dir, "cap0=cloud,cap=robot", insecure=insecure)
+    proc = spawn_peer(["cloud", *sec.args, "--node", "cap0", "--listen", f"tcp/127.0.0.1:{port}", "--workers", str(workers),
                        "--ods", str(run_dir / "ods.sqlite"), "--ready-file", str(ready)],
                       log_path=run_dir / "cloud.log")
     counts = {"ok": 0, "busy": 0, "other": 0}
@@ -153,9 +156,9 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
         wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=120, what="capacity cloud ready")
         if proc.poll() is not None:
             raise MeshError(f"the capacity run's cloud exited; see {run_dir / 'cloud.log'}")
-        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+        session = open_session(sec.mesh("cap", connect=[f"tcp/127.0.0.1:{port}"]))
         try:
-            q = session.declare_querier(keys.drivable("cloud", "cap0"), timeout=10.0)
+            q = session.declare_querier(keys.drivable_request("cloud", "cap0", "cap"), timeout=10.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="the capacity cloud's queryable")
             state = {"measure": False, "stop": False}
 
@@ -294,7 +297,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
     if args.capacity_seconds > 0:
         say(f"bench mesh: service capacity ({args.capacity_seconds:g} s, real pipeline) ...")
         capacity = measure_capacity(workers=args.workers, seconds=args.capacity_seconds, run_dir=root / "capacity",
-                                    progress=say)
+                                    progress=say, insecure=args.insecure)
         say(f"  capacity: {capacity['frames_per_s_per_core']} frames/s per core ({capacity['frames_per_s']} frames/s "
             f"with {capacity['workers']} workers, {capacity['service_cpu_s']} CPU-s in {capacity['seconds']} s)")
     runs = []
@@ -320,7 +323,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
     if args.overload_robots > 0:  # served/busy, ToR of admitted, fairness, peak RSS (security area)
         overload = {"runs": [
             run_overload(policy=pol, robots=args.overload_robots, rate_hz=args.overload_rate, duration_s=10.0,
-                         run_dir=root / f"overload-{pol}", progress=say)
+                         run_dir=root / f"overload-{pol}", progress=say, insecure=args.insecure)
             for pol in ("negotiator", "fifo")
         ]}
     result = {

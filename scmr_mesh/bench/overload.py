@@ -180,6 +180,7 @@ def run_overload(
     levels: int = 2,
     run_dir: Path,
     progress=None,
+    insecure: bool = False,
 ) -> dict[str, Any]:
     """One overload run (see the module docstring); returns its summary.
 
@@ -217,7 +218,12 @@ def run_overload(
         port = s.getsockname()[1]
     ep = f"tcp/127.0.0.1:{port}"
     ready = run_dir / "cloud.ready"
-    cloud_args = ["cloud", "--node", "ovl", "--listen", ep, "--workers", str(workers),
+    priorities = {f"ovl{k}": 10 * (k % levels) for k in range(robots)}
+    from scmr_mesh.bench.secure import bench_security
+
+    # the fleet's policy grants each robot the priority it asks (a request asking more is capped)
+    sec = bench_security(run_dir, ",".join(["ovl=cloud", *priorities]), insecure=insecure, priority=priorities)
+    cloud_args = ["cloud", *sec.args, "--node", "ovl", "--listen", ep, "--workers", str(workers),
                   "--ready-file", str(ready), "--ods", str(run_dir / "ods.sqlite")]
     env = {}
     if service_ms > 0:
@@ -241,7 +247,6 @@ def run_overload(
             tail = (run_dir / "cloud.log").read_text(errors="replace")[-800:]
             raise MeshError(f"the cloud exited with status {cloud.returncode}: {tail}")
         sampler = _RssSampler(cloud.pid)
-        priorities = {f"ovl{k}": 10 * (k % levels) for k in range(robots)}
         say(f"[{policy}] {robots} robots x {rate_hz:g} Hz for {duration_s:g} s "
             f"(offered {robots * rate_hz:g}/s; capacity ~"
             f"{workers * 1000 / service_ms:.0f}/s)" if service_ms > 0 else
@@ -249,7 +254,7 @@ def run_overload(
         for rid, prio in priorities.items():
             out = run_dir / rid
             procs.append(spawn_peer(
-                ["robot", "--id", rid, "--connect", ep, "--synthetic", "stub", "--rate", str(rate_hz),
+                ["robot", *sec.args, "--id", rid, "--connect", ep, "--synthetic", "stub", "--rate", str(rate_hz),
                  "--duration", str(duration_s), "--priority", str(prio), "--no-local-fallback",
                  "--deadline-ms", "5000", "--wait-ms", "10000", "--quiet", "--out", str(out)],
                 log_path=run_dir / f"{rid}.log"))
@@ -294,7 +299,8 @@ def run_overload_cli(args) -> int:
         runs.append(run_overload(
             policy=pol, robots=args.robots, rate_hz=args.rate, duration_s=args.duration,
             workers=args.workers, service_ms=args.service_ms, queue=args.queue,
-            per_robot=args.per_robot, levels=args.levels, run_dir=root / pol, progress=say))
+            per_robot=args.per_robot, levels=args.levels, run_dir=root / pol, progress=say,
+            insecure=args.insecure))
     result = {"bench": "overload", "runs": runs, "run_dir": str(root),
               "note": "measured on a shared, loaded 2-core machine"}
     if args.json:

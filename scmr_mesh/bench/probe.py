@@ -426,17 +426,17 @@ def probe_routers(args) -> int:
                         return p
 
                     lo = "tcp/127.0.0.1:{}".format
-                    start(ns_b, "rb", ["router", "--listen", f"tcp/{netns.ADDR_B}:7449", "--listen", lo(7450)])
+                    start(ns_b, "rb", ["router", "--insecure", "--listen", f"tcp/{netns.ADDR_B}:7449", "--listen", lo(7450)])
                     if layout == "router-per-site":
-                        start(ns_a, "ra", ["router", "--listen", lo(7451), "--connect", f"tcp/{netns.ADDR_B}:7449"])
+                        start(ns_a, "ra", ["router", "--insecure", "--listen", lo(7451), "--connect", f"tcp/{netns.ADDR_B}:7449"])
                         robot_ep = lo(7451)
                     else:
                         robot_ep = f"tcp/{netns.ADDR_B}:7449"
                     listen = lambda port: ["--listen", lo(port)] if mode == "peer" else []  # noqa: E731
-                    start(ns_b, "c1", ["cloud", "--node", "c1", "--zmode", mode, *listen(7460), "--connect", lo(7450),
+                    start(ns_b, "c1", ["cloud", "--insecure", "--node", "c1", "--zmode", mode, *listen(7460), "--connect", lo(7450),
                                        "--workers", "1", "--process", STUB])
                     t0 = time.monotonic()
-                    r = spawn_peer(["robot", "--id", "r1", "--zmode", mode, *listen(7461), "--connect", robot_ep,
+                    r = spawn_peer(["robot", "--insecure", "--id", "r1", "--zmode", mode, *listen(7461), "--connect", robot_ep,
                                     "--synthetic", "stub", "--count", str(args.count), "--rate", "20",
                                     "--no-local-fallback", "--wait-ms", "3000", "--out", str(tmp / "r1")],
                                    log_path=tmp / "r1.log", prefix=sites.exec_prefix(ns_a))
@@ -472,18 +472,18 @@ def probe_failover(args) -> int:
         ready = tmp / "c1.ready"
         ready.unlink(missing_ok=True)
         t = time.time_ns()
-        procs["c1"] = spawn_peer(["cloud", "--node", "c1", "--listen", ep(cp), "--ready-file", str(ready), *svc],
+        procs["c1"] = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", ep(cp), "--ready-file", str(ready), *svc],
                                  log_path=tmp / "c1.log")
         wait_for(ready.exists, timeout=300, what="cloud ready")
         return t, time.time_ns()
 
     try:
         start_cloud()
-        procs["L1"] = spawn_peer(["leader", "--node", "L1", "--listen", ep(lp), "--connect", ep(cp),
+        procs["L1"] = spawn_peer(["leader", "--insecure", "--node", "L1", "--listen", ep(lp), "--connect", ep(cp),
                                   "--ready-file", str(tmp / "L1.ready"), *svc], log_path=tmp / "L1.log")
         wait_for((tmp / "L1.ready").exists, timeout=300, what="leader ready")
         src = ["--images", args.images] if args.images else ["--synthetic", "stub"]
-        procs["r1"] = spawn_peer(["robot", "--id", "r1", *src, "--rate", str(args.rate), "--out", str(tmp / "r1"),
+        procs["r1"] = spawn_peer(["robot", "--insecure", "--id", "r1", *src, "--rate", str(args.rate), "--out", str(tmp / "r1"),
                                   "--connect", ep(cp), "--connect", ep(lp), "--no-local-fallback"] +
                                  (["--process", args.process] if args.process else []), log_path=tmp / "r1.log")
         recs = lambda: read_records(tmp / "r1" / "records.jsonl")  # noqa: E731
@@ -546,9 +546,9 @@ def probe_redundant(args) -> int:
     svc = ["--workers", str(args.workers), *proc]
     procs = {}
     try:
-        procs["c1"] = spawn_peer(["cloud", "--node", "c1", "--listen", ep(cp), "--ready-file", str(tmp / "c1.ready"),
+        procs["c1"] = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", ep(cp), "--ready-file", str(tmp / "c1.ready"),
                                   *svc], log_path=tmp / "c1.log")
-        procs["L1"] = spawn_peer(["leader", "--node", "L1", "--listen", ep(lp), "--connect", ep(cp),
+        procs["L1"] = spawn_peer(["leader", "--insecure", "--node", "L1", "--listen", ep(lp), "--connect", ep(cp),
                                   "--ready-file", str(tmp / "L1.ready"), *svc], log_path=tmp / "L1.log")
         for n in ("c1", "L1"):
             wait_for((tmp / f"{n}.ready").exists, timeout=300, what=f"{n} ready")
@@ -558,7 +558,7 @@ def probe_redundant(args) -> int:
             for i in range(args.robots):
                 rid = f"{mode[:3]}{i}"
                 robots.append((rid, spawn_peer(
-                    ["robot", "--id", rid, *src, "--rate", str(args.rate), "--count", str(args.count),
+                    ["robot", "--insecure", "--id", rid, *src, "--rate", str(args.rate), "--count", str(args.count),
                      "--out", str(tmp / rid), "--connect", ep(cp), "--connect", ep(lp), "--no-local-fallback", *proc,
                      *(["--redundant"] if mode == "redundant" else [])], log_path=tmp / f"{rid}.log")))
             for _, p in robots:

@@ -50,19 +50,23 @@ def _stats(xs: list[float]) -> dict[str, Any]:
     return {"n": len(xs), "median": round(statistics.median(xs), 2), "p99": round(p99, 2), "max": round(xs[-1], 2)}
 
 
-def discovery_once(robots: int = 4, *, lease_ms: int = 500, timeout: float = 10.0) -> dict[str, list[float]]:
-    """One chained-bootstrap run; per robot: ms to see the leader token, ms to link to every peer."""
+def discovery_once(robots: int = 4, *, lease_ms: int = 500, timeout: float = 10.0,
+                   sec=None) -> dict[str, list[float]]:
+    """One chained-bootstrap run; per robot: ms to see the leader token, ms to link to every peer,
+    and the share of its links that are TLS (under ``sec``: every link, also those gossip found)."""
     from scmr_mesh import keys
-    from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+    from scmr_mesh.bench.secure import BenchSecurity
+    from scmr_mesh.mesh.config import close_session, open_session
 
-    ports = {n: _port() for n in ["cloud", "leader", *[f"r{i}" for i in range(1, robots + 1)]]}
+    sec = sec or BenchSecurity(None)
+    ports = {n: _port() for n in ["cloud", "leader0", *[f"r{i}" for i in range(1, robots + 1)]]}
     ep = {n: f"tcp/127.0.0.1:{p}" for n, p in ports.items()}
     sessions = []
-    out: dict[str, list[float]] = {"leader_token_ms": [], "full_mesh_ms": []}
+    out: dict[str, list[float]] = {"leader_token_ms": [], "full_mesh_ms": [], "tls_link_share": []}
     try:
-        cloud = open_session(MeshConfig(listen=[ep["cloud"]], lease_ms=lease_ms))
+        cloud = open_session(sec.mesh("cloud", listen=[ep["cloud"]], lease_ms=lease_ms))
         sessions.append(cloud)
-        leader = open_session(MeshConfig(listen=[ep["leader"]], connect=[ep["cloud"]], lease_ms=lease_ms))
+        leader = open_session(sec.mesh("leader0", listen=[ep["leader0"]], connect=[ep["cloud"]], lease_ms=lease_ms))
         sessions.append(leader)
         token = leader.liveliness().declare_token(keys.alive("leader", "leader0"))
         prev = "cloud"
@@ -70,7 +74,7 @@ def discovery_once(robots: int = 4, *, lease_ms: int = 500, timeout: float = 10.
             name = f"r{i}"
             seen = threading.Event()
             t0 = time.perf_counter()
-            s = open_session(MeshConfig(listen=[ep[name]], connect=[ep[prev]], lease_ms=lease_ms))
+            s = open_session(sec.mesh(name, listen=[ep[name]], connect=[ep[prev]], lease_ms=lease_ms))
             sessions.append(s)
             sub = s.liveliness().declare_subscriber(f"{keys.ALIVE}/leader/*", lambda _s: seen.set(), history=True)
             if seen.wait(timeout):
@@ -80,6 +84,9 @@ def discovery_once(robots: int = 4, *, lease_ms: int = 500, timeout: float = 10.
             while time.monotonic() < end:
                 if len(list(s.info.peers_zid())) >= want:
                     out["full_mesh_ms"].append((time.perf_counter() - t0) * 1e3)
+                    links = list(s.info.links())
+                    out["tls_link_share"].append(
+                        sum(str(lk.dst).startswith("tls/") for lk in links) / max(1, len(links)))
                     break
                 time.sleep(0.002)
             sub.undeclare()
@@ -91,16 +98,19 @@ def discovery_once(robots: int = 4, *, lease_ms: int = 500, timeout: float = 10.
     return out
 
 
-def succession_once(tmp: Path, *, lease_ms: int = 500) -> dict[str, float | None]:
+def succession_once(tmp: Path, *, lease_ms: int = 500, insecure: bool = False) -> dict[str, float | None]:
     """One crash: ms from SIGKILL of the leader to the new leader's claim, and to a robot's first answer from it."""
+    from scmr_mesh.bench.secure import bench_security
     from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
 
+    sec = bench_security(tmp, "leader0=leader,r1=robot+leader-capable,r2=robot+leader-capable,r3=robot",
+                         insecure=insecure)
     ports = {n: _port() for n in ("leader0", "r1", "r2", "r3")}
     procs = {}
 
     def start(name: str, args: list[str]) -> None:
         ready = tmp / "ready" / f"{name}.ready"
-        procs[name] = spawn_peer([*args, "--listen", f"tcp/127.0.0.1:{ports[name]}", "--lease-ms", str(lease_ms),
+        procs[name] = spawn_peer([*args, *sec.args, "--listen", f"tcp/127.0.0.1:{ports[name]}", "--lease-ms", str(lease_ms),
                                   "--ready-file", str(ready)], log_path=tmp / f"{name}.log")
         wait_for(lambda: ready.exists() or procs[name].poll() is not None, timeout=120, what=f"{name} ready")
         if procs[name].poll() is not None:
@@ -138,22 +148,27 @@ def succession_once(tmp: Path, *, lease_ms: int = 500) -> dict[str, float | None
 
 
 def run(*, repeat: int = 5, robots: int = 4, lease_ms: int = 500, crash: bool = True,
-        progress: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
-    """Both measurements (see the module docstring)."""
-    disc: dict[str, list[float]] = {"leader_token_ms": [], "full_mesh_ms": []}
+        progress: Callable[[str], None] = lambda m: None, insecure: bool = False) -> dict[str, Any]:
+    """Both measurements (see the module docstring); secured like ``scmr up`` unless ``insecure``."""
+    from scmr_mesh.bench.secure import bench_security
+
+    disc: dict[str, list[float]] = {"leader_token_ms": [], "full_mesh_ms": [], "tls_link_share": []}
+    tmpd = Path(tempfile.mkdtemp(prefix="scmr-bench-r2r-certs-"))
+    sec = bench_security(tmpd, ",".join(["cloud=cloud", "leader0=leader", *[f"r{i}=robot" for i in range(1, robots + 1)]]),
+                         insecure=insecure)
     for i in range(repeat):
-        progress(f"discovery run {i + 1}/{repeat} ({robots} robots in a bootstrap chain)")
-        d = discovery_once(robots, lease_ms=lease_ms)
+        progress(f"discovery run {i + 1}/{repeat} ({robots} robots in a bootstrap chain, {sec.label})")
+        d = discovery_once(robots, lease_ms=lease_ms, sec=sec)
         for k in disc:
             disc[k] += d[k]
-    out: dict[str, Any] = {"robots": robots, "lease_ms": lease_ms, "repeat": repeat,
+    out: dict[str, Any] = {"robots": robots, "lease_ms": lease_ms, "repeat": repeat, "security": sec.label,
                            "discovery": {k: _stats(v) for k, v in disc.items()}}
     if crash:
         runs = []
         for i in range(repeat):
             progress(f"succession run {i + 1}/{repeat} (SIGKILL of the leader)")
             with tempfile.TemporaryDirectory(prefix="scmr-bench-r2r-") as tmp:
-                runs.append(succession_once(Path(tmp), lease_ms=lease_ms))
+                runs.append(succession_once(Path(tmp), lease_ms=lease_ms, insecure=insecure))
         out["succession_after_crash"] = {
             "claim_ms": _stats([r["claim_ms"] for r in runs]),
             "first_answer_ms": _stats([r["first_answer_ms"] for r in runs]),
@@ -168,7 +183,7 @@ def cmd_bench_r2r(args: argparse.Namespace) -> int:
     if args.repeat < 1 or args.robots < 1:
         raise InputError(f"--repeat and --robots must be >= 1, got {args.repeat} and {args.robots}")
     res = run(repeat=args.repeat, robots=args.robots, lease_ms=args.lease_ms, crash=not args.no_crash,
-              progress=lambda m: print(f"bench r2r: {m} ...", file=sys.stderr, flush=True))
+              progress=lambda m: print(f"bench r2r: {m} ...", file=sys.stderr, flush=True), insecure=args.insecure)
     text = json.dumps(res, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")

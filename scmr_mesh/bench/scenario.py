@@ -30,7 +30,8 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
     for i in range(args.runs):
         _err(f"bench scenario: run {i + 1}/{args.runs} of {sc.name} ({backend})")
         res = run_scenario(sc, backend=backend, out_dir=base / f"run{i + 1}", data_dir=args.data,
-                           progress=lambda m: _err(f"  {m}"), ready_timeout=args.ready_timeout)
+                           progress=lambda m: _err(f"  {m}"), ready_timeout=args.ready_timeout,
+                           insecure=args.insecure)
         rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
                            notes=res.notes, telemetry=res.telemetry, leadership=res.leadership(),
                            topology=res.topology)

@@ -41,6 +41,10 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
                         "(Eq 4.2-4.6) chooses per frame where it runs; the summary shows energy per robot and "
                         "where each task ran.  Without it robots offload every frame (cloud, then leader, "
                         "then peers, then local) and no energy is modelled")
+    p.add_argument("--insecure", action="store_true",
+                   help="run every peer without authentication (to measure what security costs); by default "
+                        "the run makes a development CA and one certificate per peer in RUN/certs and every "
+                        "peer runs mutual TLS with the fleet's access rules (docs/SECURITY.md)")
     g = p.add_argument_group("R2R tier (docs/R2R.md)")
     g.add_argument("--leader-capable", type=ca.count("robots", lo=0, hi=10000, example="2"), default=None, metavar="N",
                    help="the first N robots run for the lead besides the dedicated leader, and serve other "
@@ -72,6 +76,7 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
         rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
         leader_crash_s=getattr(args, "leader_crash", None), profiles=getattr(args, "profiles", None) or (),
+        insecure=args.insecure,
     )
 
 

@@ -66,6 +66,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the lead)")
     p.add_argument("--no-leader-crash", action="store_true", help="do not crash the leader")
     p.add_argument("--quiet", action="store_true", help="no live progress")
+    p.add_argument("--insecure", action="store_true",
+                   help="run the peers without authentication (default: mutual TLS with certificates made in "
+                        "OUT/certs, and the fleet's access rules)")
     from scmr_mesh.viz import add_rerun_args  # light: rerun is imported only when used
 
     add_rerun_args(p)
@@ -104,8 +107,9 @@ def run(args: argparse.Namespace) -> int:
                          "give a time inside the run or --no-leader-crash")
     config = FleetConfig(robots=args.robots, duration_s=args.duration, rate_hz=args.rate,
                          cloud_outage=parse_outage(args.cloud_outage), run_dir=out, rerun=rerun,
-                         leader_crash_s=crash)
-    print(f"scmr demo: cloud, leader and {args.robots} robots on loopback for {args.duration:g} s; "
+                         leader_crash_s=crash, insecure=args.insecure)
+    print(f"scmr demo: cloud, leader and {args.robots} robots on loopback"
+          f"{' (INSECURE: no authentication)' if args.insecure else ', mutual TLS + access rules'} for {args.duration:g} s; "
           f"the cloud is killed at {config.cloud_outage[0]:g} s and restarted at {config.cloud_outage[1]:g} s"
           + (f"; the leader is killed at {crash:g} s" if crash is not None else ""), file=sys.stderr)
     report = run_with_output(config, quiet=args.quiet)

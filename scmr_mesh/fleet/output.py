@@ -56,6 +56,10 @@ def format_summary(report: Mapping[str, Any]) -> str:
         lines.append(row(rid, s))
     lines.append(row("all", report))
     lines.append(f"  (ToR in ms over succeeded requests; RoR {ror})")
+    if report.get("security"):
+        lines.append("  security: " + ("mutual TLS + access rules (certificates in RUN/certs)"
+                                       if report["security"] == "mtls+acl"
+                                       else "NONE (--insecure): anyone who reached the ports could join"))
     for f in report.get("faults", []):
         start = (f["start_unix_ns"] - report.get("started_unix_ns", f["start_unix_ns"])) / 1e9
         if f.get("end_unix_ns") is None:

@@ -91,6 +91,11 @@ class FleetConfig:
         4.3's robot1..robot4 by default); each robot then runs ``--profile
         NAME`` and the energy model places its frames (docs/ENERGY.md).
         Empty (the default): no energy model, robots offload every frame.
+    insecure : bool
+        Run the fleet without authentication (``--insecure``).  By default a
+        development CA and one certificate per peer are made in
+        ``<run dir>/certs`` and every peer runs mutual TLS with the fleet's
+        access rules (docs/SECURITY.md).
     """
 
     robots: int = 4
@@ -116,6 +121,7 @@ class FleetConfig:
     leader_capable: int | None = None
     leader_crash_s: float | None = None
     profiles: Sequence[str] = ()
+    insecure: bool = False
 
     def check(self) -> None:
         """Raise :class:`InputError` naming the bad value and the fix."""
@@ -222,6 +228,25 @@ def fleet_topology(config: FleetConfig) -> dict[str, dict[str, Any]]:
     return out
 
 
+def fleet_identities(config: FleetConfig):
+    """The identities a secured fleet needs (pure): node names, roles and lead grants.
+
+    Cloud nodes ``cloud0``.., the dedicated leader ``leader0`` (role leader), and the
+    robots, leader-capable ones with ``+leader-capable`` (they run for the lead).
+
+    >>> [p.spec() for p in fleet_identities(FleetConfig(robots=2, leader_capable=1))]
+    ['cloud0=cloud', 'leader0=leader', 'r1=robot+leader-capable', 'r2=robot']
+    """
+    from scmr_mesh.security.credentials import Peer
+
+    topo = fleet_topology(config)
+    out = [Peer(node, "cloud") for _name, node in cloud_peers(config.clouds)]
+    out.append(Peer("leader0", "leader", leader_capable=True, priority_cap=0))
+    for rid in robot_ids(config.robots):
+        out.append(Peer(rid, "robot", leader_capable=bool(topo[rid]["leader_capable"]), priority_cap=0))
+    return out
+
+
 def parse_outage(text: str) -> tuple[float, float]:
     """``"8:14"`` -> ``(8.0, 14.0)`` (seconds after the fleet is ready)."""
     try:
@@ -277,7 +302,8 @@ def ods_backend(config: FleetConfig) -> str:
     return config.ods_backend
 
 
-def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, ods: str | None = None):
+def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, ods: str | None = None,
+               security: Sequence[str] = ()):
     """The peers of a fleet as :class:`~scmr_mesh.fleet.procs.PeerSpec` (pure: starts nothing).
 
     Parameters
@@ -289,6 +315,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     ods : str, optional
         The data store every cloud node gets as ``--ods`` (default: theirs,
         ``<run dir>/ods.sqlite``).
+    security : sequence of str, optional
+        Arguments every peer gets: ``--security PROFILE --credentials DIR``
+        (:meth:`scmr_mesh.security.runcreds.RunCredentials.args`) or ``--insecure``.
 
     Returns
     -------
@@ -302,7 +331,7 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     def ep(name: str) -> str:
         return f"tcp/127.0.0.1:{ports[name]}"
 
-    common: list[str] = []
+    common: list[str] = list(security)
     if config.lease_ms is not None:
         common += ["--lease-ms", str(config.lease_ms)]
     base = [config.python, "-m", "scmr_mesh", "-v"]

@@ -242,7 +242,8 @@ class FleetRun:
             (run_dir / sub).mkdir(parents=True, exist_ok=True)
         (run_dir / RUN_MARKER).write_text("written by scmr up; this folder may be replaced by `scmr demo`\n")
         self.ods = self._start_ods()
-        self.specs = plan_fleet(config, run_dir, _free_ports([*self.clouds, LEADER, *self.rids]), ods=self.ods)
+        self.specs = plan_fleet(config, run_dir, _free_ports([*self.clouds, LEADER, *self.rids]), ods=self.ods,
+                                security=self._security())
         self.tails = {rid: RecordTail(run_dir / "robots" / rid / "records.jsonl") for rid in self.rids}
         if config.rerun is not None:
             self.fviz = _start_viz(config.rerun, self.rids, self.specs)
@@ -390,12 +391,23 @@ class FleetRun:
 
             report["energy"] = {"placement": "energy model (Eq 4.2-4.6), Table 4.3 profiles",
                                 "per_robot": energy_by_robot(records, profiles)}
+        report["security"] = "insecure" if config.insecure else "mtls+acl"
         report["leadership"] = self._leadership()
         validate_report(report)
         (self.run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
         return report
 
     # ---------------------------------------------------------- helpers
+    def _security(self) -> list[str]:
+        """Credentials for every peer in RUN/certs (mutual TLS + access rules), or ``--insecure``."""
+        from scmr_mesh.fleet.plan import fleet_identities
+        from scmr_mesh.security.runcreds import INSECURE, run_credentials
+
+        if self.config.insecure:
+            log.warning("insecure fleet: no authentication, anyone who reaches the ports can join")
+            return list(INSECURE)
+        return run_credentials(self.run_dir, fleet_identities(self.config)).args()
+
     def _start_ods(self) -> str | None:
         """Start the run's PostgreSQL server when the fleet needs one; return the cloud nodes' ``--ods``."""
         config = self.config

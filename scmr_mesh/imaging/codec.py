@@ -15,6 +15,12 @@ message that says what was received.  Two limits:
   libjpeg buffers every DCT coefficient of a progressive image (about 3 bytes
   per pixel at 4:2:0) whatever the output scale.  Camera encoders emit
   baseline JPEG.
+* :data:`MAX_PNG_FRAME_PIXELS`: 1280 x 960 for PNG frames a service decodes
+  (``decode_frame(..., max_png_pixels=...)``, what the workers run): PNG has no
+  reduced decode, so a 28 KB PNG of zeros claiming 3840 x 2160 cost 95-159 ms of
+  CPU and 24 MB; at 1280 x 960 the worst PNG costs about 14-19 ms and 3.7 MB.
+  Robots send JPEG (a PNG from ``--images`` is re-encoded as JPEG unless
+  ``--jpeg-quality 0``); local tools (``scmr segment``) keep the 4K limit.
 
 :func:`decode_frame` is what the services run: it decodes a JPEG at 1/2, 1/4
 or 1/8 scale in libjpeg's DCT (OpenCV's ``IMREAD_REDUCED_COLOR_*``) so that the
@@ -49,6 +55,10 @@ MAX_PIXELS = 3840 * 2160
 #: progressive image in memory (about 3 bytes per pixel at 4:2:0), even when it
 #: decodes at reduced scale; camera encoders emit baseline JPEG.
 MAX_PROGRESSIVE_PIXELS = 1920 * 1080
+#: Largest PNG frame a service decodes: 1280 x 960.  PNG cannot be decoded at reduced scale,
+#: so its cost grows with the claimed size whatever the file size (measured, one core:
+#: 3840x2160 of zeros, 28 KB: 95 ms; 1920x1080: 24 ms; 1280x960: 14 ms, 19 ms for noise).
+MAX_PNG_FRAME_PIXELS = 1280 * 960
 #: Default JPEG quality of frames a robot sends (the thesis's frames were 80-130 KB JPEGs).
 JPEG_QUALITY = 90
 
@@ -224,7 +234,8 @@ def reduction_factor(width: int, height: int) -> int:
     return 1
 
 
-def decode_frame(data: bytes, *, shape: tuple[int, int] | None = None) -> np.ndarray:
+def decode_frame(data: bytes, *, shape: tuple[int, int] | None = None,
+                 max_png_pixels: int = MAX_PIXELS) -> np.ndarray:
     """Decode PNG/JPEG bytes (or raw RGB bytes) straight to the 300x225 pipeline frame.
 
     A JPEG is decoded at the smallest DCT scale (1/2, 1/4 or 1/8, OpenCV's
@@ -240,6 +251,8 @@ def decode_frame(data: bytes, *, shape: tuple[int, int] | None = None) -> np.nda
         is given.
     shape : tuple of int, optional
         ``(H, W)`` of raw RGB bytes.
+    max_png_pixels : int, keyword-only
+        Largest PNG accepted (the services pass :data:`MAX_PNG_FRAME_PIXELS`).
 
     Returns
     -------
@@ -260,6 +273,11 @@ def decode_frame(data: bytes, *, shape: tuple[int, int] | None = None) -> np.nda
     if shape is not None:
         return resize_frame(_raw(data, shape))
     kind, width, height = _sniff(data)
+    if kind == "PNG" and width * height > max_png_pixels:
+        raise ImageDecodeError(
+            f"PNG header claims {width}x{height} = {width * height} pixels, more than the {max_png_pixels} a "
+            "service decodes from PNG (PNG has no reduced-scale decode, so a small PNG claiming a large frame "
+            "is a decompression bomb); send the frame as JPEG, or downscale it")
     r = reduction_factor(width, height) if kind == "JPEG" else 1
     if r == 1:
         return resize_frame(_to_rgb(_imdecode(data, cv2.IMREAD_UNCHANGED, kind)))

@@ -33,6 +33,11 @@ from scmr_mesh.errors import InputError, MeshError
 log = logging.getLogger(__name__)
 
 _PEER_EPILOG = """\
+Security: a peer refuses to start without --security PROFILE (mutual TLS and the fleet's
+access rules: peers/secure/mtls.toml with --credentials DIR from `scmr certs`) unless
+--insecure is given.  `scmr up`, `scmr demo` and `scmr scenario run` make credentials for
+their peers themselves (docs/SECURITY.md).
+
 Zenoh defaults (docs/ZENOH.md): multicast scouting off, gossip on, lease 500 ms
 with 4 keep-alives, a dead endpoint retried every 50 ms.  Give peers explicit endpoints,
 e.g. cloud --listen tcp/127.0.0.1:7447, robots --connect tcp/127.0.0.1:7447.
@@ -95,8 +100,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "router", help="run a zenoh router linking sites (fleets across hosts)", formatter_class=fmt,
         description="A zenoh router (a session in router mode).  Across hosts, run the robots and "
                     "cloud nodes as clients of their site's router (--zmode client) and connect the "
-                    "routers to each other; see docs/ZENOH.md (router section).",
+                    "routers to each other; see docs/ZENOH.md (router section).  Under --security the "
+                    "router presents the certificate of --node (a router identity: scmr certs --peers "
+                    "router0=router,...) and enforces the fleet's access rules on its links.",
         epilog=_PEER_EPILOG)
+    p.add_argument("--node", default=None, help="router name: its identity in the credentials (with --security)")
     p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the router runs")
     p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
@@ -192,7 +200,8 @@ def _run_candidate(args, node: str, *, capability_default: str | None, workers, 
     capability = _capability(args, default=capability_default)
     return run_candidate(node, _mesh(args), capability=capability, workers=workers, process=args.process,
                          max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                         setup=negotiator.service_setup(args), serve_peers=args.serve_peers,
+                         setup=negotiator.chain(_policy_setup(args), negotiator.service_setup(args)),
+                         serve_peers=args.serve_peers,
                          data_dir=_candidate_data_dir(args, node), sync_period_s=getattr(args, "sync_period", 1.0),
                          events_path=_leadership_log(args, node), verbose=bool(getattr(args, "verbose", 0)),
                          budget_ms=getattr(args, "budget_ms", None))
@@ -260,6 +269,42 @@ def _setup_logging(args) -> None:
     logging.getLogger("scmr_mesh").setLevel(min(logging.INFO, root.level or logging.INFO))
 
 
+def require_security(args, command: str) -> None:
+    """Refuse to start a peer without a security profile unless ``--insecure`` says so (one line)."""
+    if getattr(args, "security", None) and getattr(args, "insecure", False):
+        raise InputError(f"scmr {command}: give either --security PROFILE or --insecure, not both")
+    if not getattr(args, "security", None) and not getattr(args, "insecure", False):
+        raise InputError(
+            f"scmr {command} will not join an unauthenticated mesh: give --security peers/secure/mtls.toml "
+            "--credentials DIR (make DIR with `scmr certs --out DIR --peers cloud,leader,robot1,...`), or "
+            "--insecure to run without authentication (anyone who reaches the port can join)")
+
+
+def fleet_policy(args):
+    """The fleet (``fleet.json``: roles, lead grants, priority caps) of the peer's security profile, or None."""
+    if not getattr(args, "security", None):
+        return None
+    from scmr_mesh.security.credentials import load_fleet
+    from scmr_mesh.security.profile import load_profile
+
+    profile = load_profile(args.security, credentials=getattr(args, "credentials", None))
+    if profile.credentials is None:
+        return None
+    return load_fleet(profile.credentials)
+
+
+def _policy_setup(args):
+    """Service setup hook: cap each robot's priority at the fleet's grant (no-op without a profile)."""
+    fleet = fleet_policy(args)
+    if fleet is None:
+        return None
+
+    def setup(svc) -> None:
+        svc.priority_cap = fleet.priority_cap
+
+    return setup
+
+
 def _mesh(args, mode: str = "peer"):
     from scmr_mesh.mesh.config import MAX_MESSAGE_BYTES, from_args
 
@@ -273,6 +318,7 @@ def _mesh(args, mode: str = "peer"):
 def _cmd_cloud(args) -> int:
     from scmr_mesh.mesh.peers import run_service
 
+    require_security(args, "cloud")
     _setup_logging(args)
     return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file,
@@ -280,6 +326,7 @@ def _cmd_cloud(args) -> int:
 
 
 def _cmd_leader(args) -> int:
+    require_security(args, "leader")
     _setup_logging(args)
     body = None
     if args.images or args.synthetic:
@@ -301,6 +348,7 @@ def _cmd_robot(args) -> int:
     from scmr_mesh.mesh.config import close_session, open_session
     from scmr_mesh.mesh.peers import StopFlag, clear_ready
 
+    require_security(args, "robot")
     _setup_logging(args)
     _check_robot_args(args)
     if args.leader_capable:
@@ -355,6 +403,9 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
                         process=getattr(args, "process", None) or DEFAULT_PROCESS)
     profile = _energy_profile(args)
     robot = Robot(args.id, args.out, options=opts)
+    fleet = fleet_policy(args)
+    if fleet is not None:  # route to, and accept replies from, only nodes the fleet lets serve each tier
+        robot.view.trust = fleet.may_serve
     placer = _energy_placer(args, robot, profile)
     agent = None
     telemetry = None
@@ -493,7 +544,7 @@ def _setup(args, tier: str):
     """Service setup hooks: the data tier, then the priority negotiator (--queue)."""
     from scmr_mesh.qos import negotiator
 
-    return negotiator.chain(_data_setup(args, tier), negotiator.service_setup(args))
+    return negotiator.chain(_policy_setup(args), _data_setup(args, tier), negotiator.service_setup(args))
 
 
 def _data_setup(args, tier: str):
@@ -513,5 +564,6 @@ def _data_agent(robot, args):
 def _cmd_router(args) -> int:
     from scmr_mesh.mesh.peers import run_router
 
+    require_security(args, "router")
     _setup_logging(args)
     return run_router(_mesh(args, mode="router"), ready_file=args.ready_file)

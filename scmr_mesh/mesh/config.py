@@ -193,9 +193,8 @@ def build_config(mc: MeshConfig):
         from scmr_mesh.security.profile import load_profile
 
         if not mc.identity:
-            raise ConfigError(f"--security {mc.security} needs this peer's name (--node for cloud and leader, "
-                              "--id for robots); `scmr router` has no identity and cannot join a secured mesh "
-                              "yet (docs/SECURITY.md)")
+            raise ConfigError(f"--security {mc.security} needs this peer's name (--node for cloud, leader and "
+                              "router, --id for robots), the name of its certificate from `scmr certs`")
         apply_security(conf, load_profile(mc.security, credentials=mc.credentials), identity=mc.identity,
                        listen=mc.listen, connect=mc.connect)
     check(conf)
@@ -279,6 +278,10 @@ def add_arguments(parser, *, lease_default: int | None = None) -> None:
                         "tcp/ endpoints become tls/); credentials from `scmr certs` (docs/SECURITY.md)")
     g.add_argument("--credentials", type=ca.PathArg("in-dir", what="a folder written by scmr certs"), metavar="DIR", default=None,
                    help="credentials directory made by `scmr certs` (overrides the profile and $SCMR_CREDENTIALS)")
+    g.add_argument("--insecure", action="store_true",
+                   help="run without authentication or access control (anyone who reaches the port can join, "
+                        "serve false answers and take telemetry); peers refuse to start without --security "
+                        "unless this is given")
 
 
 def from_args(args, *, mode: str = "peer") -> MeshConfig:

@@ -238,14 +238,43 @@ def _busy(query, gate: IngestGate, who: str) -> None:
     _drop(query)
 
 
-def _answer(query, obj: Any, *, error: bool = False) -> None:
+#: Wire version of the data tier's replies (the ``v`` of their envelope).
+DATA_VERSION = 1
+
+
+def _concrete(query) -> str | None:
+    """The query's key when it names one key (no ``*``, ``**`` or ``$*``), else None."""
+    key = str(query.key_expr)
+    return None if ("*" in key or "$" in key) else key
+
+
+def _reply(query, blob: bytes) -> None:
+    """Reply ``blob`` on the concrete key the query came on; a wildcard selector gets an error instead."""
+    key = _concrete(query)
+    if key is None:
+        _answer(query, {"error": f"query key {str(query.key_expr)!r} is not concrete; query one node's key, "
+                                 "e.g. scmr/data/cloud/<node>/buffer (docs/protocol.md)"}, error=True)
+        return
+    query.reply(key, blob, encoding=_msgpack_encoding())
+
+
+def _answer(query, obj: Any, *, error: bool = False, kind: str | None = None) -> None:
+    """Reply (or reply_err) ``obj``; maps get the ``{"v": 1, "kind": ...}`` envelope of every scmr message."""
+    if isinstance(obj, dict):
+        obj = {"v": DATA_VERSION, "kind": kind or ("data_error" if error else "data"), **obj}
     try:
         if error:
-            query.reply_err(_pack(obj))
+            query.reply_err(_pack(obj), encoding=_msgpack_encoding())
         else:
-            query.reply(query.key_expr, _pack(obj))
+            _reply(query, _pack(obj))
     except Exception as exc:
         log.warning("data reply failed: %s", exc)
+
+
+def _msgpack_encoding():
+    from scmr_mesh.mesh.encoding import msgpack
+
+    return msgpack()
 
 
 def _drop(query) -> None:
@@ -280,7 +309,7 @@ def serve_buffer(buffer: DataBuffer, tier: str, node: str) -> Callable:
             sel = req.get("sel", "**") if isinstance(req, dict) else None
             if not isinstance(sel, str):
                 raise TelemetryError(f"buffer query must be {{'sel': str}}, got {req!r}")
-            _answer(query, {"tier": tier, "node": node, "rev": buffer.rev, "items": buffer.query(sel)})
+            _answer(query, {"tier": tier, "node": node, "rev": buffer.rev, "items": buffer.query(sel)}, kind="buffer")
         except Exception as exc:
             _answer(query, {"error": str(exc)}, error=True)
 
@@ -381,14 +410,14 @@ class CloudData:
             self.ingested += len(records)
         finally:
             _answer(query, {"acked": len(records), "stored": len(res.stored), "duplicates": len(res.duplicates),
-                            "contiguous": res.contiguous})
+                            "contiguous": res.contiguous}, kind="data_ack")
             _drop(query)
 
     def _on_sync(self, query) -> None:
         try:
             req = _unpack(_payload(query)) if _payload(query) else {}
             blob = self.buffer.delta(int(req.get("since", 0)), epoch=req.get("epoch"))
-            query.reply(query.key_expr, blob)
+            _reply(query, blob)
         except Exception as exc:
             _answer(query, {"error": str(exc)}, error=True)
 
@@ -453,7 +482,7 @@ class LeaderData:
         """Deltas of this leader's buffer, for the candidates that may succeed it."""
         try:
             req = _unpack(_payload(query)) if _payload(query) else {}
-            query.reply(query.key_expr, self.buffer.delta(int(req.get("since", 0)), epoch=req.get("epoch")))
+            _reply(query, self.buffer.delta(int(req.get("since", 0)), epoch=req.get("epoch")))
         except Exception as exc:
             _answer(query, {"error": str(exc)}, error=True)
         finally:
@@ -512,7 +541,7 @@ class LeaderData:
         for r in records:
             self.buffer.record_telemetry(r.to_dict())
         self.received += len(records)
-        _answer(query, {"acked": len(records), "stored": len(records), "duplicates": 0})
+        _answer(query, {"acked": len(records), "stored": len(records), "duplicates": 0}, kind="data_ack")
 
     # -- background: sync + forward
     def _clouds(self) -> list[str]:
@@ -529,7 +558,7 @@ class LeaderData:
         s = self.session
         if s is None:
             return None
-        for reply in s.get(key, payload=payload, timeout=self.deadline_s):
+        for reply in s.get(key, payload=payload, encoding=_msgpack_encoding(), timeout=self.deadline_s):
             if reply.ok is not None:
                 return reply.ok.payload.to_bytes()
         return None
@@ -702,7 +731,7 @@ class TelemetryAgent:
         q = self._querier(key)
         if not q.matching_status.matching:
             return None
-        for reply in q.get(payload=payload):
+        for reply in q.get(payload=payload, encoding=_msgpack_encoding()):
             if reply.ok is not None:
                 return "ok", _unpack(reply.ok.payload.to_bytes())
             try:

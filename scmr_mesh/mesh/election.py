@@ -307,9 +307,14 @@ class Candidate:
         except wire.WireProblem as exc:
             log.debug("ignoring candidacy: %s", exc)
             return
-        self._take(Candidacy.from_message(msg))
+        self._take(Candidacy.from_message(msg), key=str(sample.key_expr))
 
-    def _take(self, c: Candidacy) -> None:
+    def _take(self, c: Candidacy, *, key: str) -> None:
+        if c.node != keys.candidate_node(key):
+            # access control lets X publish only on scmr/r2r/candidate/X; a candidacy naming
+            # another node on it is a forgery (or a bug): it counts for nobody
+            log.warning("candidate %s: ignoring a candidacy of %s that came on %s", self.node, c.node, key)
+            return
         if c.node == self.node:
             return
         with self._lock:
@@ -322,7 +327,7 @@ class Candidate:
 
     def _on_query(self, query) -> None:
         try:
-            query.reply(keys.candidate(self.node), wire.encode(self.me().to_message()))
+            query.reply(keys.candidate(self.node), wire.encode(self.me().to_message()), encoding=_msgpack())
         except Exception as exc:
             log.debug("candidacy reply failed: %s", exc)
         finally:
@@ -354,7 +359,7 @@ class Candidate:
                     continue
                 try:
                     self._take(Candidacy.from_message(
-                        wire.decode(reply.ok.payload.to_bytes(), kind="candidate")))
+                        wire.decode(reply.ok.payload.to_bytes(), kind="candidate")), key=str(reply.ok.key_expr))
                 except wire.WireProblem:
                     continue
         except Exception as exc:
@@ -453,7 +458,7 @@ class Candidate:
         if pub is None:
             return
         try:
-            pub.put(wire.encode(self.me().to_message()))
+            pub.put(wire.encode(self.me().to_message()), encoding=_msgpack())
         except Exception as exc:
             log.debug("candidacy publish failed: %s", exc)
 
@@ -474,3 +479,9 @@ __all__ = [
     "CLAIM_WAIT_S", "Candidacy", "Candidate", "Capability", "Decision", "HEARTBEAT_S", "LOW_BATTERY",
     "STARTUP_GRACE_S", "current_leader", "decide", "outranks", "rank_key",
 ]
+
+
+def _msgpack():
+    from scmr_mesh.mesh.encoding import msgpack
+
+    return msgpack()

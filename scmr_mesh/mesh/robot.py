@@ -152,6 +152,9 @@ class LiveView:
 
     def __init__(self, me: str | None = None) -> None:
         self.me = me
+        #: ``fn(tier, node) -> bool``: whether the fleet's policy lets ``node`` serve ``tier``
+        #: (set from the security profile); nodes it refuses are never routed to
+        self.trust: Callable[[str, str], bool] | None = None
         self._lock = threading.Lock()
         self._alive: dict[str, set[str]] = {t: set() for t in keys.ROLES}
         self._loads: dict[str, float] = {}
@@ -167,6 +170,10 @@ class LiveView:
         except InputError:
             return
         alive = str(sample.kind) == "SampleKind.PUT" or str(sample.kind).endswith("PUT")
+        if alive and role in keys.TIERS and self.trust is not None and not self.trust(role, node):
+            log.warning("liveliness: ignoring %s %s: the fleet's policy does not let %s serve the %s tier",
+                        role, node, node, role)
+            return
         with self._lock:
             bucket = self._alive.setdefault(role, set())
             if alive:
@@ -200,6 +207,10 @@ class LiveView:
             c = Candidacy.from_message(wire.decode(sample.payload.to_bytes(), kind="candidate"))
         except wire.WireProblem as exc:
             log.debug("ignoring candidacy: %s", exc)
+            return
+        if c.node != keys.candidate_node(str(sample.key_expr)):
+            log.warning("ignoring a candidacy of %s published on %s (a candidate speaks only for itself)",
+                        c.node, sample.key_expr)
             return
         with self._lock:
             self._cands[c.node] = c
@@ -497,7 +508,7 @@ class Robot:
     def publish_telemetry(self, message: dict) -> None:
         """Publish one telemetry message on ``scmr/telemetry/<robot>``."""
         if self._tele_pub is not None:
-            self._tele_pub.put(wire.encode(message))
+            self._tele_pub.put(wire.encode(message), encoding=_msgpack())
 
     def battery(self) -> float:
         """Simulated state of charge, 0..1: two hours of driving, and each local pipeline run costs 0.02 %."""
@@ -543,7 +554,7 @@ class Robot:
 
     # ------------------------------------------------------------ work
     def _querier(self, tier: str, node: str):
-        key = keys.drivable(tier, node)
+        key = keys.drivable_request(tier, node, self.id)
         q = self._queriers.get(key)
         if q is None:
             import zenoh
@@ -604,7 +615,13 @@ class Robot:
                 self._local_ok = False
 
     def _judge(self, att: dict, reply) -> tuple | None:
-        """Set ``att["outcome"]`` from one zenoh reply; return the winner tuple if good."""
+        """Set ``att["outcome"]`` from one zenoh reply; return the winner tuple if good.
+
+        A good reply came on this robot's own request key of the node it was sent to,
+        names that node in ``served_by`` and that tier, answers this robot, comes from a
+        node the fleet's policy lets serve the tier and, on a direct TLS link, from the
+        identity (certificate CN) of that node.
+        """
         if reply.ok is not None:
             data = reply.ok.payload.to_bytes()
             try:
@@ -613,8 +630,11 @@ class Robot:
                 att["outcome"] = "bad_reply"
                 log.warning("bad reply from %s: %s", att["node"], exc)
                 return None
-            if msg["robot"] != self.id:
+            problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply)
+            if problem:
                 att["outcome"] = "bad_reply"
+                att["message"] = problem[:200]
+                log.warning("robot %s: refused a reply from %s/%s: %s", self.id, att["tier"], att["node"], problem)
                 return None
             att["outcome"] = "ok"
             return att["tier"], att["node"], msg, len(data)
@@ -626,6 +646,34 @@ class Robot:
         except wire.WireProblem:
             text = raw.decode("utf-8", "replace")[:200]
             att["outcome"] = "timeout" if text == "Timeout" else f"error:{text}"
+        return None
+
+    def _reply_problem(self, att: dict, key: str, msg: dict, reply) -> str | None:
+        """Why a decoded reply cannot be trusted (None: it can); see :meth:`_judge`."""
+        tier, node = att["tier"], att["node"]
+        expected = keys.drivable_request(tier, node, self.id)
+        if key != expected:
+            return f"reply came on {key!r}, expected {expected!r}"
+        if msg["served_by"] != node or msg["tier"] != tier:
+            return f"reply on {expected!r} says served_by {msg['served_by']!r} tier {msg['tier']!r}"
+        if msg["robot"] != self.id:
+            return f"reply answers robot {msg['robot']!r}"
+        if self.view.trust is not None and not self.view.trust(tier, node):
+            return f"the fleet's policy does not let {node!r} serve the {tier} tier"
+        who = self._link_identity(reply)
+        if who is not None and who != node:
+            return f"reply on {node!r}'s key came from the certificate of {who!r}"
+        return None
+
+    def _link_identity(self, reply) -> str | None:
+        """Certificate CN of the direct link the reply's sender is on (None: not direct, or no TLS)."""
+        try:
+            zid = str(reply.replier_id.zid)
+            for link in self._session.info.links():
+                if str(link.zid) == zid:
+                    return link.auth_identifier
+        except Exception as exc:  # replier_id unknown (older zenoh), session closing
+            log.debug("replier identity unknown: %s", exc)
         return None
 
     def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list) -> tuple | None:
@@ -663,7 +711,7 @@ class Robot:
 
             try:
                 q.get(zenoh.handlers.Callback(on_reply, on_done, indirect=False), payload=payload,
-                      cancellation_token=token)
+                      encoding=_msgpack(), cancellation_token=token)
             except Exception as exc:
                 att["outcome"] = f"error:send ({exc})"
                 continue
@@ -726,7 +774,7 @@ class Robot:
     def _collect(self, att: dict, q, payload: bytes) -> tuple[dict, tuple | None]:
         winner = None
         try:
-            for reply in q.get(payload=payload):  # ends at the querier timeout = deadline
+            for reply in q.get(payload=payload, encoding=_msgpack()):  # ends at the querier timeout = deadline
                 w = self._judge(att, reply)
                 winner = winner or w
         except Exception as exc:
@@ -839,7 +887,7 @@ class Robot:
         self._account(record)
         if self._res_pub is not None:
             try:
-                self._res_pub.put(json.dumps(record, separators=(",", ":")).encode())
+                self._res_pub.put(json.dumps(record, separators=(",", ":")).encode(), encoding=_json())
             except Exception as exc:
                 log.debug("results publish failed: %s", exc)
         try:
@@ -941,6 +989,18 @@ class Robot:
             if progress is not None:
                 progress(rec)
         return dict(self.stats)
+
+
+def _msgpack():
+    from scmr_mesh.mesh.encoding import msgpack
+
+    return msgpack()
+
+
+def _json():
+    from scmr_mesh.mesh.encoding import json as json_encoding
+
+    return json_encoding()
 
 
 def frames_from_args(images: str | None, synthetic: str | None, *, seed: int = 0,

@@ -1,7 +1,7 @@
 """The drivable-region service: what ``scmr cloud`` and ``scmr leader`` run.
 
-A :class:`Service` answers queries on ``scmr/drivable/<tier>/<node>``
-(queryable, ``complete=True``) with the pipeline run in a
+A :class:`Service` answers queries on ``scmr/drivable/<tier>/<node>/<robot>``
+(one queryable on ``.../<node>/*``, ``complete=True``) with the pipeline run in a
 :class:`~scmr_mesh.mesh.work.WorkerPool`, holds the liveliness token
 ``scmr/alive/<tier>/<node>`` and publishes its load on
 ``scmr/load/<tier>/<node>`` (robots spread requests over cloud nodes by it).
@@ -14,8 +14,15 @@ Life cycle (done for you by :func:`run_service`)::
     ...
     svc.detach(); close_session(session); svc.shutdown()
 
-Per query: the payload is size-checked and validated (``wire.decode``); a bad
-one gets an error reply (``malformed``, ``oversized``, ``wrong_version``) and
+Per query: the key must be concrete and name the requesting robot
+(``scmr/drivable/<tier>/<node>/<robot>``): a wildcard selector
+(``scmr/drivable/**``) gets a cheap ``malformed`` error and no pipeline run, and a
+request whose ``robot`` field names another robot than the key gets ``forbidden``
+(access control lets robot X query only keys ending in ``/X``, so the key is the
+sender's identity).  With a fleet policy (``Service.priority_cap``) the request's
+priority is capped at the sender's.  Replies go out on the concrete key the
+request came on, encoded ``application/msgpack``.  Then the payload is
+size-checked and validated (``wire.decode``); a bad one gets an error reply (``malformed``, ``oversized``, ``wrong_version``) and
 the service keeps serving.  Then the *admission function* decides; a refused
 request gets its error reply (``busy`` by default when the request would
 be answered later than the service's latency budget, :func:`default_admission`).  Admitted requests go to the
@@ -281,6 +288,10 @@ class Service:
         self.state = ServiceState(node, tier, workers, int(max_inflight or 8 * workers), budget_ms=float(budget_ms))
         self.admission: Admission = admission or default_admission
         self.negotiator = None
+        #: ``fn(robot) -> int | None``: the highest priority the fleet's policy grants a robot
+        #: (None: no cap); set from the security profile's fleet (docs/SECURITY.md)
+        self.priority_cap: Callable[[str], int | None] | None = None
+        self._capped: set[str] = set()
         self.session = None
         self._extra: list[tuple[str, Callable, bool]] = []
         self._declared: list[Any] = []
@@ -323,7 +334,8 @@ class Service:
         """
         self.session = session
         self._stop.clear()
-        self._declared.append(session.declare_queryable(self.key, self._on_query, complete=True))
+        self._declared.append(session.declare_queryable(keys.drivable_serve(self.tier, self.node), self._on_query,
+                                                        complete=True))
         for key, cb, complete in self._extra:
             self._declared.append(session.declare_queryable(key, cb, complete=complete))
         self._load_pub = session.declare_publisher(keys.load(self.tier, self.node))
@@ -355,7 +367,8 @@ class Service:
         t0 = time.perf_counter()
         ok = False
         try:
-            for reply in session.get(self.key, payload=wire.encode(req), timeout=30.0):
+            for reply in session.get(keys.drivable_request(self.tier, self.node, "warmup"), payload=wire.encode(req),
+                                 encoding=_msgpack(), timeout=30.0):
                 ok = reply.ok is not None
         except Exception as exc:
             log.warning("warm-up query failed: %s", exc)
@@ -430,12 +443,13 @@ class Service:
             msg = wire.make_load(self.node, self.tier, workers=st.workers, inflight=st.inflight, served=st.served,
                                  clock_hz=cap[0], power_w=cap[1])
             try:
-                pub.put(wire.encode(msg))
+                pub.put(wire.encode(msg), encoding=_msgpack())
             except Exception as exc:
                 log.debug("load publish failed: %s", exc)
 
-    def _reply_error(self, query, code: str, message: str, request=None, retry_after_ms=None) -> None:
-        tier = (request or {}).get("_tier", self.tier) if isinstance(request, dict) else self.tier
+    def _reply_error(self, query, code: str, message: str, request=None, retry_after_ms=None,
+                     tier: str | None = None) -> None:
+        tier = tier or ((request or {}).get("_tier", self.tier) if isinstance(request, dict) else self.tier)
         msg = wire.make_error(
             code, message, served_by=self.node, tier=tier, request=request, retry_after_ms=retry_after_ms
         )
@@ -449,7 +463,7 @@ class Service:
 
         def send() -> None:
             try:
-                query.reply_err(payload)
+                query.reply_err(payload, encoding=_msgpack())
             except Exception as exc:
                 log.warning("could not send error reply: %s", exc)
             finally:
@@ -460,17 +474,35 @@ class Service:
     def _on_query(self, query) -> None:
         t_arrival = time.perf_counter()
         try:
+            key = str(query.key_expr)
+            target = keys.request_target(key)
+            if target is None or target[1] != self.node:
+                # a wildcard selector would make every service run the pipeline, and the
+                # replies would all be keyed alike: refuse it before reading the payload
+                self._reply_error(query, "malformed",
+                                  f"query key {key!r} does not name one service and one robot; send each "
+                                  f"request to scmr/drivable/<tier>/<node>/<your robot id>, e.g. "
+                                  f"{keys.drivable_request(self.tier, self.node, 'r1')} (docs/protocol.md)")
+                return
+            tier, _node, sender = target
             payload = query.payload
             if payload is None:
-                self._reply_error(query, "malformed", "query carries no payload; send a msgpack request")
+                self._reply_error(query, "malformed", "query carries no payload; send a msgpack request", tier=tier)
                 return
             data = payload.to_bytes()
             try:
                 req = wire.decode(data, kind="request", max_bytes=self.max_request_bytes)
             except wire.WireProblem as exc:  # robot and seq echoed when they could be read
-                self._reply_error(query, exc.code, str(exc), exc.partial)
+                self._reply_error(query, exc.code, str(exc), exc.partial, tier=tier)
                 return
-            req["_tier"] = self.tier  # the tier it arrived on, even if the role changes meanwhile
+            req["_tier"] = tier  # the tier it arrived on, even if the role changes meanwhile
+            if req["robot"] != sender:
+                self._reply_error(query, "forbidden",
+                                  f"request names robot {req['robot']!r} but came on {key!r} (robot {sender!r}); "
+                                  f"a robot sends only its own requests, on "
+                                  f"{keys.drivable_request(tier, self.node, req['robot'])}", req)
+                return
+            self._cap_priority(req)
             refusal = self.admission(req, self.state)
             if refusal is not None:
                 self._reply_error(query, refusal.code, refusal.message, req, refusal.retry_after_ms)
@@ -488,6 +520,19 @@ class Service:
             self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
             return
         fut.add_done_callback(lambda f: self._finish(query, req, f, t_arrival, t_sub))
+
+    def _cap_priority(self, req: dict) -> None:
+        """Lower ``req["priority"]`` to the fleet's cap for its (key-bound) robot."""
+        cap_of = self.priority_cap
+        if cap_of is None:
+            return
+        cap = cap_of(req["robot"])
+        if cap is not None and req["priority"] > cap:
+            if req["robot"] not in self._capped:
+                self._capped.add(req["robot"])
+                log.info("%s %s: robot %s asks priority %d, the fleet grants at most %d: served at %d", self.tier,
+                         self.node, req["robot"], req["priority"], cap, cap)
+            req["priority"] = cap
 
     # ------------------------------------------------- priority negotiator
     def use_negotiator(self, negotiator) -> None:
@@ -578,7 +623,7 @@ class Service:
 
         def send() -> None:
             try:
-                query.reply(query.key_expr, payload)
+                query.reply(str(query.key_expr), payload, encoding=_msgpack())  # the concrete request key
                 with self.state.lock:
                     self.state.served += 1
             except Exception as exc:
@@ -587,6 +632,12 @@ class Service:
                 _drop(query)
 
         self.replier.send(send)
+
+
+def _msgpack():
+    from scmr_mesh.mesh.encoding import msgpack
+
+    return msgpack()
 
 
 def _image_message(req: dict, exc: Exception) -> str:

@@ -95,9 +95,11 @@ def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str 
         ``threshold``, ``timings_ms`` (per stage, plus ``decode`` and ``encode``).
     """
     from scmr_mesh.imaging import decode_frame, encode_png, segment_drivable
+    from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS
 
     t0 = time.perf_counter()
-    rgb = decode_frame(image, shape=tuple(shape[:2]) if encoding == "raw" and shape else None)
+    rgb = decode_frame(image, shape=tuple(shape[:2]) if encoding == "raw" and shape else None,
+                       max_png_pixels=MAX_PNG_FRAME_PIXELS)
     t1 = time.perf_counter()
     res = segment_drivable(rgb, mode=mode)
     t2 = time.perf_counter()

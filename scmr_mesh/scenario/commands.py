@@ -129,7 +129,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     with peers_env_session(RerunOptions.from_args(args), robots=[r.id for r in sc.robots],
                            save_dir=rerun_dir) as fviz:
         res = run_scenario(sc, backend=backend, out_dir=out, data_dir=args.data,
-                           progress=lambda m: _err(f"scenario: {m}"), ready_timeout=args.ready_timeout)
+                           progress=lambda m: _err(f"scenario: {m}"), ready_timeout=args.ready_timeout,
+                           insecure=args.insecure)
         if fviz is not None:
             fviz.update(records=sorted(res.records, key=lambda r: r.get("received_unix_ns") or 0),
                         faults=res.metric_faults())
@@ -173,6 +174,10 @@ def _override_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--process", metavar="MODULE:FUNC", help="override the scenario's process function "
                    "(e.g. scmr_mesh.mesh.testing:stub_process to measure the network failover without the pipeline)")
     p.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), metavar="MS", help="override the scenario's zenoh lease")
+    p.add_argument("--insecure", action="store_true",
+                   help="run the peers without authentication (default: a development CA and one certificate "
+                        "per peer in OUT/certs, valid for every address peers listen on; mutual TLS and the "
+                        "fleet's access rules on every link)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

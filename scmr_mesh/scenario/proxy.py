@@ -207,9 +207,14 @@ class LinkProxy:
             threading.Thread(target=self._connect, args=(client,), name=f"{self.name}-conn", daemon=True).start()
 
     def _connect(self, client: socket.socket) -> None:
+        held = False
         while self.mode == "blackhole" and not self.closed_event.is_set():
+            held = True
             time.sleep(0.01)  # hold the half-open connection, like a SYN lost in a dead link
-        if self.mode == "down" or self.closed_event.is_set():
+        if self.mode == "down" or self.closed_event.is_set() or (held and _closed_by_peer(client)):
+            # a dialer that gave up while the link was dead never reaches the far end (its SYN
+            # was lost): passing its stale connection on would make the far end's TLS acceptor
+            # wait on a handshake nobody finishes (docs/ZENOH.md, TLS accept)
             client.close()
             return
         try:
@@ -249,6 +254,15 @@ class LinkProxy:
         except OSError:
             pass
         self._close_conns()
+
+
+def _closed_by_peer(sock: socket.socket) -> bool:
+    """Whether the other end of ``sock`` has closed it (FIN or reset), even with unread data waiting."""
+    import select
+
+    p = select.poll()
+    p.register(sock, select.POLLRDHUP | select.POLLHUP | select.POLLERR)
+    return any(ev & (select.POLLRDHUP | select.POLLHUP | select.POLLERR) for _fd, ev in p.poll(0))
 
 
 class ProxyBackend:

@@ -163,6 +163,34 @@ def _signals_to_interrupt() -> Iterator[None]:
             signal.signal(s, h)
 
 
+def scenario_identities(scenario: Scenario):
+    """The identities of a scenario's peers (pure): names, roles, lead grants."""
+    from scmr_mesh.security.credentials import Peer
+
+    capable = set(scenario.candidates)
+    out = []
+    for p in scenario.peers:
+        role = scenario.role(p.name)
+        if role == "robot":
+            out.append(Peer(p.name, "robot", leader_capable=p.name in capable, priority_cap=0))
+        elif role == "leader":
+            out.append(Peer(p.name, "leader", leader_capable=True, priority_cap=0))
+        else:
+            out.append(Peer(p.name, role))
+    return out
+
+
+def _security(scenario: Scenario, be, out_dir: Path, insecure: bool) -> list[str]:
+    """Credentials for every peer in OUT/certs, valid for every address peers listen on; or --insecure."""
+    from scmr_mesh.security.runcreds import INSECURE, run_credentials
+
+    if insecure:
+        return list(INSECURE)
+    hosts = sorted({ep.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
+                    for p in scenario.peers for ep in be.listen(p.name) if "/" in ep} - {"127.0.0.1", "::1"})
+    return run_credentials(out_dir, scenario_identities(scenario), hosts=hosts).args()
+
+
 def _make_backend(scenario: Scenario, backend: str):
     if backend == "netns":
         from scmr_mesh.scenario.netns import NetnsBackend, check_root
@@ -185,6 +213,7 @@ def run_scenario(
     progress: Progress | None = None,
     ready_timeout: float = 120.0,
     python: str = sys.executable,
+    insecure: bool = False,
 ) -> RunResult:
     """Run ``scenario`` once and return its records and fault times.
 
@@ -200,6 +229,11 @@ def run_scenario(
         Receives one-line progress messages.
     ready_timeout : float, keyword-only
         Seconds each peer may take to become ready (first numba compile is slow).
+    insecure : bool, keyword-only
+        Run the peers without authentication.  By default a development CA and one
+        certificate per peer (valid for every address a peer listens on, so links that
+        gossip finds pass name verification) are made in ``OUT/certs`` and every peer
+        runs mutual TLS with the fleet's access rules.
 
     Raises
     ------
@@ -222,9 +256,10 @@ def run_scenario(
     base = [python, "-m", "scmr_mesh"]
     starts: dict[str, int] = {}
     handed: dict[str, list[str]] = {}
+    security: list[str] = []
 
     def common(peer: str) -> list[str]:
-        a: list[str] = []
+        a: list[str] = list(security)
         for ep in be.listen(peer):
             a += ["--listen", ep]
         for ep in be.connect(peer):
@@ -289,6 +324,7 @@ def run_scenario(
             say(f"[{backend}] setting up {len(scenario.peers)} peers, {len(scenario.links)} links"
                 + (f" (namespaces scmrs-{rid}-*)" if rid else ""))
             be.setup()
+            security[:] = _security(scenario, be, out_dir, insecure)
             servers = [p.name for p in scenario.peers if p.role != "robot"]
             for p in servers:
                 spec = spec_for(p)
