@@ -16,30 +16,32 @@ from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, synthetic_png, w
 
 
 class Reply:
-    def __init__(self, payload: bytes) -> None:
-        self.ok = type("Sample", (), {"payload": type("Z", (), {"to_bytes": lambda s: payload})()})()
+    def __init__(self, payload: bytes, key: str) -> None:
+        self.ok = type("Sample", (), {"payload": type("Z", (), {"to_bytes": lambda s: payload})(), "key_expr": key})()
         self.err = None
 
 
 class FakeQuerier:
-    def __init__(self, robot: str, block: threading.Event | None = None) -> None:
-        self.block, self.robot, self.threads = block, robot, []
+    """A querier of ``robot``'s requests to ``node`` of ``tier``, answering as that node would."""
 
-    def get(self, payload):
+    def __init__(self, robot: str, node: str, tier: str, block: threading.Event | None = None) -> None:
+        self.block, self.robot, self.node, self.tier, self.threads = block, robot, node, tier, []
+
+    def get(self, payload, *, encoding=None):
         self.threads.append(threading.current_thread().name)
         if self.block is not None:
             self.block.wait(30)  # a push waiting for queue space on a dead link
         req = wire.decode(payload, kind="request")
         rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n..", shape=(225, 300), threshold=1,
-                              timings_ms={}, served_by="n", tier="leader", server_ms=1.0)
-        return iter([Reply(wire.encode(rep))])
+                              timings_ms={}, served_by=self.node, tier=self.tier, server_ms=1.0)
+        return iter([Reply(wire.encode(rep), keys.drivable_request(self.tier, self.node, self.robot))])
 
 
 def test_a_held_up_tier_does_not_hold_the_request_or_the_other_tier(tmp_path):
     robot = Robot("r1", tmp_path, options=RobotOptions(deadline_ms=300))
     release = threading.Event()
     payload = wire.encode(wire.make_request("r1", 1, b"x", encoding="png"))
-    cloud, leader = FakeQuerier("r1", block=release), FakeQuerier("r1")
+    cloud, leader = FakeQuerier("r1", "c1", "cloud", block=release), FakeQuerier("r1", "L1", "leader")
     try:
         att = {"tier": "cloud", "node": "c1", "outcome": "pending"}
         assert robot._tier_send(att, cloud, payload) is None
@@ -59,7 +61,7 @@ def test_frame_queries_and_their_replies_use_drop(tmp_path):
 
     port = free_port()
     ready = tmp_path / "c.ready"
-    p = spawn_peer(["cloud", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
                     "--process", STUB, "--ready-file", str(ready)], log_path=tmp_path / "c.log")
     try:
         wait_for(lambda: ready.exists() or p.poll() is not None, timeout=120, what="cloud ready")

@@ -349,7 +349,7 @@ def test_real_peers_with_security_profile(credentials, tmp_path, repo_root):
         # never sees it: it waits 1.5 s and then fails every request
         good = spawn_peer(["robot", "--id", "robot1", "--security", profile, "--out", str(tmp_path / "r1"),
                            *common, "--wait-ms", "60000"], log_path=tmp_path / "r1.log", env=env)
-        bad = spawn_peer(["robot", "--id", "robot2", "--out", str(tmp_path / "r2"), *common, "--wait-ms", "1500"],
+        bad = spawn_peer(["robot", "--insecure", "--id", "robot2", "--out", str(tmp_path / "r2"), *common, "--wait-ms", "1500"],
                          log_path=tmp_path / "r2.log", env=env)
         peers += [good, bad]
         wait_for(lambda: good.poll() is not None and bad.poll() is not None, timeout=40, what="robots")
