@@ -301,3 +301,33 @@ def test_bench_tls_smoke():
     res = bench_link_latency(payload_bytes=1000, queries=5, warmup=1, kinds=("none", "tls+acl"))
     assert [r["kind"] for r in res["runs"]] == ["none", "tls+acl"]
     assert all(r["p50_ms"] > 0 for r in res["runs"])
+
+
+@pytest.mark.parametrize("argv", [
+    ["cloud", "--node", "c"], ["leader", "--node", "L"], ["router"],
+    ["robot", "--id", "r1", "--synthetic", "stub", "--out", "{tmp}/r1"],
+])
+def test_a_peer_refuses_to_start_without_a_security_profile(argv, tmp_path, capsys):
+    assert scmr([a.replace("{tmp}", str(tmp_path)) for a in argv]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith(f"scmr: error: scmr {argv[0]} will not join an unauthenticated mesh")
+    assert "scmr certs" in err and "--insecure" in err
+
+
+def test_security_and_insecure_together_are_refused(capsys, repo_root):
+    assert scmr(["cloud", "--node", "c", "--insecure", "--security", str(repo_root / "peers/secure/mtls.toml")]) == 1
+    assert "either --security PROFILE or --insecure, not both" in capsys.readouterr().err
+
+
+def test_a_peer_whose_identity_may_not_do_its_job_is_refused_at_start(tmp_path, capsys, repo_root):
+    d = tmp_path / "c"
+    create_credentials(d, "cloud,r1,r2=robot+leader-capable")
+    sec = ["--security", str(repo_root / "peers/secure/mtls.toml"), "--credentials", str(d)]
+    assert scmr(["cloud", "--node", "r1", *sec]) == 1
+    assert "identity 'r1' has role 'robot'" in capsys.readouterr().err
+    assert scmr(["robot", "--id", "r1", "--leader-capable", "--synthetic", "stub", "--out", str(tmp_path / "r"),
+                 *sec]) == 1
+    assert "'r1' is not leader-capable" in capsys.readouterr().err
+    assert scmr(["leader", "--node", "r1", *sec]) == 1
+    assert "'r1' is not leader-capable" in capsys.readouterr().err

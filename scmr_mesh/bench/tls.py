@@ -124,8 +124,8 @@ def bench_fleets(*, runs: int = 2, robots: int = 4, duration_s: float = 10.0, ro
             o["ready_s"].append(ready / 1e9)
             o["load"].append(os.getloadavg()[0])
             tor[mode] += [r["tor_ms"] for r in recs if r["ok"] and r["tier"] != "local"]
-            say(f"fleet {mode} run {i + 1}: {len(recs)} requests, ToR p50 {rep['tor_ms']['p50']} ms, "
-                f"p99 {rep['tor_ms']['p99']} ms ({time.monotonic() - t0:.0f} s, load {o['load'][-1]:.1f})")
+            say(f"fleet {mode} run {i + 1}: {len(recs)} requests, ToR p50 {rep['tor_ms']['p50']:.2f} ms, "
+                f"p99 {rep['tor_ms']['p99']:.2f} ms ({time.monotonic() - t0:.0f} s, load {o['load'][-1]:.1f})")
     res = {}
     for mode, o in out.items():
         t = sorted(tor[mode])

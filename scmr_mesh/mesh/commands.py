@@ -293,6 +293,25 @@ def fleet_policy(args):
     return load_fleet(profile.credentials)
 
 
+def check_grant(args, command: str, name: str, *, tier: str | None = None, lead: bool = False) -> None:
+    """Refuse at start a peer whose identity the fleet's policy does not let do its job (one line).
+
+    Without it the peer would start and every honest peer would silently drop what it serves.
+    """
+    fleet = fleet_policy(args)
+    if fleet is None:
+        return
+    peer = fleet.get(name)
+    if tier is not None and not peer.may_serve(tier):
+        raise InputError(f"scmr {command}: identity {name!r} has role {peer.role!r} in {fleet.directory}/fleet.json "
+                         f"and may not serve the {tier} tier; make its certificate with {name}={tier} "
+                         "(`scmr certs --peers ...`)")
+    if lead and not peer.leads:
+        raise InputError(f"scmr {command}: identity {name!r} is not leader-capable in {fleet.directory}/fleet.json; "
+                         f"make its certificate with {name}=robot+leader-capable (`scmr certs --peers ...`) or drop "
+                         "--leader-capable")
+
+
 def _policy_setup(args):
     """Service setup hook: cap each robot's priority at the fleet's grant (no-op without a profile)."""
     fleet = fleet_policy(args)
@@ -319,6 +338,7 @@ def _cmd_cloud(args) -> int:
     from scmr_mesh.mesh.peers import run_service
 
     require_security(args, "cloud")
+    check_grant(args, "cloud", args.node, tier="cloud")
     _setup_logging(args)
     return run_service(args.node, _mesh(args), tier="cloud", workers=args.workers, process=args.process,
                        max_request_bytes=args.max_request_bytes, ready_file=args.ready_file,
@@ -327,6 +347,7 @@ def _cmd_cloud(args) -> int:
 
 def _cmd_leader(args) -> int:
     require_security(args, "leader")
+    check_grant(args, "leader", args.node, lead=True)
     _setup_logging(args)
     body = None
     if args.images or args.synthetic:
@@ -349,6 +370,7 @@ def _cmd_robot(args) -> int:
     from scmr_mesh.mesh.peers import StopFlag, clear_ready
 
     require_security(args, "robot")
+    check_grant(args, "robot", args.id, lead=bool(args.leader_capable))
     _setup_logging(args)
     _check_robot_args(args)
     if args.leader_capable:

@@ -7,7 +7,8 @@ Peer ``a`` of link ``(a, b)`` connects to the link's proxy, which forwards to
 * ``blackhole``: stop forwarding *without closing sockets*; bytes already in
   flight are held, not dropped, and nothing is read, so TCP flow control
   stalls the sender exactly as on a silently dead link (no FIN, no RST); new
-  connections are accepted but not connected onwards until the link returns,
+  connections are accepted but not connected onwards until the link returns
+  (those whose dialer gave up meanwhile are dropped, as a dead link drops a SYN),
 * ``down``: close every proxied connection at once and refuse new ones (the
   loud failure, like a crashed router),
 * limit the rate (bytes/s, per direction) and add a one-way delay.
