@@ -153,9 +153,11 @@ def test_a_robot_on_a_full_disk_keeps_sending_and_reports_the_loss(tmp_path):
                            capture_output=True, text=True, timeout=120)
         assert p.returncode == 1, p.stderr
         assert "internal error" not in p.stderr and "Traceback" not in p.stderr
-        last = p.stderr.strip().splitlines()[-1]
-        assert last.startswith("scmr: error: robot r1: ") and "telemetry records lost" in last
-        assert "No space left on device" in last
+        # one error line (zenoh's threads may still log a line after it while the session closes)
+        errors = [ln for ln in p.stderr.splitlines() if ln.startswith("scmr: error: ")]
+        assert len(errors) == 1, p.stderr
+        assert errors[0].startswith("scmr: error: robot r1: ") and "telemetry records lost" in errors[0]
+        assert "No space left on device" in errors[0]
         records = (out_dir / "records.jsonl").read_text().splitlines()
         assert len(records) == 60  # every frame was still sent (and served locally)
         s = json.loads((out_dir / "telemetry.json").read_text())
