@@ -8,7 +8,8 @@ core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, and th
            pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``
 mesh       ``mesh/``: every Zenoh import of the running system
 viz        ``viz/``: every rerun import
-procs      ``fleet/``, ``scenario/`` (processes and faults); may use mesh and viz
+procs      ``fleet/``, ``scenario/`` (processes and faults), ``thesis/`` (``scmr thesis``: runs scenarios,
+           reports on them); may use mesh and viz
 commands   every ``*/commands.py`` (CLI wiring): anything but the bench layer
 bench      ``bench/``: every ``scmr bench`` target; imports whatever it measures
 cli        ``cli.py``, ``__main__.py``: the only importers of ``bench``
@@ -49,7 +50,7 @@ def layer(rel: Path) -> str:
         return "core"
     if top in ("mesh", "viz", "bench"):
         return top
-    if top in ("fleet", "scenario"):
+    if top in ("fleet", "scenario", "thesis"):
         return "procs"
     raise AssertionError(f"package {top}/ has no layer; add it to tests/test_layers.py")
 
