@@ -6,6 +6,8 @@ Models of ``y`` against ``x``:
 ``log``     ``y = a + b log2 x``            (O(log N))
 ``linear``  ``y = a + b x``                 (O(N))
 ``exp``     ``y = a e^(b x)``               (fitted as ``ln y = ln a + b x``; needs y > 0)
+``power``   ``y = a x^b``                   (fitted as ``ln y = ln a + b ln x``; ``b`` is the growth order:
+            1 for linear growth, rising without bound for exponential growth)
 
 :func:`choose` fits each candidate to every point but one and predicts the one left out
 (leave-one-out cross-validation); the model with the smallest root-mean-square prediction
@@ -21,9 +23,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-MODELS = ("const", "log", "linear", "exp")
-_PARAMS = {"const": 1, "log": 2, "linear": 2, "exp": 2}
-FORMULA = {"const": "y = a", "log": "y = a + b log2(x)", "linear": "y = a + b x", "exp": "y = a exp(b x)"}
+MODELS = ("const", "log", "linear", "exp", "power")
+_PARAMS = {"const": 1, "log": 2, "linear": 2, "exp": 2, "power": 2}
+FORMULA = {"const": "y = a", "log": "y = a + b log2(x)", "linear": "y = a + b x", "exp": "y = a exp(b x)",
+           "power": "y = a x^b"}
 
 
 def _design(model: str, x: np.ndarray) -> np.ndarray:
@@ -31,6 +34,8 @@ def _design(model: str, x: np.ndarray) -> np.ndarray:
         return np.ones((len(x), 1))
     if model == "log":
         return np.column_stack([np.ones(len(x)), np.log2(x)])
+    if model == "power":
+        return np.column_stack([np.ones(len(x)), np.log(x)])
     return np.column_stack([np.ones(len(x)), x])
 
 
@@ -56,15 +61,15 @@ def fit(model: str, xs: Sequence[float], ys: Sequence[float]) -> dict[str, Any]:
     if len(x) < _PARAMS[model]:
         raise ValueError(f"{model} needs at least {_PARAMS[model]} points, got {len(x)}")
     yt = y
-    if model == "exp":
+    if model in ("exp", "power"):
         if np.any(y <= 0):
-            raise ValueError("the exponential model needs y > 0")
+            raise ValueError(f"the {model} model needs y > 0")
         yt = np.log(y)
-    if model == "log" and np.any(x <= 0):
-        raise ValueError("the log model needs x > 0")
+    if model in ("log", "power") and np.any(x <= 0):
+        raise ValueError(f"the {model} model needs x > 0")
     A = _design(model, x)
     coef, *_ = np.linalg.lstsq(A, yt, rcond=None)
-    pred = predict({"model": model, "a": float(np.exp(coef[0])) if model == "exp" else float(coef[0]),
+    pred = predict({"model": model, "a": float(np.exp(coef[0])) if model in ("exp", "power") else float(coef[0]),
                     "b": float(coef[1]) if len(coef) > 1 else None}, x)
     ss_res = float(np.sum((y - pred) ** 2))
     ss_tot = float(np.sum((y - y.mean()) ** 2))
@@ -76,7 +81,7 @@ def fit(model: str, xs: Sequence[float], ys: Sequence[float]) -> dict[str, Any]:
         cov = s2 * np.linalg.pinv(A.T @ A)
         se = float(math.sqrt(max(cov[1, 1], 0.0)))
     return {"model": model, "formula": FORMULA[model],
-            "a": float(np.exp(coef[0])) if model == "exp" else float(coef[0]),
+            "a": float(np.exp(coef[0])) if model in ("exp", "power") else float(coef[0]),
             "b": float(coef[1]) if len(coef) > 1 else None, "r2": r2, "n": int(len(x)), "slope_se": se}
 
 
@@ -90,6 +95,8 @@ def predict(f: dict[str, Any], xs) -> np.ndarray:
         return a + b * np.log2(x)
     if m == "linear":
         return a + b * x
+    if m == "power":
+        return a * x**b
     return a * np.exp(b * x)
 
 
@@ -112,7 +119,29 @@ def loo_rmse(model: str, xs: Sequence[float], ys: Sequence[float]) -> float | No
     return float(math.sqrt(sum(e * e for e in errs) / len(errs)))
 
 
-def choose(xs: Sequence[float], ys: Sequence[float], models: Sequence[str] = MODELS) -> dict[str, Any]:
+def growth_order(xs: Sequence[float], ys: Sequence[float]) -> dict[str, Any] | None:
+    """The exponent ``b`` of ``y = a x^b`` with its standard error, and whether growth is faster than linear.
+
+    ``superlinear`` is true when ``b - 2 se > 1`` (needs three points or more; y > 0).
+
+    Examples
+    --------
+    >>> g = growth_order([1, 2, 4, 8], [3, 6.2, 11.8, 24.1])
+    >>> round(g["b"], 1), g["superlinear"]
+    (1.0, False)
+    >>> growth_order([1, 2, 4, 8], [1, 2.7, 20, 3000])["superlinear"]
+    True
+    """
+    pts = [(x, y) for x, y in zip(xs, ys) if x > 0 and y is not None and y > 0]
+    if len(pts) < 3:
+        return None
+    f = fit("power", [p[0] for p in pts], [p[1] for p in pts])
+    se = f["slope_se"] or 0.0
+    return {"formula": f["formula"], "a": f["a"], "b": f["b"], "b_se": se, "r2": f["r2"], "n": f["n"],
+            "superlinear": bool(f["b"] - 2 * se > 1.0)}
+
+
+def choose(xs: Sequence[float], ys: Sequence[float], models: Sequence[str] = MODELS[:4]) -> dict[str, Any]:
     """Fit every model, choose by leave-one-out error.
 
     Returns

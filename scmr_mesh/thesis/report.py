@@ -33,8 +33,11 @@ def _quote(c: Mapping[str, Any]) -> list[str]:
     return [f"> {c['quote']}", ">", f"> (thesis {c['source']})"]
 
 
-def _one_line(e: Mapping[str, Any]) -> str:
-    return str(e.get("why", "")).split(". ")[0][:160]
+def _one_line(e: Mapping[str, Any], limit: int = 220) -> str:
+    first = str(e.get("why", "")).split(". ")[0]
+    if len(first) <= limit:
+        return first
+    return first[:first.rfind(" ", 0, limit)] + " ..."
 
 
 def _visual_table(rows: list[dict], leader: bool) -> list[str]:
