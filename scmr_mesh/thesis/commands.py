@@ -20,7 +20,8 @@ Table 4.2's five images per robot):
 
   noloss    experiments 1-3: no fault
   loss      experiments 4-6: robots cut from the cloud one by one, then the cloud from all
-  size<N>   Table 4.4: N robots, the cloud cut from everyone halfway
+  size<N>   Table 4.4: N robots, the cloud cut from everyone from halfway until shortly
+            before the end
 
 plus experiment 7 (the energy model's break-even sweep), Eq 3.14 (negotiator ranking),
 Eq 3.18-3.19 (transmission schedule) and Table 4.4 (delay against fleet and image size).

@@ -12,8 +12,9 @@ shape: robots with Table 4.3 profiles robot1..robot4, five real images each, 2 H
     each stage has one more robot served by the leader (thesis Figure 4.21 C).
 ``size<N>``
     Table 4.4: ``N`` robots (profiles and image sets dealt round-robin), the cloud serves the
-    first half of the run and is cut from everyone for the second, so the same run measures the
-    robot-to-cloud (R2C) and the robot-to-leader (R2R) delay at fleet size ``N``.
+    first half of the run and is cut from everyone for most of the second (it is back shortly
+    before the end, so the telemetry the leader relayed gets stored), so the same run measures
+    the robot-to-cloud (R2C) and the robot-to-leader (R2R) delay at fleet size ``N``.
 """
 
 from __future__ import annotations
@@ -139,7 +140,7 @@ def plan_runs(config: ThesisConfig, base: dict[str, Any] | None = None) -> dict[
     With ``T = config.step_s``: ``noloss`` lasts ``4 T``; ``loss`` cuts robot ``k`` from the
     cloud at ``k T`` (k = 1..R), the cloud from everyone at ``R T``, heals at ``(R + 1.5) T`` and
     ends at ``(R + 2.5) T``; ``size<N>`` lasts ``3 T`` with the cloud cut from everyone from
-    ``1.5 T`` to the end.
+    ``1.5 T`` to ``2.75 T``.
 
     Examples
     --------
@@ -167,9 +168,11 @@ def plan_runs(config: ThesisConfig, base: dict[str, Any] | None = None) -> dict[
         robots, sets = _robots(base, n, K)
         cut = 1.5 * T
         out[f"size{n}"] = _scenario(
-            f"thesis-size{n}", f"Table 4.4: {n} robots; the cloud serves until {cut:g} s, then the leader.",
+            f"thesis-size{n}", f"Table 4.4: {n} robots; the cloud serves until {cut:g} s, then the leader until "
+            f"{2.75 * T:g} s.",
             100 + n, 3 * T, 150, robots, sets,
-            [{"kind": "partition", "at_s": cut, "groups": [["cloud"], ["leader"] + [r["id"] for r in robots]]}],
+            [{"kind": "partition", "at_s": cut, "for_s": 1.25 * T,
+              "groups": [["cloud"], ["leader"] + [r["id"] for r in robots]]}],
             config.rate_hz)
     return out
 

@@ -153,16 +153,22 @@ def markdown(rep: Mapping[str, Any]) -> str:
         L += _inputs(e)
     m = rep["model"]
     L += ["", "## Table 4.4: communication delay", "", *_quote(t44["claim"]), "", t44["why"], "",
-          "| robots | R2C answers | R2C comm p50 ms | R2C ToR p50 ms | R2R answers | R2R comm p50 ms | R2R ToR p50 ms |",
-          "|---|---|---|---|---|---|---|"]
+          "| robots | our CPU share | load after | R2C answers | R2C comm p50 ms | R2C ToR p50 ms | R2R answers | "
+          "R2R comm p50 ms | R2R ToR p50 ms |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for r in t44["per_fleet_size"]:
-        L.append(f"| {r['robots']} | {r['r2c_n']} | {_f(r['r2c_comm_p50_ms'], 2)} | {_f(r['r2c_tor_p50_ms'], 2)} | "
-                 f"{r['r2r_n']} | {_f(r['r2r_comm_p50_ms'], 2)} | {_f(r['r2r_tor_p50_ms'], 2)} |")
+        L.append(f"| {r['robots']} | {_f(r.get('fleet_cpu_share'), 2)}{' (CPU-bound)' if r.get('cpu_bound') else ''} | "
+                 f"{(r.get('loadavg_after') or ['-'])[0]} | {r['r2c_n']} | {_f(r['r2c_comm_p50_ms'], 2)} | "
+                 f"{_f(r['r2c_tor_p50_ms'], 2)} | {r['r2r_n']} | {_f(r['r2r_comm_p50_ms'], 2)} | "
+                 f"{_f(r['r2r_tor_p50_ms'], 2)} |")
     for tier in ("r2c", "r2r"):
-        ch = t44[f"{tier}_fit"]
-        L += ["", f"{tier.upper()} fits (leave-one-out RMSE ms; chosen **{ch['chosen']}**): " + "; ".join(
-            f"{mname}: {fv['formula']}, a {_f(fv['a'], 3)}, b {_f(fv.get('b'), 3)}, R^2 {_f(fv['r2'], 3)}, "
-            f"LOO {_f(fv['loo_rmse'], 3)}" for mname, fv in ch["fits"].items())]
+        for key, what in ((f"{tier}_fit", "sizes not CPU-bound"), (f"{tier}_fit_all_sizes", "every size")):
+            ch = t44.get(key)
+            if not ch:
+                continue
+            L += ["", f"{tier.upper()} fits, {what} (leave-one-out RMSE ms; chosen **{ch['chosen']}**): " + "; ".join(
+                f"{mname}: {fv['formula']}, a {_f(fv['a'], 3)}, b {_f(fv.get('b'), 3)}, R^2 {_f(fv['r2'], 3)}, "
+                f"LOO {_f(fv['loo_rmse'], 3)}" for mname, fv in ch["fits"].items())]
     cb = t44.get("comm_vs_bytes")
     if cb:
         L += ["", f"Against the frame size (every first-attempt cloud answer): {cb['formula']}, a {cb['a_ms']} ms, "
@@ -181,6 +187,11 @@ def markdown(rep: Mapping[str, Any]) -> str:
         L.append(f"| {name} | {r['scenario']} | {r['backend']} | {r['robots']} | {r['duration_s']:g} | {r['requests']} | "
                  f"{_f(r['ror'], 3)} | {_f(r['telemetry_lost'])} | {_f(r['wall_s'], 0)} | "
                  f"{'; '.join(r['faults']) or '-'} |")
+    losses = [f"{n}: RoR {r['ror']}" for n, r in rep["runs"].items() if r.get("ror") is not None and r["ror"] < 1]
+    losses += [f"{n}: {r['telemetry_lost']} telemetry records lost (sent by robots, never stored by a cloud; "
+               f"runs/{n}/telemetry.json)" for n, r in rep["runs"].items() if r.get("telemetry_lost")]
+    if losses:
+        L += ["", "**Losses:**", *[f"- {x}" for x in losses]]
     notes = [f"{n}: {x}" for n, r in rep["runs"].items() for x in r.get("notes", [])]
     if notes:
         L += ["", "Notes:", *[f"- {n}" for n in notes]]
