@@ -423,8 +423,17 @@ class Builder:
         ror_loss = sum(bool(r.get("ok")) for r in during) / len(during) if during else None
         ok4 = (s4["served"] == s4["images"] and s4["bottom_centre_drivable_images"] == s4["images"]
                and ror_loss == 1.0)
+        by_tier: dict[str, dict[str, int]] = {}
+        alone_no_leader: dict[str, int] = {}
+        for r in during:
+            t = (r.get("tier") or "failed") if r.get("ok") else "failed"
+            by_tier.setdefault(r["robot"], {}).setdefault(t, 0)
+            by_tier[r["robot"]][t] += 1
+            if t == "local" and not any(a.get("tier") in ("leader", "peer") for a in r.get("attempts") or []):
+                alone_no_leader[r["robot"]] = alone_no_leader.get(r["robot"], 0) + 1
         s4.update({"identical_to_cloud": identical, "compared_with_cloud": compared,
-                   "requests_cut_from_cloud": len(during), "ror_cut_from_cloud": _r(ror_loss)})
+                   "requests_cut_from_cloud": len(during), "ror_cut_from_cloud": _r(ror_loss),
+                   "tiers_while_cut": by_tier, "computed_alone_without_trying_a_leader": alone_no_leader})
         same_txt = ("the leader's masks are identical to the cloud's for every image"
                     if identical == compared and compared else
                     f"the leader's masks are identical to the cloud's for only {identical} of {compared} images "
@@ -436,7 +445,13 @@ class Builder:
             "holds": ok4,
             "why": (f"during the loss the leader served {s4['served']} of {s4['images']} images (RoR "
                     f"{_r(ror_loss)} for robots cut from the cloud); {s4['bottom_centre_drivable_images']} have "
-                    f"the region closest to the robot drivable; {same_txt}."),
+                    f"the region closest to the robot drivable; {same_txt}. Requests of robots cut from the cloud, "
+                    "by the tier that answered: " + "; ".join(
+                        f"{rid} " + ", ".join(f"{t} {n}" for t, n in sorted(v.items())) for rid, v in sorted(by_tier.items()))
+                    + ("" if not alone_no_leader else
+                       ". Computed alone without trying a leader (no leader in the robot's liveliness view; see "
+                       "runs/loss/logs/<robot>.log): " + ", ".join(f"{k} {v}" for k, v in sorted(alone_no_leader.items())))
+                    + "."),
             "checks": [],
             "figures": _visual_figures(cols4, "served by the leader during the cloud loss (thesis Figure 4.19)",
                                        "exp4", self.figdir),
