@@ -196,6 +196,7 @@ def add_scale(bench: argparse._SubParsersAction) -> None:
                    help="seconds each fleet runs (default: 14 with --quick, else 30)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", required=True, help="where to write the results")
     b.add_argument("--run-dir", type=ca.PathArg("out-dir", as_path=True), metavar="DIR", help="parent of the runs' directories")
+    _insecure_arg(b)
     b.set_defaults(func=_handler("scale", "cmd_bench_scale"))
 
 

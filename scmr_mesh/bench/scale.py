@@ -102,7 +102,7 @@ def _config(args, clouds: int, run_dir: Path, duration_s: float):
         synthetic=["stub"], run_dir=run_dir, workers=args.workers, lease_ms=None,
         server_args=("--process", FIXED, "--queue", "64"),
         robot_args=("--no-local-fallback", "--deadline-ms", "10000", "--quiet"),
-        ready_timeout_s=120.0,
+        ready_timeout_s=120.0, insecure=getattr(args, "insecure", False),
     )
 
 

@@ -212,6 +212,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="wait up to MS for a cloud or leader to be seen (default 3000)")
     f.add_argument("--deadline-ms", type=ca.positive("milliseconds", hi=3600000), default=1000.0, metavar="MS",
                    help="per-tier deadline (default 1000)")
+    f.add_argument("--id", default=None, metavar="NAME",
+                   help="identity in the credentials to join a secured mesh with (a robot's name from scmr certs; "
+                        "needed with --security: every launcher's mesh is secured by default, RUN/certs)")
     from scmr_mesh.mesh import config as _zconfig
 
     _zconfig.add_arguments(f)

@@ -1079,7 +1079,10 @@ def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float =
                 break
             if time.monotonic() >= end:
                 raise MeshError(f"no cloud or leader alive after {wait_s:g} s (connect={mesh.connect}); "
-                                "check --connect and that the peers run")
+                                "check --connect and that the peers run" + (
+                                    "; a secured mesh (the default of scmr up) admits only holders of its "
+                                    "certificates: add --security RUN/certs/mtls.toml --id ROBOT"
+                                    if not mesh.security else ""))
             time.sleep(0.05)
         tried = []
         for tier, node in [("cloud", n) for n in sorted(alive["cloud"])] + [("leader", n) for n in sorted(alive["leader"])]:
