@@ -19,14 +19,14 @@ class FakeQuery:
         self.block = block
         self.sent: list[tuple[str, bytes]] = []
         self.dropped = False
-        self.key_expr = "scmr/drivable/cloud/c1"
+        self.key_expr = "scmr/drivable/cloud/c1/r1"  # a robot's own request key
 
-    def reply(self, key, payload):
+    def reply(self, key, payload, *, encoding=None):
         if self.block is not None:
             self.block.wait(30)
         self.sent.append(("ok", payload))
 
-    def reply_err(self, payload):
+    def reply_err(self, payload, *, encoding=None):
         if self.block is not None:
             self.block.wait(30)
         self.sent.append(("err", payload))
