@@ -185,3 +185,18 @@ def test_no_orphans_when_the_supervisor_is_sigkilled(tmp_path):
                 os.killpg(x, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def test_ready_time_is_when_the_peer_wrote_its_ready_file(tmp_path):
+    # the supervisor polls; the failback split (restart -> ready -> first answer) needs the
+    # moment the peer was ready, which it writes into the file as t_unix_ns
+    code = ("import json, pathlib, sys, time\n"
+            "pathlib.Path(sys.argv[1]).write_text(json.dumps({'t_unix_ns': 1234567890123456789}))\n"
+            "time.sleep(60)\n")
+    ready = tmp_path / "p.ready"
+    s = PeerSpec("p", [sys.executable, "-c", code, str(ready)], log_path=tmp_path / "p.log", ready_file=ready)
+    with Supervisor() as sup:
+        sup.start(s)
+        sup.wait_ready(["p"], timeout=30)
+        assert sup.procs["p"].ready_unix_ns == 1234567890123456789
+        sup.stop_all()

@@ -146,12 +146,26 @@ class Proc:
         return self.popen.poll() is None
 
     def is_ready(self) -> bool:
-        """True once the ready file exists (records the time it was first seen)."""
+        """True once the ready file exists; records when the peer wrote it (its
+        ``t_unix_ns``), else when it was first seen (the poll can be 50 ms late)."""
         if self.ready_unix_ns is None:
             rf = self.spec.ready_file
             if rf is None or rf.exists():
-                self.ready_unix_ns = time.time_ns()
+                self.ready_unix_ns = _written_at(rf) or time.time_ns()
         return self.ready_unix_ns is not None
+
+
+def _written_at(ready_file: Path | None) -> int | None:
+    """The ``t_unix_ns`` a peer put in its ready file (None if absent or unreadable)."""
+    if ready_file is None:
+        return None
+    try:
+        import json
+
+        t = json.loads(Path(ready_file).read_text()).get("t_unix_ns")
+        return int(t) if isinstance(t, int) else None
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 class Supervisor:
