@@ -1,8 +1,8 @@
 """``scmr thesis``: the dissertation's figures shipped as facts, the pieces of the report, and one
 reduced ``--quick`` run checked for structure and for where every number came from.
 
-The run (2 robots x 2 images, fleet sizes 1 and 2, proxy backend, real pipeline) takes
-about 50 s; the rest is pure and takes a few seconds.
+The run (2 robots x 2 images, fleet sizes 1 and 2, a 1.5 s time unit, proxy backend, real
+pipeline) takes about 45 s; the rest is pure and takes a few seconds.
 """
 
 from __future__ import annotations
@@ -156,7 +156,8 @@ def quick_run(tmp_path_factory, roads_dir):
     out = tmp_path_factory.mktemp("thesis") / "report"
     t = time.monotonic()
     r = subprocess.run([sys.executable, "-m", "scmr_mesh", "thesis", "--quick", "--robots", "2", "--images", "2",
-                        "--fleet-sizes", "1,2", "--backend", "proxy", "--data", str(roads_dir), "--out", str(out)],
+                        "--fleet-sizes", "1,2", "--step", "1.5", "--backend", "proxy", "--data", str(roads_dir),
+                        "--out", str(out)],
                        capture_output=True, text=True, timeout=280)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return out, r, time.monotonic() - t
