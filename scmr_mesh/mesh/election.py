@@ -320,8 +320,8 @@ class Candidate:
         with self._lock:
             old = self._states.get(c.node)
             self._states[c.node] = c
-            if c.term > self.term:
-                self.term = c.term if not self.leading else self.term
+            if c.term > self.term and not self.leading:  # a leader keeps its own term until it yields
+                self.term = c.term
         if old is None or old.leading != c.leading or old.term != c.term:
             self._wake.set()
 
