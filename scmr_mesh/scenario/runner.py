@@ -106,8 +106,9 @@ class RunResult:
                   for f, af in zip(self.metric_faults(), self.faults)]
         return leadership(read_events(self.out_dir / "leadership"), self.records, faults,
                           t0_unix_ns=self.t0_unix_ns,
-                          end_unix_ns=(self.robots_started_unix_ns or self.t0_unix_ns)
-                          + int(self.scenario.duration_s * 1e9) - int(0.2e9))
+                          # robots send for duration_s from about t0; the first graceful stop of a
+                          # candidate (a robot finishing) also ends the window (qos.leadership)
+                          end_unix_ns=self.t0_unix_ns + int(self.scenario.duration_s * 1e9))
 
     def metric_faults(self) -> list[dict[str, Any]]:
         """Faults as :func:`scmr_mesh.qos.metrics.summarize` takes them."""
