@@ -18,9 +18,9 @@ Output (:func:`leadership`)::
 
 ``succession_ms`` is the time from the old leader's loss (its crash, the
 start of the link fault that cut it off, its stop) to the new leader's claim;
-``wait_ms`` is the longest a robot went without the R2R tier after the loss
-(from the loss, or from its first request after it, to the first answer of
-the new leader or of a peer robot).  ``gap_ms`` has a floor of one request period (a robot at 2 Hz
+``wait_ms`` is the longest a robot went unserved after the loss (from the
+loss, or from its first request after it, to its first answer from a remote
+tier: the new leader, a peer robot, or the old leader finishing a request).  ``gap_ms`` has a floor of one request period (a robot at 2 Hz
 asks every 500 ms); ``succession_ms`` and ``wait_ms`` do not.
 
 ``cause`` is ``start`` (the first leader), ``crash`` (the old leader's
@@ -115,11 +115,10 @@ def succession_ms(t_lost: int | None, t_new: int) -> float | None:
 
 
 def _r2r_answers(records: Iterable[Mapping[str, Any]], new: str) -> dict[str, list[int]]:
-    """Per robot, when the new leader or a peer robot answered it."""
+    """Per robot, when a remote tier answered it (any leader, a peer robot, a cloud): not alone."""
     by_robot: dict[str, list[int]] = {}
     for r in records:
-        if r.get("ok") and r.get("received_unix_ns") and (
-                (r.get("tier") == "leader" and r.get("served_by") == new) or r.get("tier") == "peer"):
+        if r.get("ok") and r.get("received_unix_ns") and r.get("tier") in ("leader", "peer", "cloud"):
             by_robot.setdefault(r["robot"], []).append(int(r["received_unix_ns"]))
     for v in by_robot.values():
         v.sort()
@@ -128,10 +127,10 @@ def _r2r_answers(records: Iterable[Mapping[str, Any]], new: str) -> dict[str, li
 
 def wait_ms(records: Sequence[Mapping[str, Any]], t_lost: int | None, new: str,
             until: int | None = None) -> float | None:
-    """Longest a robot went without the R2R tier after the loss: per robot, from ``max(loss, its first
-    request sent after the loss)`` to the first answer of the new leader or of a peer robot; the largest
-    over the robots the new leader answered before ``until`` (the next change: robots on the far side of
-    a partition do not count)."""
+    """Longest a robot went unserved after the loss: per robot, from ``max(loss, its first request sent
+    after the loss)`` to its first answer from a remote tier (the new leader, a peer robot, or the old
+    leader still answering a request it held); the largest over the robots the new leader answered
+    before ``until`` (the next change: robots on the far side of a partition do not count)."""
     if t_lost is None:
         return None
     waits = []
