@@ -183,3 +183,15 @@ def test_the_surviving_leader_does_not_depend_on_who_looks_first(order):
         if decide(me, [x for x in leaders if x is not me], vacancy_s=None).action == "stay":
             survivors.add(me.node)
     assert survivors == {"b"}
+
+
+def test_an_isolated_candidate_does_not_claim_until_it_is_linked():
+    from scmr_mesh.mesh.election import Candidate, Capability
+
+    links = {"up": False}
+    led = []
+    c = Candidate("leader0", Capability(3.5e9, 177.0, "leader"), on_lead=led.append, on_step_down=lambda r: None,
+                  grace_s=0.0, linked=lambda: links["up"])
+    assert c.evaluate() is False and not c.leading and led == []  # nobody to lead
+    links["up"] = True
+    assert c.evaluate() is True and c.leading and led == [1]

@@ -24,6 +24,10 @@ The rule (pure: :func:`decide`, :func:`rank_key`, :func:`outranks`)
   starts an election: the best-ranked live candidate claims at once; the
   k-th best claims only after the vacancy has lasted ``k * claim_wait_s``
   (covers a best candidate that cannot act).
+* **An isolated node does not claim**: a candidate with no Zenoh link to any
+  other node (its bootstrap unreachable) has nobody to lead and waits until
+  it is linked (a restarted leader whose bootstrap is cut off would otherwise
+  claim alone and then yield after the heal).
 * **A blinking token does not make the lead flap**: when the leader's token
   blinks off, the best other candidate claims term T+1; when the old leader
   comes back with term T it sees T+1 and steps down.  The lead moved once
@@ -236,12 +240,14 @@ class Candidate:
                  on_step_down: Callable[[str], None], battery: Callable[[], float] | None = None,
                  load: Callable[[], float] | None = None, events_path: str | os.PathLike | None = None,
                  grace_s: float = STARTUP_GRACE_S, heartbeat_s: float = HEARTBEAT_S,
-                 claim_wait_s: float = CLAIM_WAIT_S) -> None:
+                 claim_wait_s: float = CLAIM_WAIT_S, linked: Callable[[], bool] | None = None) -> None:
         self.node = keys.check_name(node)
         self.capability = capability
         self.on_lead = on_lead
         self.on_step_down = on_step_down
         self._battery = battery or (lambda: 1.0)
+        #: ``fn() -> bool``: whether this node has a link to any other node (default: the session's peers)
+        self._linked = linked
         self._load = load or (lambda: 0.0)
         self.events_path = Path(events_path) if events_path else None
         self.grace_s = grace_s
@@ -416,6 +422,9 @@ class Candidate:
             vacancy = None if self._vacant_since is None else now - self._vacant_since
             d = decide(self.me(), others, vacancy_s=vacancy, claim_wait_s=self.claim_wait_s)
             if d.action == "claim":
+                if not self._is_linked():
+                    log.debug("candidate %s: vacancy, but no link to any node: not claiming", self.node)
+                    return False
                 return self._claim(d, others)
             if d.action == "step_down":
                 self.term = d.term
@@ -424,6 +433,17 @@ class Candidate:
             if d.term > self.term and not self.leading:
                 self.term = d.term
             return False
+
+    def _is_linked(self) -> bool:
+        if self._linked is not None:
+            return bool(self._linked())
+        s = self._session
+        if s is None:
+            return True
+        try:
+            return any(True for _ in s.info.peers_zid()) or any(True for _ in s.info.routers_zid())
+        except Exception:
+            return True
 
     def _claim(self, d: Decision, others: list[Candidacy]) -> bool:
         try:
