@@ -404,7 +404,7 @@ def make_load(node: str, tier: str, *, workers: int, inflight: int, served: int,
 
 def make_candidate(node: str, *, term: int, leading: bool, clock_hz: float, power_w: float | None,
                    battery: float, load: float, since_unix_ns: int | None = None,
-                   capability: str = "") -> dict:
+                   capability: str = "", follows: str | None = None) -> dict:
     """Build a candidacy message of the R2R election (``schemas/candidate.schema.json``).
 
     Parameters
@@ -425,6 +425,8 @@ def make_candidate(node: str, *, term: int, leading: bool, clock_hz: float, powe
         When it took the lead (while leading).
     capability : str
         Where the capability came from (profile name or ``host``).
+    follows : str, optional
+        The leader this candidate follows now (None while it leads or sees none).
     """
     return {
         "v": WIRE_VERSION,
@@ -438,5 +440,6 @@ def make_candidate(node: str, *, term: int, leading: bool, clock_hz: float, powe
         "battery": float(min(1.0, max(0.0, battery))),
         "load": float(max(0.0, load)),
         "capability": str(capability),
+        "follows": follows,
         "t_unix_ns": now_ns(),
     }

@@ -69,3 +69,41 @@ def test_gap_and_wait_need_answers_from_both():
     assert gap_ms([], "L", "r1", T0) is None
     assert wait_ms([], T0, "r1") is None
     assert gap_ms([rec("a", 1, "leader", "L")], None, "r1", T0) is None
+
+
+def test_a_newer_term_without_a_fault_replaces_the_old_leader():
+    """A blink: r1 claims term 2 while L (term 1) still leads in the log; L yields later."""
+    events = [ev(0, "L", "lead", 1), ev(3, "r1", "lead", 2), ev(3.2, "L", "step_down", 2, "outranked by r1 (term 2 vs 1)")]
+    out = leadership(events, [], [], t0_unix_ns=T0)
+    assert [(c["from"], c["to"], c["cause"]) for c in out["changes"]] == [(None, "L", "start"), ("L", "r1", "link")]
+    assert out["changes"][1]["succession_ms"] is None  # the loss time is not known: not a pass
+    assert out["leaders_at_end"] == ["r1"]
+
+
+def test_step_down_causes_name_nodes_exactly_and_heals_are_recent():
+    faults = [{"kind": "partition", "groups": [["a"], ["r1"], ["r10"]], "start_unix_ns": T0 + S,
+               "end_unix_ns": T0 + 2 * S}]
+    events = [ev(0, "a", "lead", 1), ev(1.3, "r1", "lead", 2), ev(1.3, "r10", "lead", 2),
+              ev(2.1, "r1", "step_down", 2, "outranked by r10 (term 2 vs 2)"),
+              ev(2.2, "a", "step_down", 2, "outranked by r10 (term 2 vs 1)")]
+    out = leadership(events, [], faults, t0_unix_ns=T0)
+    heals = [(c["from"], c["to"]) for c in out["changes"] if c["cause"] == "heal"]
+    assert heals == [("r1", "r10"), ("a", "r10")]
+    late = leadership(events + [ev(20, "r10", "step_down", 3, "outranked by zz (term 3 vs 2)")], [], faults,
+                      t0_unix_ns=T0)
+    assert all(c["t_s"] < 20 for c in late["changes"] if c["cause"] == "heal")  # 18 s after the heal: not a heal
+
+
+def test_no_leader_after_a_heal_is_not_converged_and_a_lost_lead_is_unfilled():
+    faults = [{"kind": "partition", "groups": [["a"], ["b"]], "start_unix_ns": T0 + S, "end_unix_ns": T0 + 2 * S},
+              {"kind": "crash", "target": "b", "start_unix_ns": T0 + 3 * S, "end_unix_ns": None}]
+    events = [ev(0, "a", "lead", 1), ev(1.3, "b", "lead", 2), ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)")]
+    out = leadership(events, [], faults, t0_unix_ns=T0)
+    assert out["converged_after_heal_ms"] == 100.0
+    assert out["leaders_at_end"] == [] and out["unfilled"] == [{"t_s": 3.0, "from": "b", "cause": "crash"}]
+    # both leaders gone at 2.1 s (one yields, the other crashes): nobody leads until c at 4 s
+    gone = [faults[0], {"kind": "crash", "target": "b", "start_unix_ns": T0 + int(2.1 * S), "end_unix_ns": None}]
+    both = leadership([ev(0, "a", "lead", 1), ev(1.3, "b", "lead", 2),
+                       ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)"), ev(4.0, "c", "lead", 3)],
+                      [], gone, t0_unix_ns=T0)
+    assert both["converged_after_heal_ms"] == 2000.0  # zero leaders is not one leader

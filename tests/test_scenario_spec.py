@@ -72,6 +72,9 @@ BAD = [
      "faults[0].link", "topology.links"),
     (_mut(["fleet", "robots", 0, "bootstrap"], "mars"), "fleet.robots[0].bootstrap", "use one of"),
     (_mut(["fleet", "robots", 0, "bootstrap"], "robot1"), "fleet.robots[0].bootstrap", "another peer"),
+    (_mut(["fleet", "robots", 0, "bootstrap"], "robot2") | {"fleet": {**GOOD["fleet"], "robots": [
+        {**GOOD["fleet"]["robots"][0], "bootstrap": "robot2"}, {**GOOD["fleet"]["robots"][1], "bootstrap": "robot1"}]}},
+     "fleet.robots[0].bootstrap", "ring"),
     (_mut(["faults", 0, "at_s"], 10), "faults[0].at_s", "below duration_s"),
     (_mut(["faults", 1, "for_s"], delete=True) | {"faults": GOOD["faults"] + [
         {"kind": "crash", "at_s": 5, "peer": "cloud"}, {"kind": "crash", "at_s": 6, "peer": "cloud"}]},

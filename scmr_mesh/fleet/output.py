@@ -131,6 +131,8 @@ def format_leadership(lead: Mapping[str, Any] | None) -> list[str]:
             gap = "" if c.get("succession_ms") is None else f", took {c['succession_ms']:.0f} ms"
             gap += "" if c.get("wait_ms") is None else f", robots waited <= {c['wait_ms']:.0f} ms"
             parts.append(f"{c['from'] or '-'} -> {c['to']} at {c['t_s']:.2f} s ({c['cause']}{gap})")
+    for u in lead.get("unfilled") or []:
+        parts.append(f"{u['from']} lost at {u['t_s']:.2f} s ({u['cause']}) and NOBODY took the lead")
     end = lead.get("leaders_at_end") or []
     out = [f"  leadership: {'; '.join(parts) or 'no leader was elected'}",
            f"  leader at the end: {', '.join(end) if end else 'none'}"

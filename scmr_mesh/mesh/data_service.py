@@ -581,7 +581,12 @@ class LeaderData:
                 sync = self.syncs[name] = BufferSync(
                     self.buffer, lambda epoch, since, node=node, tier=tier: self._fetch_from(node, epoch, since, tier),
                     period_s=self.sync_period_s)
-            out[node] = sync.pull_once() is not None
+            res = sync.pull_once()
+            out[node] = res is not None
+            if tier == "leader" and res is not None and res.applied:
+                shared = sorted(k for k in self.buffer.items() if not k.startswith(("state/", "results/")))
+                log.info("%s: standby copy of leader %s's buffer: +%d entries (%d in all; shared: %s)",
+                         self.node, node, res.applied, len(self.buffer.items()), ", ".join(shared[:8]) or "none")
         return out
 
     def forward_once(self) -> int:

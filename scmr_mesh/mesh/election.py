@@ -89,18 +89,21 @@ class Candidacy:
     load: float = 0.0
     since_unix_ns: int | None = None
     capability: str = ""
+    follows: str | None = None
 
     @classmethod
     def from_message(cls, msg: Mapping) -> Candidacy:
         return cls(node=msg["node"], term=int(msg["term"]), leading=bool(msg["leading"]),
                    clock_hz=float(msg["clock_hz"]), power_w=msg.get("power_w"),
                    battery=float(msg["battery"]), load=float(msg["load"]),
-                   since_unix_ns=msg.get("since_unix_ns"), capability=msg.get("capability", ""))
+                   since_unix_ns=msg.get("since_unix_ns"), capability=msg.get("capability", ""),
+                   follows=msg.get("follows"))
 
     def to_message(self) -> dict:
         return wire.make_candidate(self.node, term=self.term, leading=self.leading, clock_hz=self.clock_hz,
                                    power_w=self.power_w, battery=self.battery, load=self.load,
-                                   since_unix_ns=self.since_unix_ns, capability=self.capability)
+                                   since_unix_ns=self.since_unix_ns, capability=self.capability,
+                                   follows=self.follows)
 
 
 def rank_key(c: Candidacy) -> tuple:
@@ -123,11 +126,21 @@ def rank_key(c: Candidacy) -> tuple:
     )
 
 
+def static_key(c: Candidacy) -> tuple:
+    """The part of the rank that does not change while a node runs: clock, power, id (best first)."""
+    return (-round(c.clock_hz / 1e6), math.inf if c.power_w is None else round(c.power_w, 1), c.node)
+
+
 def outranks(a: Candidacy, b: Candidacy) -> bool:
-    """Whether leader ``a`` wins over leader ``b``: higher term, else better rank."""
+    """Whether leader ``a`` wins over leader ``b``: higher term, else better static rank.
+
+    Battery and load are left out on purpose: each leader would compare its own
+    current load with the other's last published one, and both could yield (or
+    both stay).
+    """
     if a.term != b.term:
         return a.term > b.term
-    return rank_key(a) < rank_key(b)
+    return static_key(a) < static_key(b)
 
 
 @dataclass(frozen=True)
@@ -170,9 +183,20 @@ def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | Non
                 if outranks(b, top):
                     top = b
             return Decision("step_down", max_term, f"outranked by {top.node} (term {top.term} vs {me.term})")
+        # a leader this node cannot see, with a newer term, that another candidate follows
+        via = [o for o in others if o.follows and o.follows != me.node and o.term > me.term]
+        if via:
+            v = max(via, key=lambda o: o.term)
+            return Decision("step_down", max_term,
+                            f"outranked by {v.follows} (term {v.term} vs {me.term}, seen by {v.node})")
         return Decision("stay", me.term, "leading")
     if leaders:
         return Decision("stay", max_term, "following " + ",".join(sorted(o.node for o in leaders)))
+    # no leader in sight here; if another candidate follows one, it lives (a link is down, not the
+    # leader): no claim, so one leader stays (robots reach it; this node is served by peers)
+    seen = sorted((o for o in others if o.follows and o.follows != me.node), key=lambda o: o.node)
+    if seen:
+        return Decision("stay", max_term, f"{seen[0].follows} leads (seen by {seen[0].node}, not from here)")
     ranked = sorted([me, *others], key=rank_key)
     k = ranked.index(me)
     if k == 0:
@@ -263,6 +287,8 @@ class Candidate:
         self.since_unix_ns: int | None = None
         self._vacant_since: float | None = time.monotonic()
         self._started = time.monotonic()
+        self._linked_since: float | None = None  # when this node last became linked to another
+        self._rejoined = False
         self._session = None
         self._decl: list = []
         self._token = None
@@ -272,10 +298,14 @@ class Candidate:
 
     # ---------------------------------------------------------- state
     def me(self) -> Candidacy:
+        follows = None
+        if not self.leading:
+            lead = current_leader(self.live_others())
+            follows = None if lead is None else lead.node
         return Candidacy(self.node, term=self.term, leading=self.leading, clock_hz=self.capability.clock_hz,
                          power_w=self.capability.power_w, battery=float(self._battery()),
                          load=float(self._load()), since_unix_ns=self.since_unix_ns,
-                         capability=self.capability.source)
+                         capability=self.capability.source, follows=follows)
 
     def live_others(self) -> list[Candidacy]:
         with self._lock:
@@ -399,6 +429,9 @@ class Candidate:
             if self._stop.is_set():
                 break
             changed = False
+            if self._rejoined and self._session is not None:
+                self._rejoined = False
+                self.refresh(timeout=0.2)
             try:
                 changed = self.evaluate()
             except Exception:  # never let the election thread die
@@ -420,11 +453,19 @@ class Candidate:
             if not self.leading and now - self._started < self.grace_s:
                 return False
             vacancy = None if self._vacant_since is None else now - self._vacant_since
+            linked = self._is_linked()
+            if not linked:
+                self._linked_since = None
+            elif self._linked_since is None:  # (re)joined: learn the others before deciding
+                self._linked_since = now
+                self._rejoined = True
             d = decide(self.me(), others, vacancy_s=vacancy, claim_wait_s=self.claim_wait_s)
             if d.action == "claim":
-                if not self._is_linked():
+                if not linked:
                     log.debug("candidate %s: vacancy, but no link to any node: not claiming", self.node)
                     return False
+                if now - self._linked_since < self.grace_s and now - self._started >= self.grace_s:
+                    return False  # just (re)linked: wait one grace for the others' candidacies
                 return self._claim(d, others)
             if d.action == "step_down":
                 self.term = d.term

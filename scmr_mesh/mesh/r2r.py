@@ -124,14 +124,23 @@ class R2RNode:
             log.info("%s now serves as %s (switch %.1f ms)", self.node, tier, (time.perf_counter() - t0) * 1e3)
 
     def _lead(self, term: int) -> None:
+        try:
+            self._serve("leader")
+        except Exception:
+            # roll back to what it was (the candidate stays a follower): never half-switched
+            try:
+                self._serve("peer" if self.serve_peers else None)
+            except Exception as exc:
+                log.error("%s: could not go back to serving as peer: %s", self.node, exc)
+            raise
         if self.data is not None:
             self.data.leading = True
-        self._serve("leader")
 
     def _step_down(self, reason: str) -> None:
         if self.data is not None:
             self.data.leading = False
-        self._serve("peer" if self.serve_peers else None)
+        stopping = reason.startswith("stopping")
+        self._serve("peer" if self.serve_peers and not stopping else None)
 
 
 __all__ = ["R2RNode"]

@@ -839,7 +839,7 @@ class Robot:
                 # Not when the placement chose local while remote nodes were there (the energy policy).
                 nothing_remote = not (view.cloud or view.leader or view.peer)
                 if any(a["tier"] != "local" for a in attempts) or nothing_remote:
-                    winner = self._retry_fresh(attempt, tried, t_end)
+                    winner = self._retry_fresh(attempt, tried, t_end, attempts)
                 if winner is None:
                     winner = self._run_local(frame, attempts)
                 continue
@@ -913,12 +913,14 @@ class Robot:
     #: Longest a robot waits for an election in progress before computing a frame alone (s).
     ELECTION_WAIT_S = 0.3
 
-    def _retry_fresh(self, attempt, tried: set, t_end: float) -> tuple | None:
+    def _retry_fresh(self, attempt, tried: set, t_end: float, attempts: list) -> tuple | None:
         """Before local execution: try remote nodes that appeared since the plan was made.
 
-        When no untried node is alive but leader-capable nodes are (a lead is
-        passing on), wait up to :data:`ELECTION_WAIT_S` (within the request's
-        deadline) for the new leader or a free peer.
+        When no untried node is alive but leader-capable nodes are, and a lead
+        is passing on (no leader alive, or the leader did not answer), wait up
+        to :data:`ELECTION_WAIT_S` (within the request's deadline) for the new
+        leader or a free peer.  A leader and peers that answer ``busy`` do not
+        make it wait: the frame runs locally at once.
         """
         waited = False
         while True:
@@ -928,7 +930,10 @@ class Robot:
                 w = attempt(t, n)
                 if w is not None:
                     return w
-            if new or waited or not self.view.candidates():
+            # wait only while a lead is passing on: no leader alive, or the leader just failed to answer
+            lead_lost = not fresh.leader or any(
+                a["tier"] == "leader" and a["outcome"] in ("no_reply", "unreachable", "timeout") for a in attempts)
+            if new or waited or not self.view.candidates() or not lead_lost:
                 return None
             waited = True
             left = min(self.ELECTION_WAIT_S, t_end - time.monotonic())

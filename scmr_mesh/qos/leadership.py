@@ -35,10 +35,14 @@ between the last answer of the old leader and the first answer of the new one
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 LINK_FAULTS = ("link_down", "partition", "bandwidth", "latency", "loss")
+#: A step-down this long after a heal counts as the heal's consolidation (``cause`` heal).
+HEAL_WINDOW_NS = 5_000_000_000
+_OUTRANKED = re.compile(r"outranked by (\S+) \(term")
 
 
 def read_events(folder: str | Path) -> list[dict]:
@@ -95,14 +99,16 @@ def _answers(records: Iterable[Mapping[str, Any]], node: str) -> dict[str, list[
     return by_robot
 
 
-def gap_ms(records: Sequence[Mapping[str, Any]], old: str | None, new: str, t_ns: int) -> float | None:
-    """Largest per-robot gap between the old leader's last answer before ``t_ns`` and the new one's first after."""
+def gap_ms(records: Sequence[Mapping[str, Any]], old: str | None, new: str, t_ns: int,
+           since: int | None = None) -> float | None:
+    """Largest per-robot gap between the old leader's last answer before ``t_ns`` (during its lead that
+    began at ``since``) and the new one's first after."""
     if old is None:
         return None
     a_old, a_new = _answers(records, old), _answers(records, new)
     gaps = []
     for robot, olds in a_old.items():
-        before = [t for t in olds if t <= t_ns]
+        before = [t for t in olds if t <= t_ns and (since is None or t >= since)]
         after = [t for t in a_new.get(robot, []) if t >= (before[-1] if before else t_ns)]
         if before and after:
             gaps.append((after[0] - before[-1]) / 1e6)
@@ -201,6 +207,7 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
             timeline.append((int(t), "ended", n, None))
     timeline.sort(key=lambda x: (x[0], {"ended": 0, "step_down": 1, "lead": 2}[x[1]]))
     leading: dict[str, int] = {}       # node -> term
+    lead_since: dict[str, int] = {}    # node -> when it took the lead it holds
     last_lost: list[tuple[int, str, str]] = []  # (t, node, how) of leads that ended
     changes: list[dict[str, Any]] = []
     over_time: list[dict[str, Any]] = []
@@ -208,9 +215,11 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
                    if f.get("kind") in ("partition", "link_down") and f.get("end_unix_ns"))
 
     def note(t: int) -> None:
-        state = sorted(leading)
+        state, t_s = sorted(leading), round((t - t0_unix_ns) / 1e9, 3)
+        if over_time and over_time[-1]["t_s"] == t_s:  # events at one instant: keep where they ended
+            over_time.pop()
         if not over_time or over_time[-1]["leaders"] != state:
-            over_time.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "leaders": state})
+            over_time.append({"t_s": t_s, "leaders": state})
 
     def cause_of_loss(node: str, t_lost: int) -> str:
         for f in crashes:
@@ -218,6 +227,15 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
                     and abs(int(f["start_unix_ns"]) - t_lost) < 5e9 and int(f["start_unix_ns"]) <= t_lost + 1e9:
                 return "crash"
         return "stop"
+
+    def change(t: int, prev: str | None, node: str, term: int, cause: str, t_lost: int | None,
+               *, heal: bool = False) -> None:
+        changes.append({
+            "t_s": round((t - t0_unix_ns) / 1e9, 3), "from": prev, "to": node, "term": term,
+            "gap_ms": None if prev is None else _round(gap_ms(records, prev, node, t, since=lead_since.get(prev))),
+            "cause": cause, "succession_ms": 0.0 if heal else _round(succession_ms(t_lost, t)),
+            "wait_ms": None if heal else _round(wait_ms(records, t_lost, node)),
+        })
 
     for t, kind, node, e in timeline:
         if kind == "lead":
@@ -232,26 +250,26 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
                 last_lost.clear()
                 if cause == "stop" and any(_cut_off(f, prev, node) for f in active):
                     cause = "link"
-            elif leading:  # another leader lives: cut off (its side keeps it) or a start-up race
+            elif leading:  # another leader lives: cut off (its side keeps it), or lost to this one's view
                 cut = sorted(n for n in leading if any(_cut_off(f, n, node) for f in active))
+                older = sorted((n for n in leading if leading[n] < term), key=lambda n: -leading[n])
                 if cut:
                     prev, cause = cut[0], "link"
                     t_lost = max(int(f["start_unix_ns"]) for f in active if _cut_off(f, prev, node))
-            changes.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "from": prev, "to": node, "term": term,
-                            "gap_ms": None if prev is None else _round(gap_ms(records, prev, node, t)),
-                            "cause": cause, "succession_ms": _round(succession_ms(t_lost, t)),
-                            "wait_ms": _round(wait_ms(records, t_lost, node))})
+                elif older:  # a newer term with no fault between them: the old one's token was lost
+                    prev, cause = older[0], "link"  # (a blink, a half-open link); loss time unknown
+            change(t, prev, node, term, cause, t_lost)
             leading[node] = term
+            lead_since[node] = t
         elif kind == "step_down":
             if node not in leading:
                 continue
             leading.pop(node)
-            winner = (e or {}).get("cause", "")
-            to = next((n for n in leading if n in winner), None)
-            if to is not None and any(h <= t for h in heals):
-                changes.append({"t_s": round((t - t0_unix_ns) / 1e9, 3), "from": node, "to": to,
-                                "term": leading[to], "gap_ms": _round(gap_ms(records, node, to, t)),
-                                "cause": "heal", "succession_ms": 0.0, "wait_ms": None})
+            m = _OUTRANKED.search(str((e or {}).get("cause", "")))
+            to = m.group(1) if m and m.group(1) in leading else None
+            recent_heal = any(0 <= t - h <= HEAL_WINDOW_NS for h in heals)
+            if to is not None and recent_heal:
+                change(t, node, to, leading[to], "heal", None, heal=True)
             elif to is None:
                 last_lost.append((t, node, "stop"))
         elif kind == "ended":
@@ -269,23 +287,24 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
         c["wait_ms"] = _round(wait_ms(records, t_lost, c["to"], until=min(nxt) if nxt else None))
     converged = None
     for h in heals:
-        # the first moment at or after the heal with at most one leader
+        # the first moment at or after the heal with exactly one leader (none is not converged)
         state_at = None
         for p in over_time:
             if (t0_unix_ns + p["t_s"] * 1e9) <= h:
                 state_at = p
-        if state_at is not None and len(state_at["leaders"]) <= 1:
+        if state_at is not None and len(state_at["leaders"]) == 1:
             c = 0.0
         else:
-            after = [p for p in over_time if t0_unix_ns + p["t_s"] * 1e9 > h and len(p["leaders"]) <= 1]
+            after = [p for p in over_time if t0_unix_ns + p["t_s"] * 1e9 > h and len(p["leaders"]) == 1]
             c = None if not after else (t0_unix_ns + after[0]["t_s"] * 1e9 - h) / 1e6
         if c is not None:
             converged = c if converged is None else max(converged, c)
-        elif converged is None:
-            converged = None
     return {
         "changes": changes,
         "leaders_at_end": sorted(leading),
+        # a lead that ended with nobody taking it before the end of the run
+        "unfilled": [{"t_s": round((t - t0_unix_ns) / 1e9, 3), "from": n, "cause": how}
+                     for t, n, how in last_lost] if not leading else [],
         "converged_after_heal_ms": _round(converged),
         "leaders_over_time": over_time,
     }

@@ -71,10 +71,11 @@ def _leadership_values(lead: Mapping[str, Any] | None) -> dict[str, Any]:
     moves = [c for c in lead["changes"] if c["from"] is not None]
     succ = [c.get("succession_ms") for c in moves if c["cause"] in ("crash", "link", "stop")]
     waits = [c.get("wait_ms") for c in moves if c.get("wait_ms") is not None]
+    unfilled = bool(lead.get("unfilled"))  # a lead lost and never taken: no succession at all
     return {
         "leader_changes": len(moves),
         "leaders_at_end": len(lead["leaders_at_end"]),
-        "max_succession_ms": None if any(s is None for s in succ) else (max(succ) if succ else 0.0),
+        "max_succession_ms": None if unfilled or any(s is None for s in succ) else (max(succ) if succ else 0.0),
         "max_leader_wait_ms": max(waits) if waits else 0.0,
         "converged_after_heal_ms": lead.get("converged_after_heal_ms"),
     }

@@ -348,6 +348,15 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
                            "name another peer (a cloud, the leader or another robot)")
     if fleet.get("leader_bootstrap") is not None:
         check_peer("fleet.leader_bootstrap", fleet["leader_bootstrap"])
+    boot_of = {r.id: r.bootstrap for r in robots if r.bootstrap}
+    for i, r in enumerate(robots):  # robots handed each other in a ring would never reach the fleet
+        seen, n = [r.id], boot_of.get(r.id)
+        while n in boot_of and n not in seen:
+            seen.append(n)
+            n = boot_of[n]
+        if n in seen:
+            raise _err(source, f"fleet.robots[{i}].bootstrap", "bootstraps form a ring: " + " -> ".join(seen + [n]),
+                       "hand one robot of the ring a cloud or the leader")
     topo = data.get("topology") or {}
     explicit = "links" in topo
     if "links" in topo:
