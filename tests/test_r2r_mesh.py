@@ -110,7 +110,9 @@ def test_leader_crash_passes_the_lead_and_robots_serve_robots_in_the_gap(peers):
     lead = peers.events("r1")
     assert [e["event"] for e in lead] == ["lead"] and lead[0]["term"] == 2  # the best robot, one term up
     assert lead[0]["t_unix_ns"] > t_kill  # took the lead after the crash (succession times: docs/R2R.md)
-    assert not peers.events("r2")  # r2 ranks below r1: it follows
+    # r2 ranks below r1: it follows (it may claim only if r1 took longer than 300 ms, and then yields)
+    r2 = [e["event"] for e in peers.events("r2")]
+    assert r2 in ([], ["lead", "step_down"]), r2
     for rid in ("r2", "r3"):  # nobody computed alone through the crash
         recs = peers.records(rid)
         assert all(r["ok"] for r in recs)

@@ -289,6 +289,7 @@ class Candidate:
         self._started = time.monotonic()
         self._linked_since: float | None = None  # when this node last became linked to another
         self._rejoined = False
+        self._said: tuple | None = None  # (leading, term, follows) last published
         self._session = None
         self._decl: list = []
         self._token = None
@@ -437,7 +438,10 @@ class Candidate:
             except Exception:  # never let the election thread die
                 log.exception("candidate %s: election step failed", self.node)
             now = time.monotonic()
-            if changed or now >= next_beat:
+            me = self.me()
+            # on any change of what it says (whom it follows, its term), at once: others wait on it
+            said = (me.leading, me.term, me.follows)
+            if changed or now >= next_beat or said != self._said:
                 next_beat = now + self.heartbeat_s
                 self._publish()
 
@@ -518,8 +522,10 @@ class Candidate:
         pub = self._pub
         if pub is None:
             return
+        me = self.me()
+        self._said = (me.leading, me.term, me.follows)
         try:
-            pub.put(wire.encode(self.me().to_message()), encoding=_msgpack())
+            pub.put(wire.encode(me.to_message()), encoding=_msgpack())
         except Exception as exc:
             log.debug("candidacy publish failed: %s", exc)
 
