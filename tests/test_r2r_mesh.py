@@ -207,7 +207,7 @@ def test_robots_serve_robots_when_the_leader_is_saturated(peers):
     """No cloud; a leader whose frames take 300 ms answers busy early; r2 is served by the peer r1."""
     from scmr_mesh.mesh.testing import SLOW
 
-    peers._spawn("leader0", ["leader", "--node", "leader0", "--workers", "1", "--process", SLOW], wait=True)
+    peers._spawn("leader0", ["leader", "--insecure", "--node", "leader0", "--workers", "1", "--process", SLOW], wait=True)
     peers.robot("r1", boot=["leader0"], capable="robot4", extra=["--rate", "1"])
     peers.robot("r2", boot=["leader0"], extra=["--rate", "10", "--deadline-ms", "2000"])
     wait_for(lambda: _served(peers.records("r2"))[("peer", "r1")] >= 3, timeout=60,
