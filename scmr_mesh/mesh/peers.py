@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import faulthandler
 import signal
 import threading
 import time
@@ -42,11 +43,25 @@ class StopFlag:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGTERM, signal.SIGINT):
                 self._old[sig] = signal.signal(sig, self._handle)
+            # SIGUSR1 prints every thread's stack to the log (stop_peer sends it before a SIGKILL)
+            faulthandler.register(signal.SIGUSR1, all_threads=True)
         return self
 
     def _handle(self, signum, frame) -> None:
         self.signal = signum
         self.event.set()
+
+    def wait(self) -> None:
+        """Block the main thread until stopped.
+
+        In short waits, never one unbounded wait: the kernel may hand a
+        process-directed SIGTERM to one of zenoh's threads, and Python runs its
+        handler only when the main thread next executes bytecode, which a
+        thread blocked in ``Event.wait()`` never does (a cloud sat out a
+        SIGTERM until SIGKILLed, py-spy showed it in ``Event.wait``).
+        """
+        while not self.event.wait(0.2):
+            pass
 
     def restore(self) -> None:
         for sig, old in self._old.items():
@@ -157,7 +172,7 @@ def run_service(
         if robot_body is not None:
             rc = int(robot_body(session, stop.event) or 0)
         else:
-            stop.event.wait()
+            stop.wait()
     finally:
         log.info("%s %s stopping", tier, node)
         svc.detach()
@@ -258,7 +273,7 @@ def run_candidate(
         if robot_body is not None:
             rc = int(robot_body(session, stop.event, r2r) or 0)
         else:
-            stop.event.wait()
+            stop.wait()
     finally:
         log.info("candidate %s stopping", node)
         if r2r is not None:
@@ -282,7 +297,7 @@ def run_router(mesh: MeshConfig, *, ready_file: str | None = None, stop: StopFla
         write_ready(ready_file, {"role": "router", "node": str(session.info.zid()), "zid": str(session.info.zid()),
                                  "keys": []})
         log.info("router ready (zid %s) listen=%s connect=%s", session.info.zid(), mesh.listen, mesh.connect)
-        stop.event.wait()
+        stop.wait()
     finally:
         close_session(session)
         clear_ready(ready_file)

@@ -154,6 +154,11 @@ def stop_peer(proc, *, sig: int | None = None, timeout: float = 10.0) -> int | N
     try:
         return proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
+        try:  # a peer that will not stop: its threads' stacks into its log, then SIGKILL
+            os.kill(proc.pid, signal.SIGUSR1)
+            time.sleep(0.5)
+        except ProcessLookupError:
+            pass
         try:
             os.killpg(proc.pid, signal.SIGKILL)
         except ProcessLookupError:
