@@ -18,7 +18,11 @@ faults are skipped), kernel-level behaviour (retransmission timers), or stop
 traffic that does not go through a proxy: Zenoh gossip tells peers each
 other's real locators, so :class:`ProxyBackend` turns gossip off and only the
 links of the topology exist.  Timing is Python-thread timing: under load the
-proxy adds its own sub-millisecond to millisecond delays.
+proxy adds its own sub-millisecond to millisecond delays.  Its threads block
+on their sockets and on events instead of polling: an idle or blackholed link
+costs no wake-ups (with polling, the threads of a blackholed cloud's links
+held this process's GIL so long under `stress-ng --cpu 2` that every other
+link's keep-alives missed a 1 s lease at once, and the R2R tier flapped).
 """
 
 from __future__ import annotations
@@ -65,15 +69,20 @@ class _Pipe:
 
     def _read(self) -> None:
         p = self.proxy
-        self.src.settimeout(0.05)
+        self.src.settimeout(None)  # blocking: no polling while idle (shutdown wakes it on close)
         while not p.closed_event.is_set():
-            if p.mode != "forward" or self.queued > 4 * _CHUNK:
-                time.sleep(0.005)  # blackhole or backlog: do not read, the sender's TCP stalls
+            # blackhole or backlog: do not read, the sender's TCP stalls.  Waits are on events,
+            # never sleep-polls: 20 polling threads of a blackholed cloud held the GIL of this
+            # process so long that every other link's keep-alives missed a 1 s lease.
+            if p.mode != "forward":
+                p.flowing.wait(0.5)
+                continue
+            if self.queued > 4 * _CHUNK:
+                with self.cv:
+                    self.cv.wait_for(lambda: self.queued <= 4 * _CHUNK or p.closed_event.is_set(), 0.5)
                 continue
             try:
                 data = self.src.recv(_CHUNK)
-            except socket.timeout:
-                continue
             except OSError:
                 data = b""
             with self.cv:
@@ -88,19 +97,20 @@ class _Pipe:
         while True:
             with self.cv:
                 while not self.queue and not p.closed_event.is_set():
-                    self.cv.wait(0.05)
+                    self.cv.wait(1.0)  # the reader notifies (data, or b"" at EOF/close)
                 if p.closed_event.is_set():
                     return
                 t_in, data = self.queue[0]
             # hold while blackholed; honour the delay
             while p.mode != "forward" and not p.closed_event.is_set():
-                time.sleep(0.005)
+                p.flowing.wait(0.5)
             wait = t_in + p.delay_s - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
             with self.cv:
                 self.queue.popleft()
                 self.queued -= len(data)
+                self.cv.notify_all()  # a reader held by the backlog
             if not data:
                 try:
                     self.dst.shutdown(socket.SHUT_WR)
@@ -149,6 +159,8 @@ class LinkProxy:
         self.rate_bps: float | None = None
         self.bytes_forwarded = 0
         self.closed_event = threading.Event()
+        self.flowing = threading.Event()  # set while the mode is forward (and at close, to wake waiters)
+        self.flowing.set()
         self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -158,7 +170,6 @@ class LinkProxy:
             raise ScenarioError(f"proxy {name}: cannot listen on 127.0.0.1:{listen_port} ({exc}); "
                                 "pick another port or pass 0") from None
         self._lsock.listen(64)
-        self._lsock.settimeout(0.05)
         self.port = self._lsock.getsockname()[1]
         self._conns: list[tuple[socket.socket, socket.socket | None]] = []
         self._lock = threading.Lock()
@@ -177,6 +188,10 @@ class LinkProxy:
         if mode not in ("forward", "blackhole", "down"):
             raise ScenarioError(f"proxy mode must be forward, blackhole or down, got {mode!r}")
         self.mode = mode
+        if mode == "forward":
+            self.flowing.set()
+        else:
+            self.flowing.clear()
         if mode == "down":
             self._close_conns()
         log.info("proxy %s: %s", self.name, mode)
@@ -197,9 +212,7 @@ class LinkProxy:
     def _accept_loop(self) -> None:
         while not self.closed_event.is_set():
             try:
-                client, _ = self._lsock.accept()
-            except socket.timeout:
-                continue
+                client, _ = self._lsock.accept()  # blocking: close() shuts the socket down to wake it
             except OSError:
                 return
             if self.mode == "down":
@@ -211,7 +224,7 @@ class LinkProxy:
         held = False
         while self.mode == "blackhole" and not self.closed_event.is_set():
             held = True
-            time.sleep(0.01)  # hold the half-open connection, like a SYN lost in a dead link
+            self.flowing.wait(0.5)  # hold the half-open connection, like a SYN lost in a dead link
         if self.mode == "down" or self.closed_event.is_set() or (held and _closed_by_peer(client)):
             # a dialer that gave up while the link was dead never reaches the far end (its SYN
             # was lost): passing its stale connection on would make the far end's TLS acceptor
@@ -240,6 +253,7 @@ class LinkProxy:
                     continue
                 try:
                     s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+                    s.shutdown(socket.SHUT_RD)  # wakes a reader blocked in recv (sends nothing)
                 except OSError:
                     pass
                 try:
@@ -250,6 +264,11 @@ class LinkProxy:
     def close(self) -> None:
         """Stop accepting and close every connection."""
         self.closed_event.set()
+        self.flowing.set()
+        try:
+            self._lsock.shutdown(socket.SHUT_RDWR)  # wakes the blocked accept()
+        except OSError:
+            pass
         try:
             self._lsock.close()
         except OSError:
