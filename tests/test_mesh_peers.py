@@ -184,19 +184,23 @@ def test_redundant_mode_and_two_cloud_nodes(fleet):
     fleet.service("cloud", "c2", c2, connect=[_ep(c1)])
     fleet.service("leader", "L1", lp, connect=[_ep(c1), _ep(c2)])
     ends = [_ep(c1), _ep(c2), _ep(lp)]
-    spread = fleet.robot("r1", ends, extra=["--count", "20", "--rate", "40"])
-    red = fleet.robot("r2", ends, extra=["--count", "6", "--rate", "20", "--redundant"])
+    spread = fleet.robot("r1", ends, extra=["--count", "20", "--rate", "20"])
+    red = fleet.robot("r2", ends, extra=["--count", "10", "--rate", "10", "--redundant"])
     assert spread.wait(timeout=90) == 0, fleet.log("r1")
     assert red.wait(timeout=90) == 0, fleet.log("r2")
     served = {r["served_by"] for r in fleet.records("r1")}
     assert served == {"c1", "c2"}
-    for r in fleet.records("r2"):
-        assert r["ok"]
-        assert sorted(a["tier"] for a in r["attempts"]) == ["cloud", "leader"]
+    recs = fleet.records("r2")
+    assert all(r["ok"] for r in recs)
+    # a robot starts once one tier is alive: its first frames may go out before the leader's
+    # token has arrived (one attempt); from the first frame sent to both, every frame is
+    both = [i for i, r in enumerate(recs) if sorted(a["tier"] for a in r["attempts"]) == ["cloud", "leader"]]
+    assert both and both == list(range(both[0], len(recs))), [r["attempts"] for r in recs]
+    for r in recs[both[0]:]:
         winner = [a for a in r["attempts"] if a["outcome"] == "ok"]
         assert len(winner) == 1 and winner[0]["tier"] == r["tier"]
     single = fleet.records("r1")[0]["bytes_up"]
-    assert all(r["bytes_up"] > 1.5 * single for r in fleet.records("r2"))
+    assert all(r["bytes_up"] > 1.5 * single for r in recs[both[0]:])
 
 
 def test_sigterm_stops_peers_cleanly_and_drains_the_cloud(fleet):
