@@ -214,9 +214,15 @@ process = "scmr_mesh.mesh.testing:stub_process"
 [fleet]
 robots = [ { id = "robot1", synthetic = "stub", rate_hz = 4 } ]
 """)
+    import signal
+
+    # Ctrl-C at a terminal: SIGINT at its default disposition.  A suite started in the background
+    # by a shell without job control (`make test &`, some CI runners) inherits SIGINT *ignored*, and
+    # Python then keeps it ignored: the runner ran its whole 60 s and the test timed out.
     p = subprocess.Popen([sys.executable, "-m", "scmr_mesh", "scenario", "run", str(sc), "--backend", "netns",
                           "--out", str(tmp_path / "out")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, start_new_session=True)
+                         text=True, start_new_session=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     rid = None
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
