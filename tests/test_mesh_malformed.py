@@ -3,7 +3,6 @@ problem, and the service keeps serving.  One real cloud process; ~3 s."""
 
 from __future__ import annotations
 
-import time
 
 import msgpack
 import pytest
@@ -144,7 +143,10 @@ def test_robot_publishes_valid_telemetry_results_and_load(cloud, tmp_path):
         subs = [session.declare_subscriber(keys.TELEMETRY_ALL, keep("telemetry")),
                 session.declare_subscriber(keys.RESULTS_ALL, keep("results")),
                 session.declare_subscriber(keys.LOAD_ALL, keep("load"))]
-        time.sleep(0.3)
+        # the link to the cloud is up once its token is seen, and our subscriber declarations, sent
+        # on that link before the query, have reached it (declarations are delivered in order)
+        wait_for(lambda: any(x.ok for x in session.liveliness().get(keys.ALIVE_ALL, timeout=1.0)), timeout=30,
+                 what="the cloud's liveliness token")
         r = spawn_peer(["robot", "--insecure", "--id", "tr1", "--synthetic", "stub", "--count", "4", "--rate", "20",
                         "--out", str(tmp_path / "tr1"), "--connect", ep, "--no-local-fallback"],
                        log_path=tmp_path / "tr1.log")
