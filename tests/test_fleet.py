@@ -133,6 +133,7 @@ def test_summary_validates_against_schema_and_prints():
     text = format_summary(rep)
     assert "r1" in text and "crash cloud0 at 0.45 s, never restarted" in text
     assert "failover gap 5.0 ms" in text  # first leader answer 5 ms after seq 5 was sent at 0.5 s
+    assert "failback" not in text  # a peer never restarted has no way back to measure
     assert "telemetry: NOT COUNTED" in text  # the line is always there
 
 

@@ -69,8 +69,8 @@ def format_summary(report: Mapping[str, Any]) -> str:
             end = f"restored {at}" if f.get("ready_unix_ns") is not None else \
                 f"restarted {at} but NEVER BECAME READY"
         lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, {end}; "
-                     f"failover gap {_ms(f.get('failover_gap_ms'))} ms (largest robot), "
-                     f"failback gap {_ms(f.get('failback_gap_ms'))} ms"
+                     f"failover gap {_ms(f.get('failover_gap_ms'))} ms (largest robot)"
+                     + ("" if f.get("end_unix_ns") is None else f", failback gap {_ms(f.get('failback_gap_ms'))} ms")
                      + (f" = restart to ready {f['restart_to_ready_ms']:.0f} ms"
                         f" + ready to first answer {_ms(f.get('failback_after_ready_ms'))} ms"
                         if f.get("restart_to_ready_ms") is not None else ""))
