@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-from pathlib import Path
 from typing import Callable
 
 from scmr_mesh import cliargs as ca
@@ -65,10 +64,30 @@ def _insecure_arg(p: argparse.ArgumentParser) -> None:
                         "per peer in the run folder, mutual TLS and the fleet's access rules, as scmr up does)")
 
 
+def _warn_if_jit() -> None:
+    """Say so when the pipeline kernels were not compiled ahead of time (figures would be worse).
+
+    Without the AOT module every peer pays numba's JIT: a cloud's start-up took 560-760 ms
+    instead of 260-360 ms, and each worker's first frame 25-115 ms more (a bench run from a
+    checkout whose kernels had changed since its last ``make``).
+    """
+    import sys
+
+    from scmr_mesh.imaging import _aot
+
+    st = _aot.status()
+    if st.startswith("jit"):
+        print(f"scmr bench: WARNING: pipeline kernels are not compiled ahead of time here ({st}); peers start "
+              "slower and each worker's first frame pays numba's JIT, so start-up and failover figures are worse "
+              "than an installed copy's; run `make` (or python -m scmr_mesh.imaging._aot) first",
+              file=sys.stderr, flush=True)
+
+
 def _handler(module: str, func: str) -> Callable[[argparse.Namespace], int]:
     """A handler that imports ``scmr_mesh.bench.<module>`` only when the target runs."""
 
     def run(args: argparse.Namespace) -> int:
+        _warn_if_jit()
         return getattr(importlib.import_module(f"scmr_mesh.bench.{module}"), func)(args)
 
     run.__name__ = f"{module}.{func}"
