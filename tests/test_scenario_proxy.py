@@ -253,3 +253,17 @@ def test_crash_and_restart_through_the_runner(tmp_path):
     if af.ready_unix_ns is not None and af.ready_unix_ns < res.records[-1]["sent_unix_ns"]:
         # the restarted cloud served again
         assert f["failback_gap_ms"] is not None and f["restart_ready_after_ms"] > 0
+
+
+def test_an_output_folder_holding_a_run_is_refused_before_anything_starts(tmp_path):
+    """Peers append to robots/*/records.jsonl and leadership/*.jsonl: a second run into the same
+    folder mixed an old run's leadership events into the new report (two leaders at the end)."""
+    from scmr_mesh.scenario.runner import run_scenario
+
+    sc = parse_scenario({"name": "again", "seed": 1, "duration_s": 1, "process": "scmr_mesh.mesh.testing:stub_process",
+                         "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"}]}})
+    (tmp_path / "leadership").mkdir()
+    (tmp_path / "leadership" / "leader.jsonl").write_text('{"event": "lead"}\n')
+    with pytest.raises(ScenarioError, match=r"already holds a scenario run \(leadership/ not empty\); give a new --out"):
+        run_scenario(sc, backend="proxy", out_dir=tmp_path)
+    assert not (tmp_path / "certs").exists()  # refused before any set-up

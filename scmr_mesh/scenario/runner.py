@@ -246,6 +246,10 @@ def run_scenario(
 
     say = progress or (lambda m: log.info("%s", m))
     out_dir = Path(out_dir)
+    used = [d for d in ("robots", "leadership", "logs", "queues") if (out_dir / d).is_dir() and any((out_dir / d).iterdir())]
+    if used:  # peers append to these: an old run's records, leadership events and queues would mix with this one's
+        raise ScenarioError(f"output folder {out_dir} already holds a scenario run ({'/, '.join(used)}/ not empty); "
+                            "give a new --out or delete that folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     images = {r.id: _image_dir(scenario, r.image_set, data_dir, out_dir, r.id)
