@@ -69,3 +69,35 @@ def test_a_peer_command_loads_only_its_own_module():
 def test_help_through_the_short_parser(argv, capsys):
     assert main(argv) == 0
     assert "usage: scmr " + next(a for a in argv if not a.startswith("-")) in capsys.readouterr().out
+
+
+def test_a_sigterm_during_a_bench_runs_its_cleanup(monkeypatch):
+    """`bench r2r` SIGTERMed left its peers running (reparented to init): the bench dispatcher turns
+    SIGTERM into KeyboardInterrupt so the target's `finally` stops what it started."""
+    import argparse
+    import os
+    import signal
+    import sys
+    import time
+    import types
+
+    from scmr_mesh.bench.commands import _handler
+
+    cleaned = []
+
+    def target(args):
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(10)  # interrupted at once
+            return 0
+        finally:
+            cleaned.append(True)
+
+    mod = types.ModuleType("scmr_mesh.bench._fake_target")
+    mod.go = target
+    monkeypatch.setitem(sys.modules, "scmr_mesh.bench._fake_target", mod)
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt):  # not a normal return after the sleep
+        _handler("_fake_target", "go")(argparse.Namespace())
+    assert cleaned
+    assert signal.getsignal(signal.SIGTERM) is before  # restored

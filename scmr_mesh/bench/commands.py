@@ -87,8 +87,22 @@ def _handler(module: str, func: str) -> Callable[[argparse.Namespace], int]:
     """A handler that imports ``scmr_mesh.bench.<module>`` only when the target runs."""
 
     def run(args: argparse.Namespace) -> int:
+        import signal
+
         _warn_if_jit()
-        return getattr(importlib.import_module(f"scmr_mesh.bench.{module}"), func)(args)
+        target = getattr(importlib.import_module(f"scmr_mesh.bench.{module}"), func)
+
+        def interrupt(signum, frame):  # noqa: ARG001
+            raise KeyboardInterrupt(f"signal {signum}")
+
+        # SIGTERM/SIGHUP as Ctrl-C: the benches' `finally` blocks stop the peers they started (a
+        # SIGTERMed `bench r2r` left its leader and robots running, reparented to init)
+        old = {s: signal.signal(s, interrupt) for s in (signal.SIGTERM, signal.SIGHUP)}
+        try:
+            return target(args)
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
 
     run.__name__ = f"{module}.{func}"
     return run
