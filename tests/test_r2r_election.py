@@ -8,6 +8,8 @@ leader is never preempted by a better candidate.
 
 from __future__ import annotations
 
+import dataclasses
+
 import itertools
 import random
 
@@ -177,7 +179,6 @@ def test_one_link_down_keeps_one_leader():
     d = decide(Candidacy("r1", term=1, clock_hz=2.8e9), [r2], vacancy_s=5.0)
     assert d.action == "stay" and "L leads" in d.reason
     # and a leader that claimed before it knew steps down when a follower reports a newer leader
-    r1_leading = Candidacy("r1", term=2, leading=True, clock_hz=2.8e9)
     r2_following_r1 = Candidacy("r2", term=2, clock_hz=2.5e9, follows="r1")
     assert decide(lead, [r2_following_r1], vacancy_s=None).action == "step_down"
 
@@ -225,6 +226,23 @@ def test_an_isolated_candidate_does_not_claim_until_it_is_linked():
     assert c.evaluate() is False and not c.leading and led == []  # nobody to lead
     links["up"] = True
     assert c.evaluate() is True and c.leading and led == [1]
+
+
+def test_a_candidacy_that_stops_following_wakes_the_election_at_once():
+    """r2 following the dead leader holds r1's claim; r2's next candidacy (follows nobody) must make
+    r1 decide again at once, not at its next half heartbeat."""
+    from scmr_mesh import keys
+    from scmr_mesh.mesh.election import Candidacy, Candidate, Capability
+
+    c = Candidate("r1", Capability(3.0e9, 10.0, "robot4"), on_lead=lambda t: None, on_step_down=lambda r: None)
+    r2 = Candidacy("r2", term=1, leading=False, clock_hz=2.0e9, power_w=5.0, battery=1.0, load=0.0,
+                   since_unix_ns=0, capability="robot3", follows="leader0")
+    c._take(r2, key=keys.candidate("r2"))
+    c._wake.clear()
+    c._take(dataclasses.replace(r2, load=0.5), key=keys.candidate("r2"))
+    assert not c._wake.is_set()  # a load change alone does not change the decision
+    c._take(dataclasses.replace(r2, follows=None), key=keys.candidate("r2"))
+    assert c._wake.is_set()
 
 
 # ------------------------------------------------------- the robot's and the node's side (no zenoh)

@@ -359,7 +359,10 @@ class Candidate:
             self._states[c.node] = c
             if c.term > self.term and not self.leading:  # a leader keeps its own term until it yields
                 self.term = c.term
-        if old is None or old.leading != c.leading or old.term != c.term:
+        # decide again at once when what the rule reads changes: a candidate that stops following a
+        # dead leader releases the claim of the best one (waking only on lead/term changes left that
+        # to the next half heartbeat: crash -> claim took ~140 ms in half the runs instead of ~20)
+        if old is None or old.leading != c.leading or old.term != c.term or old.follows != c.follows:
             self._wake.set()
 
     def _on_query(self, query) -> None:
