@@ -176,3 +176,13 @@ def test_peers_env_session_without_options_changes_nothing(monkeypatch):
 def test_entity_name(raw, name):
     assert viz.entity_name(raw) == name
     keys.check_name(viz.entity_name(raw))
+
+
+def test_every_serving_tier_has_its_own_level_above_failed():
+    """A frame served by the peer tier was drawn at -1, as a failure, in the tier plot."""
+    from scmr_mesh.qos.metrics import TIERS
+    from scmr_mesh.viz.common import TIER_LEVEL
+
+    levels = [TIER_LEVEL[t] for t in TIERS]
+    assert min(levels) > TIER_LEVEL["failed"] and len(set(levels)) == len(TIERS)
+    assert levels == sorted(levels, reverse=True)  # drawn in the order robots try them

@@ -30,8 +30,8 @@ def fleet_blueprint(robots: Sequence[str]):
         rrb.TimeSeriesView(
             origin=keys.RESULTS,
             contents=per_robot("tier"),
-            name="tier (2 cloud, 1 leader, 0 local, -1 failed)",
-            axis_y=rrb.ScalarAxis(range=(-1.3, 2.3)),
+            name="tier (3 cloud, 2 leader, 1 peer, 0 local, -1 failed)",
+            axis_y=rrb.ScalarAxis(range=(-1.3, 3.3)),
         ),
         rrb.Vertical(
             rrb.TimeSeriesView(origin=keys.ALIVE, name="alive (1 up, 0 gone)", axis_y=unit),

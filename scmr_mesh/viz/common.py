@@ -21,7 +21,7 @@ CLASSES: tuple[tuple[int, str, tuple[int, int, int, int]], ...] = (
     (2, "non-drivable", (220, 0, 0, 255)),
 )
 #: Serving tier drawn as a level in the tier plot (``failed`` = no answer).
-TIER_LEVEL: dict[str | None, int] = {"cloud": 2, "leader": 1, "local": 0, None: -1, "failed": -1}
+TIER_LEVEL: dict[str | None, int] = {"cloud": 3, "leader": 2, "peer": 1, "local": 0, None: -1, "failed": -1}
 #: Annotation-context root: everything under it shares the class colours.
 ROBOT_ROOT = f"{keys.ROOT}/robot"
 FAULTS = f"{keys.ROOT}/faults"
