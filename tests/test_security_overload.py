@@ -59,6 +59,9 @@ def test_busy_is_explicit_and_robots_fall_back_at_once(tmp_path):
         wait_for(lambda: (tmp_path / "c.ready").exists() and (tmp_path / "l.ready").exists()
                  or any(p.poll() is not None for p in peers), timeout=60, what="cloud and leader ready")
         assert all(p.poll() is None for p in peers), (tmp_path / "c.log").read_text()[-1500:]
+        # a dedicated leader is ready serving the peer tier and takes the lead after its start-up
+        # grace: robots sent before that found only a busy cloud (no leader to fall back to yet)
+        wait_for(lambda: "leading (term" in (tmp_path / "l.log").read_text(), timeout=30, what="the leader leads")
         robots = []
         for k in range(3):
             robots.append(spawn_peer(
