@@ -138,7 +138,11 @@ def test_robot_publishes_valid_telemetry_results_and_load(cloud, tmp_path):
                 got[kind].append(sample.payload.to_bytes())
         return cb
 
-    session = open_session(MeshConfig(connect=[ep], lease_ms=300))
+    # the test listens and the robot dials it: peers do not relay for each other, and a link found
+    # by gossip could come up after the robot's first messages (the robot's publications reach
+    # this session only over a direct link)
+    mine = f"tcp/127.0.0.1:{free_port()}"
+    session = open_session(MeshConfig(connect=[ep], listen=[mine], lease_ms=300))
     try:
         subs = [session.declare_subscriber(keys.TELEMETRY_ALL, keep("telemetry")),
                 session.declare_subscriber(keys.RESULTS_ALL, keep("results")),
@@ -148,7 +152,7 @@ def test_robot_publishes_valid_telemetry_results_and_load(cloud, tmp_path):
         wait_for(lambda: any(x.ok for x in session.liveliness().get(keys.ALIVE_ALL, timeout=1.0)), timeout=30,
                  what="the cloud's liveliness token")
         r = spawn_peer(["robot", "--insecure", "--id", "tr1", "--synthetic", "stub", "--count", "4", "--rate", "20",
-                        "--out", str(tmp_path / "tr1"), "--connect", ep, "--no-local-fallback"],
+                        "--out", str(tmp_path / "tr1"), "--connect", ep, "--connect", mine, "--no-local-fallback"],
                        log_path=tmp_path / "tr1.log")
         assert r.wait(timeout=60) == 0, (tmp_path / "tr1.log").read_text()
         wait_for(lambda: len(got["telemetry"]) >= 4 and len(got["results"]) >= 4, timeout=10,

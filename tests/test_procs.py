@@ -200,3 +200,45 @@ def test_ready_time_is_when_the_peer_wrote_its_ready_file(tmp_path):
         sup.wait_ready(["p"], timeout=30)
         assert sup.procs["p"].ready_unix_ns == 1234567890123456789
         sup.stop_all()
+
+
+def test_signals_to_interrupt_keeps_ignored_signals_and_works_off_the_main_thread():
+    """nohup's ignored SIGHUP stays ignored (a bench kept running after a logout); from another
+    thread nothing changes instead of 'signal only works in main thread'; after the first
+    SIGTERM a second one cannot cut the clean-up short."""
+    import threading
+
+    from scmr_mesh.fleet.procs import signals_to_interrupt
+
+    old_hup = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    old_term = signal.getsignal(signal.SIGTERM)
+    try:
+        cleaned = []
+        with pytest.raises(KeyboardInterrupt):
+            with signals_to_interrupt():
+                assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+                try:
+                    os.kill(os.getpid(), signal.SIGTERM)
+                    time.sleep(10)  # interrupted at once
+                finally:
+                    assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN  # during the clean-up
+                    os.kill(os.getpid(), signal.SIGTERM)  # ignored: the clean-up goes on
+                    cleaned.append(True)
+        assert cleaned
+        assert signal.getsignal(signal.SIGTERM) is old_term and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+
+        errors = []
+
+        def off_main():
+            try:
+                with signals_to_interrupt():
+                    pass
+            except Exception as exc:  # pragma: no cover - the failure this guards against
+                errors.append(exc)
+
+        t = threading.Thread(target=off_main)
+        t.start()
+        t.join()
+        assert errors == []
+    finally:
+        signal.signal(signal.SIGHUP, old_hup)

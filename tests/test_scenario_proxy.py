@@ -267,3 +267,17 @@ def test_an_output_folder_holding_a_run_is_refused_before_anything_starts(tmp_pa
     with pytest.raises(ScenarioError, match=r"already holds a scenario run \(leadership/ not empty\); give a new --out"):
         run_scenario(sc, backend="proxy", out_dir=tmp_path)
     assert not (tmp_path / "certs").exists()  # refused before any set-up
+
+
+def test_bench_scenario_refuses_a_used_run_folder_before_the_first_run(tmp_path, capsys):
+    from pathlib import Path
+
+    from scmr_mesh.cli import main
+
+    (tmp_path / "run2" / "robots" / "robot1").mkdir(parents=True)
+    (tmp_path / "run2" / "robots" / "robot1" / "records.jsonl").write_text("{}\n")
+    scen = Path(__file__).resolve().parents[1] / "peers" / "scenarios" / "baseline.toml"
+    assert main(["bench", "scenario", str(scen), "--runs", "3", "--backend", "proxy", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'run2'} already holds a scenario run" in err and "give a new --out" in err
+    assert not (tmp_path / "run1").exists()  # nothing ran

@@ -134,3 +134,12 @@ def test_write_report_markdown_and_plots(report, tmp_path):
         assert img is not None and img.shape == (420, 1000, 3)
         # leader dots are drawn in the leader colour (BGR 30,140,240)
         assert np.any(np.all(img == (30, 140, 240), axis=2))
+
+
+def test_every_serving_tier_has_its_own_colour_in_the_plots():
+    """Frames served by a peer robot were drawn grey ('unknown') with no legend entry."""
+    from scmr_mesh.qos.metrics import TIERS
+    from scmr_mesh.scenario.report import TIER_COLOURS
+
+    colours = [TIER_COLOURS[t] for t in TIERS]
+    assert len(set(colours)) == len(TIERS) and TIER_COLOURS["unknown"] not in colours

@@ -64,18 +64,25 @@ def _insecure_arg(p: argparse.ArgumentParser) -> None:
                         "per peer in the run folder, mutual TLS and the fleet's access rules, as scmr up does)")
 
 
+#: Targets that run the real pipeline in the peers they start (the AOT warning applies to them).
+PIPELINE_TARGETS = ("pipeline", "mesh", "scenario")
+
+
 def _warn_if_jit() -> None:
     """Say so when the pipeline kernels were not compiled ahead of time (figures would be worse).
 
     Without the AOT module every peer pays numba's JIT: a cloud's start-up took 560-760 ms
-    instead of 260-360 ms, and each worker's first frame 25-115 ms more (a bench run from a
-    checkout whose kernels had changed since its last ``make``).
+    instead of 200-360 ms, and failover median 66 ms instead of 10 (a bench run from a checkout
+    whose kernels had changed since its last ``make``).  Never stops a bench.
     """
     import sys
 
-    from scmr_mesh.imaging import _aot
+    try:
+        from scmr_mesh.imaging import _aot
 
-    st = _aot.status()
+        st = _aot.status()
+    except Exception as exc:  # a broken AOT module is a warning here too, not a failed bench
+        st = f"jit (AOT status unreadable: {exc})"
     if st.startswith("jit"):
         print(f"scmr bench: WARNING: pipeline kernels are not compiled ahead of time here ({st}); peers start "
               "slower and each worker's first frame pays numba's JIT, so start-up and failover figures are worse "
@@ -87,22 +94,15 @@ def _handler(module: str, func: str) -> Callable[[argparse.Namespace], int]:
     """A handler that imports ``scmr_mesh.bench.<module>`` only when the target runs."""
 
     def run(args: argparse.Namespace) -> int:
-        import signal
+        from scmr_mesh.fleet.procs import signals_to_interrupt
 
-        _warn_if_jit()
+        if module in PIPELINE_TARGETS:
+            _warn_if_jit()
         target = getattr(importlib.import_module(f"scmr_mesh.bench.{module}"), func)
-
-        def interrupt(signum, frame):  # noqa: ARG001
-            raise KeyboardInterrupt(f"signal {signum}")
-
         # SIGTERM/SIGHUP as Ctrl-C: the benches' `finally` blocks stop the peers they started (a
         # SIGTERMed `bench r2r` left its leader and robots running, reparented to init)
-        old = {s: signal.signal(s, interrupt) for s in (signal.SIGTERM, signal.SIGHUP)}
-        try:
+        with signals_to_interrupt():
             return target(args)
-        finally:
-            for s, h in old.items():
-                signal.signal(s, h)
 
     run.__name__ = f"{module}.{func}"
     return run

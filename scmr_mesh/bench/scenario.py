@@ -17,7 +17,7 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
     from scmr_mesh.qos.metrics import percentile
     from scmr_mesh.scenario.commands import _auto_backend, _err, _out, _with_overrides
     from scmr_mesh.scenario.report import build_report, write_report
-    from scmr_mesh.scenario.runner import run_scenario
+    from scmr_mesh.scenario.runner import check_out_dir, run_scenario
     from scmr_mesh.scenario.spec import load_scenario
 
     sc = _with_overrides(load_scenario(args.file), args)
@@ -26,6 +26,8 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
         raise ConfigError(f"--runs must be at least 1, got {args.runs}")
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
     base = Path(args.out) if args.out else Path("runs") / f"bench-scenario-{sc.name}-{stamp}"
+    for i in range(args.runs):  # all refused up front, not after the first runs took minutes
+        check_out_dir(base / f"run{i + 1}", flag=f"--out (not {base})")
     runs = []
     for i in range(args.runs):
         _err(f"bench scenario: run {i + 1}/{args.runs} of {sc.name} ({backend})")

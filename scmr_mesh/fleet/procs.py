@@ -35,7 +35,8 @@ import os
 import signal
 import subprocess
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -80,6 +81,35 @@ def _preexec(parent_pid: int):
             os._exit(1)
 
     return setup
+
+
+@contextmanager
+def signals_to_interrupt(signals: Sequence[int] = (signal.SIGTERM, signal.SIGHUP)) -> Iterator[None]:
+    """Turn ``signals`` into :class:`KeyboardInterrupt` inside the block, so ``finally`` cleans up.
+
+    A signal the process inherited as ignored stays ignored (``nohup`` keeps a run alive after
+    a logout); outside the main thread nothing changes (Python handles signals there only).
+    After the first signal the others are ignored, so a second SIGTERM cannot cut the clean-up
+    short (SIGINT stays Ctrl-C; SIGKILL always works).
+    """
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    mine = [s for s in signals if signal.getsignal(s) is not signal.SIG_IGN]
+
+    def handler(signum, frame):  # noqa: ARG001
+        for s in mine:
+            signal.signal(s, signal.SIG_IGN)
+        raise KeyboardInterrupt(f"signal {signum}")
+
+    old = {s: signal.signal(s, handler) for s in mine}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def log_tail(path: Path, lines: int = 15) -> str:

@@ -154,7 +154,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
          f"ToR p50 {s['tor_ms']['p50'] and round(s['tor_ms']['p50'], 1)} ms p99 "
          f"{s['tor_ms']['p99'] and round(s['tor_ms']['p99'], 1)} ms, tiers {s['by_tier']}")
     for f in report["faults"]:
-        _out(f"  fault {f['label']}: failover gap {f['failover_gap_ms']} ms, failback gap {f['failback_gap_ms']} ms")
+        _out(f"  fault {f['label']}: failover gap {f['failover_gap_ms']} ms"
+             + ("" if f.get("ended_at_s") is None else f", failback gap {f['failback_gap_ms']} ms"))
     from scmr_mesh.fleet.output import format_leadership, format_telemetry
 
     _out("  " + format_telemetry(report.get("telemetry")))

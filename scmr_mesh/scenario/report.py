@@ -28,7 +28,7 @@ REQUEST_FIELDS = ("robot", "seq", "image", "bytes_up", "bytes_down", "sent_unix_
                   "tor_ms", "ok", "tier", "served_by", "attempts", "error")
 
 #: BGR colours of the tiers in the plots.
-TIER_COLOURS = {"cloud": (200, 120, 30), "leader": (30, 140, 240), "local": (60, 170, 60),
+TIER_COLOURS = {"cloud": (200, 120, 30), "leader": (30, 140, 240), "peer": (200, 60, 200), "local": (60, 170, 60),
                 "failed": (40, 40, 220), "unknown": (128, 128, 128)}
 
 
@@ -457,7 +457,7 @@ def _axes(img, t_max: float, faults: Sequence[Mapping[str, Any]]) -> None:
 def _legend(img) -> None:
     import cv2
 
-    x = _W - _MR - 330
+    x = _W - _MR - 410
     for name, col in TIER_COLOURS.items():
         if name == "unknown":
             continue

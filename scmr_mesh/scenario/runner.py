@@ -14,13 +14,11 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import sys
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 from scmr_mesh.errors import ConfigError, ScenarioError
 from scmr_mesh.scenario.plan import Event, affected_pairs, compile_timeline
@@ -144,24 +142,23 @@ def _image_dir(scenario: Scenario, robot_set: str, data_dir: Path, out_dir: Path
     return d
 
 
-@contextmanager
-def _signals_to_interrupt() -> Iterator[None]:
-    """Turn SIGTERM/SIGHUP into KeyboardInterrupt so ``finally`` cleans up."""
-    import threading
+def check_out_dir(out_dir: Path, *, flag: str = "--out") -> None:
+    """Refuse a folder that already holds a scenario run.
 
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+    Peers append to ``robots/*/records.jsonl``, ``leadership/*.jsonl`` and their queues: an
+    old run's records and leadership events would mix with the new run's (a bench series
+    into reused folders reported an old run's leader as a second leader).
 
-    def handler(signum, frame):  # noqa: ARG001
-        raise KeyboardInterrupt(f"signal {signum}")
-
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGHUP)}
-    try:
-        yield
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+    Raises
+    ------
+    ScenarioError
+        One line naming the folder, what is in it, and the fix.
+    """
+    out_dir = Path(out_dir)
+    used = [d for d in ("robots", "leadership", "logs", "queues") if (out_dir / d).is_dir() and any((out_dir / d).iterdir())]
+    if used:
+        raise ScenarioError(f"output folder {out_dir} already holds a scenario run ({'/, '.join(used)}/ not empty); "
+                            f"give a new {flag} or delete that folder")
 
 
 def scenario_identities(scenario: Scenario):
@@ -242,14 +239,11 @@ def run_scenario(
         Setup failed or a peer did not start (message names it, with its log tail).
     """
     from scmr_mesh.errors import MeshError
-    from scmr_mesh.fleet.procs import PeerSpec, Supervisor
+    from scmr_mesh.fleet.procs import PeerSpec, Supervisor, signals_to_interrupt
 
     say = progress or (lambda m: log.info("%s", m))
     out_dir = Path(out_dir)
-    used = [d for d in ("robots", "leadership", "logs", "queues") if (out_dir / d).is_dir() and any((out_dir / d).iterdir())]
-    if used:  # peers append to these: an old run's records, leadership events and queues would mix with this one's
-        raise ScenarioError(f"output folder {out_dir} already holds a scenario run ({'/, '.join(used)}/ not empty); "
-                            "give a new --out or delete that folder")
+    check_out_dir(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
     images = {r.id: _image_dir(scenario, r.image_set, data_dir, out_dir, r.id)
@@ -323,7 +317,7 @@ def run_scenario(
     names: dict[str, str] = {}
     telemetry = None
     robots_started: int | None = None
-    with _signals_to_interrupt():
+    with signals_to_interrupt():
         try:
             rid = getattr(be, "run_id", "")
             say(f"[{backend}] setting up {len(scenario.peers)} peers, {len(scenario.links)} links"
