@@ -367,7 +367,7 @@ def run_scenario(
     notes.extend(be.notes)
     for af in applied:
         notes.extend(n for n in af.notes if n not in notes)
-    records = _read_records(out_dir / "robots")
+    records = read_run_records(out_dir / "robots")
     (out_dir / "peers.json").write_text(json.dumps(handed, indent=1) + "\n")
     say(f"done: {len(records)} requests recorded")
     capable = set(scenario.candidates)
@@ -467,7 +467,11 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
             af.start_unix_ns = t_before
 
 
-def _read_records(robots_dir: Path) -> list[dict[str, Any]]:
+def read_run_records(robots_dir: Path) -> list[dict[str, Any]]:
+    """Every robot's request records under ``robots_dir/*/records.jsonl``, in sending order.
+
+    A line that is not JSON (a robot killed mid-write) is skipped with a warning.
+    """
     recs: list[dict[str, Any]] = []
     for f in sorted(robots_dir.glob("*/records.jsonl")):
         for line in f.read_text(encoding="utf-8", errors="replace").splitlines():

@@ -82,16 +82,10 @@ class Run:
 
 
 def read_records(run_dir: Path) -> list[dict[str, Any]]:
-    recs = []
-    for f in sorted((run_dir / "robots").glob("*/records.jsonl")):
-        for line in f.read_text(encoding="utf-8", errors="replace").splitlines():
-            if line.strip():
-                try:
-                    recs.append(json.loads(line))
-                except json.JSONDecodeError:
-                    log.warning("%s: a line that is not JSON", f)
-    recs.sort(key=lambda r: (r.get("sent_unix_ns") or 0, str(r.get("robot"))))
-    return recs
+    """The request records of the scenario run in ``run_dir`` (as the scenario runner reads them)."""
+    from scmr_mesh.scenario.runner import read_run_records
+
+    return read_run_records(run_dir / "robots")
 
 
 def load_run(out: Path, name: str) -> Run | None:
