@@ -19,7 +19,6 @@ import shutil
 import socket
 import subprocess
 import sys
-import time
 
 import pytest
 from conftest import free_port
@@ -137,6 +136,7 @@ print(json.dumps({"close_s": t1 - t0, "returned_before_route_back": t1 < restore
 SERVER = r"""
 import socket, time
 s = socket.create_server(("0.0.0.0", 7000))
+print("listening", flush=True)
 c, _ = s.accept()
 print("ok", flush=True)
 time.sleep(60)
@@ -168,14 +168,10 @@ def test_lingering_close_on_a_dead_link_ends_with_the_guard(repo_root):
             srv = subprocess.Popen(["ip", "netns", "exec", ns["b"], sys.executable, "-c", SERVER],
                                    stdout=subprocess.PIPE, text=True, start_new_session=True)
             procs.append(srv)
-            time.sleep(0.3)  # the server binds; the client retries below if not
-            for _ in range(50):
-                cl = subprocess.run(["ip", "netns", "exec", ns["a"], sys.executable, "-c", CLIENT, addr["b"],
-                                     "1" if guard else "0", "3.0", str(repo_root)],
-                                    capture_output=True, text=True, timeout=60)
-                if "Connection refused" not in cl.stderr:
-                    break
-                time.sleep(0.1)
+            assert srv.stdout.readline().strip() == "listening"  # bound: the client can connect
+            cl = subprocess.run(["ip", "netns", "exec", ns["a"], sys.executable, "-c", CLIENT, addr["b"],
+                                 "1" if guard else "0", "3.0", str(repo_root)],
+                                capture_output=True, text=True, timeout=60)
             assert cl.returncode == 0, cl.stderr[-2000:]
             results[guard] = json.loads(cl.stdout.strip().splitlines()[-1])
             srv.kill()
