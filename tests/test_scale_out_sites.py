@@ -10,7 +10,7 @@ through its site's router)::
 
 cloud0 is SIGKILLed mid-run: the robot goes on with cloud1 at the other site (the
 cloud tier, not the leader), and every telemetry record is in the shared store once.
-Needs root and ``ip``; run under ``flock /work/locks/netns``.  About 30 s.
+Needs root and ``ip``; the suite runs it with the other netns tests (``-m netns``).  About 30 s.
 """
 
 from __future__ import annotations

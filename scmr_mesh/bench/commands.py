@@ -168,7 +168,7 @@ def add_mesh(bench: argparse._SubParsersAction) -> None:
             "CPU processes (stress-ng --cpu N when installed), and write JSON.  Targets: ToR p50 <= 15 ms "
             "and p99 <= 50 ms with 4 robots at 5 Hz; admitted ToR p99 <= 100 ms in every fleet; RoR 1.0 "
             "through the crashes; failover median <= 20 ms; failback max <= 500 ms; under the hogs both "
-            "<= 1 s.  Run it under `flock /work/locks/bench` on a shared machine and note the load."
+            "<= 1 s.  Run one benchmark at a time and note the machine's load."
         ),
     )
     b.add_argument("--robots", type=ca.parsed(_fleet_sizes, what="comma-separated fleet sizes >= 1", example="1,4", keep_text=True), default="1,4,16", metavar="LIST",
