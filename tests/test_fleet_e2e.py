@@ -93,6 +93,8 @@ def test_up_with_cloud_outage(tmp_path):
         # records after the outage came from the restarted cloud
         recs = [json.loads(ln) for rid in ("r1", "r2")
                 for ln in (run_dir / "robots" / rid / "records.jsonl").read_text().splitlines()]
+        # robots send only once the whole fleet is up (--start-file RUN/ready/fleet.ready)
+        assert min(x["sent_unix_ns"] for x in recs) >= rep["started_unix_ns"]
         during = [x for x in recs if fault["start_unix_ns"] <= x["sent_unix_ns"] < fault["end_unix_ns"]]
         assert during and all(x["tier"] == "leader" for x in during)
         # logs per peer, both lives of the cloud in one log, masks in the inboxes

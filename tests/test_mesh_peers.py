@@ -178,6 +178,29 @@ def test_robot_started_before_the_cloud(fleet):
     assert [(r["ok"], r["tier"]) for r in recs] == [(True, "cloud")] * 5
 
 
+def test_robot_waits_for_the_start_file(fleet):
+    """--start-file (what `scmr fleet` uses): no frame before the file appears; a stop while waiting is clean."""
+    cp = free_port()
+    fleet.service("cloud", "c1", cp)
+    go = fleet.tmp / "go"
+    r1 = fleet.robot("r1", [_ep(cp)], extra=["--count", "3", "--rate", "20", "--start-file", str(go)])
+    r2 = fleet.robot("r2", [_ep(cp)], extra=["--count", "3", "--rate", "20", "--start-file", str(go)])
+    for rid, p in (("r1", r1), ("r2", r2)):
+        wait_for(lambda: "waiting for" in fleet.log(rid) or p.poll() is not None, timeout=90,
+                 what=f"{rid} waiting for the start file")
+        assert p.poll() is None, fleet.log(rid)
+        assert fleet.records(rid) == []
+    r2.send_signal(signal.SIGTERM)  # stopped before the start: a normal exit, nothing sent
+    assert r2.wait(timeout=60) == 0, fleet.log("r2")
+    assert fleet.records("r2") == [] and '"requests": 0' in fleet.log("r2")
+    t_go = time.time_ns()
+    go.write_text("go\n")
+    assert r1.wait(timeout=90) == 0, fleet.log("r1")
+    recs = fleet.records("r1")
+    assert [(r["ok"], r["tier"]) for r in recs] == [(True, "cloud")] * 3
+    assert min(r["sent_unix_ns"] for r in recs) >= t_go
+
+
 def test_redundant_mode_and_two_cloud_nodes(fleet):
     c1, c2, lp = free_port(), free_port(), free_port()
     fleet.service("cloud", "c1", c1)

@@ -25,6 +25,8 @@ MAX_CLOUDS = 16
 ODS_BACKENDS = ("auto", "sqlite", "postgresql")
 #: File that marks a folder as an scmr run directory (``scmr demo`` only replaces such folders).
 RUN_MARKER = ".scmr-run"
+#: Written in ``RUN/ready/`` once every peer of the fleet is ready; robots start sending when it appears.
+FLEET_READY = "fleet.ready"
 
 
 
@@ -369,7 +371,8 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
             argv += ["--deadline-ms", str(config.deadline_ms)]
         if rid in profiles:
             argv += ["--profile", profiles[rid]]
-        argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"), *config.robot_args]
+        argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"),
+                 "--start-file", str(run_dir / "ready" / FLEET_READY), *config.robot_args]
         specs[rid] = PeerSpec(rid, argv, log_path=run_dir / "logs" / f"{rid}.log",
                               ready_file=run_dir / "ready" / f"{rid}.ready")
     return specs

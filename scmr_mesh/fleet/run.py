@@ -35,6 +35,7 @@ from typing import Any
 from scmr_mesh.errors import InputError, MeshError
 from scmr_mesh.fleet.plan import (
     CLOUD,
+    FLEET_READY,
     LEADER,
     RUN_MARKER,
     FleetConfig,
@@ -49,8 +50,6 @@ from scmr_mesh.fleet.plan import (
 log = logging.getLogger(__name__)
 
 REPORT_SCHEMA = Path(__file__).resolve().parents[2] / "schemas" / "report.schema.json"
-#: Written in ``RUN/ready/`` once every peer of the fleet is ready (the run has started).
-FLEET_READY = "fleet.ready"
 
 
 class RecordTail:

@@ -243,6 +243,10 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     g.add_argument("--wait-ms", type=ca.non_negative("milliseconds", hi=3600000, example="2000"), default=2000.0, metavar="MS",
                    help="before the first frame, wait up to MS for a cloud or leader to appear (default 2000)")
     g.add_argument("--seed", type=ca.count("seed", lo=0, hi=2**32 - 1, example="7"), default=None, help="seed of synthetic frames (default: from the id)")
+    g.add_argument("--start-file", type=ca.PathArg("out-file", example="runs/x/ready/fleet.ready"), metavar="PATH", default=None,
+                   help="once connected and warmed up, wait until PATH exists (a launcher writes it when "
+                        "the whole fleet is up), then start at a phase of its own within one frame period "
+                        "(from --seed), as independent robots would; 'scmr fleet' passes RUN/ready/fleet.ready")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from scmr_mesh.viz import (
         add_rerun_peer_args,  # light: rerun itself is imported only with a flag
@@ -447,6 +451,8 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
             log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
         robot.prepare()
+        if getattr(args, "start_file", None) and not _wait_for_start(args, stop):
+            frames = iter(())  # stopped while waiting: no frames, a normal exit
         info = session.info
         log.info("robot %s zenoh links: peers=%s routers=%s", args.id,
                  sorted(str(z) for z in info.peers_zid()), sorted(str(z) for z in info.routers_zid()))
@@ -479,6 +485,22 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
     # raised by the command once the session is closed, so it is the last line on stderr
     args._problem = _robot_problem(args.id, telemetry, robot.telemetry_errors)
     return 0
+
+
+def _wait_for_start(args, stop: threading.Event) -> bool:
+    """Wait for ``--start-file``, then for this robot's phase; False when stopped first."""
+    import random
+
+    path = Path(args.start_file)
+    if not path.exists():
+        log.info("robot %s: ready; waiting for %s to start", args.id, path)
+        if not args.quiet:
+            print(f"robot {args.id}: ready; waiting for {path} to start", file=sys.stderr, flush=True)
+        while not path.exists():
+            if stop.wait(0.01):
+                return False
+    phase = random.Random(f"phase:{args.id}:{args.seed}").uniform(0.0, 1.0 / args.rate)
+    return not stop.wait(phase)
 
 
 def _raise_problem(args) -> None:
