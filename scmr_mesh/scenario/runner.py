@@ -268,6 +268,9 @@ def run_scenario(
             a += ["--cfg", c]
         return a
 
+    # written at t0 (every robot ready); robots send from then on, each at a phase of its own
+    start_file = out_dir / "ready" / "run.start"
+
     def spec_for(peer: str, *, remaining_s: float | None = None) -> PeerSpec:
         role = scenario.role(peer)
         n = starts[peer] = starts.get(peer, 0) + 1
@@ -304,7 +307,7 @@ def run_scenario(
                     argv += ["--capability", r.profile]
             if scenario.process:
                 argv += ["--process", scenario.process]
-            argv += ["--seed", str(scenario.seed), "--quiet"]
+            argv += ["--seed", str(scenario.seed), "--quiet", "--start-file", str(start_file)]
             argv += common(peer)
         argv += ["--ready-file", str(ready)]
         handed[peer + suffix] = argv[len(base):]  # what each peer was told (checked by tests; peers.json)
@@ -339,6 +342,7 @@ def run_scenario(
             sup.wait_ready([names[r.id] for r in scenario.robots], timeout=ready_timeout)
             t0 = time.time_ns()
             t0_mono = time.monotonic()
+            start_file.write_text(f"{t0}\n")
             say(f"robots ready; run of {scenario.duration_s:g}s starts (seed {scenario.seed})")
             for batch in _batches(events):
                 delay = t0_mono + batch[0].at_s - time.monotonic()
