@@ -46,6 +46,9 @@ def test_scenario_report_counts_telemetry(tmp_path):
     assert tel["lost"] == 0, tel  # nothing lost across the cloud crash (leader relay + replay)
     assert json.loads((tmp_path / "telemetry.json").read_text()) == tel
 
+    # robots start on OUT/ready/run.start, written at t0 (every robot ready)
+    assert res.records and min(r["sent_unix_ns"] for r in res.records) >= res.t0_unix_ns
+
     # the report: passed in, or picked up from the run's telemetry.json by write_report
     rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend="proxy",
                        telemetry=tel)
