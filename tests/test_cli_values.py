@@ -12,6 +12,7 @@ never run (their handlers are replaced by a stub that fails the test).
 from __future__ import annotations
 
 import argparse
+import re
 import os
 import subprocess
 import sys
@@ -255,3 +256,23 @@ def test_a_ready_file_in_a_missing_folder_is_created(tmp_path):
     r = _scmr("robot", "--id", "r1", "--synthetic", "stub", "--out", str(tmp_path / "r1"),
               "--ready-file", str(tmp_path / "r1" / "records.jsonl" / "r1.ready"), cwd=tmp_path)
     assert r.returncode == 1 and r.stderr.startswith("scmr: error: --ready-file ") and "is a file" in r.stderr
+
+
+#: A zero the help promises a meaning for ("0 skips it", "0 = the real pipeline", "default 0: ...").
+ZERO_HELP = re.compile(r"(?<![\d.,])0 ?(skips|=|:)")
+ZERO_FLAGS = [x for x in NUMERIC if ZERO_HELP.search(x[1].help or "")]
+
+
+def test_the_zero_walk_finds_the_documented_zeros():
+    assert {"bench mesh --overload-robots", "bench mesh --crash-robots", "bench tls --fleet-runs"} <= {
+        _id(x) for x in ZERO_FLAGS}
+
+
+@pytest.mark.parametrize("item", ZERO_FLAGS, ids=_id)
+def test_a_flag_whose_help_gives_zero_a_meaning_accepts_zero(item):
+    """`--overload-robots 0` was refused although its help said "0 skips it"."""
+    path, a = item
+    try:
+        a.type("0")
+    except Exception as exc:  # the flag's own type refuses what its help offers
+        pytest.fail(f"scmr {_id(item)} 0 is refused ({exc}) but its help says {a.help!r}")

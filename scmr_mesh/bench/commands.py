@@ -187,7 +187,7 @@ def add_mesh(bench: argparse._SubParsersAction) -> None:
                         "goes on after END so the restarted cloud's first answer is seen)")
     b.add_argument("--hogs", type=ca.count("CPU hogs", lo=0, hi=64), default=2, metavar="N",
                    help="repeat the crash runs under N busy CPU processes (0 skips; default: %(default)s)")
-    b.add_argument("--overload-robots", type=ca.count("robots", hi=1000), default=8, metavar="N",
+    b.add_argument("--overload-robots", type=ca.count("robots", lo=0, hi=1000), default=8, metavar="N",
                    help="robots in the overload run (0 skips it; default: %(default)s): a cloud with a "
                         "40 ms service and 1 worker (~25 requests/s) against N robots at --overload-rate, "
                         "once with the priority negotiator (--queue 2) and once FIFO; see `scmr bench overload`")
@@ -360,7 +360,7 @@ def _add_overload_arguments(p) -> None:
     p.add_argument("--rate", type=ca.positive("frames per second", hi=10000), default=10.0, metavar="HZ", help="frames/s per robot (default 10)")
     p.add_argument("--duration", type=ca.positive("seconds", hi=604800), default=10.0, metavar="S", help="seconds per run (default 10)")
     p.add_argument("--workers", type=ca.count("workers", hi=256), default=1, metavar="N", help="cloud worker processes (default 1)")
-    p.add_argument("--service-ms", type=ca.positive("milliseconds", hi=3600000), default=40.0, metavar="MS",
+    p.add_argument("--service-ms", type=ca.non_negative("milliseconds", hi=3600000, example="40"), default=40.0, metavar="MS",
                    help="fixed service time per frame (slow_process stub); 0 = the real pipeline (default 40)")
     p.add_argument("--queue", type=ca.count("waiting requests", lo=0, hi=100000), default=2, metavar="Q", help="negotiator queue size (default 2)")
     p.add_argument("--per-robot", type=ca.count("requests", hi=100000), default=None, metavar="N", help="negotiator per-robot quota")
