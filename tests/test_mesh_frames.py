@@ -74,3 +74,30 @@ def test_robot_cli_refuses_bad_quality_in_one_line(folder, capsys):
                "--jpeg-quality", "101"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 1 and len(err) == 1 and "--jpeg-quality" in err[0], err
+
+
+def test_frames_are_made_before_the_robot_sends(folder, monkeypatch):
+    """Encoding happens when the source is built (before the robot is ready), not at the first frames."""
+    made = []
+    real = robot._encode
+    monkeypatch.setattr(robot, "_encode", lambda rgb, q: (made.append(1), real(rgb, q))[1])
+    synthetic_frames("tunnel", seed=1, distinct=3)
+    assert len(made) == 3
+    made.clear()
+    image_frames(folder)
+    assert len(made) == 1  # the PNG, re-encoded as JPEG; the JPEG is sent as it is
+
+
+def test_an_unreadable_image_is_named_at_once(folder, monkeypatch):
+    from pathlib import Path
+
+    real = Path.read_bytes
+
+    def read_bytes(self):
+        if self.name == "b.jpg":
+            raise PermissionError(13, "Permission denied")
+        return real(self)
+
+    monkeypatch.setattr(Path, "read_bytes", read_bytes)
+    with pytest.raises(InputError, match=r"cannot read b\.jpg \(Permission denied\); make it readable"):
+        image_frames(folder)
