@@ -42,9 +42,9 @@ Examples:
 def _sizes(text: str) -> tuple[int, ...]:
     vals = tuple(int(x) for x in str(text).split(",") if x.strip())
     if len(vals) < 2:
-        raise ValueError("give at least two fleet sizes")
+        raise ValueError("one fleet size: the growth order of Table 4.4 needs at least two")
     if any(v < 1 or v > 32 for v in vals):
-        raise ValueError("fleet sizes must be 1..32")
+        raise ValueError("a fleet size outside 1..32")
     return vals
 
 
