@@ -48,6 +48,17 @@ def test_snapshot_partition_cuts_every_cross_pair_and_is_lifted_at_the_end():
     ]
 
 
+def test_a_link_fault_held_by_another_ends_when_its_cut_is_restored():
+    """The thesis's loss run: robot2's own cut from the cloud ends inside the partition of the cloud
+    (no unblock of its own); the partition's unblock at 12 s restores it, and ends it too."""
+    sc = _scenario({"kind": "link_down", "at_s": 1, "for_s": 5, "link": ["robot2", "cloud"]},
+                   {"kind": "partition", "at_s": 4, "for_s": 8, "groups": [["cloud"], ["leader", "robot1", "robot2"]]})
+    unblocks = [(e.at_s, e.target, e.fault, e.ends) for e in compile_timeline(sc) if e.op == "unblock"]
+    assert (12.0, ("cloud", "robot2"), 1, (0,)) in unblocks
+    assert not [u for u in unblocks if u[0] == 6.0]  # robot2-cloud stays cut at the link_down's own lift
+    assert all(u[3] == () for u in unblocks if u[1] != ("cloud", "robot2"))
+
+
 def test_snapshot_crash_is_process_only():
     sc = _scenario({"kind": "crash", "at_s": 4, "for_s": 5, "peer": "cloud"})
     evs = compile_timeline(sc)
@@ -185,6 +196,13 @@ def test_any_valid_timeline_undoes_itself(fs):
             killed.remove(e.target[0])
     # after every fault is lifted the topology is whole again
     assert model.routes == set() and model.netem == set() and killed == set()
+    # every link fault is ended by exactly one restoring event at or after its own lift
+    for i, f in enumerate(sc.faults):
+        if f.kind in ("link_down", "partition"):
+            enders = [e for e in events if e.op == "unblock" and i in ((e.fault,) if e.fault == i else e.ends)]
+            own_end = f.end_s if f.end_s is not None and f.end_s < sc.duration_s else sc.duration_s
+            assert enders and min(e.at_s for e in enders) >= own_end, (i, f, events)
+            assert len({e.at_s for e in events if e.op == "unblock" and i in e.ends}) <= 1
     assert all(r == "10gbit" for r in model.rates.values())
     # the proxy backend ends in the same state: forwarding, unlimited, no delay
     state = {link: {"mode": "forward", "rate": None, "delay": 0.0} for link in sc.links}

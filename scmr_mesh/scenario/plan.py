@@ -57,7 +57,9 @@ class Event:
     link, ``value`` = kbit/s or ``None`` for unlimited) and ``netem``
     (``target`` = link, ``value`` = ``(delay_ms, loss_percent)``, ``None`` to
     remove).  ``fault`` is the index of the causing fault, ``lift`` whether it
-    is the end of that fault.
+    is the end of that fault.  ``ends`` names other faults this event ends:
+    link faults whose own lift came while another fault still cut the same
+    peers (the later ``unblock`` restores what both cut).
     """
 
     at_s: float
@@ -66,6 +68,7 @@ class Event:
     value: object = None
     fault: int = -1
     lift: bool = False
+    ends: tuple[int, ...] = ()
 
 
 def _pair(a: str, b: str) -> tuple[str, str]:
@@ -90,7 +93,9 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
     """Turn the scenario's faults into ordered events (reference-counted).
 
     Faults without ``for_s`` are lifted at ``duration_s`` so that, once every
-    event has run, the topology is whole again.
+    event has run, the topology is whole again.  A link fault ends when the
+    last of its cuts is restored: when another fault still cuts the same peers
+    at its lift, the ``unblock`` that later restores them names it in ``ends``.
 
     Parameters
     ----------
@@ -111,6 +116,7 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
     shapes: dict[tuple[str, str], list[tuple[int, int]]] = {}
     netem: dict[tuple[str, str], dict[int, tuple[str, float]]] = {}
     events: list[Event] = []
+    held: dict[int, set[tuple[str, str]]] = {}  # lifted faults' cuts still held by another fault
     for at, _, i, lift in marks:
         f = scenario.faults[i]
         if f.kind in ("link_down", "partition"):
@@ -119,7 +125,17 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
                 if lift:
                     blocks[p] = n - 1
                     if n == 1:
-                        events.append(Event(at, "unblock", p, fault=i, lift=True))
+                        ends = []
+                        for k, pairs in held.items():
+                            if p in pairs:
+                                pairs.discard(p)
+                                if not pairs:
+                                    ends.append(k)
+                        for k in ends:
+                            del held[k]
+                        events.append(Event(at, "unblock", p, fault=i, lift=True, ends=tuple(sorted(ends))))
+                    else:
+                        held.setdefault(i, set()).add(p)
                 else:
                     blocks[p] = n + 1
                     if n == 0:
