@@ -170,3 +170,59 @@ def test_scmr_ods_commands_read_a_postgres_store(pg_dsn):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["r7"]["stored"] == 3
+
+
+def test_scmr_ods_reads_a_run_folders_postgres_cluster_stopped_or_running(tmp_path, capsys):
+    """`scmr up --clouds 3` leaves RUN/postgres stopped; `scmr ods --db RUN` starts it for the query."""
+    from scmr_mesh.cli import main
+    from scmr_mesh.data.pgserver import PgServer
+
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    run = Path(tempfile.mkdtemp(prefix="scmr-odsrun-"))  # a folder PostgreSQL's user can enter (pytest's is 0700)
+    run.chmod(0o711)
+    pg = PgServer(run / "postgres")  # where the fleet runner puts it
+    assert pg.root == (run / "postgres").resolve()
+    with OperationalDataStore(pg.start()) as ods:
+        ods.insert([make_record("r1", s) for s in (1, 2, 3)] + [make_record("r2", 1)], received_from="cloud")
+    pg.stop()
+    pidfile = run / "postgres" / "pgdata" / "postmaster.pid"
+    assert not pidfile.exists()
+    try:
+        assert main(["ods", "--db", str(run), "counts", "--json"]) == 0
+        out = capsys.readouterr()
+        assert {r: c["stored"] for r, c in json.loads(out.out).items()} == {"r1": 3, "r2": 1}
+        assert "started the run's PostgreSQL server" in out.err
+        assert not pidfile.exists()  # stopped again
+        # while the run's server runs, its socket is used and the server is left running
+        pg.start()
+        assert main(["ods", "--db", str(run), "counts", "--json"]) == 0
+        out = capsys.readouterr()
+        assert json.loads(out.out)["r1"]["stored"] == 3 and "started" not in out.err
+        assert pg.alive()
+    finally:
+        pg.remove()
+        shutil.rmtree(run, ignore_errors=True)
+
+
+def test_scmr_ods_on_a_folder_without_a_store_says_so(tmp_path, capsys):
+    from scmr_mesh.cli import main
+
+    assert main(["ods", "--db", str(tmp_path), "counts"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds no data store" in err[0] and "postgresql://" in err[0], err
+
+
+@pytest.mark.parametrize("store, says", [
+    ("postgresql://scmr@/scmr?host=/tmp/scmr-pg-x1/socket&port=5432", "was outside the run folder"),
+    ("postgresql://scmr@db.site:5432/scmr", "used the PostgreSQL store postgresql://scmr@db.site:5432/scmr"),
+])
+def test_scmr_ods_on_a_run_whose_postgres_store_is_elsewhere(tmp_path, capsys, store, says):
+    from scmr_mesh.cli import main
+
+    (tmp_path / "report.json").write_text(json.dumps({"ods": {"backend": "postgresql", "store": store}}))
+    assert main(["ods", "--db", str(tmp_path), "counts"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0], err

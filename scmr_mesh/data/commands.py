@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from datetime import datetime, timezone
@@ -24,8 +25,11 @@ telemetry (pose, battery, health, results summary), stored once per (robot, seq)
   scmr ods queue runs/<run>/robots/r1/telemetry-queue   (a robot's on-disk queue)
   scmr ods fetch 'state/**' --connect tcp/127.0.0.1:7447  (the mesh's data buffer)
 
---db (a file or a postgresql:// URL) defaults to $SCMR_ODS, else
-$SCMR_RUN_DIR/ods.sqlite, else runs/ods.sqlite.
+--db (a file, a run folder or a postgresql:// URL) defaults to $SCMR_ODS, else
+$SCMR_RUN_DIR/ods.sqlite, else runs/ods.sqlite.  A run folder of several cloud
+nodes (`scmr up --clouds 3`) holds a PostgreSQL cluster in RUN/postgres that
+was stopped with the run: `scmr ods --db RUN counts` starts it for the query
+and stops it again.
 """
 
 TIME_HELP = ("a time: ISO 8601 (2026-11-21T17:00:00Z; naive means UTC), unix seconds "
@@ -56,10 +60,26 @@ def parse_time_ns(text: str) -> int:
     return int(dt.timestamp() * 1e9)
 
 
+@contextlib.contextmanager
 def _open(args):
-    from scmr_mesh.data.ods import OperationalDataStore, default_db_path
+    """The store ``--db`` names, read-only; a run folder's stopped PostgreSQL server runs meanwhile."""
+    from scmr_mesh.data.ods import OperationalDataStore, default_db_path, is_dsn
 
-    return OperationalDataStore(args.db or default_db_path(), readonly=True)
+    target = args.db or default_db_path()
+    server = None
+    if not is_dsn(target) and Path(target).is_dir():
+        from scmr_mesh.data.pgserver import run_store
+
+        target, server = run_store(target)
+        if server is not None:
+            print(f"started the run's PostgreSQL server ({server.data_dir}) to read it; stopped again after",
+                  file=sys.stderr)
+    try:
+        with OperationalDataStore(target, readonly=True) as ods:
+            yield ods
+    finally:
+        if server is not None:
+            server.stop()
 
 
 def _iso(ns: int) -> str:
@@ -162,7 +182,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr ods`` to the command line."""
     p = sub.add_parser("ods", help="query the operational data store (telemetry) and robot queues",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--db", type=ca.PathArg("in-file", url=True, what="an ODS file written by a cloud peer, or a postgresql:// URL", example="runs/demo/ods.sqlite"), metavar="FILE|URL", help="the ODS file or postgresql:// URL (see above for the default)")
+    p.add_argument("--db", type=ca.PathArg("in-path", url=True, what="an ODS file written by a cloud peer, a run folder, or a postgresql:// URL", example="runs/demo"), metavar="FILE|DIR|URL", help="the ODS file, a run folder (its ods.sqlite, or its PostgreSQL cluster: started for the query when stopped) or a postgresql:// URL (see above for the default)")
     p.set_defaults(func=lambda args: (p.print_help(sys.stderr), 2)[1])
     ods_sub = p.add_subparsers(dest="ods_command", metavar="QUERY")
 

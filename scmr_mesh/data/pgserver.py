@@ -357,3 +357,67 @@ def _die_with(parent_pid: int):
 
 
 __all__ = ["DB_NAME", "DB_USER", "PgServer", "PgServerError", "available", "find_bin"]
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: it exists
+        return True
+    return True
+
+
+def run_store(run_dir: str | Path) -> tuple[str | Path, PgServer | None]:
+    """The data store of a run folder (``scmr up``/``demo``/``scenario``), for ``scmr ods --db RUN``.
+
+    ``RUN/ods.sqlite`` when the run kept one; else the run's PostgreSQL cluster
+    in ``RUN/postgres``: its URL when its server still runs, else a server
+    started on it now, returned so the caller stops it when done.
+
+    Raises
+    ------
+    InputError
+        The folder holds neither store, or the cluster cannot be served here.
+    """
+    run_dir = Path(run_dir)
+    sqlite = run_dir / "ods.sqlite"
+    if sqlite.is_file():
+        return sqlite, None
+    pg_root = run_dir / "postgres"
+    data_dir = pg_root / "pgdata"
+    if not (data_dir / "PG_VERSION").is_file():
+        try:
+            import json
+
+            ods = json.loads((run_dir / "report.json").read_text()).get("ods") or {}
+        except (OSError, ValueError, AttributeError):
+            ods = {}
+        store = str(ods.get("store") or "") if isinstance(ods, dict) else ""
+        if isinstance(ods, dict) and ods.get("backend") == "postgresql" and "scmr-pg" not in store:
+            raise InputError(f"{run_dir} used the PostgreSQL store {store or '(not named)'}; pass its URL with --db")
+        if isinstance(ods, dict) and ods.get("backend") == "postgresql":
+            raise InputError(f"the PostgreSQL store of {run_dir} is gone: its cluster was outside the run folder "
+                             "(PostgreSQL's user could not enter it) and was removed with the run; run the fleet "
+                             "under a folder that user can enter to keep it")
+        raise InputError(f"{run_dir} holds no data store (no ods.sqlite, no postgres/pgdata); pass the folder "
+                         "of a run (scmr up/demo/scenario), an ODS file or a postgresql:// URL")
+    pidfile = data_dir / "postmaster.pid"
+    try:
+        lines = pidfile.read_text().splitlines()
+    except OSError:
+        lines = []
+    if len(lines) >= 5 and lines[0].strip().isdigit() and _pid_alive(int(lines[0])):
+        port, sock = lines[3].strip(), lines[4].strip()
+        if sock:
+            return f"postgresql://{DB_USER}@/{DB_NAME}?host={sock}&port={port}", None
+        raise InputError(f"the PostgreSQL server of {run_dir} (pid {lines[0].strip()}) serves TCP only; "
+                         f"give its postgresql:// URL with --db")
+    server = PgServer(pg_root)
+    if server.root != pg_root.resolve():
+        server.remove()
+        raise InputError(f"PostgreSQL's user {server.user!r} cannot enter {pg_root}; give it access "
+                         f"(chmod o+x on each parent folder) or copy the run somewhere it can")
+    server.start()
+    return server.dsn, server
