@@ -179,7 +179,7 @@ def test_robot_started_before_the_cloud(fleet):
 
 
 def test_robot_waits_for_the_start_file(fleet):
-    """--start-file (what `scmr fleet` uses): no frame before the file appears; a stop while waiting is clean."""
+    """--start-file (what `scmr up`, `scmr demo` and scenarios use): no frame before the file appears; a stop while waiting is clean."""
     cp = free_port()
     fleet.service("cloud", "c1", cp)
     go = fleet.tmp / "go"

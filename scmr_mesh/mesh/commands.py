@@ -246,7 +246,8 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     g.add_argument("--start-file", type=ca.PathArg("out-file", example="runs/x/ready/fleet.ready"), metavar="PATH", default=None,
                    help="once connected and warmed up, wait until PATH exists (a launcher writes it when "
                         "the whole fleet is up), then start at a phase of its own within one frame period "
-                        "(from --seed), as independent robots would; 'scmr fleet' passes RUN/ready/fleet.ready")
+                        "(from --id and --seed), as independent robots would; 'scmr up' and 'scmr demo' pass "
+                        "RUN/ready/fleet.ready, 'scmr scenario run' OUT/ready/run.start")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from scmr_mesh.viz import (
         add_rerun_peer_args,  # light: rerun itself is imported only with a flag
