@@ -59,6 +59,15 @@ def test_a_link_fault_held_by_another_ends_when_its_cut_is_restored():
     assert all(u[3] == () for u in unblocks if u[1] != ("cloud", "robot2"))
 
 
+def test_a_partition_that_restores_some_cuts_at_its_lift_ends_there():
+    """robot2 stays cut by its own link_down after the partition lifts: the partition still ends at 8 s."""
+    sc = _scenario({"kind": "link_down", "at_s": 1, "for_s": 10, "link": ["robot2", "cloud"]},
+                   {"kind": "partition", "at_s": 4, "for_s": 4, "groups": [["cloud"], ["leader", "robot1", "robot2"]]})
+    evs = [e for e in compile_timeline(sc) if e.op == "unblock"]
+    assert {e.at_s for e in evs if e.fault == 1} == {8.0} and all(e.ends == () for e in evs)
+    assert [(e.at_s, e.target) for e in evs if e.fault == 0] == [(11.0, ("cloud", "robot2"))]
+
+
 def test_snapshot_crash_is_process_only():
     sc = _scenario({"kind": "crash", "at_s": 4, "for_s": 5, "peer": "cloud"})
     evs = compile_timeline(sc)
@@ -202,6 +211,9 @@ def test_any_valid_timeline_undoes_itself(fs):
             enders = [e for e in events if e.op == "unblock" and i in ((e.fault,) if e.fault == i else e.ends)]
             own_end = f.end_s if f.end_s is not None and f.end_s < sc.duration_s else sc.duration_s
             assert enders and min(e.at_s for e in enders) >= own_end, (i, f, events)
+            # a fault that restored some cut at its own lift is named by no later event
+            if any(e.fault == i and e.op == "unblock" for e in events):
+                assert not [e for e in events if i in e.ends], (i, events)
             assert len({e.at_s for e in events if e.op == "unblock" and i in e.ends}) <= 1
     assert all(r == "10gbit" for r in model.rates.values())
     # the proxy backend ends in the same state: forwarding, unlimited, no delay
@@ -215,3 +227,30 @@ def test_any_valid_timeline_undoes_itself(fs):
             else:
                 state[link]["delay"] = value
     assert all(s == {"mode": "forward", "rate": None, "delay": 0.0} for s in state.values())
+
+
+class _NoopBackend:
+    def apply_many(self, batch):
+        return []
+
+
+def _ends_after_running(sc) -> dict[int, bool]:
+    """Run the runner's event application with a backend that does nothing: which faults got an end."""
+    import time
+
+    from scmr_mesh.scenario.runner import AppliedFault, _apply_batch, _batches
+
+    applied = [AppliedFault(i, f) for i, f in enumerate(sc.faults)]
+    for batch in _batches(compile_timeline(sc)):
+        _apply_batch(batch, _NoopBackend(), None, {}, applied, None, sc, time.monotonic(), lambda m: None)
+    return {a.index: a.end_unix_ns is not None for a in applied}
+
+
+def test_the_runner_ends_held_faults_with_their_holder_but_not_at_the_teardown():
+    held = _scenario({"kind": "link_down", "at_s": 1, "for_s": 5, "link": ["robot2", "cloud"]},
+                     {"kind": "partition", "at_s": 4, "for_s": 8, "groups": [["cloud"], ["leader", "robot1", "robot2"]]})
+    assert _ends_after_running(held) == {0: True, 1: True}
+    # the holder lasts to the end of the run: neither gets an end (a teardown is not a heal)
+    to_the_end = _scenario({"kind": "link_down", "at_s": 1, "for_s": 5, "link": ["robot2", "cloud"]},
+                           {"kind": "partition", "at_s": 4, "groups": [["cloud"], ["leader", "robot1", "robot2"]]})
+    assert _ends_after_running(to_the_end) == {0: False, 1: False}

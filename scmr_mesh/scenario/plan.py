@@ -58,8 +58,8 @@ class Event:
     (``target`` = link, ``value`` = ``(delay_ms, loss_percent)``, ``None`` to
     remove).  ``fault`` is the index of the causing fault, ``lift`` whether it
     is the end of that fault.  ``ends`` names other faults this event ends:
-    link faults whose own lift came while another fault still cut the same
-    peers (the later ``unblock`` restores what both cut).
+    link faults none of whose cuts was restored at their own lift because
+    another fault still cut the same peers.
     """
 
     at_s: float
@@ -93,9 +93,10 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
     """Turn the scenario's faults into ordered events (reference-counted).
 
     Faults without ``for_s`` are lifted at ``duration_s`` so that, once every
-    event has run, the topology is whole again.  A link fault ends when the
-    last of its cuts is restored: when another fault still cuts the same peers
-    at its lift, the ``unblock`` that later restores them names it in ``ends``.
+    event has run, the topology is whole again.  A link fault none of whose cuts
+    is restored at its own lift (another fault still cuts the same peers) ends
+    when they are: the ``unblock`` that restores the last of them names it in
+    ``ends``.  A fault that restores some of its cuts at its lift ends there.
 
     Parameters
     ----------
@@ -120,11 +121,14 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
     for at, _, i, lift in marks:
         f = scenario.faults[i]
         if f.kind in ("link_down", "partition"):
+            still_cut: set[tuple[str, str]] = set()
+            restored_any = False
             for p in affected_pairs(f):
                 n = blocks.get(p, 0)
                 if lift:
                     blocks[p] = n - 1
                     if n == 1:
+                        restored_any = True
                         ends = []
                         for k, pairs in held.items():
                             if p in pairs:
@@ -135,11 +139,13 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
                             del held[k]
                         events.append(Event(at, "unblock", p, fault=i, lift=True, ends=tuple(sorted(ends))))
                     else:
-                        held.setdefault(i, set()).add(p)
+                        still_cut.add(p)
                 else:
                     blocks[p] = n + 1
                     if n == 0:
                         events.append(Event(at, "block", p, fault=i))
+            if lift and still_cut and not restored_any:  # wholly held by another fault: it ends with that cut
+                held[i] = still_cut
         elif f.kind == "crash":
             events.append(Event(at, "start" if lift else "kill", (f.peer,), fault=i, lift=lift))
         elif f.kind == "bandwidth":

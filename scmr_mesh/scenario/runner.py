@@ -465,12 +465,11 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
     for ev in batch:
         af = applied[ev.fault]
         if ev.lift:
-            # this fault's end, and that of faults whose cuts it held past their own lift (plan.Event.ends)
-            for k in (ev.fault, *ev.ends):
-                ak = applied[k]
-                if ev.at_s < scenario.duration_s or (ak.fault.end_s is not None
-                                                     and ak.fault.end_s <= scenario.duration_s):
-                    ak.end_unix_ns = t_after
+            # the fault's end, unless it is the teardown of one lasting to the end of the run; faults
+            # it held past their own lift (plan.Event.ends) end with it, or not at all
+            if ev.at_s < scenario.duration_s or (af.fault.end_s is not None and af.fault.end_s <= scenario.duration_s):
+                for k in (ev.fault, *ev.ends):
+                    applied[k].end_unix_ns = t_after
         elif af.start_unix_ns is None:
             af.start_unix_ns = t_before
 
