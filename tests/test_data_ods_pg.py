@@ -9,6 +9,8 @@ server that goes away and comes back.  ~10 s.
 from __future__ import annotations
 
 import json
+import os
+import pwd
 import random
 import subprocess
 import sys
@@ -202,6 +204,22 @@ def test_scmr_ods_reads_a_run_folders_postgres_cluster_stopped_or_running(tmp_pa
         out = capsys.readouterr()
         assert json.loads(out.out)["r1"]["stored"] == 3 and "started" not in out.err
         assert pg.alive()
+        pg.stop()
+        # several queries at once on the stopped cluster: serialised, none stops a server another reads
+        cmd = [sys.executable, "-m", "scmr_mesh", "ods", "--db", str(run), "counts", "--json"]
+        procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(4)]
+        outs = [p.communicate(timeout=120) for p in procs]
+        assert [p.returncode for p in procs] == [0] * 4, [o[1] for o in outs]
+        assert all(json.loads(o[0])["r1"]["stored"] == 3 for o in outs)
+        assert not pidfile.exists()
+        # a stopped cluster that belongs to another user is not started (root would hand it to postgres)
+        if os.geteuid() == 0:
+            nobody = pwd.getpwnam("nobody")
+            os.chown(run / "postgres" / "pgdata", nobody.pw_uid, nobody.pw_gid)
+            assert main(["ods", "--db", str(run), "counts"]) == 1
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and "belongs to user 'nobody'" in err[0] and "as root or as nobody" in err[0], err
+            os.chown(run / "postgres" / "pgdata", pwd.getpwnam(pg.user).pw_uid, -1)
     finally:
         pg.remove()
         shutil.rmtree(run, ignore_errors=True)
@@ -217,7 +235,7 @@ def test_scmr_ods_on_a_folder_without_a_store_says_so(tmp_path, capsys):
 
 @pytest.mark.parametrize("store, says", [
     ("postgresql://scmr@/scmr?host=/tmp/scmr-pg-x1/socket&port=5432", "was outside the run folder"),
-    ("postgresql://scmr@db.site:5432/scmr", "used the PostgreSQL store postgresql://scmr@db.site:5432/scmr"),
+    ("postgresql://scmr@db.site:5432/scmr", "used the postgresql store postgresql://scmr@db.site:5432/scmr; pass it"),
 ])
 def test_scmr_ods_on_a_run_whose_postgres_store_is_elsewhere(tmp_path, capsys, store, says):
     from scmr_mesh.cli import main
@@ -226,3 +244,13 @@ def test_scmr_ods_on_a_run_whose_postgres_store_is_elsewhere(tmp_path, capsys, s
     assert main(["ods", "--db", str(tmp_path), "counts"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and says in err[0], err
+
+
+def test_scmr_ods_on_a_run_folder_follows_its_report(tmp_path, capsys):
+    """A run that used a SQLite file elsewhere (`scmr up --ods FILE`) says where."""
+    from scmr_mesh.cli import main
+
+    (tmp_path / "report.json").write_text(json.dumps({"ods": {"backend": "sqlite", "store": "/data/x.sqlite"}}))
+    assert main(["ods", "--db", str(tmp_path), "counts"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "used the sqlite store /data/x.sqlite; pass it with --db" in err[0], err

@@ -66,20 +66,18 @@ def _open(args):
     from scmr_mesh.data.ods import OperationalDataStore, default_db_path, is_dsn
 
     target = args.db or default_db_path()
-    server = None
-    if not is_dsn(target) and Path(target).is_dir():
-        from scmr_mesh.data.pgserver import run_store
-
-        target, server = run_store(target)
-        if server is not None:
-            print(f"started the run's PostgreSQL server ({server.data_dir}) to read it; stopped again after",
-                  file=sys.stderr)
-    try:
+    if is_dsn(target) or not Path(target).is_dir():
         with OperationalDataStore(target, readonly=True) as ods:
             yield ods
-    finally:
+        return
+    from scmr_mesh.data.pgserver import run_store
+
+    with run_store(target) as (store, server):
         if server is not None:
-            server.stop()
+            print(f"started the run's PostgreSQL server ({server.data_dir}) to read it; it is stopped after",
+                  file=sys.stderr)
+        with OperationalDataStore(store, readonly=True) as ods:
+            yield ods
 
 
 def _iso(ns: int) -> str:

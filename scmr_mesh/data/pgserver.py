@@ -23,6 +23,8 @@ Example
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import glob
 import logging
 import os
@@ -316,6 +318,8 @@ class PgServer:
             os.killpg(p.pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
+        if self._own_sock:  # a /tmp/scmr-pgs-* folder of ours (the root's path was too long): empty now
+            shutil.rmtree(self.socket_dir, ignore_errors=True)
         return p.returncode
 
     def remove(self) -> None:
@@ -359,65 +363,111 @@ def _die_with(parent_pid: int):
 __all__ = ["DB_NAME", "DB_USER", "PgServer", "PgServerError", "available", "find_bin"]
 
 
-def _pid_alive(pid: int) -> bool:
+
+def _exists(path: Path) -> bool:
+    """Whether ``path`` exists, also when we may not look inside its folder (then: the folder exists)."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process: it exists
-        return True
-    return True
+        return path.exists()
+    except PermissionError:
+        return path.parent.is_dir()
 
 
-def run_store(run_dir: str | Path) -> tuple[str | Path, PgServer | None]:
+def _report_ods(run_dir: Path) -> dict:
+    """The ``ods`` block of ``RUN/report.json`` (``{"backend", "store"}``), or ``{}``."""
+    import json
+
+    try:
+        ods = json.loads((run_dir / "report.json").read_text()).get("ods")
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return ods if isinstance(ods, dict) else {}
+
+
+def _live_url(socket_dir: Path) -> str | None:
+    """The URL of a server answering on a socket in ``socket_dir`` (``pg_isready``), or None."""
+    isready = find_bin("pg_isready")
+    try:
+        socks = sorted(socket_dir.glob(".s.PGSQL.*"))
+    except OSError:
+        return None
+    for sock in socks:
+        port = sock.name.rsplit(".", 1)[-1]
+        if not port.isdigit() or isready is None:
+            continue
+        r = subprocess.run([isready, "-q", "-h", str(socket_dir), "-p", port], capture_output=True, timeout=10)
+        if r.returncode == 0:
+            return f"postgresql://{DB_USER}@/{DB_NAME}?host={socket_dir}&port={port}"
+    return None
+
+
+@contextlib.contextmanager
+def run_store(run_dir: str | Path):
     """The data store of a run folder (``scmr up``/``demo``/``scenario``), for ``scmr ods --db RUN``.
 
-    ``RUN/ods.sqlite`` when the run kept one; else the run's PostgreSQL cluster
-    in ``RUN/postgres``: its URL when its server still runs, else a server
-    started on it now, returned so the caller stops it when done.
+    Yields ``RUN/ods.sqlite`` when the run kept one (and its report does not
+    name PostgreSQL); else the URL of the run's PostgreSQL cluster in
+    ``RUN/postgres``: its running server's, or that of a server started on it
+    for the duration of the ``with`` block and stopped after.  Queries of one
+    run folder are serialised by a lock file (``RUN/postgres/.scmr-ods.lock``),
+    so one never stops a server another is reading.
 
     Raises
     ------
     InputError
-        The folder holds neither store, or the cluster cannot be served here.
+        The folder holds no store, its store was elsewhere, or its cluster
+        cannot be started by this user (one line naming the owner and the fix).
     """
     run_dir = Path(run_dir)
+    ods = _report_ods(run_dir)
+    store = str(ods.get("store") or "")
     sqlite = run_dir / "ods.sqlite"
-    if sqlite.is_file():
-        return sqlite, None
     pg_root = run_dir / "postgres"
     data_dir = pg_root / "pgdata"
-    if not (data_dir / "PG_VERSION").is_file():
-        try:
-            import json
-
-            ods = json.loads((run_dir / "report.json").read_text()).get("ods") or {}
-        except (OSError, ValueError, AttributeError):
-            ods = {}
-        store = str(ods.get("store") or "") if isinstance(ods, dict) else ""
-        if isinstance(ods, dict) and ods.get("backend") == "postgresql" and "scmr-pg" not in store:
-            raise InputError(f"{run_dir} used the PostgreSQL store {store or '(not named)'}; pass its URL with --db")
-        if isinstance(ods, dict) and ods.get("backend") == "postgresql":
+    has_pg = _exists(data_dir / "PG_VERSION")
+    if sqlite.is_file() and not (has_pg and ods.get("backend") == "postgresql"):
+        yield sqlite, None
+        return
+    if not has_pg:
+        if ods.get("backend") == "postgresql" and "scmr-pg" in store:
             raise InputError(f"the PostgreSQL store of {run_dir} is gone: its cluster was outside the run folder "
                              "(PostgreSQL's user could not enter it) and was removed with the run; run the fleet "
                              "under a folder that user can enter to keep it")
+        if store and ods.get("backend") in ("postgresql", "sqlite"):
+            raise InputError(f"{run_dir} used the {ods['backend']} store {store}; pass it with --db")
         raise InputError(f"{run_dir} holds no data store (no ods.sqlite, no postgres/pgdata); pass the folder "
                          "of a run (scmr up/demo/scenario), an ODS file or a postgresql:// URL")
-    pidfile = data_dir / "postmaster.pid"
     try:
-        lines = pidfile.read_text().splitlines()
+        lock = open(pg_root / ".scmr-ods.lock", "a")
     except OSError:
-        lines = []
-    if len(lines) >= 5 and lines[0].strip().isdigit() and _pid_alive(int(lines[0])):
-        port, sock = lines[3].strip(), lines[4].strip()
-        if sock:
-            return f"postgresql://{DB_USER}@/{DB_NAME}?host={sock}&port={port}", None
-        raise InputError(f"the PostgreSQL server of {run_dir} (pid {lines[0].strip()}) serves TCP only; "
-                         f"give its postgresql:// URL with --db")
-    server = PgServer(pg_root)
-    if server.root != pg_root.resolve():
-        server.remove()
-        raise InputError(f"PostgreSQL's user {server.user!r} cannot enter {pg_root}; give it access "
-                         f"(chmod o+x on each parent folder) or copy the run somewhere it can")
-    server.start()
-    return server.dsn, server
+        lock = None  # not ours to write: we can only read a server that is running
+    try:
+        if lock is not None:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+        url = _live_url(pg_root / "socket")
+        if url is not None:
+            yield url, None
+            return
+        owner = data_dir.stat().st_uid
+        user = _server_user()
+        uid = pwd.getpwnam(user).pw_uid if user else os.geteuid()
+        if owner != uid or lock is None:
+            try:
+                name = pwd.getpwuid(owner).pw_name
+            except KeyError:
+                name = str(owner)
+            raise InputError(f"the PostgreSQL cluster of {run_dir} is stopped and belongs to user {name!r}; "
+                             f"run `scmr ods` as root or as {name} to start it, or pass the URL of a running "
+                             "server with --db")
+        server = PgServer(pg_root)
+        if server.root != pg_root.resolve():
+            server.remove()
+            raise InputError(f"PostgreSQL's user {server.user!r} cannot enter {pg_root}; give it access "
+                             f"(chmod o+x on each parent folder) or copy the run somewhere it can")
+        try:
+            server.start()
+            yield server.dsn, server
+        finally:
+            server.stop()
+    finally:
+        if lock is not None:
+            lock.close()  # releases the lock
