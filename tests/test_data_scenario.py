@@ -48,6 +48,7 @@ def test_scenario_report_counts_telemetry(tmp_path):
 
     # robots start on OUT/ready/run.start, written at t0 (every robot ready)
     assert res.records and min(r["sent_unix_ns"] for r in res.records) >= res.t0_unix_ns
+    assert max(r["sent_unix_ns"] for r in res.records) <= res.t0_unix_ns + sc.duration_s * 1e9
 
     # the report: passed in, or picked up from the run's telemetry.json by write_report
     rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend="proxy",

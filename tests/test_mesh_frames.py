@@ -101,3 +101,17 @@ def test_an_unreadable_image_is_named_at_once(folder, monkeypatch):
     monkeypatch.setattr(Path, "read_bytes", read_bytes)
     with pytest.raises(InputError, match=r"cannot read b\.jpg \(Permission denied\); make it readable"):
         image_frames(folder)
+
+
+def test_a_robot_sends_no_frame_at_or_after_its_duration(tmp_path, monkeypatch):
+    """5 Hz for 1 s is 5 frames (at 0, 0.2, ..., 0.8 s), not 6: the one due at 1.0 s is not sent."""
+    import itertools
+    import time
+
+    r = robot.Robot("r1", tmp_path)
+    sent = []
+    monkeypatch.setattr(r, "request", lambda seq, frame: (sent.append(time.monotonic()), {"seq": seq})[1])
+    t0 = time.monotonic()
+    r.run(itertools.repeat(None), rate_hz=5.0, duration_s=1.0)
+    # (fewer than 5 only if this machine stalled for a whole period; never a 6th)
+    assert 1 <= len(sent) <= 5 and all(s - t0 < 1.0 for s in sent)

@@ -244,10 +244,11 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                    help="before the first frame, wait up to MS for a cloud or leader to appear (default 2000)")
     g.add_argument("--seed", type=ca.count("seed", lo=0, hi=2**32 - 1, example="7"), default=None, help="seed of synthetic frames (default: from the id)")
     g.add_argument("--start-file", type=ca.PathArg("out-file", example="runs/x/ready/fleet.ready"), metavar="PATH", default=None,
-                   help="once connected and warmed up, wait until PATH exists (a launcher writes it when "
-                        "the whole fleet is up), then start at a phase of its own within one frame period "
-                        "(from --id and --seed), as independent robots would; 'scmr up' and 'scmr demo' pass "
-                        "RUN/ready/fleet.ready, 'scmr scenario run' OUT/ready/run.start")
+                   help="once connected and warmed up, wait until PATH exists (a launcher writes it, holding "
+                        "the run's time 0 in unix ns, when the whole fleet is up), then start at a phase of its "
+                        "own within one frame period (from --id and --seed), as independent robots would, and "
+                        "send until time 0 + --duration; 'scmr up' and 'scmr demo' pass RUN/ready/fleet.ready, "
+                        "'scmr scenario run' OUT/ready/run.start.  With no such file it waits (and says so)")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from scmr_mesh.viz import (
         add_rerun_peer_args,  # light: rerun itself is imported only with a flag
@@ -424,6 +425,8 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
     from scmr_mesh.mesh.robot import Robot, RobotOptions
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
 
+    entered_ns = time.time_ns()
+    duration = args.duration
     frames = getattr(args, "_frames", None) or _check_robot_args(args)
     opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
                         priority=args.priority, mode=args.mode or "best",
@@ -452,8 +455,12 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
             log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
         robot.prepare()
-        if getattr(args, "start_file", None) and not _wait_for_start(args, stop):
-            frames = iter(())  # stopped while waiting: no frames, a normal exit
+        if getattr(args, "start_file", None):
+            start_ns = _wait_for_start(args, stop)
+            if start_ns is None:
+                frames = iter(())  # stopped while waiting: no frames, a normal exit
+            else:
+                duration = send_window(args.duration, start_ns, entered_ns, time.time_ns())
         info = session.info
         log.info("robot %s zenoh links: peers=%s routers=%s", args.id,
                  sorted(str(z) for z in info.peers_zid()), sorted(str(z) for z in info.routers_zid()))
@@ -469,7 +476,7 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
                 print(f"robot {args.id}: {s['requests']} requests, {s['succeeded']} ok, by tier {s['by_tier']}, "
                       f"last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}", file=sys.stderr, flush=True)
 
-        stats = robot.run(frames, rate_hz=args.rate, count=args.count, duration_s=args.duration, stop=stop,
+        stats = robot.run(frames, rate_hz=args.rate, count=args.count, duration_s=duration, stop=stop,
                           progress=progress)
     finally:
         if agent is not None:  # drain, write OUT/telemetry.json, keep the rest queued on disk
@@ -488,8 +495,12 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
     return 0
 
 
-def _wait_for_start(args, stop: threading.Event) -> bool:
-    """Wait for ``--start-file``, then for this robot's phase; False when stopped first."""
+def _wait_for_start(args, stop: threading.Event) -> int | None:
+    """Wait for ``--start-file``, then for this robot's phase.
+
+    Returns the run's time 0 written in the file (unix ns; 0 when it holds
+    none), or None when stopped first.
+    """
     import random
 
     path = Path(args.start_file)
@@ -499,9 +510,32 @@ def _wait_for_start(args, stop: threading.Event) -> bool:
             print(f"robot {args.id}: ready; waiting for {path} to start", file=sys.stderr, flush=True)
         while not path.exists():
             if stop.wait(0.01):
-                return False
+                return None
+    try:
+        t0_ns = int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        t0_ns = 0
     phase = random.Random(f"phase:{args.id}:{args.seed}").uniform(0.0, 1.0 / args.rate)
-    return not stop.wait(phase)
+    return None if stop.wait(phase) else t0_ns
+
+
+def send_window(duration_s: float | None, start_ns: int, entered_ns: int, now_ns: int) -> float | None:
+    """How long a robot gated by ``--start-file`` still sends: up to time 0 + ``duration_s``.
+
+    Only for a robot that was up before time 0 (``entered_ns < start_ns``); one
+    started later (a robot restarted during a scenario, told the time left)
+    keeps its ``duration_s``.  ``start_ns`` 0 (no time in the file) keeps it too.
+
+    >>> send_window(10.0, start_ns=5_000_000_000, entered_ns=1, now_ns=5_300_000_000)
+    9.7
+    >>> send_window(10.0, start_ns=5_000_000_000, entered_ns=6_000_000_000, now_ns=6_100_000_000)
+    10.0
+    >>> send_window(None, start_ns=5, entered_ns=1, now_ns=6) is None
+    True
+    """
+    if duration_s is None or start_ns <= 0 or entered_ns >= start_ns:
+        return duration_s
+    return max(0.0, duration_s - (now_ns - start_ns) / 1e9)
 
 
 def _raise_problem(args) -> None:

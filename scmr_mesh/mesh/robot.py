@@ -990,7 +990,8 @@ class Robot:
         for seq in itertools.count():
             if stop.is_set() or (count is not None and seq >= count):
                 break
-            if duration_s is not None and time.monotonic() - t0 >= duration_s:
+            # the time this frame would go out: none at or after t0 + duration (was one period over)
+            if duration_s is not None and max(next_t, time.monotonic()) - t0 >= duration_s:
                 break
             now = time.monotonic()
             if next_t > now and stop.wait(next_t - now):
