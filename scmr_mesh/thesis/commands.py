@@ -40,12 +40,23 @@ Examples:
 
 
 def _sizes(text: str) -> tuple[int, ...]:
-    vals = tuple(int(x) for x in str(text).split(",") if x.strip())
+    vals = []
+    for x in str(text).split(","):
+        if not x.strip():
+            continue
+        try:
+            v = int(x)
+        except ValueError:
+            raise ValueError(f"{x.strip()!r} is not a whole number") from None
+        if not 1 <= v <= 32:
+            raise ValueError(f"fleet size {v} is outside 1..32")
+        if v in vals:
+            raise ValueError(f"fleet size {v} is given twice")
+        vals.append(v)
     if len(vals) < 2:
-        raise ValueError("one fleet size: the growth order of Table 4.4 needs at least two")
-    if any(v < 1 or v > 32 for v in vals):
-        raise ValueError("a fleet size outside 1..32")
-    return vals
+        raise ValueError(("no fleet size" if not vals else "one fleet size")
+                         + ": the growth order of Table 4.4 needs at least two")
+    return tuple(vals)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
