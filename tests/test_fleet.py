@@ -137,6 +137,17 @@ def test_summary_validates_against_schema_and_prints():
     assert "telemetry: NOT COUNTED" in text  # the line is always there
 
 
+@pytest.mark.parametrize("by_robot, says", [
+    ({}, "no request failed on it (no failover gap)"),  # a successor took over between two frames
+    ({"r1": 4.0, "r2": None}, "NO FALLBACK ANSWER for r2 (failover gap missing)"),
+])
+def test_summary_says_why_a_fault_has_no_failover_gap(by_robot, says):
+    rep = _report()
+    rep["faults"][0].update(failover_by_robot=by_robot, failover_gap_ms=None)
+    text = format_summary(rep)
+    assert says in text and "failover gap - ms" not in text
+
+
 def _telemetry(lost: int = 0, **extra) -> dict:
     per = {"r1": {"sent": 10, "stored": 10 - lost, "duplicates": 1, "conflicts": 0, "lost": lost,
                   "missing": ["8-10"] if lost else [], "unexpected": 0, "queued": 0}}

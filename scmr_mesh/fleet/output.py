@@ -15,6 +15,19 @@ from scmr_mesh.fleet.plan import FleetConfig
 from scmr_mesh.fleet.run import Progress, run_fleet
 
 
+def _failover_text(fault: dict) -> str:
+    """``failover gap 8.6 ms (largest robot)``, or why there is none."""
+    by_robot = fault.get("failover_by_robot")
+    if fault.get("failover_gap_ms") is not None:
+        return f"failover gap {_ms(fault['failover_gap_ms'])} ms (largest robot)"
+    if by_robot == {}:
+        return "no request failed on it (no failover gap)"
+    if by_robot:
+        stuck = sorted(r for r, g in by_robot.items() if g is None)
+        return f"NO FALLBACK ANSWER for {', '.join(stuck)} (failover gap missing)"
+    return "failover gap - ms"
+
+
 def format_progress(p: Progress) -> str:
     """One line: time, phase, alive tiers, requests, RoR, ToR (last 200), answers per tier."""
     ror = f"{p.succeeded / p.requests:.3f}" if p.requests else "-"
@@ -68,8 +81,7 @@ def format_summary(report: Mapping[str, Any]) -> str:
             at = f"{(f['end_unix_ns'] - report.get('started_unix_ns', 0)) / 1e9:.2f} s"
             end = f"restored {at}" if f.get("ready_unix_ns") is not None else \
                 f"restarted {at} but NEVER BECAME READY"
-        lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, {end}; "
-                     f"failover gap {_ms(f.get('failover_gap_ms'))} ms (largest robot)"
+        lines.append(f"  fault: {f['kind']} {f['target']} at {start:.2f} s, {end}; " + _failover_text(f)
                      + ("" if f.get("end_unix_ns") is None else f", failback gap {_ms(f.get('failback_gap_ms'))} ms")
                      + (f" = restart to ready {f['restart_to_ready_ms']:.0f} ms"
                         f" + ready to first answer {_ms(f.get('failback_after_ready_ms'))} ms"

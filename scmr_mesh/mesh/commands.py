@@ -90,7 +90,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
     _robot_args(p, leader=False)
     _r2r_args(p, robot=True)
-    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the robot is connected")
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the robot is connected, sees a cloud or leader (or --wait-ms ran out) and is warmed up")
     p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
     _data_args(p, "robot")
@@ -448,13 +448,14 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
         agent = _data_agent(robot, args)
         if opts.local_fallback:
             robot.warm_local()
+        if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
+            log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
+        robot.prepare()
+        # ready once it could send at once: a launcher's time 0 (--start-file) finds it warmed up
         if getattr(args, "ready_file", None) and not hasattr(args, "node"):
             write_ready(args.ready_file, {"role": "robot", "node": args.id, "zid": str(session.info.zid()),
                                           "keys": [], "candidate": r2r is not None,
                                           "leading": r2r is not None and r2r.role == "leader"})
-        if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
-            log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
-        robot.prepare()
         if getattr(args, "start_file", None):
             start_ns = _wait_for_start(args, stop)
             if start_ns is None:
