@@ -363,8 +363,8 @@ def _cmd_leader(args) -> int:
         args.mode = args.mode or "best"
         _check_robot_args(args)
 
-        def body(session, stop, r2r):
-            return _robot_body(args, session, stop, r2r)
+        def body(session, stop, r2r, ready):
+            return _robot_body(args, session, stop, r2r, ready=ready)
 
     rc = _run_candidate(args, args.node, capability_default="leader", workers=args.workers, body=body)
     _raise_problem(args)
@@ -383,8 +383,8 @@ def _cmd_robot(args) -> int:
         if args.workers is not None and args.workers < 1:
             raise InputError(f"--workers must be >= 1, got {args.workers}")
 
-        def body(session, stop, r2r):
-            return _robot_body(args, session, stop, r2r)
+        def body(session, stop, r2r, ready):
+            return _robot_body(args, session, stop, r2r, ready=ready)
 
         rc = _run_candidate(args, args.id, capability_default=None, workers=args.workers, body=body)
         _raise_problem(args)
@@ -420,7 +420,7 @@ def _check_robot_args(args):
     return args._frames
 
 
-def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
+def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> int:
     from scmr_mesh.mesh.peers import write_ready
     from scmr_mesh.mesh.robot import Robot, RobotOptions
     from scmr_mesh.mesh.work import DEFAULT_PROCESS
@@ -452,7 +452,9 @@ def _robot_body(args, session, stop: threading.Event, r2r=None) -> int:
             log.warning("robot %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
         robot.prepare()
         # ready once it could send at once: a launcher's time 0 (--start-file) finds it warmed up
-        if getattr(args, "ready_file", None) and not hasattr(args, "node"):
+        if ready is not None:  # a candidate: its ready file says what it serves, written now
+            ready()
+        elif getattr(args, "ready_file", None):
             write_ready(args.ready_file, {"role": "robot", "node": args.id, "zid": str(session.info.zid()),
                                           "keys": [], "candidate": r2r is not None,
                                           "leading": r2r is not None and r2r.role == "leader"})

@@ -263,16 +263,20 @@ def run_candidate(
         r2r.wait_settled()
         clock.mark("election settled")
         startup = clock.as_dict()
-        write_ready(ready_file, {"role": "candidate", "node": node, "zid": str(session.info.zid()),
-                                 "leading": r2r.role == "leader", "serves": r2r.role,
-                                 "keys": [svc.key], "workers": svc.worker_pids,
-                                 "capability": capability.source, "startup": startup})
-        log.info("candidate %s ready (zid %s), %s, %.0f ms after exec, %.0f ms of CPU%s", node, session.info.zid(),
+
+        def ready() -> None:
+            write_ready(ready_file, {"role": "candidate", "node": node, "zid": str(session.info.zid()),
+                                     "leading": r2r.role == "leader", "serves": r2r.role,
+                                     "keys": [svc.key], "workers": svc.worker_pids,
+                                     "capability": capability.source, "startup": startup})
+
+        log.info("candidate %s up (zid %s), %s, %.0f ms after exec, %.0f ms of CPU%s", node, session.info.zid(),
                  "leading" if r2r.role == "leader" else f"serving as {r2r.role}", startup["wall_ms"],
                  startup["cpu_ms"], ":\n" + clock.format() if verbose else "")
-        if robot_body is not None:
-            rc = int(robot_body(session, stop.event, r2r) or 0)
+        if robot_body is not None:  # also a robot: ready once its robot part is (it calls ready())
+            rc = int(robot_body(session, stop.event, r2r, ready) or 0)
         else:
+            ready()
             stop.wait()
     finally:
         log.info("candidate %s stopping", node)
