@@ -115,3 +115,15 @@ def test_a_robot_sends_no_frame_at_or_after_its_duration(tmp_path, monkeypatch):
     r.run(itertools.repeat(None), rate_hz=5.0, duration_s=1.0)
     # (fewer than 5 only if this machine stalled for a whole period; never a 6th)
     assert 1 <= len(sent) <= 5 and all(s - t0 < 1.0 for s in sent)
+
+
+def test_a_gated_robot_sends_until_time_0_plus_its_duration():
+    from scmr_mesh.mesh.commands import send_window
+
+    s = 1_000_000_000
+    assert send_window(10.0, start_ns=5 * s, entered_ns=1, now_ns=5 * s + 300_000_000) == pytest.approx(9.7)
+    assert send_window(10.0, start_ns=5 * s, entered_ns=1, now_ns=16 * s) == 0.0  # time 0 + duration has passed
+    # a robot started after time 0 (restarted during a scenario, told the time left) keeps its duration
+    assert send_window(4.0, start_ns=5 * s, entered_ns=6 * s, now_ns=6 * s + 1) == 4.0
+    assert send_window(10.0, start_ns=0, entered_ns=1, now_ns=2) == 10.0  # no time 0 in the file
+    assert send_window(None, start_ns=5 * s, entered_ns=1, now_ns=6 * s) is None  # --count, no duration
