@@ -75,10 +75,8 @@ def test_a_sigterm_during_a_bench_runs_its_cleanup(monkeypatch):
     """`bench r2r` SIGTERMed left its peers running (reparented to init): the bench dispatcher turns
     SIGTERM into KeyboardInterrupt so the target's `finally` stops what it started."""
     import argparse
-    import os
     import signal
     import sys
-    import time
     import types
 
     from scmr_mesh.bench.commands import _handler
@@ -87,9 +85,8 @@ def test_a_sigterm_during_a_bench_runs_its_cleanup(monkeypatch):
 
     def target(args):
         try:
-            os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(10)  # interrupted at once
-            return 0
+            signal.raise_signal(signal.SIGTERM)  # its Python handler runs before this call returns
+            pytest.fail("SIGTERM did not interrupt the bench")
         finally:
             cleaned.append(True)
 
@@ -97,7 +94,7 @@ def test_a_sigterm_during_a_bench_runs_its_cleanup(monkeypatch):
     mod.go = target
     monkeypatch.setitem(sys.modules, "scmr_mesh.bench._fake_target", mod)
     before = signal.getsignal(signal.SIGTERM)
-    with pytest.raises(KeyboardInterrupt):  # not a normal return after the sleep
+    with pytest.raises(KeyboardInterrupt):
         _handler("_fake_target", "go")(argparse.Namespace())
     assert cleaned
     assert signal.getsignal(signal.SIGTERM) is before  # restored
