@@ -360,7 +360,7 @@ def _die_with(parent_pid: int):
     return setup
 
 
-__all__ = ["DB_NAME", "DB_USER", "PgServer", "PgServerError", "available", "find_bin"]
+__all__ = ["DB_NAME", "DB_USER", "PgServer", "PgServerError", "available", "find_bin", "run_store"]
 
 
 

@@ -289,8 +289,8 @@ class LiveView:
 #: frames were 80-130 KB JPEGs).  Equal to ``scmr_mesh.imaging.codec.JPEG_QUALITY``
 #: (not imported, to keep this module light).  0 sends lossless PNG instead.
 JPEG_QUALITY = 90
-#: An ``--images`` folder with at most this many files keeps each re-encoded
-#: frame after its first use instead of encoding it again every cycle.
+#: An ``--images`` folder with at most this many files is read and re-encoded
+#: once, before the robot is ready, instead of again every cycle.
 ENCODE_CACHE_FILES = 64
 
 
@@ -381,12 +381,7 @@ def image_frames(folder: str | Path, *, jpeg_quality: int = JPEG_QUALITY) -> Ite
 
     def gen() -> Iterator[Frame]:
         for p in itertools.cycle(files):
-            frame = cache.get(p)
-            if frame is None:
-                frame = load(p)
-                if len(files) <= ENCODE_CACHE_FILES:
-                    cache[p] = frame
-            yield frame
+            yield cache.get(p) or load(p)  # a bigger folder is read (and re-encoded) each cycle
 
     return gen()
 
