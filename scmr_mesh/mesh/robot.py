@@ -381,7 +381,8 @@ def image_frames(folder: str | Path, *, jpeg_quality: int = JPEG_QUALITY) -> Ite
 
     def gen() -> Iterator[Frame]:
         for p in itertools.cycle(files):
-            yield cache.get(p) or load(p)  # a bigger folder is read (and re-encoded) each cycle
+            frame = cache.get(p)
+            yield frame if frame is not None else load(p)  # a bigger folder: read (and re-encoded) each cycle
 
     return gen()
 
