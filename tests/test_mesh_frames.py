@@ -127,3 +127,22 @@ def test_a_gated_robot_sends_until_time_0_plus_its_duration():
     assert send_window(4.0, start_ns=5 * s, entered_ns=6 * s, now_ns=6 * s + 1) == 4.0
     assert send_window(10.0, start_ns=0, entered_ns=1, now_ns=2) == 10.0  # no time 0 in the file
     assert send_window(None, start_ns=5 * s, entered_ns=1, now_ns=6 * s) is None  # --count, no duration
+
+
+def test_the_robot_summary_is_one_write():
+    """Unbuffered peers share their log with stderr: print()'s separate newline let a log line in."""
+    from scmr_mesh.mesh.commands import emit_json_line
+
+    class Recorder:
+        def __init__(self):
+            self.writes = []
+
+        def write(self, text):
+            self.writes.append(text)
+
+        def flush(self):
+            pass
+
+    out = Recorder()
+    emit_json_line({"robot": "r1", "requests": 3}, out)
+    assert out.writes == ['{"robot": "r1", "requests": 3}\n']

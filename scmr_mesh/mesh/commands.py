@@ -492,7 +492,7 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
         extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
     if robot.telemetry_errors:
         extra["telemetry_errors"] = robot.telemetry_errors
-    print(json.dumps({"robot": args.id, **stats, **extra}), flush=True)
+    emit_json_line({"robot": args.id, **stats, **extra})
     # raised by the command once the session is closed, so it is the last line on stderr
     args._problem = _robot_problem(args.id, telemetry, robot.telemetry_errors)
     return 0
@@ -539,6 +539,18 @@ def send_window(duration_s: float | None, start_ns: int, entered_ns: int, now_ns
     if duration_s is None or start_ns <= 0 or entered_ns >= start_ns:
         return duration_s
     return max(0.0, duration_s - (now_ns - start_ns) / 1e9)
+
+
+def emit_json_line(obj, stream=None) -> None:
+    """Write ``obj`` as one JSON line in a single write.
+
+    Peers run unbuffered (``PYTHONUNBUFFERED``) with stderr on the same log file:
+    ``print`` writes the text and the newline separately, and a log line from
+    another thread landed between them, so the summary line did not parse.
+    """
+    stream = stream or sys.stdout
+    stream.write(json.dumps(obj) + "\n")
+    stream.flush()
 
 
 def _raise_problem(args) -> None:
