@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 from scmr_mesh.errors import InputError
+from scmr_mesh.qos.schedule import due_ns
 
 UNBOUNDED = ["--ingest-queue", "10000000", "--ingest-batch", "100000"]
 
@@ -117,16 +118,14 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
 
             sampler = threading.Thread(target=sample, daemon=True)
             sampler.start()
-            period = 1.0 / rate_hz if rate_hz > 0 else 0.0
             t0 = time.monotonic()
-            nxt = t0
+            t0_ns = time.monotonic_ns()
             i = 0
             while time.monotonic() - t0 < duration_s:
-                if period:
-                    nxt += period
-                    delay = nxt - time.monotonic()
-                    if delay > 0:
-                        time.sleep(delay)
+                if rate_hz > 0:  # query i+1 due at t0 + (i+1) x period, from integers (no float drift)
+                    delay_ns = due_ns(t0_ns, i + 1, rate_hz) - time.monotonic_ns()
+                    if delay_ns > 0:
+                        time.sleep(delay_ns / 1e9)
                 session.get(key, handler=functools.partial(on_reply, i), payload=payloads[i % len(payloads)],
                             timeout=10.0)
                 i += 1

@@ -69,6 +69,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 from scmr_mesh import keys, wire
 from scmr_mesh.errors import InputError
+from scmr_mesh.qos.schedule import Schedule
 
 log = logging.getLogger(__name__)
 
@@ -980,19 +981,20 @@ class Robot:
             The robot's stats: requests, succeeded, by_tier, last_tor_ms, last_tier.
         """
         stop = stop or threading.Event()
-        period = 1.0 / rate_hz if rate_hz and rate_hz > 0 else 0.0
-        t0 = time.monotonic()
-        next_t = t0
+        # frame k due at t0 + k x period, from integers (a float-accumulated schedule sent a frame past the end)
+        sched = Schedule(time.monotonic_ns(), rate_hz or 0.0, duration_s)
         for seq in itertools.count():
             if stop.is_set() or (count is not None and seq >= count):
                 break
             # the time this frame would go out: none at or after t0 + duration (was one period over)
-            if duration_s is not None and max(next_t, time.monotonic()) - t0 >= duration_s:
+            if sched.ended(time.monotonic_ns()):
                 break
-            now = time.monotonic()
-            if next_t > now and stop.wait(next_t - now):
+            wait_ns = sched.next_due_ns() - time.monotonic_ns()
+            if wait_ns > 0 and stop.wait(wait_ns / 1e9):
                 break
-            next_t = max(next_t + period, time.monotonic() - period)  # no catch-up bursts
+            if sched.ended(time.monotonic_ns()):  # the wait overslept past the end
+                break
+            sched.advance(time.monotonic_ns())
             frame = next(frames)
             rec = self.request(seq, frame)
             if progress is not None:

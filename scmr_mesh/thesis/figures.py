@@ -33,10 +33,10 @@ def _nice(lo: float, hi: float, n: int = 5) -> list[float]:
             step *= m
             break
     start = math.ceil(lo / step) * step
-    out, v = [], start
-    while v <= hi + 1e-9 * step:
+    out, k = [], 0
+    while (v := start + k * step) <= hi + 1e-9 * step:  # tick k from an integer, not a float running sum
         out.append(round(v, 10))
-        v += step
+        k += 1
     return out
 
 
