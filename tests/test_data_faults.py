@@ -115,7 +115,8 @@ def test_an_immutable_segment_refuses_cleanly_and_recovers(tmp_path):
 
 
 def _robot_stub(rid: str = "r1"):
-    return SimpleNamespace(id=rid, _session=None, publish_telemetry=lambda m: None,
+    return SimpleNamespace(id=rid, _session=None, publish_telemetry=lambda m: None, add_telemetry_handler=lambda fn: None,
+                           remove_telemetry_handler=lambda fn: None,
                            view=SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=(), leader=())))
 
 

@@ -137,7 +137,8 @@ def test_a_robot_keeps_its_records_and_backs_off_while_the_tier_is_busy(tmp_path
             return "err", {"error": "cloud c busy", "busy": True, "retry_after_ms": 50.0}
         return "ok", {"acked": 1}
 
-    robot = SimpleNamespace(id="r1", _session=None, publish_telemetry=lambda m: None,
+    robot = SimpleNamespace(id="r1", _session=None, publish_telemetry=lambda m: None, add_telemetry_handler=lambda fn: None,
+                           remove_telemetry_handler=lambda fn: None,
                             view=SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("c",), leader=())))
     agent = TelemetryAgent(robot, tmp_path / "q", autostart=False)
     agent._ask = ask

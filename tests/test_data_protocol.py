@@ -61,7 +61,8 @@ class World:
         self.leader._clouds = lambda: ["c"] if self.cloud_up else []
         self.leader._query = self._leader_query
         self.robot = SimpleNamespace(
-            id="r1", _session=None, publish_telemetry=lambda m: None,
+            id="r1", _session=None, publish_telemetry=lambda m: None, add_telemetry_handler=lambda fn: None,
+                           remove_telemetry_handler=lambda fn: None,
             view=SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(
                 cloud=("c",) if self.cloud_up else (), leader=("L",) if self.leader_up else ())))
         self.agent = self._new_agent()

@@ -181,7 +181,8 @@ def bench_drain(tmp_dir: str | Path, *, backlog: int = 2000) -> dict:
     tmp_dir = Path(tmp_dir)
     with _bench_pair(tmp_dir / "drain-ods.sqlite", "drain", "bench") as (cloud, rs):
         view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("drain",), leader=()))
-        robot = SimpleNamespace(id="bench", _session=rs, view=view, publish_telemetry=lambda m: None)
+        robot = SimpleNamespace(id="bench", _session=rs, view=view, publish_telemetry=lambda m: None,
+                                add_telemetry_handler=lambda fn: None, remove_telemetry_handler=lambda fn: None)
         agent = TelemetryAgent(robot, tmp_dir / "drain-queue", autostart=False, deadline_ms=5000)
         try:
             for i in range(1, backlog + 1):

@@ -583,13 +583,11 @@ def _robot_viz(args, robot):
     rv = robot_viz(RerunOptions.for_peer(args, robot.id), robot.id)
     if rv is not None:
         robot.add_observer(rv.observe)
-        publish = robot.publish_telemetry
-
-        def publish_and_log(message):
+        def log_and_forward(message, forward):
             rv.log_telemetry(battery=message.get("battery"))
-            publish(message)
+            return forward(message)
 
-        robot.publish_telemetry = publish_and_log
+        robot.add_telemetry_handler(log_and_forward)
         view_cb = robot.view.on_liveliness  # bound before attach() subscribes with it
 
         def on_liveliness(sample):

@@ -681,8 +681,7 @@ class TelemetryAgent:
         self._qlock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self._orig = robot.publish_telemetry
-        robot.publish_telemetry = self.publish
+        robot.add_telemetry_handler(self._handle)
         self._thread = threading.Thread(target=self._loop, name=f"telemetry-{robot.id}", daemon=True)
         if autostart:  # tests drive flush_once() themselves
             self._thread.start()
@@ -693,7 +692,11 @@ class TelemetryAgent:
 
     # -- producer side
     def publish(self, message: dict) -> int | None:
-        """Publish ``message`` as before and queue it for the store; return its telemetry seq.
+        """Publish ``message`` and queue it for the store (as the robot's handler does); return its seq."""
+        return self._handle(message, self.robot.publish_telemetry)
+
+    def _handle(self, message: dict, forward: Callable[[dict], Any]) -> int | None:
+        """The robot's telemetry handler: ``forward`` (publish) ``message``, queue it; return its telemetry seq.
 
         Never raises for a refusal: a full queue or a file system that refuses
         the write (full, read-only, immutable) counts the record as refused
@@ -701,7 +704,7 @@ class TelemetryAgent:
         it, and returns None, so the robot keeps sending frames.
         """
         try:
-            self._orig(message)
+            forward(message)
         except Exception as exc:
             self.publish_errors += 1
             log.debug("telemetry publish failed: %s", exc)
@@ -891,7 +894,7 @@ class TelemetryAgent:
             except Exception:
                 pass
         self._queriers = {}
-        self.robot.publish_telemetry = self._orig
+        self.robot.remove_telemetry_handler(self._handle)
         out = self.summary()
         if summary_path is not None:
             tmp = Path(f"{summary_path}.tmp")

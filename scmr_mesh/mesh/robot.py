@@ -503,6 +503,7 @@ class Robot:
         self._health = "ok"
         #: telemetry messages whose publishing raised (counted; the robot keeps sending frames)
         self.telemetry_errors = 0
+        self._telemetry_handlers: list[Callable[[dict, Callable[[dict], Any]], Any]] = []
 
     # ------------------------------------------------------------ hooks
     def add_observer(self, fn: Callable[[dict, Any, Any], None]) -> None:
@@ -513,6 +514,30 @@ class Robot:
         """Publish one telemetry message on ``scmr/telemetry/<robot>``."""
         if self._tele_pub is not None:
             self._tele_pub.put(wire.encode(message), encoding=_msgpack())
+
+    def add_telemetry_handler(self, fn: Callable[[dict, Callable[[dict], Any]], Any]) -> None:
+        """Hand each telemetry message to ``fn(message, forward)`` instead of publishing it.
+
+        ``forward(message)`` passes it on to the handler added before (or to
+        :meth:`publish_telemetry` for the first), so handlers chain in the
+        order they were added: the data tier's queue (``TelemetryAgent``), the
+        rerun sink, ...  No attribute is replaced; :meth:`remove_telemetry_handler` undoes it.
+        """
+        self._telemetry_handlers.append(fn)
+
+    def remove_telemetry_handler(self, fn: Callable) -> None:
+        """Undo :meth:`add_telemetry_handler` (a handler not added is ignored)."""
+        if fn in self._telemetry_handlers:
+            self._telemetry_handlers.remove(fn)
+
+    def emit_telemetry(self, message: dict) -> Any:
+        """Send one telemetry message through the handlers (last added first), then publish it."""
+        def through(i: int) -> Callable[[dict], Any]:
+            if i < 0:
+                return self.publish_telemetry
+            return lambda m: self._telemetry_handlers[i](m, through(i - 1))
+
+        return through(len(self._telemetry_handlers) - 1)(message)
 
     def battery(self) -> float:
         """Simulated state of charge, 0..1: two hours of driving, and each local pipeline run costs 0.02 %."""
@@ -895,7 +920,7 @@ class Robot:
             except Exception as exc:
                 log.debug("results publish failed: %s", exc)
         try:
-            self.publish_telemetry(self.make_telemetry())
+            self.emit_telemetry(self.make_telemetry())
         except Exception as exc:  # counted: the robot keeps sending frames, its exit status says so
             self.telemetry_errors += 1
             log.error("telemetry of request %s failed (%d so far): %s: %s", seq, self.telemetry_errors,
