@@ -26,7 +26,8 @@ from test_fleet_e2e import STUB, kill_leftovers, scmr
 
 from scmr_mesh.errors import MeshError
 from scmr_mesh.fleet import FleetConfig, check_fleet, format_summary
-from scmr_mesh.fleet.run import FleetRun
+from scmr_mesh.fleet.run import run_fleet
+from scmr_mesh.scenario.runner import Hooks
 
 SERVER = ("--process", "scmr_mesh.mesh.testing:stub_process")
 
@@ -36,26 +37,23 @@ def _run_with_damage(run_dir: Path, damage) -> dict:
     cfg = FleetConfig(robots=1, duration_s=6.0, rate_hz=8.0, cloud_outage=(1.5, 3.5), synthetic=["stub"],
                       run_dir=run_dir, server_args=SERVER, workers=1, ready_timeout_s=60)
     cfg.check()
-    run = FleetRun(cfg)
-    step = run._outage_step
     done = []
 
-    def outage_step(now: float) -> None:
-        step(now)
-        if run.faults and run.faults[0]["end_unix_ns"] is None and not done:
-            done.append(now)
-            damage(run_dir)
+    class Damage(Hooks):
+        """An engine hook: at the first tick after the crash took effect (the cloud is down)."""
 
-    run._outage_step = outage_step
+        def tick(self, run) -> None:
+            af = run.applied[0]
+            if af.start_unix_ns is not None and af.end_unix_ns is None and not done:
+                done.append(run.elapsed_s())
+                damage(run_dir)
+
     try:
-        run.start()
-        run.drive()
-        run.await_restarts()
+        rep = run_fleet(cfg, hooks=(Damage(),))
     finally:
-        run.stop()
         kill_leftovers(run_dir)
     assert done, "the outage never started"
-    return run.report()
+    return rep
 
 
 def _rm_store(run_dir: Path) -> None:

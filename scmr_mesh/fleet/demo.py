@@ -26,12 +26,12 @@ from pathlib import Path
 from typing import Any
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.scenario.report import TIER_COLOURS
 
 __all__ = ["register", "render_overlays", "render_timeline"]
 
-#: BGR colours of the serving tiers in the pictures.
-TIER_BGR = {"cloud": (200, 120, 20), "leader": (0, 140, 255), "peer": (60, 170, 60), "local": (170, 40, 170),
-            None: (0, 0, 230)}
+#: BGR colours of the serving tiers in the pictures (the reports' palette; None: failed).
+TIER_BGR = {**{k: v for k, v in TIER_COLOURS.items() if k != "failed"}, None: TIER_COLOURS["failed"]}
 
 
 def _outage(text: str) -> tuple[float, float]:
@@ -159,81 +159,11 @@ def _load_records(out: Path) -> list[dict]:
     return recs
 
 
-def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, Any], path: Path,
-                    *, width: int = 1000, height: int = 420) -> None:
-    """Draw every request's ToR against its sending time, coloured by serving tier.
+def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, Any], path: Path) -> None:
+    """The demo's ``pictures/timeline.png``: the one ToR plot (:func:`scmr_mesh.scenario.report.plot_tor`)."""
+    from scmr_mesh.scenario.report import plot_tor
 
-    Parameters
-    ----------
-    records : sequence of record dicts
-    report : report dict (for ``started_unix_ns`` and ``faults``)
-    path : Path
-        PNG written here, ``(height, width, 3) uint8``.
-    """
-    import cv2
-    import numpy as np
-
-    from scmr_mesh.qos import metrics
-
-    img = np.full((height, width, 3), 255, np.uint8)
-    left, right, top, bottom = 60, 20, 40, 50
-    t_ref = report.get("started_unix_ns") or (min(r["sent_unix_ns"] for r in records) if records else 0)
-    xs = [(r["sent_unix_ns"] - t_ref) / 1e9 for r in records]
-    t_min = min([0.0, *xs])
-    t_max = max([float(report.get("duration_s", 1.0)), *xs]) or 1.0
-    tors = metrics.tor_values_ms(records)
-    y_max = max(20.0, metrics.percentile(tors, 99) * 1.3) if tors else 100.0
-
-    def X(t: float) -> int:
-        return int(left + (t - t_min) / (t_max - t_min) * (width - left - right))
-
-    def Y(ms: float) -> int:
-        return int(height - bottom - min(ms, y_max) / y_max * (height - top - bottom))
-
-    moves = {c["from"]: c["to"] for c in (report.get("leadership") or {}).get("changes", []) if c.get("from")}
-    for f in report.get("faults", []):
-        a = (f["start_unix_ns"] - t_ref) / 1e9
-        if f.get("tier") == "leader":  # the lead passes on: a marker, not a lost tier
-            cv2.line(img, (X(a), top), (X(a), height - bottom), TIER_BGR["leader"], 1)
-            label = f"leader {f['target']} killed" + (f" -> {moves[f['target']]} leads" if f["target"] in moves else "")
-            cv2.putText(img, label, (X(a) + 4, top + 30), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 90, 160), 1,
-                        cv2.LINE_AA)
-            continue
-        b = ((f["end_unix_ns"] - t_ref) / 1e9) if f.get("end_unix_ns") else t_max
-        cv2.rectangle(img, (X(a), top), (X(b), height - bottom), (225, 225, 225), -1)
-        cv2.putText(img, f"{f['target']} down", (X(a) + 4, top + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
-                    (90, 90, 90), 1, cv2.LINE_AA)
-    cv2.line(img, (left, height - bottom), (width - right, height - bottom), (0, 0, 0), 1)
-    cv2.line(img, (left, top), (left, height - bottom), (0, 0, 0), 1)
-    for i in range(5):
-        ms = y_max * i / 4
-        cv2.putText(img, f"{ms:.0f}", (5, Y(ms) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    step = max(1, int(round((t_max - t_min) / 10)))
-    t = int(np.ceil(t_min))
-    while t <= t_max:
-        cv2.putText(img, f"{t}", (X(t) - 5, height - bottom + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0),
-                    1, cv2.LINE_AA)
-        t += step
-    cv2.putText(img, "time since the fleet was ready (s)", (width // 2 - 120, height - 12),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, "ToR (ms)", (5, top - 22), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    for r, x in zip(records, xs):
-        tier = r.get("tier") if r.get("ok") else None
-        colour = TIER_BGR.get(tier, (0, 0, 0))
-        if tier is None:
-            p = (X(x), top + 4)
-            cv2.drawMarker(img, p, colour, cv2.MARKER_TILTED_CROSS, 8, 2)
-            continue
-        tor = r.get("tor_ms") or 0.0
-        cv2.circle(img, (X(x), Y(tor)), 3, colour, -1, cv2.LINE_AA)
-    lx = left + 10
-    for name in ("cloud", "leader", "peer", "local", None):
-        label = name or "failed"
-        cv2.circle(img, (lx, top - 8), 5, TIER_BGR[name], -1)
-        cv2.putText(img, label, (lx + 10, top - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-        lx += 90
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), img)
+    plot_tor(report, path, records=records)
 
 
 def _frame_rgb(rec: Mapping[str, Any], images: Path | None):

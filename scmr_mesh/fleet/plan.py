@@ -12,9 +12,13 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scmr_mesh.errors import InputError
+
+if TYPE_CHECKING:
+    from scmr_mesh.scenario.plan import RunOptions
+    from scmr_mesh.scenario.spec import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -304,22 +308,79 @@ def ods_backend(config: FleetConfig) -> str:
     return config.ods_backend
 
 
+def fleet_scenario(config: FleetConfig) -> "Scenario":
+    """``scmr up``'s flags as a :class:`~scmr_mesh.scenario.spec.Scenario` (pure).
+
+    The fleet runs on the one scenario engine: ``--cloud-outage A:B`` is a
+    crash of every cloud node at A restarted at B, ``--kill-cloud cloudI@T`` a
+    crash of that node at T that stays down, ``--leader-crash S`` a crash of
+    whoever leads at S (:data:`~scmr_mesh.scenario.spec.WHOEVER_LEADS`), also
+    left down.  Peers keep their fleet names (``cloud``, ``cloud1``, ``leader``,
+    ``r1``...) and run as nodes ``cloud0``.., ``leader0`` and the robot ids.
+
+    Examples
+    --------
+    >>> sc = fleet_scenario(FleetConfig(robots=2, cloud_outage=(6, 10), leader_crash_s=8, duration_s=20))
+    >>> [(f.kind, f.at_s, f.for_s, f.crashed, f.restart) for f in sc.faults]
+    [('crash', 6.0, 4.0, ('cloud',), True), ('crash', 8.0, None, ('@leader',), False)]
+    >>> sc.node_of("cloud"), sc.node_of("leader"), sc.bootstraps["r2"]
+    ('cloud0', 'leader0', ('cloud',))
+    """
+    from scmr_mesh.mesh.config import DEFAULT_LEASE_MS
+    from scmr_mesh.scenario.spec import WHOEVER_LEADS, Fault, RobotSpec, Scenario
+
+    topo = fleet_topology(config)
+    clouds = cloud_peers(config.clouds)
+    kinds = list(config.synthetic) or _default_kinds()
+    profiles = robot_profiles(config)
+    robots = []
+    for i, rid in enumerate(robot_ids(config.robots)):
+        t = topo[rid]
+        robots.append(RobotSpec(
+            id=rid, profile=profiles.get(rid), energy_placement=rid in profiles,
+            images=str(config.images) if config.images is not None else None,
+            synthetic=None if config.images is not None else kinds[i % len(kinds)],
+            rate_hz=float(config.rate_hz), deadline_ms=config.deadline_ms,
+            leader_capable=bool(t["leader_capable"]), capability=t["capability"]))
+    faults = []
+    if config.cloud_outage is not None:
+        a, b = config.cloud_outage
+        faults.append(Fault("crash", at_s=float(a), for_s=float(b) - float(a),
+                            peers=tuple(name for name, _ in clouds)))
+    if config.kill_cloud is not None:
+        i, t = config.kill_cloud
+        faults.append(Fault("crash", at_s=float(t), peer=clouds[i][0], restart=False))
+    if config.leader_crash_s is not None:
+        faults.append(Fault("crash", at_s=float(config.leader_crash_s), peer=WHOEVER_LEADS, restart=False))
+    names = [name for name, _ in clouds] + [LEADER] + [r.id for r in robots]
+    return Scenario(
+        name="fleet", seed=0, duration_s=float(config.duration_s), robots=tuple(robots),
+        clouds=tuple(name for name, _ in clouds), leader=LEADER,
+        lease_ms=int(config.lease_ms if config.lease_ms is not None else DEFAULT_LEASE_MS),
+        description=f"scmr up: {config.clouds} cloud node(s), a leader and {config.robots} robots on loopback",
+        links=tuple((names[i], names[j]) for i in range(len(names)) for j in range(i)),
+        faults=tuple(sorted(faults, key=lambda f: f.at_s)), source="scmr up",
+        bootstraps={n: tuple(topo[n]["connect"]) for n in names},
+        node_names={**{name: node for name, node in clouds}, LEADER: "leader0"})
+
+
+def fleet_options(config: FleetConfig, *, ods: str | None = None) -> "RunOptions":
+    """How ``scmr up`` starts its peers (pure): ``-v`` logs, its extra arguments, one name per peer."""
+    from scmr_mesh.scenario.plan import RunOptions
+
+    return RunOptions(python=config.python, verbose=True, robot_quiet=False, robot_seed=False,
+                      workers=config.workers, server_args=tuple(config.server_args),
+                      robot_args=tuple(config.robot_args), ods=ods if ods is not None else config.ods,
+                      start_file=FLEET_READY, restart_renames=False)
+
+
 def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, ods: str | None = None,
                security: Sequence[str] = ()):
     """The peers of a fleet as :class:`~scmr_mesh.fleet.procs.PeerSpec` (pure: starts nothing).
 
-    Parameters
-    ----------
-    config : FleetConfig
-    run_dir : Path
-    ports : mapping
-        Loopback port per peer name (``cloud``, ``cloud1``..., ``leader``, ``r1``...).
-    ods : str, optional
-        The data store every cloud node gets as ``--ods`` (default: theirs,
-        ``<run dir>/ods.sqlite``).
-    security : sequence of str, optional
-        Arguments every peer gets: ``--security PROFILE --credentials DIR``
-        (:meth:`scmr_mesh.security.runcreds.RunCredentials.args`) or ``--insecure``.
+    What the engine starts for ``scmr up``: :func:`fleet_scenario` and
+    :func:`fleet_options` through the one command-line builder
+    (:func:`scmr_mesh.scenario.plan.peer_command`), on loopback ``ports``.
 
     Returns
     -------
@@ -329,52 +390,18 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
         bootstrap); gossip scouting links it to the others.
     """
     from scmr_mesh.fleet.procs import PeerSpec
+    from scmr_mesh.scenario.plan import peer_command
+
+    sc = fleet_scenario(config)
+    options = fleet_options(config, ods=ods)
 
     def ep(name: str) -> str:
         return f"tcp/127.0.0.1:{ports[name]}"
 
-    common: list[str] = list(security)
-    if config.lease_ms is not None:
-        common += ["--lease-ms", str(config.lease_ms)]
-    base = [config.python, "-m", "scmr_mesh", "-v"]
     specs = {}
-    topo = fleet_topology(config)
-    servers = [(name, "cloud", node, topo[name]["connect"]) for name, node in cloud_peers(config.clouds)]
-    servers.append((LEADER, "leader", "leader0", topo[LEADER]["connect"]))
-    for name, cmd, node, connect in servers:
-        argv = [*base, cmd, "--node", node, "--listen", ep(name)]
-        for c in connect:
-            argv += ["--connect", ep(c)]
-        if config.workers is not None:
-            argv += ["--workers", str(config.workers)]
-        if cmd == "cloud" and ods is not None:
-            argv += ["--ods", str(ods)]
-        argv += [*common, "--ready-file", str(run_dir / "ready" / f"{name}.ready"), *config.server_args]
-        specs[name] = PeerSpec(name, argv, log_path=run_dir / "logs" / f"{name}.log",
-                               ready_file=run_dir / "ready" / f"{name}.ready")
-    kinds = list(config.synthetic) or _default_kinds()
-    profiles = robot_profiles(config)
-    for i, rid in enumerate(robot_ids(config.robots)):
-        argv = [*base, "robot", "--id", rid]
-        if config.images is not None:
-            argv += ["--images", str(config.images)]
-        else:
-            argv += ["--synthetic", kinds[i % len(kinds)]]
-        argv += ["--rate", f"{config.rate_hz:g}", "--duration", f"{config.duration_s:g}",
-                 "--out", str(run_dir / "robots" / rid),
-                 "--listen", ep(rid)]
-        for c in topo[rid]["connect"]:
-            argv += ["--connect", ep(c)]
-        if topo[rid]["leader_capable"]:
-            argv += ["--leader-capable", "--capability", topo[rid]["capability"]]
-        if config.deadline_ms is not None:
-            argv += ["--deadline-ms", str(config.deadline_ms)]
-        if rid in profiles:
-            argv += ["--profile", profiles[rid]]
-        argv += [*common, "--ready-file", str(run_dir / "ready" / f"{rid}.ready"),
-                 "--start-file", str(run_dir / "ready" / FLEET_READY), *config.robot_args]
-        specs[rid] = PeerSpec(rid, argv, log_path=run_dir / "logs" / f"{rid}.log",
-                              ready_file=run_dir / "ready" / f"{rid}.ready")
+    for p in sc.peers:
+        cmd = peer_command(sc, p.name, run_dir=run_dir, listen=[ep(p.name)],
+                           connect=[ep(b) for b in sc.bootstraps.get(p.name, ())], security=security,
+                           options=options)
+        specs[p.name] = PeerSpec(p.name, list(cmd.argv), log_path=cmd.log_path, ready_file=cmd.ready_file)
     return specs
-
-

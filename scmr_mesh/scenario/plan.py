@@ -24,6 +24,7 @@ Example
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import Iterable
 
@@ -31,6 +32,9 @@ from scmr_mesh.scenario.spec import Fault, Scenario
 
 __all__ = [
     "Event",
+    "PeerCommand",
+    "RunOptions",
+    "peer_command",
     "NetnsLayout",
     "NS_PREFIX",
     "SUBNET",
@@ -147,7 +151,10 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
             if lift and still_cut and not restored_any:  # wholly held by another fault: it ends with that cut
                 held[i] = still_cut
         elif f.kind == "crash":
-            events.append(Event(at, "start" if lift else "kill", (f.peer,), fault=i, lift=lift))
+            if lift and not f.restart and f.end_s is None:
+                continue  # stays down (scmr up's --kill-cloud, --leader-crash)
+            for peer in f.crashed:
+                events.append(Event(at, "start" if lift else "kill", (peer,), fault=i, lift=lift))
         elif f.kind == "bandwidth":
             link = tuple(f.link)
             active = shapes.setdefault(link, [])
@@ -337,3 +344,127 @@ def proxy_actions(links: Iterable[tuple[str, str]], event: Event) -> list[tuple[
             delay = 0.0 if event.value is None else float(event.value[0]) / 1000.0  # type: ignore[index]
             out.append((tuple(link), "delay", delay))
     return out
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a scenario's peers are started (what ``scmr up`` and ``scmr scenario run`` differ in).
+
+    The scenario says *what* runs (peers, links, faults); these say *how*: the
+    interpreter, extra arguments, the data store, the file robots start on.
+    """
+
+    python: str = "python3"
+    #: ``-v`` to every peer (``scmr up`` logs each peer's INFO lines).
+    verbose: bool = False
+    #: Robots get ``--quiet`` (no line per request in their log) and ``--seed`` (the scenario's).
+    robot_quiet: bool = True
+    robot_seed: bool = True
+    workers: int | None = None
+    server_args: tuple[str, ...] = ()
+    robot_args: tuple[str, ...] = ()
+    #: The store every cloud node gets as ``--ods`` (None: theirs, ``<run dir>/ods.sqlite``).
+    ods: str | None = None
+    #: Written in ``<run dir>/ready/`` at time 0; robots send from then on (``--start-file``).
+    start_file: str = "run.start"
+    #: A restarted peer runs under a new name (``cloud-2``: its own log, ready file and, for a
+    #: robot, records folder) or under its own (``scmr up``: one log per peer).
+    restart_renames: bool = True
+
+
+@dataclass(frozen=True)
+class PeerCommand:
+    """One start of one peer: its name, command line, log and ready file (pure data)."""
+
+    name: str
+    peer: str
+    argv: tuple[str, ...]
+    log_path: Path
+    ready_file: Path
+
+
+def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterable[str] = (),
+                 connect: Iterable[str] = (), extra_cfg: Iterable[str] = (), security: Iterable[str] = (),
+                 options: RunOptions = RunOptions(), images: dict[str, Path] | None = None,
+                 start: int = 1, remaining_s: float | None = None) -> PeerCommand:
+    """The command line of ``peer`` (the one builder ``scmr up`` and ``scmr scenario run`` share; pure).
+
+    Parameters
+    ----------
+    listen, connect, extra_cfg : iterables of str
+        From the backend: the endpoints ``peer`` listens on and is handed, and ``--cfg`` overrides.
+    security : iterable of str
+        ``--security PROFILE --credentials DIR`` or ``--insecure``.
+    images : dict, optional
+        Robot id -> folder of its image set's links (robots with an ``image_set``).
+    start : int
+        1 for the first start, n for the n-th (a restart); see :attr:`RunOptions.restart_renames`.
+    remaining_s : float, optional
+        A robot restarted mid-run sends for this long instead of the scenario's duration.
+
+    Examples
+    --------
+    >>> from scmr_mesh.scenario.spec import parse_scenario
+    >>> sc = parse_scenario({"name": "t", "seed": 3, "duration_s": 5,
+    ...     "fleet": {"robots": [{"id": "robot1", "synthetic": "road"}]}})
+    >>> c = peer_command(sc, "robot1", run_dir=Path("run"), connect=["tcp/127.0.0.1:7001"])
+    >>> c.argv[3:8], c.ready_file.as_posix()
+    (('robot', '--id', 'robot1', '--synthetic', 'road'), 'run/ready/robot1.ready')
+    """
+    name = peer if start == 1 or not options.restart_renames else f"{peer}-{start}"
+    ready = run_dir / "ready" / f"{name}.ready"
+    role = scenario.role(peer)
+    argv: list[str] = [options.python, "-m", "scmr_mesh"] + (["-v"] if options.verbose else [])
+    if role in ("cloud", "leader"):
+        argv += [role, "--node", scenario.node_of(peer)]
+        if role == "leader":
+            argv += ["--capability", scenario.leader_capability]
+        if options.workers is not None:
+            argv += ["--workers", str(options.workers)]
+        if role == "cloud" and options.ods is not None:
+            argv += ["--ods", str(options.ods)]
+        if scenario.process:
+            argv += ["--process", scenario.process]
+    else:
+        r = next(x for x in scenario.robots if x.id == peer)
+        argv += ["robot", "--id", peer]
+        if r.image_set:
+            argv += ["--images", str((images or {})[peer])]
+        elif r.images:
+            argv += ["--images", str(r.images)]
+        else:
+            argv += ["--synthetic", r.synthetic or "road"]
+        dur = scenario.duration_s if remaining_s is None else max(0.5, remaining_s)
+        argv += ["--rate", f"{r.rate_hz:g}", "--duration", f"{dur:g}", "--out", str(run_dir / "robots" / name)]
+        if r.energy_placement:
+            if not r.profile:
+                from scmr_mesh.errors import ConfigError
+
+                raise ConfigError(f"scenario {scenario.source}: field 'fleet.robots' ({peer}): energy_placement "
+                                  "needs a profile; add profile = \"robot1\" (Table 4.3) or similar")
+            argv += ["--profile", r.profile]
+        if r.deadline_ms is not None:
+            argv += ["--deadline-ms", str(r.deadline_ms)]
+        if not r.local_fallback:
+            argv += ["--no-local-fallback"]
+        if r.leader_capable:
+            argv += ["--leader-capable"]
+            if r.capability or r.profile:
+                argv += ["--capability", str(r.capability or r.profile)]
+        if scenario.process:
+            argv += ["--process", scenario.process]
+        if options.robot_seed:
+            argv += ["--seed", str(scenario.seed)]
+        if options.robot_quiet:
+            argv += ["--quiet"]
+        argv += ["--start-file", str(run_dir / "ready" / options.start_file)]
+    for ep in listen:
+        argv += ["--listen", ep]
+    for ep in connect:
+        argv += ["--connect", ep]
+    argv += ["--lease-ms", str(scenario.lease_ms)]
+    for c in extra_cfg:
+        argv += ["--cfg", c]
+    argv += [*security, "--ready-file", str(ready)]
+    argv += list(options.robot_args if role == "robot" else options.server_args)
+    return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)

@@ -14,13 +14,14 @@ import csv
 import json
 import logging
 import math
+import time
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from scmr_mesh.scenario.spec import Scenario
 
-__all__ = ["build_report", "check_expectations", "energy_per_robot", "markdown", "thesis_table", "write_report",
-           "plot_tor", "plot_tiers"]
+__all__ = ["build_report", "check_expectations", "energy_per_robot", "energy_report", "markdown", "run_problems",
+           "run_report", "thesis_table", "validate_report", "write_report", "plot_tor", "plot_tiers"]
 
 log = logging.getLogger(__name__)
 
@@ -363,14 +364,16 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     L += ["", "Failover gap per robot: from the later of the fault and the sending of the robot's first request the "
           "lost tier failed to answer, to that robot's first fallback answer (largest per fault). Failback: from the "
           "link's return / the restart to the first answer of the restored tier (scmr_mesh.qos.metrics).", ""]
-    if report.get("energy"):
+    energy = report.get("energy") or {}
+    energy = energy.get("per_robot", {}) if "per_robot" in energy else energy  # run_report's, or build_report's
+    if energy:
         L += ["## Energy per robot", "", "| robot | profile | total J | per tier J | source |", "|---|---|---|---|---|"]
-        for rid, e in report["energy"].items():
+        for rid, e in energy.items():
             if "error" in e:
                 L.append(f"| {rid} | {e['profile']} | - | {e['error']} | |")
                 continue
-            per = ", ".join(f"{k} {v:.2f}" for k, v in e["per_tier_j"].items())
-            L.append(f"| {rid} | {e['profile']} | {e['total_j']:.2f} | {per} | {e['source']} |")
+            per = ", ".join(f"{k} {v:.2f}" for k, v in (e.get("per_tier_j") or {}).items())
+            L.append(f"| {rid} | {e['profile']} | {e['total_j']:.2f} | {per} | {e.get('source', 'robot ledger')} |")
         L += ["", "Model: remote answer = P_i x ToR + P_u x bytes_up / 23 Mb/s + P_d x bytes_down / 28 Mb/s "
               "(Eq 4.3-4.4, measured wait); local = P_c x ToR. Table 4.3 profiles.", ""]
     if report.get("thesis"):
@@ -472,37 +475,95 @@ def _t_max(report: Mapping[str, Any]) -> float:
     return max([float(report["duration_s"])] + ts) * 1.02 + 0.1
 
 
-def plot_tor(report: Mapping[str, Any], path: Path) -> Path:
-    """ToR over time (log scale), one dot per request coloured by tier; failures on the top edge."""
+def plot_tor(report: Mapping[str, Any], path: Path, records: Sequence[Mapping[str, Any]] | None = None) -> Path:
+    """Every request's ToR against its sending time, coloured by serving tier (the one ToR plot).
+
+    ``scmr scenario run``'s ``tor.png`` and ``scmr demo``'s ``pictures/timeline.png``.
+    Faults that take a tier away are shaded and named; a crash of the leader is a
+    marker naming who took the lead; failed requests are crosses on the top edge.
+
+    Parameters
+    ----------
+    report : report dict (``t0_unix_ns``/``started_unix_ns``, ``duration_s``, ``faults``,
+        ``leadership``, and ``requests`` unless ``records`` are given)
+    path : Path
+        PNG written here, ``(420, 1000, 3) uint8``.
+    records : sequence of record dicts, optional
+        The robots' records (default: the report's ``requests``).
+    """
     import cv2
+    import numpy as np
 
-    img = _canvas(f"{report['scenario']}: time of response per request ({report['backend']})")
-    t_max = _t_max(report)
-    _axes(img, t_max, report["faults"])
-    _legend(img)
-    tors = [float(r["tor_ms"]) for r in report["requests"] if r.get("ok") and r.get("tor_ms") is not None]
-    lo = math.log10(max(0.1, min(tors))) if tors else -1.0
-    hi = math.log10(max(tors)) if tors else 3.0
-    lo, hi = math.floor(lo), max(math.ceil(hi), math.floor(lo) + 1)
+    from scmr_mesh.qos import metrics
 
-    def y(v: float) -> int:
-        f = (math.log10(max(v, 1e-3)) - lo) / (hi - lo)
-        return int(_H - _MB - f * (_H - _MB - _MT - 12))
+    records = list(report.get("requests") or []) if records is None else list(records)
+    img = np.full((_H, _W, 3), 255, np.uint8)
+    left, right, top, bottom = 60, 20, 40, 50
+    sent = [int(r["sent_unix_ns"]) for r in records if r.get("sent_unix_ns") is not None]
+    t_ref = report.get("t0_unix_ns") or report.get("started_unix_ns") or (min(sent) if sent else 0)
+    pts = [(r, float(r["sent_s"]) if r.get("sent_s") is not None else (int(r["sent_unix_ns"]) - t_ref) / 1e9)
+           for r in records if r.get("sent_s") is not None or r.get("sent_unix_ns") is not None]
+    xs = [x for _, x in pts]
+    t_min = min([0.0, *xs])
+    t_max = max([float(report.get("duration_s", 1.0)), *xs]) or 1.0
+    tors = metrics.tor_values_ms(records)
+    y_max = max(20.0, metrics.percentile(tors, 99) * 1.3) if tors else 100.0
 
-    for d in range(lo, hi + 1):
-        yy = y(10 ** d)
-        cv2.line(img, (_ML - 5, yy), (_ML, yy), (0, 0, 0), 1)
-        cv2.putText(img, f"{10 ** d:g} ms", (4, yy + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    for r in report["requests"]:
-        if r.get("sent_s") is None:
+    def X(t: float) -> int:
+        return int(left + (t - t_min) / (t_max - t_min) * (_W - left - right))
+
+    def Y(ms: float) -> int:
+        return int(_H - bottom - min(ms, y_max) / y_max * (_H - top - bottom))
+
+    def at(f: Mapping[str, Any], rel: str, ns: str) -> float | None:
+        if f.get(ns) is not None:
+            return (int(f[ns]) - t_ref) / 1e9
+        return f.get(rel)
+
+    moves = {c["from"]: c["to"] for c in (report.get("leadership") or {}).get("changes", []) if c.get("from")}
+    for f in report.get("faults", []):
+        a = at(f, "started_at_s", "start_unix_ns")
+        if a is None:
             continue
-        x = _x(float(r["sent_s"]), t_max)
-        if r.get("ok") and r.get("tor_ms") is not None:
-            cv2.circle(img, (x, y(float(r["tor_ms"]))), 3, TIER_COLOURS.get(r.get("tier") or "unknown",
-                                                                            TIER_COLOURS["unknown"]), -1)
-        else:
-            cv2.drawMarker(img, (x, _MT + 6), TIER_COLOURS["failed"], cv2.MARKER_TILTED_CROSS, 8, 2)
+        target = f.get("target") or f.get("label") or f.get("kind")
+        if f.get("tier") == "leader":  # the lead passes on: a marker, not a lost tier
+            cv2.line(img, (X(a), top), (X(a), _H - bottom), TIER_COLOURS["leader"], 1)
+            label = f"leader {target} killed" + (f" -> {moves[target]} leads" if target in moves else "")
+            cv2.putText(img, label, (X(a) + 4, top + 30), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 90, 160), 1,
+                        cv2.LINE_AA)
+            continue
+        b = at(f, "ended_at_s", "end_unix_ns")
+        b = t_max if b is None else b
+        cv2.rectangle(img, (X(a), top), (X(b), _H - bottom), (225, 225, 225), -1)
+        what = "down" if f.get("kind") == "crash" else str(f.get("kind"))
+        cv2.putText(img, f"{target} {what}", (X(a) + 4, top + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45,
+                    (90, 90, 90), 1, cv2.LINE_AA)
+    cv2.line(img, (left, _H - bottom), (_W - right, _H - bottom), (0, 0, 0), 1)
+    cv2.line(img, (left, top), (left, _H - bottom), (0, 0, 0), 1)
+    for i in range(5):
+        ms = y_max * i / 4
+        cv2.putText(img, f"{ms:.0f}", (5, Y(ms) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    step = max(1, int(round((t_max - t_min) / 10)))
+    for t in range(int(np.ceil(t_min)), int(t_max) + 1, step):
+        cv2.putText(img, f"{t}", (X(t) - 5, _H - bottom + 16), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0),
+                    1, cv2.LINE_AA)
+    cv2.putText(img, "time since the robots started (s)", (_W // 2 - 120, _H - 12),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "ToR (ms)", (5, top - 22), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for r, x in pts:
+        tier = r.get("tier") if r.get("ok") else None
+        if tier is None:
+            cv2.drawMarker(img, (X(x), top + 4), TIER_COLOURS["failed"], cv2.MARKER_TILTED_CROSS, 8, 2)
+            continue
+        cv2.circle(img, (X(x), Y(r.get("tor_ms") or 0.0)), 3, TIER_COLOURS.get(tier, TIER_COLOURS["unknown"]),
+                   -1, cv2.LINE_AA)
+    lx = left + 10
+    for name in ("cloud", "leader", "peer", "local", "failed"):
+        cv2.circle(img, (lx, top - 8), 5, TIER_COLOURS[name], -1)
+        cv2.putText(img, name, (lx + 10, top - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        lx += 90
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), img)
     return path
 
@@ -561,3 +622,159 @@ def write_report(report: Mapping[str, Any], out_dir: Path, *, json_path: Path | 
     md.write_text(markdown(report, plots=plots))
     paths.update({"json": jp, "md": md})
     return paths
+
+
+#: The schema every run report is validated against (``scmr up``, ``scmr demo``, ``scmr scenario run``).
+REPORT_SCHEMA = Path(__file__).resolve().parents[2] / "schemas" / "report.schema.json"
+
+
+def validate_report(report: Mapping[str, Any]) -> None:
+    """Check ``report`` against ``schemas/report.schema.json``.
+
+    Raises
+    ------
+    MeshError
+        Naming the first field that does not match (a bug in the report code).
+    """
+    import jsonschema
+
+    from scmr_mesh.errors import MeshError
+
+    try:
+        schema = json.loads(REPORT_SCHEMA.read_text())
+    except OSError as exc:
+        raise MeshError(f"report schema missing at {REPORT_SCHEMA}: {exc}") from None
+    errs = sorted(jsonschema.Draft202012Validator(schema).iter_errors(report), key=lambda e: list(e.path))
+    if errs:
+        e = errs[0]
+        where = "/".join(str(x) for x in e.path) or "(top)"
+        raise MeshError(f"report does not match schemas/report.schema.json at {where}: {e.message}")
+
+
+def run_problems(report: Mapping[str, Any]) -> list[str]:
+    """What went wrong in a run besides failed requests, one sentence each (pure).
+
+    A restarted peer that never became ready, a peer that exited with a
+    non-zero status (other than one a fault killed), telemetry that was lost or
+    could not be counted.  An interrupted run lists what it saw too.
+    ``scmr up`` and ``scmr demo`` print these and exit 1 when there is any
+    (docs/FLEET.md).
+    """
+    out: list[str] = []
+    t0 = report.get("started_unix_ns") or 0
+    peers = report.get("peers") or {}
+    topo = report.get("topology") or {}
+    for f in report.get("faults") or []:
+        if f.get("end_unix_ns") is None:
+            continue
+        names = list(f.get("restarted") or [])
+        if not names:  # the restarted peers: every cloud node for a cloud-tier crash
+            names = ([n for n in peers if (topo.get(n) or {}).get("role") == "cloud" or n.startswith("cloud")]
+                     if f.get("tier") == "cloud" else [str(f.get("target"))])
+        never = [n for n in names if n in peers and peers[n].get("ready_unix_ns") is None]
+        if f.get("ready_unix_ns") is None and not never:
+            never = names or [str(f.get("target"))]
+        for name in never:
+            p = peers.get(name) or {}
+            rc = p.get("exit")
+            label = f.get("target") if len(names) <= 1 else name
+            out.append(f"{label} was restarted at {(f['end_unix_ns'] - t0) / 1e9:.2f} s but never became "
+                       "ready" + (f" (it exited with status {rc})" if rc not in (None, 0) else "")
+                       + (f"; see {p['log']}" if p.get("log") else ""))
+    # processes a fault killed on purpose
+    killed = {str(n) for f in report.get("faults") or [] if f.get("kind") == "crash"
+              for n in [*(f.get("killed") or []), *([f.get(k) for k in ("peer", "target")]
+                                                     if f.get("end_unix_ns") is None else [])] if n}
+    for name, p in peers.items():
+        rc = p.get("exit")
+        if rc not in (None, 0) and not (rc == -9 and name in killed):
+            what = f"killed by signal {-rc}" if rc < 0 else f"exited with status {rc}"
+            out.append(f"peer {name} {what}; see {p.get('log')}")
+    tel = report.get("telemetry")
+    if tel is None:
+        out.append("telemetry was not counted (see the log of scmr up)")
+    else:
+        if tel.get("error"):
+            out.append(f"telemetry: {tel['error']}")
+        if tel.get("lost"):
+            who = [f"{rid} {r['lost']} (seqs {','.join(r.get('missing') or []) or '?'})"
+                   for rid, r in sorted((tel.get("per_robot") or {}).items()) if r.get("lost")]
+            out.append(f"{tel['lost']} of {tel.get('sent', 0)} telemetry records lost: " + "; ".join(who))
+        if tel.get("conflicts"):
+            out.append(f"{tel['conflicts']} telemetry records conflicted with stored ones (a robot reused seqs)")
+    return out
+
+
+def run_report(res: Any, *, thesis_csv: Path | None = None, extra: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The one report of a run (``scmr up``, ``scmr demo``, ``scmr scenario run``), validated.
+
+    The core is :func:`scmr_mesh.qos.metrics.summarize` at the top level (what
+    ``schemas/report.schema.json`` requires); the scenario's view
+    (:func:`build_report`: ``summary``, expectations, per-fault ``during``...)
+    and the run's facts (peers, security, topology, leadership, telemetry,
+    energy, ``problems``) are beside it, and each fault carries both the core's
+    fields and the scenario's.
+
+    Parameters
+    ----------
+    res : scmr_mesh.scenario.runner.RunResult
+    thesis_csv : Path, optional
+        Table 4.2 to put beside our figures.
+    extra : mapping, optional
+        Fields the caller adds (``scmr up``: ``clouds``, ``ods``), before validation.
+    """
+    from scmr_mesh.qos import metrics
+
+    sc = res.scenario
+    faults = res.metric_faults()
+    leadership = res.leadership()
+    view = build_report(sc, res.records, faults, t0_unix_ns=res.t0_unix_ns, backend=res.backend, notes=res.notes,
+                        thesis_csv=thesis_csv, telemetry=res.telemetry, leadership=leadership,
+                        topology=res.topology)
+    core = metrics.summarize(res.records, faults, robots=len(sc.robots))
+    for f, v in zip(sorted(core["faults"], key=lambda f: int(f["start_unix_ns"])), view["faults"]):
+        f.update({k: val for k, val in v.items() if k not in f})
+        f.pop("notes", None) if not f.get("notes") else None
+    for f in core["faults"]:
+        if f.get("ready_unix_ns") is not None and f.get("end_unix_ns") is not None:
+            # split the failback gap: process start-up, then ready -> first answer
+            f["restart_to_ready_ms"] = (f["ready_unix_ns"] - f["end_unix_ns"]) / 1e6
+            f["failback_after_ready_ms"] = metrics.failback_gap_ms(res.records, {**f, "end_unix_ns": f["ready_unix_ns"]})
+    rates = {r.rate_hz for r in sc.robots}
+    report: dict[str, Any] = {"v": 1, "kind": "report", **view, **core}
+    report.update({
+        "rate_hz": rates.pop() if len(rates) == 1 else None,
+        "started_unix_ns": res.t0_unix_ns,
+        "ended_unix_ns": time.time_ns(),
+        "wall_s": res.wall_s,
+        "interrupted": res.interrupted,
+        "run_dir": str(res.out_dir),
+        "peers": res.peers,
+        "security": "insecure" if res.insecure else "mtls+acl",
+        "energy": energy_report(sc, res.records),
+    })
+    if report["rate_hz"] is None:
+        del report["rate_hz"]
+    report.update(extra or {})
+    report["problems"] = run_problems(report)
+    validate_report(report)
+    return report
+
+
+def energy_report(scenario: Scenario, records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:
+    """The report's ``energy``: where each robot with a profile ran its tasks and what it cost (None: no profile).
+
+    ``per_robot`` joins the robots' own ledgers (:func:`scmr_mesh.energy.measure.energy_by_robot`)
+    with the model's costing of robots that kept none (:func:`energy_per_robot`).
+    """
+    profiles = {r.id: r.profile for r in scenario.robots if r.profile}
+    if not profiles:
+        return None
+    from scmr_mesh.energy.measure import energy_by_robot
+
+    per = energy_by_robot(records, profiles)
+    for rid, e in energy_per_robot(scenario, records).items():
+        per.setdefault(rid, {}).update({k: v for k, v in e.items() if k not in per[rid] or not per[rid]["costed"]})
+    placed = any(r.energy_placement for r in scenario.robots)
+    return {"placement": "energy model (Eq 4.2-4.6), Table 4.3 profiles" if placed
+            else "none (profiles only cost the requests)", "per_robot": per}

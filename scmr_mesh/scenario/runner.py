@@ -11,20 +11,23 @@ on SIGTERM/SIGINT/SIGHUP (turned into ``KeyboardInterrupt``).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
+import signal
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
 from scmr_mesh.errors import ConfigError, ScenarioError
-from scmr_mesh.scenario.plan import Event, affected_pairs, compile_timeline
-from scmr_mesh.scenario.spec import Fault, Scenario
+from scmr_mesh.scenario.plan import Event, RunOptions, affected_pairs, compile_timeline, peer_command
+from scmr_mesh.scenario.spec import WHOEVER_LEADS, Fault, Scenario
 
-__all__ = ["RunResult", "default_data_dir", "fault_tier", "run_scenario"]
+__all__ = ["Hooks", "RecordTail", "RunResult", "ScenarioRun", "default_data_dir", "fault_tier", "run_scenario"]
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +52,12 @@ def fault_tier(scenario: Scenario, fault: Fault) -> tuple[str | None, list[str] 
     """
     robots = [r.id for r in scenario.robots]
     if fault.kind == "crash":
-        role = scenario.role(fault.peer or "")
-        return (role, None) if role in ("cloud", "leader") else (None, None)
+        crashed = set(fault.crashed)
+        if crashed == {WHOEVER_LEADS} or (scenario.leader and scenario.leader in crashed):
+            return "leader", None
+        if scenario.clouds and set(scenario.clouds) <= crashed:
+            return "cloud", None
+        return None, None  # a robot, or some of several cloud nodes: the others still serve
     if fault.kind in ("link_down", "partition"):
         pairs = set(affected_pairs(fault))
         for tier, servers in (("cloud", scenario.clouds), ("leader", (scenario.leader,) if scenario.leader else ())):
@@ -70,9 +77,12 @@ class AppliedFault:
     fault: Fault
     start_unix_ns: int | None = None
     end_unix_ns: int | None = None
-    restarted: str | None = None  # supervisor name of the restarted process (crash faults)
-    ready_unix_ns: int | None = None  # when the restarted peer wrote its ready file
+    restarted: str | None = None  # supervisor name of the (first) restarted process (crash faults)
+    ready_unix_ns: int | None = None  # when the (first) restarted peer wrote its ready file
     notes: list[str] = field(default_factory=list)
+    killed: list[str] = field(default_factory=list)  # supervisor names this crash SIGKILLed
+    restarted_all: list[str] = field(default_factory=list)  # every restarted process (a cloud tier: each node)
+    resolved: str | None = None  # the peer a crash of whoever leads hit
 
 
 @dataclass
@@ -95,36 +105,62 @@ class RunResult:
     topology: dict[str, dict[str, Any]] = field(default_factory=dict)
     #: When the first robot was started (robots stop ``duration_s`` after their start).
     robots_started_unix_ns: int | None = None
+    #: Each process the run started: pid, log, exit status, start and ready times (unix ns).
+    peers: dict[str, dict[str, Any]] = field(default_factory=dict)
+    #: Node -> when a fault SIGKILLed it (a killed candidate writes no step_down).
+    killed_unix_ns: dict[str, int] = field(default_factory=dict)
+    #: Stopped early by Ctrl-C/SIGTERM (``run_scenario(keep_interrupted=True)``).
+    interrupted: bool = False
+    #: Seconds from time 0 to the last peer stopped.
+    wall_s: float | None = None
+    #: The peers ran without authentication (``--insecure``).
+    insecure: bool = False
 
     def leadership(self) -> dict[str, Any]:
         """The ``leadership`` block from the candidates' role changes (``out_dir/leadership``)."""
         from scmr_mesh.qos.leadership import leadership, read_events
 
-        faults = [{**f, "peer": af.fault.peer, "groups": af.fault.groups}
+        faults = [{**f, "peer": af.resolved or af.fault.peer, "groups": af.fault.groups}
                   for f, af in zip(self.metric_faults(), self.faults)]
         return leadership(read_events(self.out_dir / "leadership"), self.records, faults,
-                          t0_unix_ns=self.t0_unix_ns,
+                          t0_unix_ns=self.t0_unix_ns, ended=self.killed_unix_ns,
                           # robots send for duration_s from about t0; the first graceful stop of a
                           # candidate (a robot finishing) also ends the window (qos.leadership)
                           end_unix_ns=self.t0_unix_ns + int(self.scenario.duration_s * 1e9))
 
     def metric_faults(self) -> list[dict[str, Any]]:
         """Faults as :func:`scmr_mesh.qos.metrics.summarize` takes them."""
-        out = []
-        for af in self.faults:
-            tier, robots = fault_tier(self.scenario, af.fault)
-            target = (af.fault.peer or ("-".join(af.fault.link) if af.fault.link else
-                      " | ".join(",".join(g) for g in af.fault.groups or ())))
-            out.append({
-                "kind": af.fault.kind, "target": target, "label": af.fault.label, "tier": tier,
-                "link": list(af.fault.link) if af.fault.link else None,
-                "robots": robots, "at_s": af.fault.at_s, "for_s": af.fault.for_s,
-                **({"fallback": ["peer", "leader"]} if tier == "leader" else {}),
-                "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
-                else self.t0_unix_ns + int(af.fault.at_s * 1e9),
-                "end_unix_ns": af.end_unix_ns, "notes": af.notes, "ready_unix_ns": af.ready_unix_ns,
-            })
-        return out
+        return metric_faults(self.scenario, self.faults, self.t0_unix_ns)
+
+
+def metric_faults(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_ns: int) -> list[dict[str, Any]]:
+    """The faults as they took effect, in the form metrics, leadership and reports read (pure).
+
+    ``target`` names nodes (``cloud0``; a link ``robot1-cloud``; a partition's
+    groups); a crash of whoever leads names the node it hit and, in ``peer``,
+    its process; ``killed`` and ``restarted`` the processes a crash stopped and
+    started again.
+    """
+    out = []
+    for af in applied:
+        f = af.fault
+        tier, robots = fault_tier(scenario, f)
+        crashed = [af.resolved or p for p in f.crashed]
+        target = (",".join(scenario.node_of(p) for p in crashed) if crashed else
+                  "-".join(f.link) if f.link else " | ".join(",".join(g) for g in f.groups or ()))
+        out.append({
+            "kind": f.kind, "target": target, "label": f.label, "tier": tier,
+            "link": list(f.link) if f.link else None,
+            "robots": robots, "at_s": f.at_s, "for_s": f.for_s,
+            **({"fallback": ["peer", "leader"]} if tier == "leader" else {}),
+            **({"peer": af.killed[0] if af.killed else str(af.resolved)} if af.resolved else {}),
+            "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
+            else t0_unix_ns + int(f.at_s * 1e9),
+            "end_unix_ns": af.end_unix_ns, "notes": af.notes, "ready_unix_ns": af.ready_unix_ns,
+            **({"killed": list(af.killed)} if af.killed else {}),
+            **({"restarted": list(af.restarted_all)} if af.restarted_all else {}),
+        })
+    return out
 
 
 def _image_dir(scenario: Scenario, robot_set: str, data_dir: Path, out_dir: Path, robot: str) -> Path:
@@ -168,13 +204,13 @@ def scenario_identities(scenario: Scenario):
     capable = set(scenario.candidates)
     out = []
     for p in scenario.peers:
-        role = scenario.role(p.name)
+        role, node = scenario.role(p.name), scenario.node_of(p.name)
         if role == "robot":
-            out.append(Peer(p.name, "robot", leader_capable=p.name in capable, priority_cap=0))
+            out.append(Peer(node, "robot", leader_capable=p.name in capable, priority_cap=0))
         elif role == "leader":
-            out.append(Peer(p.name, "leader", leader_capable=True, priority_cap=0))
+            out.append(Peer(node, "leader", leader_capable=True, priority_cap=0))
         else:
-            out.append(Peer(p.name, role))
+            out.append(Peer(node, role))
     return out
 
 
@@ -199,7 +235,352 @@ def _make_backend(scenario: Scenario, backend: str):
         from scmr_mesh.scenario.proxy import ProxyBackend
 
         return ProxyBackend(scenario)
-    raise ConfigError(f"backend must be netns or proxy, got {backend!r}")
+    if backend == "loopback":
+        from scmr_mesh.scenario.loopback import LoopbackBackend
+
+        return LoopbackBackend(scenario)
+    raise ConfigError(f"backend must be netns, proxy or loopback, got {backend!r}")
+
+
+class Hooks:
+    """What a run tells the code around it (all no-ops here; override what you need).
+
+    ``scmr up`` and ``scmr demo`` hang their live progress line, the rerun
+    sink and the run's PostgreSQL server on these; ``scmr scenario run`` its
+    progress messages.  Each is called from the runner's (main) thread.
+    """
+
+    def setup(self, run: "ScenarioRun") -> None:
+        """Before any peer starts (the run folder exists; ``run.options`` may still be replaced)."""
+
+    def say(self, run: "ScenarioRun", message: str) -> None:
+        """A one-line progress message."""
+
+    def tick(self, run: "ScenarioRun") -> None:
+        """About every 50 ms from time 0 until the robots finish (``run.records`` is up to date)."""
+
+    def stopped(self, run: "ScenarioRun") -> None:
+        """After every peer stopped and the backend was torn down (also after an error)."""
+
+
+class _Say(Hooks):
+    def __init__(self, progress: Progress) -> None:
+        self.progress = progress
+
+    def say(self, run: "ScenarioRun", message: str) -> None:
+        self.progress(message)
+
+
+class RecordTail:
+    """Read the complete JSON lines appended to a ``records.jsonl`` since last time."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._pos = 0
+        self._partial = b""
+        self.bad_lines = 0
+
+    def read_new(self) -> list[dict]:
+        try:
+            with open(self.path, "rb") as f:
+                f.seek(self._pos)
+                data = f.read()
+                self._pos = f.tell()
+        except FileNotFoundError:
+            return []
+        data = self._partial + data
+        lines = data.split(b"\n")
+        self._partial = lines.pop()  # an incomplete last line waits for its end
+        out = []
+        for ln in lines:
+            if not ln.strip():
+                continue
+            try:
+                out.append(json.loads(ln))
+            except json.JSONDecodeError:
+                self.bad_lines += 1
+                log.warning("%s: skipping a line that is not JSON: %.80r", self.path, ln)
+        return out
+
+
+class ScenarioRun:
+    """One run of a scenario on a backend: the steps :func:`run_scenario` calls in order.
+
+    Attributes a hook may read: ``scenario``, ``backend``, ``out_dir``, ``options``,
+    ``sup`` (the :class:`~scmr_mesh.fleet.procs.Supervisor`), ``names`` (peer -> the
+    name its current process runs under), ``applied`` (the faults as they took effect),
+    ``records`` (robot records read so far), ``t0_unix_ns``/``t0_mono`` (time 0, when
+    every robot was ready; None before).
+    """
+
+    def __init__(self, scenario: Scenario, *, backend: str, out_dir: Path, data_dir: Path | None,
+                 options: RunOptions, hooks: list[Hooks], ready_timeout: float, insecure: bool) -> None:
+        self.scenario = scenario
+        self.backend_name = backend
+        self.out_dir = Path(out_dir)
+        self.data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
+        self.options = options
+        self.hooks = hooks
+        self.ready_timeout = ready_timeout
+        self.insecure = insecure
+        self.be = None
+        self.sup = None
+        self.names: dict[str, str] = {}
+        self.starts: dict[str, int] = {}
+        self.handed: dict[str, list[str]] = {}
+        self.security: list[str] = []
+        self.images: dict[str, Path] = {}
+        self.applied = [AppliedFault(i, f) for i, f in enumerate(scenario.faults)]
+        self.notes: list[str] = []
+        self.records: list[dict[str, Any]] = []
+        self.tails: dict[str, RecordTail] = {}
+        self.t0_unix_ns: int | None = None
+        self.t0_mono: float | None = None
+        self.robots_started: int | None = None
+        self.robots_done_unix_ns: int | None = None
+        self.ended_mono: float | None = None
+        self.telemetry: dict[str, Any] | None = None
+        self.interrupted = False
+        self._warned: set[str] = set()
+
+    # ------------------------------------------------------------ hooks
+    def say(self, message: str) -> None:
+        for h in self.hooks:
+            h.say(self, message)
+
+    def _hook(self, what: str) -> None:
+        for h in self.hooks:
+            getattr(h, what)(self)
+
+    # ------------------------------------------------------------ state
+    def elapsed_s(self) -> float:
+        """Seconds since time 0 (0 before it)."""
+        return 0.0 if self.t0_mono is None else time.monotonic() - self.t0_mono
+
+    def proc(self, peer: str):
+        """The current process of ``peer`` (None before it started)."""
+        return self.sup.procs.get(self.names.get(peer, "")) if self.sup is not None else None
+
+    def up(self, peer: str) -> bool:
+        """Whether ``peer``'s current process runs and is ready."""
+        p = self.proc(peer)
+        return p is not None and p.alive() and p.is_ready()
+
+    def leaders(self) -> list[str]:
+        """The nodes that lead now: from the candidates' role changes, less dead processes."""
+        from scmr_mesh.qos.leadership import read_events
+
+        leading: set[str] = set()
+        for e in read_events(self.out_dir / "leadership"):
+            (leading.add if e["event"] == "lead" else leading.discard)(e["node"])
+        dead = {self.scenario.node_of(p) for p in self.names if not (self.proc(p) and self.proc(p).alive())}
+        return sorted(leading - dead)
+
+    def spec_for(self, peer: str, *, remaining_s: float | None = None):
+        """The :class:`~scmr_mesh.fleet.procs.PeerSpec` of the next start of ``peer``."""
+        from scmr_mesh.fleet.procs import PeerSpec
+
+        n = self.starts[peer] = self.starts.get(peer, 0) + 1
+        be = self.be
+        cmd = peer_command(self.scenario, peer, run_dir=self.out_dir, listen=be.listen(peer),
+                           connect=be.connect(peer), extra_cfg=be.extra_cfg(peer), security=self.security,
+                           options=self.options, images=self.images, start=n, remaining_s=remaining_s)
+        cmd.ready_file.parent.mkdir(parents=True, exist_ok=True)
+        self.handed[cmd.name if self.options.restart_renames or n == 1 else f"{cmd.name}-{n}"] = \
+            list(cmd.argv[3 + self.options.verbose:])  # what each peer was told (peers.json)
+        if self.scenario.role(peer) == "robot" and cmd.name not in self.tails:
+            self.tails[cmd.name] = RecordTail(self.out_dir / "robots" / cmd.name / "records.jsonl")
+        env = {"SCMR_SCENARIO_SEED": str(self.scenario.seed)}
+        return PeerSpec(cmd.name, be.wrap(peer, list(cmd.argv)), log_path=cmd.log_path,
+                        ready_file=cmd.ready_file, env=env)
+
+    def start_peer(self, peer: str, *, remaining_s: float | None = None):
+        spec = self.spec_for(peer, remaining_s=remaining_s)
+        proc = self.sup.start(spec)
+        self.names[peer] = spec.name
+        return proc
+
+    # ------------------------------------------------------------ steps
+    def prepare(self) -> None:
+        """The run folder, image links, the backend and the hooks' setup."""
+        check_out_dir(self.out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        sc = self.scenario
+        self.images = {r.id: _image_dir(sc, r.image_set, self.data_dir, self.out_dir, r.id)
+                       for r in sc.robots if r.image_set}
+        self.be = _make_backend(sc, self.backend_name)
+        self._hook("setup")
+
+    def start(self) -> None:
+        """Set up the backend, start the servers, then the robots, each waited ready; write time 0."""
+        from scmr_mesh.fleet.procs import Supervisor
+
+        sc, be = self.scenario, self.be
+        self.sup = Supervisor(term_timeout=5.0)
+        rid = getattr(be, "run_id", "")
+        self.say(f"[{self.backend_name}] setting up {len(sc.peers)} peers, {len(sc.links)} links"
+                 + (f" (namespaces scmrs-{rid}-*)" if rid else ""))
+        be.setup()
+        self.security[:] = _security(sc, be, self.out_dir, self.insecure)
+        servers = [p.name for p in sc.peers if p.role != "robot"]
+        for p in servers:
+            self.start_peer(p)
+        self.sup.wait_ready([self.names[p] for p in servers], timeout=self.ready_timeout)
+        self.say(f"servers ready: {', '.join(servers)}; starting {len(sc.robots)} robots")
+        self.robots_started = time.time_ns()
+        for r in sc.robots:
+            self.start_peer(r.id)
+        self.sup.wait_ready([self.names[r.id] for r in sc.robots], timeout=self.ready_timeout)
+        self.t0_unix_ns = time.time_ns()
+        self.t0_mono = time.monotonic()
+        (self.out_dir / "ready" / self.options.start_file).write_text(f"{self.t0_unix_ns}\n")
+        self.say(f"robots ready; run of {sc.duration_s:g}s starts (seed {sc.seed})")
+
+    def play(self) -> None:
+        """Apply the timeline's events when due, then wait for the robots to finish."""
+        sc = self.scenario
+        for batch in _batches(compile_timeline(sc)):
+            self.wait_until(self.t0_mono + batch[0].at_s)
+            if batch[0].op == "kill" and batch[0].target[0] == WHOEVER_LEADS:
+                batch = self._resolve_leader(batch)
+                if batch is None:
+                    continue
+            _apply_batch(batch, self.be, self.sup, self.names, self.applied, self._restart_spec, sc,
+                         self.t0_mono, lambda m: self.say(m))
+        self.wait_until(self.t0_mono + sc.duration_s)
+        self.say("duration over; waiting for robots to finish")
+        grace = 30.0 + 2.0 * sc.lease_ms / 1000 + max((r.deadline_ms or 0) for r in sc.robots) / 1000
+        deadline = time.monotonic() + grace
+        while time.monotonic() < deadline and any(self.proc(r.id).alive() for r in sc.robots):
+            self.wait_until(time.monotonic() + 0.05)
+        late = [self.names[r.id] for r in sc.robots if self.proc(r.id).alive()]
+        if late:
+            self.notes.append(f"robots still running {grace:.0f} s after the end were stopped: {', '.join(late)}")
+        self.robots_done_unix_ns = time.time_ns()
+        self.await_restarts()
+
+    def await_restarts(self) -> None:
+        """Wait (up to the ready timeout) for a restarted peer still starting when the robots finished.
+
+        A cold start can take longer than the rest of the run on a busy box; a
+        restart is "never became ready" only when the peer exits or stays
+        unready for the ready timeout (docs/FLEET.md).
+        """
+        pending = [af for af in self.applied if af.restarted_all and af.ready_unix_ns is None]
+        if not pending:
+            return
+        self.say("waiting for the restarted peers to become ready")
+        deadline = time.monotonic() + self.ready_timeout
+        while time.monotonic() < deadline and any(
+                af.ready_unix_ns is None and any(self.sup.procs[n].alive() for n in af.restarted_all)
+                for af in pending):
+            self.wait_until(time.monotonic() + 0.05)
+
+    def stop(self) -> None:
+        """Stop the robots, count the data tier while the servers run, stop the rest, tear down."""
+        sc, sup = self.scenario, self.sup
+        try:
+            if sup is not None and sup.procs:
+                self.say("stopping")
+                sup.stop([self.names[r.id] for r in sc.robots if r.id in self.names], timeout=5.0)
+                self.read_records()
+                servers = [p.name for p in sc.peers if p.role != "robot"]
+                self.telemetry = _count_telemetry(self.out_dir, sc, sup, self.names, servers,
+                                                  ods=self.options.ods)
+        finally:
+            try:
+                if sup is not None:
+                    sup.stop_all(timeout=5.0)
+            finally:
+                try:
+                    if self.be is not None:
+                        self.be.teardown()
+                finally:
+                    self.ended_mono = time.monotonic()
+                    self._hook("stopped")
+
+    # ------------------------------------------------------------ helpers
+    def wait_until(self, t_mono: float) -> None:
+        """Until ``t_mono``: note restarted peers' ready times, read records, warn of exits, tick hooks."""
+        while True:
+            for af in self.applied:
+                if af.restarted_all and af.ready_unix_ns is None:
+                    ready = [self.sup.procs[n].ready_unix_ns for n in af.restarted_all
+                             if n in self.sup.procs and self.sup.procs[n].is_ready()]
+                    if ready:  # back with its first peer (a cloud tier: its first node)
+                        af.ready_unix_ns = min(ready)
+            for proc in self.sup.procs.values():
+                proc.is_ready()  # every (re)started peer's ready time, for the report
+            self.read_records()
+            self._warn_exits()
+            self._hook("tick")
+            left = t_mono - time.monotonic()
+            if left <= 0:
+                return
+            time.sleep(min(left, 0.05 if self.hooks else 0.02))
+
+    def read_records(self) -> None:
+        for tail in list(self.tails.values()):
+            self.records.extend(tail.read_new())
+
+    def _warn_exits(self) -> None:
+        killed = {n for af in self.applied if af.start_unix_ns is not None for n in af.killed}
+        for name, rc in self.sup.exited().items():
+            robot = any(name == self.names.get(r.id) for r in self.scenario.robots)
+            if name in self._warned or name in killed or (robot and rc == 0):
+                continue
+            self._warned.add(name)
+            log.warning("peer %s exited with status %s; see %s", name, rc, self.sup.procs[name].spec.log_path)
+
+    def _restart_spec(self, peer: str, *, remaining_s: float | None = None):
+        return self.spec_for(peer, remaining_s=remaining_s)
+
+    def _resolve_leader(self, batch: list[Event]) -> list[Event] | None:
+        """A crash of whoever leads: wait until someone does (to the end of the run), then name it."""
+        end = self.t0_mono + self.scenario.duration_s
+        while not self.leaders():
+            if time.monotonic() >= end:
+                self.notes.append(f"{self.scenario.faults[batch[0].fault].label}: nobody led; no crash")
+                return None
+            self.wait_until(time.monotonic() + 0.05)
+        node = self.leaders()[0]
+        peer = self.scenario.peer_of(node)
+        self.applied[batch[0].fault].resolved = peer
+        return [dataclasses.replace(ev, target=(peer,)) for ev in batch]
+
+    def result(self) -> RunResult:
+        notes = list(self.notes)
+        notes.extend(n for n in getattr(self.be, "notes", []) if n not in notes)
+        for af in self.applied:
+            notes.extend(n for n in af.notes if n not in notes)
+        records = read_run_records(self.out_dir / "robots")
+        (self.out_dir / "peers.json").write_text(json.dumps(self.handed, indent=1) + "\n")
+        sc, be = self.scenario, self.be
+        capable = set(sc.candidates)
+        topology = {p.name: {"role": p.role, "connect": be.connect_names(p.name), "leader_capable": p.name in capable,
+                             "capability": (sc.leader_capability if p.role == "leader" else
+                                            next((r.capability or r.profile for r in sc.robots if r.id == p.name
+                                                  and r.leader_capable), None))}
+                    for p in sc.peers}
+        sup = self.sup
+        peers = {} if sup is None else {
+            n: {"pid": p.pid, "log": str(p.spec.log_path), "exit": p.popen.returncode,
+                "started_unix_ns": p.started_unix_ns, "ready_unix_ns": p.ready_unix_ns}
+            for n, p in sup.procs.items()}
+        ended = {}
+        for name, p in ({} if sup is None else sup.procs).items():  # a killed candidate writes no step_down
+            kills = [t for sig, t in p.signalled if sig == signal.SIGKILL]
+            if kills:
+                ended[sc.node_of(name)] = kills[0]
+        return RunResult(scenario=sc, backend=self.backend_name, out_dir=self.out_dir,
+                         t0_unix_ns=self.t0_unix_ns or time.time_ns(), records=records,
+                         faults=self.applied, notes=notes, run_id=getattr(be, "run_id", ""),
+                         robots_started_unix_ns=self.robots_started,
+                         peer_logs={n: str(self.out_dir / "logs" / f"{n}.log") for n in self.names.values()},
+                         telemetry=self.telemetry, topology=topology, peers=peers, killed_unix_ns=ended,
+                         interrupted=self.interrupted, insecure=self.insecure,
+                         wall_s=None if self.ended_mono is None or self.t0_mono is None
+                         else round(self.ended_mono - self.t0_mono, 3))
 
 
 def run_scenario(
@@ -212,13 +593,16 @@ def run_scenario(
     ready_timeout: float = 120.0,
     python: str = sys.executable,
     insecure: bool = False,
+    options: RunOptions | None = None,
+    hooks: Sequence[Hooks] = (),
+    keep_interrupted: bool = False,
 ) -> RunResult:
     """Run ``scenario`` once and return its records and fault times.
 
     Parameters
     ----------
     scenario : Scenario
-    backend : {"netns", "proxy"}, keyword-only
+    backend : {"netns", "proxy", "loopback"}, keyword-only
     out_dir : Path, keyword-only
         Peer logs, robot records and image links go here.
     data_dir : Path, keyword-only
@@ -232,6 +616,13 @@ def run_scenario(
         certificate per peer (valid for every address a peer listens on, so links that
         gossip finds pass name verification) are made in ``OUT/certs`` and every peer
         runs mutual TLS with the fleet's access rules.
+    options : RunOptions, keyword-only
+        How peers are started (``scmr up`` passes its own; default the scenario runner's).
+    hooks : sequence of Hooks, keyword-only
+        Progress, rerun, data store... (see :class:`Hooks`).
+    keep_interrupted : bool, keyword-only
+        Ctrl-C/SIGTERM after time 0 stops the run and returns what it has
+        (``interrupted`` True) instead of raising ``KeyboardInterrupt``.
 
     Raises
     ------
@@ -239,156 +630,63 @@ def run_scenario(
         Setup failed or a peer did not start (message names it, with its log tail).
     """
     from scmr_mesh.errors import MeshError
-    from scmr_mesh.fleet.procs import PeerSpec, Supervisor, signals_to_interrupt
+    from scmr_mesh.fleet.procs import signals_to_interrupt
 
-    say = progress or (lambda m: log.info("%s", m))
-    out_dir = Path(out_dir)
-    check_out_dir(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    data_dir = Path(data_dir) if data_dir is not None else default_data_dir()
-    images = {r.id: _image_dir(scenario, r.image_set, data_dir, out_dir, r.id)
-              for r in scenario.robots if r.image_set}
-    events = compile_timeline(scenario)
-    applied = [AppliedFault(i, f) for i, f in enumerate(scenario.faults)]
-    be = _make_backend(scenario, backend)
-    notes: list[str] = []
-    base = [python, "-m", "scmr_mesh"]
-    starts: dict[str, int] = {}
-    handed: dict[str, list[str]] = {}
-    security: list[str] = []
-
-    def common(peer: str) -> list[str]:
-        a: list[str] = list(security)
-        for ep in be.listen(peer):
-            a += ["--listen", ep]
-        for ep in be.connect(peer):
-            a += ["--connect", ep]
-        a += ["--lease-ms", str(scenario.lease_ms)]
-        for c in be.extra_cfg(peer):
-            a += ["--cfg", c]
-        return a
-
-    # written at t0 (every robot ready); robots send from then on, each at a phase of its own
-    start_file = out_dir / "ready" / "run.start"
-
-    def spec_for(peer: str, *, remaining_s: float | None = None) -> PeerSpec:
-        role = scenario.role(peer)
-        n = starts[peer] = starts.get(peer, 0) + 1
-        suffix = "" if n == 1 else f"-{n}"
-        ready = out_dir / "ready" / f"{peer}{suffix}"
-        ready.parent.mkdir(parents=True, exist_ok=True)
-        if role in ("cloud", "leader"):
-            argv = base + [role, "--node", peer] + common(peer)
-            if role == "leader":
-                argv += ["--capability", scenario.leader_capability]
-            if scenario.process:
-                argv += ["--process", scenario.process]
-        else:
-            r = next(x for x in scenario.robots if x.id == peer)
-            argv = base + ["robot", "--id", peer]
-            argv += ["--images", str(images[peer])] if r.image_set else ["--synthetic", r.synthetic or "road"]
-            dur = scenario.duration_s if remaining_s is None else max(0.5, remaining_s)
-            argv += ["--rate", f"{r.rate_hz:g}", "--duration", f"{dur:g}",
-                     "--out", str(out_dir / "robots" / f"{peer}{suffix}")]
-            if r.energy_placement:
-                if not r.profile:
-                    raise ConfigError(f"scenario {scenario.source}: field 'fleet.robots' ({peer}): energy_placement "
-                                      "needs a profile; add profile = \"robot1\" (Table 4.3) or similar")
-                argv += ["--profile", r.profile]
-            if r.deadline_ms is not None:
-                argv += ["--deadline-ms", str(r.deadline_ms)]
-            if not r.local_fallback:
-                argv += ["--no-local-fallback"]
-            if r.leader_capable:
-                argv += ["--leader-capable"]
-                if r.capability:
-                    argv += ["--capability", r.capability]
-                elif r.profile:
-                    argv += ["--capability", r.profile]
-            if scenario.process:
-                argv += ["--process", scenario.process]
-            argv += ["--seed", str(scenario.seed), "--quiet", "--start-file", str(start_file)]
-            argv += common(peer)
-        argv += ["--ready-file", str(ready)]
-        handed[peer + suffix] = argv[len(base):]  # what each peer was told (checked by tests; peers.json)
-        env = {"SCMR_SCENARIO_SEED": str(scenario.seed)}
-        return PeerSpec(peer + suffix, be.wrap(peer, argv), log_path=out_dir / "logs" / f"{peer}{suffix}.log",
-                        ready_file=ready, env=env)
-
-    t0 = time.time_ns()
-    sup = Supervisor(term_timeout=5.0)
-    names: dict[str, str] = {}
-    telemetry = None
-    robots_started: int | None = None
+    options = options or RunOptions(python=python)
+    run = ScenarioRun(scenario, backend=backend, out_dir=out_dir, data_dir=data_dir, options=options,
+                      hooks=([_Say(progress)] if progress else [_Say(lambda m: log.info("%s", m))]) + list(hooks),
+                      ready_timeout=ready_timeout, insecure=insecure)
     with signals_to_interrupt():
         try:
-            rid = getattr(be, "run_id", "")
-            say(f"[{backend}] setting up {len(scenario.peers)} peers, {len(scenario.links)} links"
-                + (f" (namespaces scmrs-{rid}-*)" if rid else ""))
-            be.setup()
-            security[:] = _security(scenario, be, out_dir, insecure)
-            servers = [p.name for p in scenario.peers if p.role != "robot"]
-            for p in servers:
-                spec = spec_for(p)
-                sup.start(spec)
-                names[p] = spec.name
-            sup.wait_ready([names[p] for p in servers], timeout=ready_timeout)
-            say(f"servers ready: {', '.join(servers)}; starting {len(scenario.robots)} robots")
-            robots_started = time.time_ns()
-            for r in scenario.robots:
-                spec = spec_for(r.id)
-                sup.start(spec)
-                names[r.id] = spec.name
-            sup.wait_ready([names[r.id] for r in scenario.robots], timeout=ready_timeout)
-            t0 = time.time_ns()
-            t0_mono = time.monotonic()
-            start_file.write_text(f"{t0}\n")
-            say(f"robots ready; run of {scenario.duration_s:g}s starts (seed {scenario.seed})")
-            for batch in _batches(events):
-                delay = t0_mono + batch[0].at_s - time.monotonic()
-                if delay > 0:
-                    _sleep_watching(delay, sup, applied, names)
-                _apply_batch(batch, be, sup, names, applied, spec_for, scenario, t0_mono, say)
-            left = t0_mono + scenario.duration_s - time.monotonic()
-            if left > 0:
-                _sleep_watching(left, sup, applied, names)
-            say("duration over; waiting for robots to finish")
-            deadline = time.monotonic() + 30.0 + 2.0 * scenario.lease_ms / 1000
-            robot_procs = [sup.procs[names[r.id]] for r in scenario.robots]
-            while time.monotonic() < deadline and any(p.alive() for p in robot_procs):
-                _sleep_watching(0.1, sup, applied, names)
-            late = [p.name for p in robot_procs if p.alive()]
-            if late:
-                notes.append(f"robots still running 30 s after the end were stopped: {', '.join(late)}")
-            telemetry = _count_telemetry(out_dir, scenario, sup, names, servers)
+            run.prepare()
+            run.start()
+            run.play()
+        except KeyboardInterrupt:
+            if not keep_interrupted or run.t0_unix_ns is None:
+                _stop_quietly(run)
+                raise
+            run.interrupted = True
+            log.warning("interrupted: stopping the run")
         except MeshError as exc:
+            _stop_quietly(run)
             raise ScenarioError(f"scenario {scenario.name}: {exc}") from None
-        finally:
-            try:
-                sup.stop_all(timeout=5.0)
-            finally:
-                be.teardown()
-    notes.extend(be.notes)
-    for af in applied:
-        notes.extend(n for n in af.notes if n not in notes)
-    records = read_run_records(out_dir / "robots")
-    (out_dir / "peers.json").write_text(json.dumps(handed, indent=1) + "\n")
-    say(f"done: {len(records)} requests recorded")
-    capable = set(scenario.candidates)
-    topology = {p.name: {"role": p.role, "connect": be.connect_names(p.name), "leader_capable": p.name in capable,
-                         "capability": (scenario.leader_capability if p.role == "leader" else
-                                        next((r.capability or r.profile for r in scenario.robots if r.id == p.name
-                                              and r.leader_capable), None))}
-                for p in scenario.peers}
-    return RunResult(scenario=scenario, backend=backend, out_dir=out_dir, t0_unix_ns=t0, records=records,
-                     faults=applied, notes=notes, run_id=getattr(be, "run_id", ""),
-                     robots_started_unix_ns=robots_started,
-                     peer_logs={n: str(out_dir / "logs" / f"{n}.log") for n in names.values()},
-                     telemetry=telemetry, topology=topology)
+        except BaseException:
+            _stop_quietly(run)
+            raise
+        _stop_quietly(run)
+    res = run.result()
+    run.say(f"done: {len(res.records)} requests recorded")
+    return res
+
+
+def _stop_quietly(run: ScenarioRun) -> None:
+    """``run.stop()`` once, with Ctrl-C/SIGTERM ignored while the peers are stopped."""
+    if getattr(run, "_stopped", False):
+        return
+    run._stopped = True
+    old = _ignore_interrupts()
+    try:
+        run.stop()
+    finally:
+        _restore_interrupts(old)
+
+
+def _ignore_interrupts():
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return (signal.signal(signal.SIGINT, signal.SIG_IGN), signal.signal(signal.SIGTERM, signal.SIG_IGN))
+
+
+def _restore_interrupts(old) -> None:
+    if old is not None:
+        signal.signal(signal.SIGINT, old[0])
+        signal.signal(signal.SIGTERM, old[1])
 
 
 def _count_telemetry(out_dir: Path, scenario: Scenario, sup, names: dict[str, str],
-                     servers: list[str]) -> dict[str, Any] | None:
+                     servers: list[str], *, ods: str | None = None) -> dict[str, Any] | None:
     """The data tier's telemetry count, taken while the servers still run; saved as ``telemetry.json``.
 
     The peers' run dir is ``out_dir`` (their ready files are in ``out_dir/ready``), so the
@@ -398,7 +696,7 @@ def _count_telemetry(out_dir: Path, scenario: Scenario, sup, names: dict[str, st
     from scmr_mesh.data.report import fleet_telemetry
 
     alive = any(names.get(p) in sup.procs and sup.procs[names[p]].alive() for p in servers)
-    tel = fleet_telemetry(out_dir, [r.id for r in scenario.robots], wait=alive)
+    tel = fleet_telemetry(out_dir, [r.id for r in scenario.robots], wait=alive, ods=ods)
     if tel is not None:
         (out_dir / "telemetry.json").write_text(json.dumps(tel, indent=2) + "\n")
     return tel
@@ -443,6 +741,7 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
     t_before = time.time_ns()
     if ev0.op == "kill":
         t_before = sup.kill(names[ev0.target[0]])
+        applied[ev0.fault].killed.append(names[ev0.target[0]])
         t_after = t_before
         say(f"t={time.monotonic() - t0_mono:5.2f}s  SIGKILL {ev0.target[0]}")
     elif ev0.op == "start":
@@ -451,7 +750,9 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
         spec = spec_for(peer, remaining_s=remaining)
         proc = sup.start(spec)
         names[peer] = spec.name
-        applied[ev0.fault].restarted = spec.name
+        af0 = applied[ev0.fault]
+        af0.restarted = af0.restarted or spec.name
+        af0.restarted_all.append(spec.name)
         t_after = proc.started_unix_ns
         say(f"t={time.monotonic() - t0_mono:5.2f}s  restart {peer}")
     else:
@@ -469,7 +770,8 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
             # it held past their own lift (plan.Event.ends) end with it, or not at all
             if ev.at_s < scenario.duration_s or (af.fault.end_s is not None and af.fault.end_s <= scenario.duration_s):
                 for k in (ev.fault, *ev.ends):
-                    applied[k].end_unix_ns = t_after
+                    if applied[k].end_unix_ns is None:  # a tier of several peers is back with the first
+                        applied[k].end_unix_ns = t_after
         elif af.start_unix_ns is None:
             af.start_unix_ns = t_before
 

@@ -40,6 +40,7 @@ import tomllib
 from scmr_mesh.errors import ConfigError
 
 __all__ = [
+    "WHOEVER_LEADS",
     "Expectation",
     "Fault",
     "PeerSpec",
@@ -53,6 +54,9 @@ __all__ = [
 
 #: The JSON schema every scenario file is validated against.
 SCHEMA_PATH = Path(__file__).resolve().parents[2] / "schemas" / "scenario.schema.json"
+
+#: The target of a crash of whichever node leads when the crash is due.
+WHOEVER_LEADS = "@leader"
 
 #: Fault verbs, and the verb that lifts each one (used in plans and reports).
 FAULT_KINDS: dict[str, str] = {
@@ -92,6 +96,8 @@ class RobotSpec:
     leader_capable: bool = False
     capability: str | None = None
     bootstrap: str | None = None
+    #: A folder of images the robot sends in turn (``scmr up --images DIR``), instead of an image set.
+    images: str | None = None
 
 
 @dataclass(frozen=True)
@@ -100,6 +106,13 @@ class Fault:
 
     ``at_s`` is when it starts (seconds after the robots start), ``for_s`` how
     long it lasts (``None``: until the end of the run).
+
+    A crash names one ``peer``, or several in ``peers`` crashed together (a
+    whole cloud tier: ``scmr up --cloud-outage``), or :data:`WHOEVER_LEADS`:
+    the node that leads when the crash is due (``scmr up --leader-crash``).
+    ``restart`` False: a crashed peer without ``for_s`` stays down after the
+    run too (by default the end of the run restarts it, so the data tier can
+    drain).
     """
 
     kind: str
@@ -111,6 +124,15 @@ class Fault:
     rate_kbit: int | None = None
     delay_ms: float | None = None
     percent: float | None = None
+    peers: tuple[str, ...] | None = None
+    restart: bool = True
+
+    @property
+    def crashed(self) -> tuple[str, ...]:
+        """The peers a crash fault kills (``()`` for other kinds)."""
+        if self.kind != "crash":
+            return ()
+        return tuple(self.peers) if self.peers else ((self.peer,) if self.peer else ())
 
     @property
     def end_s(self) -> float | None:
@@ -125,7 +147,7 @@ class Fault:
         elif self.groups:
             what = " | ".join(",".join(g) for g in self.groups)
         else:
-            what = self.peer or ""
+            what = ",".join(self.crashed) or self.peer or ""
         extra = ""
         if self.rate_kbit is not None:
             extra = f" {self.rate_kbit} kbit/s"
@@ -182,6 +204,20 @@ class Scenario:
     bootstraps: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     leader_capability: str = "leader"
     explicit_links: bool = False
+    #: The ``--node`` name of a peer when it differs from the peer's name (``scmr up``'s
+    #: ``cloud`` runs node ``cloud0``, its ``leader`` node ``leader0``); reports name nodes.
+    node_names: Mapping[str, str] = field(default_factory=dict)
+
+    def node_of(self, peer: str) -> str:
+        """The node name peer ``peer`` runs as (its ``--node``/``--id``)."""
+        return self.node_names.get(peer, peer)
+
+    def peer_of(self, node: str) -> str:
+        """The peer that runs node ``node`` (inverse of :meth:`node_of`)."""
+        for p, n in self.node_names.items():
+            if n == node:
+                return p
+        return node
 
     @property
     def checked_expectations(self) -> tuple[Expectation, ...]:

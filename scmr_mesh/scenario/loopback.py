@@ -1,0 +1,77 @@
+"""The plain backend: every peer on loopback, direct endpoints, no link faults.
+
+What ``scmr up`` and ``scmr demo`` run on: each peer listens on its own
+``tcp/127.0.0.1:<port>`` and is handed its bootstrap's endpoint; gossip
+scouting links the rest, as on real hosts.  Process faults (crashes and
+restarts) are the runner's and work here; a scenario that cuts or shapes links
+is refused with one line naming the fault and the backends that can.
+"""
+
+from __future__ import annotations
+
+import socket
+from typing import Sequence
+
+from scmr_mesh.errors import ScenarioError
+from scmr_mesh.scenario.plan import Event
+from scmr_mesh.scenario.spec import Scenario
+
+__all__ = ["LoopbackBackend", "free_ports"]
+
+
+def free_ports(names: Sequence[str], host: str = "127.0.0.1") -> dict[str, int]:
+    """One free TCP port per name, all distinct (every socket is held open until all are bound)."""
+    socks, ports = [], {}
+    try:
+        for n in names:
+            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            s.bind((host, 0))
+            socks.append(s)
+            ports[n] = s.getsockname()[1]
+    finally:
+        for s in socks:
+            s.close()
+    return ports
+
+
+class LoopbackBackend:
+    """Direct loopback endpoints; crash faults only (see the module docstring)."""
+
+    name = "loopback"
+
+    def __init__(self, scenario: Scenario) -> None:
+        link = next((f for f in scenario.faults if f.kind != "crash"), None)
+        if link is not None:
+            raise ScenarioError(
+                f"scenario {scenario.name}: the loopback backend cannot cut or shape links "
+                f"({link.label}); run it with --backend netns (root) or --backend proxy")
+        self.scenario = scenario
+        self.ports = free_ports(scenario.peer_names)
+        self.notes: list[str] = []
+
+    def setup(self) -> None:
+        pass
+
+    def teardown(self) -> None:
+        pass
+
+    def wrap(self, peer: str, argv: Sequence[str]) -> list[str]:
+        return list(argv)
+
+    def endpoint(self, peer: str) -> str:
+        return f"tcp/127.0.0.1:{self.ports[peer]}"
+
+    def listen(self, peer: str) -> list[str]:
+        return [self.endpoint(peer)]
+
+    def connect(self, peer: str) -> list[str]:
+        return [self.endpoint(b) for b in self.scenario.bootstraps.get(peer, ())]
+
+    def connect_names(self, peer: str) -> list[str]:
+        return list(self.scenario.bootstraps.get(peer, ()))
+
+    def extra_cfg(self, peer: str) -> list[str]:
+        return []
+
+    def apply_many(self, events: Sequence[Event]) -> list[str]:
+        raise ScenarioError(f"the loopback backend cannot apply {events[0].op} (only crashes and restarts)")
