@@ -243,7 +243,7 @@ def add_scenario(bench: argparse._SubParsersAction) -> None:
                           "gaps and ToR, and the RoR of each run.")
     bs.add_argument("file", type=ca.PathArg("in-file", what="a scenario TOML file", example="peers/scenarios/cloud-crash.toml"), nargs="?", default="peers/scenarios/cloud-link-drop.toml", help="scenario TOML file")
     bs.add_argument("--runs", type=ca.count("runs", hi=1000), default=3, help="number of runs (default 3)")
-    bs.add_argument("--backend", choices=["auto", "netns", "proxy"], default="auto", help="as for scenario run")
+    bs.add_argument("--backend", choices=["auto", "netns", "proxy", "loopback"], default="auto", help="as for scenario run")
     bs.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", help="run folders go here (default runs/bench-scenario-...)")
     bs.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
     bs.add_argument("--data", metavar="DIR", type=ca.PathArg("in-dir", as_path=True), default=None, help="image folder (as for scenario run)")

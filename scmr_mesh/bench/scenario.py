@@ -16,7 +16,7 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
 
     from scmr_mesh.qos.metrics import percentile
     from scmr_mesh.scenario.commands import _auto_backend, _err, _out, _with_overrides
-    from scmr_mesh.scenario.report import build_report, write_report
+    from scmr_mesh.scenario.report import request_rows, run_report, write_report
     from scmr_mesh.scenario.runner import check_out_dir, run_scenario
     from scmr_mesh.scenario.spec import load_scenario
 
@@ -34,15 +34,13 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
         res = run_scenario(sc, backend=backend, out_dir=base / f"run{i + 1}", data_dir=args.data,
                            progress=lambda m: _err(f"  {m}"), ready_timeout=args.ready_timeout,
                            insecure=args.insecure)
-        rep = build_report(sc, res.records, res.metric_faults(), t0_unix_ns=res.t0_unix_ns, backend=backend,
-                           notes=res.notes, telemetry=res.telemetry, leadership=res.leadership(),
-                           topology=res.topology)
+        rep = run_report(res)
         write_report(rep, base / f"run{i + 1}")
         runs.append(rep)
     over = [g for r in runs for f in r["faults"] for g in (f["failover_by_robot"] or {}).values() if g is not None]
     over_max = [f["failover_gap_ms"] for r in runs for f in r["faults"] if f["failover_by_robot"]]
     back = [f["failback_gap_ms"] for r in runs for f in r["faults"] if f["tier"] and f["ended_at_s"] is not None]
-    tors = [q["tor_ms"] for r in runs for q in r["requests"] if q["ok"] and q["tor_ms"] is not None]
+    tors = [q["tor_ms"] for r in runs for q in request_rows(r) if q["ok"] and q["tor_ms"] is not None]
 
     def stats(xs):
         xs = [x for x in xs if x is not None]

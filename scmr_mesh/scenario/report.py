@@ -276,6 +276,15 @@ def build_report(
     }
 
 
+def request_rows(report: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    """One row per request: ``request_log`` of a run report (whose ``requests`` is the count), or
+    ``requests`` of :func:`build_report`'s view."""
+    rows = report.get("request_log")
+    if rows is None:
+        rows = report.get("requests")
+    return list(rows) if isinstance(rows, list) else []
+
+
 def _fmt(v: Any, nd: int = 1) -> str:
     if v is None:
         return "-"
@@ -380,7 +389,7 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
         L += ["## Beside the thesis (Table 4.2)", "",
               "| robot | thesis images | thesis mean bytes | thesis cloud ToR p50 ms | thesis leader p50 ms | "
               "our ToR p50 ms | our cloud p50 ms | our leader p50 ms |", "|---|---|---|---|---|---|---|---|"]
-        recs = report["requests"]
+        recs = request_rows(report)
         from scmr_mesh.qos.metrics import tor_summary
 
         for rid, t in report["thesis"].items():
@@ -407,7 +416,7 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
         L += ["## Plots", ""] + [f"![{Path(p).stem}]({Path(p).name})" for p in plots] + [""]
     L += ["## Requests", "", "| robot | seq | image | bytes up | bytes down | sent s | ToR ms | ok | tier | served by |",
           "|---|---|---|---|---|---|---|---|---|---|"]
-    for r in report["requests"]:
+    for r in request_rows(report):
         L.append(f"| {r['robot']} | {_fmt(r['seq'])} | {_fmt(r['image'])} | {_fmt(r['bytes_up'])} | "
                  f"{_fmt(r['bytes_down'])} | {_fmt(r.get('sent_s'), 3)} | {_fmt(r['tor_ms'])} | {_fmt(r['ok'])} | "
                  f"{_fmt(r['tier'])} | {_fmt(r['served_by'])} |")
@@ -470,7 +479,7 @@ def _legend(img) -> None:
 
 
 def _t_max(report: Mapping[str, Any]) -> float:
-    ts = [r.get("sent_s") or 0.0 for r in report["requests"]]
+    ts = [r.get("sent_s") or 0.0 for r in request_rows(report)]
     _T_MIN[0] = math.floor(min([0.0] + ts))
     return max([float(report["duration_s"])] + ts) * 1.02 + 0.1
 
@@ -496,7 +505,7 @@ def plot_tor(report: Mapping[str, Any], path: Path, records: Sequence[Mapping[st
 
     from scmr_mesh.qos import metrics
 
-    records = list(report.get("requests") or []) if records is None else list(records)
+    records = request_rows(report) if records is None else list(records)
     img = np.full((_H, _W, 3), 255, np.uint8)
     left, right, top, bottom = 60, 20, 40, 50
     sent = [int(r["sent_unix_ns"]) for r in records if r.get("sent_unix_ns") is not None]
@@ -576,12 +585,12 @@ def plot_tiers(report: Mapping[str, Any], path: Path) -> Path:
     t_max = _t_max(report)
     _axes(img, t_max, report["faults"])
     _legend(img)
-    robots = sorted({str(r.get("robot")) for r in report["requests"]}) or ["-"]
+    robots = sorted({str(r.get("robot")) for r in request_rows(report)}) or ["-"]
     band = (_H - _MB - _MT) / len(robots)
     for i, rid in enumerate(robots):
         yc = int(_MT + band * (i + 0.5))
         cv2.putText(img, rid, (4, yc + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-        for r in report["requests"]:
+        for r in request_rows(report):
             if str(r.get("robot")) != rid or r.get("sent_s") is None:
                 continue
             tier = (r.get("tier") or "unknown") if r.get("ok") else "failed"
@@ -665,8 +674,8 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
     peers = report.get("peers") or {}
     topo = report.get("topology") or {}
     for f in report.get("faults") or []:
-        if f.get("end_unix_ns") is None:
-            continue
+        if f.get("kind") != "crash" or f.get("end_unix_ns") is None:
+            continue  # only a crash restarts a peer (its end is the restart)
         names = list(f.get("restarted") or [])
         if not names:  # the restarted peers: every cloud node for a cloud-tier crash
             names = ([n for n in peers if (topo.get(n) or {}).get("role") == "cloud" or n.startswith("cloud")]
@@ -726,7 +735,7 @@ def run_report(res: Any, *, thesis_csv: Path | None = None, extra: Mapping[str, 
     from scmr_mesh.qos import metrics
 
     sc = res.scenario
-    faults = res.metric_faults()
+    faults = res.fault_records()
     leadership = res.leadership()
     view = build_report(sc, res.records, faults, t0_unix_ns=res.t0_unix_ns, backend=res.backend, notes=res.notes,
                         thesis_csv=thesis_csv, telemetry=res.telemetry, leadership=leadership,
@@ -741,6 +750,7 @@ def run_report(res: Any, *, thesis_csv: Path | None = None, extra: Mapping[str, 
             f["restart_to_ready_ms"] = (f["ready_unix_ns"] - f["end_unix_ns"]) / 1e6
             f["failback_after_ready_ms"] = metrics.failback_gap_ms(res.records, {**f, "end_unix_ns": f["ready_unix_ns"]})
     rates = {r.rate_hz for r in sc.robots}
+    view["request_log"] = view.pop("requests")  # the core's "requests" is the count
     report: dict[str, Any] = {"v": 1, "kind": "report", **view, **core}
     report.update({
         "rate_hz": rates.pop() if len(rates) == 1 else None,

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from scmr_mesh.errors import ConfigError, ScenarioError
+from scmr_mesh.qos.faults import FaultRecord
 from scmr_mesh.scenario.plan import Event, RunOptions, affected_pairs, compile_timeline, peer_command
 from scmr_mesh.scenario.spec import WHOEVER_LEADS, Fault, Scenario
 
@@ -120,21 +121,25 @@ class RunResult:
         """The ``leadership`` block from the candidates' role changes (``out_dir/leadership``)."""
         from scmr_mesh.qos.leadership import leadership, read_events
 
-        faults = [{**f, "peer": af.resolved or af.fault.peer, "groups": af.fault.groups}
-                  for f, af in zip(self.metric_faults(), self.faults)]
+        faults = [dataclasses.replace(f, peer=af.resolved or af.fault.peer, groups=af.fault.groups)
+                  for f, af in zip(self.fault_records(), self.faults)]
         return leadership(read_events(self.out_dir / "leadership"), self.records, faults,
                           t0_unix_ns=self.t0_unix_ns, ended=self.killed_unix_ns,
                           # robots send for duration_s from about t0; the first graceful stop of a
                           # candidate (a robot finishing) also ends the window (qos.leadership)
                           end_unix_ns=self.t0_unix_ns + int(self.scenario.duration_s * 1e9))
 
+    def fault_records(self) -> list[FaultRecord]:
+        """The faults as they took effect (the one fault type metrics, leadership and reports read)."""
+        return fault_records(self.scenario, self.faults, self.t0_unix_ns)
+
     def metric_faults(self) -> list[dict[str, Any]]:
-        """Faults as :func:`scmr_mesh.qos.metrics.summarize` takes them."""
-        return metric_faults(self.scenario, self.faults, self.t0_unix_ns)
+        """:meth:`fault_records` in their JSON form."""
+        return [f.as_dict() for f in self.fault_records()]
 
 
-def metric_faults(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_ns: int) -> list[dict[str, Any]]:
-    """The faults as they took effect, in the form metrics, leadership and reports read (pure).
+def fault_records(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_ns: int) -> list[FaultRecord]:
+    """The faults as they took effect: the :class:`~scmr_mesh.qos.faults.FaultRecord` s the engine emits (pure).
 
     ``target`` names nodes (``cloud0``; a link ``robot1-cloud``; a partition's
     groups); a crash of whoever leads names the node it hit and, in ``peer``,
@@ -148,19 +153,19 @@ def metric_faults(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_n
         crashed = [af.resolved or p for p in f.crashed]
         target = (",".join(scenario.node_of(p) for p in crashed) if crashed else
                   "-".join(f.link) if f.link else " | ".join(",".join(g) for g in f.groups or ()))
-        out.append({
-            "kind": f.kind, "target": target, "label": f.label, "tier": tier,
-            "link": list(f.link) if f.link else None,
-            "robots": robots, "at_s": f.at_s, "for_s": f.for_s,
-            **({"fallback": ["peer", "leader"]} if tier == "leader" else {}),
-            **({"peer": af.killed[0] if af.killed else str(af.resolved)} if af.resolved else {}),
-            "start_unix_ns": af.start_unix_ns if af.start_unix_ns is not None
-            else t0_unix_ns + int(f.at_s * 1e9),
-            "end_unix_ns": af.end_unix_ns, "notes": af.notes, "ready_unix_ns": af.ready_unix_ns,
-            **({"killed": list(af.killed)} if af.killed else {}),
-            **({"restarted": list(af.restarted_all)} if af.restarted_all else {}),
-        })
+        out.append(FaultRecord(
+            kind=f.kind, target=target, label=f.label, tier=tier, link=f.link, robots=robots,
+            at_s=f.at_s, for_s=f.for_s, fallback=("peer", "leader") if tier == "leader" else None,
+            peer=(af.killed[0] if af.killed else str(af.resolved)) if af.resolved else None,
+            start_unix_ns=af.start_unix_ns if af.start_unix_ns is not None else t0_unix_ns + int(f.at_s * 1e9),
+            end_unix_ns=af.end_unix_ns, ready_unix_ns=af.ready_unix_ns, notes=tuple(af.notes),
+            killed=tuple(af.killed), restarted=tuple(af.restarted_all)))
     return out
+
+
+def metric_faults(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_ns: int) -> list[dict[str, Any]]:
+    """:func:`fault_records` in their JSON form (``report.json``'s ``faults``, ``run.json``)."""
+    return [f.as_dict() for f in fault_records(scenario, applied, t0_unix_ns)]
 
 
 def _image_dir(scenario: Scenario, robot_set: str, data_dir: Path, out_dir: Path, robot: str) -> Path:
