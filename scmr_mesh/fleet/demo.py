@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from scmr_mesh import cliargs as ca
-from scmr_mesh.scenario.report import TIER_COLOURS
+from scmr_mesh.scenario.plots import TIER_COLOURS
 
 __all__ = ["register", "render_overlays", "render_timeline"]
 
@@ -161,7 +161,7 @@ def _load_records(out: Path) -> list[dict]:
 
 def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, Any], path: Path) -> None:
     """The demo's ``pictures/timeline.png``: the one ToR plot (:func:`scmr_mesh.scenario.report.plot_tor`)."""
-    from scmr_mesh.scenario.report import plot_tor
+    from scmr_mesh.scenario.plots import plot_tor
 
     plot_tor(report, path, records=records)
 

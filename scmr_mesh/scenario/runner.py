@@ -25,10 +25,13 @@ from typing import Any, Callable
 
 from scmr_mesh.errors import ConfigError, ScenarioError
 from scmr_mesh.qos.faults import FaultRecord
-from scmr_mesh.scenario.plan import Event, RunOptions, affected_pairs, compile_timeline, peer_command
-from scmr_mesh.scenario.spec import WHOEVER_LEADS, Fault, Scenario
+from scmr_mesh.scenario.faults import AppliedFault, fault_records, fault_tier, metric_faults
+from scmr_mesh.scenario.hooks import Hooks, RecordTail, Say
+from scmr_mesh.scenario.plan import Event, RunOptions, compile_timeline, peer_command
+from scmr_mesh.scenario.spec import WHOEVER_LEADS, Scenario
 
-__all__ = ["Hooks", "RecordTail", "RunResult", "ScenarioRun", "default_data_dir", "fault_tier", "run_scenario"]
+__all__ = ["AppliedFault", "Hooks", "RecordTail", "RunResult", "ScenarioRun", "default_data_dir", "fault_records",
+           "fault_tier", "metric_faults", "run_scenario"]
 
 log = logging.getLogger(__name__)
 
@@ -42,48 +45,6 @@ def default_data_dir() -> Path:
         return Path(env)
     shared = Path(os.environ.get("SCMR_SHARED", Path(__file__).resolve().parents[3] / "shared"))
     return shared / "data" / "roads"
-
-
-def fault_tier(scenario: Scenario, fault: Fault) -> tuple[str | None, list[str] | None]:
-    """Which serving tier ``fault`` takes away, and from which robots (pure).
-
-    Returns ``(tier, robots)`` in the form :mod:`scmr_mesh.qos.metrics` expects:
-    ``tier`` is ``"cloud"``, ``"leader"`` or ``None``; ``robots`` ``None``
-    means every robot.
-    """
-    robots = [r.id for r in scenario.robots]
-    if fault.kind == "crash":
-        crashed = set(fault.crashed)
-        if crashed == {WHOEVER_LEADS} or (scenario.leader and scenario.leader in crashed):
-            return "leader", None
-        if scenario.clouds and set(scenario.clouds) <= crashed:
-            return "cloud", None
-        return None, None  # a robot, or some of several cloud nodes: the others still serve
-    if fault.kind in ("link_down", "partition"):
-        pairs = set(affected_pairs(fault))
-        for tier, servers in (("cloud", scenario.clouds), ("leader", (scenario.leader,) if scenario.leader else ())):
-            if not servers:
-                continue
-            cut = [r for r in robots if all(tuple(sorted((r, s))) in pairs for s in servers)]
-            if cut:
-                return tier, (None if len(cut) == len(robots) else cut)
-    return None, None
-
-
-@dataclass
-class AppliedFault:
-    """When one fault really took effect (unix ns) and what was skipped."""
-
-    index: int
-    fault: Fault
-    start_unix_ns: int | None = None
-    end_unix_ns: int | None = None
-    restarted: str | None = None  # supervisor name of the (first) restarted process (crash faults)
-    ready_unix_ns: int | None = None  # when the (first) restarted peer wrote its ready file
-    notes: list[str] = field(default_factory=list)
-    killed: list[str] = field(default_factory=list)  # supervisor names this crash SIGKILLed
-    restarted_all: list[str] = field(default_factory=list)  # every restarted process (a cloud tier: each node)
-    resolved: str | None = None  # the peer a crash of whoever leads hit
 
 
 @dataclass
@@ -136,36 +97,6 @@ class RunResult:
     def metric_faults(self) -> list[dict[str, Any]]:
         """:meth:`fault_records` in their JSON form."""
         return [f.as_dict() for f in self.fault_records()]
-
-
-def fault_records(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_ns: int) -> list[FaultRecord]:
-    """The faults as they took effect: the :class:`~scmr_mesh.qos.faults.FaultRecord` s the engine emits (pure).
-
-    ``target`` names nodes (``cloud0``; a link ``robot1-cloud``; a partition's
-    groups); a crash of whoever leads names the node it hit and, in ``peer``,
-    its process; ``killed`` and ``restarted`` the processes a crash stopped and
-    started again.
-    """
-    out = []
-    for af in applied:
-        f = af.fault
-        tier, robots = fault_tier(scenario, f)
-        crashed = [af.resolved or p for p in f.crashed]
-        target = (",".join(scenario.node_of(p) for p in crashed) if crashed else
-                  "-".join(f.link) if f.link else " | ".join(",".join(g) for g in f.groups or ()))
-        out.append(FaultRecord(
-            kind=f.kind, target=target, label=f.label, tier=tier, link=f.link, robots=robots,
-            at_s=f.at_s, for_s=f.for_s, fallback=("peer", "leader") if tier == "leader" else None,
-            peer=(af.killed[0] if af.killed else str(af.resolved)) if af.resolved else None,
-            start_unix_ns=af.start_unix_ns if af.start_unix_ns is not None else t0_unix_ns + int(f.at_s * 1e9),
-            end_unix_ns=af.end_unix_ns, ready_unix_ns=af.ready_unix_ns, notes=tuple(af.notes),
-            killed=tuple(af.killed), restarted=tuple(af.restarted_all)))
-    return out
-
-
-def metric_faults(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_ns: int) -> list[dict[str, Any]]:
-    """:func:`fault_records` in their JSON form (``report.json``'s ``faults``, ``run.json``)."""
-    return [f.as_dict() for f in fault_records(scenario, applied, t0_unix_ns)]
 
 
 def _image_dir(scenario: Scenario, robot_set: str, data_dir: Path, out_dir: Path, robot: str) -> Path:
@@ -245,67 +176,6 @@ def _make_backend(scenario: Scenario, backend: str):
 
         return LoopbackBackend(scenario)
     raise ConfigError(f"backend must be netns, proxy or loopback, got {backend!r}")
-
-
-class Hooks:
-    """What a run tells the code around it (all no-ops here; override what you need).
-
-    ``scmr up`` and ``scmr demo`` hang their live progress line, the rerun
-    sink and the run's PostgreSQL server on these; ``scmr scenario run`` its
-    progress messages.  Each is called from the runner's (main) thread.
-    """
-
-    def setup(self, run: "ScenarioRun") -> None:
-        """Before any peer starts (the run folder exists; ``run.options`` may still be replaced)."""
-
-    def say(self, run: "ScenarioRun", message: str) -> None:
-        """A one-line progress message."""
-
-    def tick(self, run: "ScenarioRun") -> None:
-        """About every 50 ms from time 0 until the robots finish (``run.records`` is up to date)."""
-
-    def stopped(self, run: "ScenarioRun") -> None:
-        """After every peer stopped and the backend was torn down (also after an error)."""
-
-
-class _Say(Hooks):
-    def __init__(self, progress: Progress) -> None:
-        self.progress = progress
-
-    def say(self, run: "ScenarioRun", message: str) -> None:
-        self.progress(message)
-
-
-class RecordTail:
-    """Read the complete JSON lines appended to a ``records.jsonl`` since last time."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = Path(path)
-        self._pos = 0
-        self._partial = b""
-        self.bad_lines = 0
-
-    def read_new(self) -> list[dict]:
-        try:
-            with open(self.path, "rb") as f:
-                f.seek(self._pos)
-                data = f.read()
-                self._pos = f.tell()
-        except FileNotFoundError:
-            return []
-        data = self._partial + data
-        lines = data.split(b"\n")
-        self._partial = lines.pop()  # an incomplete last line waits for its end
-        out = []
-        for ln in lines:
-            if not ln.strip():
-                continue
-            try:
-                out.append(json.loads(ln))
-            except json.JSONDecodeError:
-                self.bad_lines += 1
-                log.warning("%s: skipping a line that is not JSON: %.80r", self.path, ln)
-        return out
 
 
 class ScenarioRun:
@@ -639,7 +509,7 @@ def run_scenario(
 
     options = options or RunOptions(python=python)
     run = ScenarioRun(scenario, backend=backend, out_dir=out_dir, data_dir=data_dir, options=options,
-                      hooks=([_Say(progress)] if progress else [_Say(lambda m: log.info("%s", m))]) + list(hooks),
+                      hooks=([Say(progress)] if progress else [Say(lambda m: log.info("%s", m))]) + list(hooks),
                       ready_timeout=ready_timeout, insecure=insecure)
     with signals_to_interrupt():
         try:
