@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.scenario.hooks import Hooks
 from scmr_mesh.scenario.plots import TIER_COLOURS
 
 __all__ = ["register", "render_overlays", "render_timeline"]
@@ -112,12 +113,8 @@ def run(args: argparse.Namespace) -> int:
           f"{' (INSECURE: no authentication)' if args.insecure else ', mutual TLS + access rules'} for {args.duration:g} s; "
           f"the cloud is killed at {config.cloud_outage[0]:g} s and restarted at {config.cloud_outage[1]:g} s"
           + (f"; the leader is killed at {crash:g} s" if crash is not None else ""), file=sys.stderr)
-    report = run_with_output(config, quiet=args.quiet)
-    records = _load_records(out)
     pics = out / "pictures"
-    pics.mkdir(exist_ok=True)
-    render_timeline(records, report, pics / "timeline.png")
-    render_overlays(records, report, out, pics / "overlays.png")
+    report = run_with_output(config, quiet=args.quiet, hooks=(DemoPictures(pics),))
     print(format_summary(report))
     print(f"""
 report:    {out / 'report.json'}
@@ -133,6 +130,18 @@ pictures:  {pics / 'timeline.png'}  (ToR per request over time, by serving tier)
     return check_fleet(report, 1.0)
 
 
+class DemoPictures(Hooks):
+    """The engine hook that draws the demo's pictures once the report is built."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+
+    def reported(self, result: Any, report: Mapping[str, Any]) -> None:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        render_timeline(result.records, report, self.folder / "timeline.png")
+        render_overlays(result.records, report, result.out_dir, self.folder / "overlays.png")
+
+
 def _rerun_options(args: argparse.Namespace, out: Path):
     """The demo records OUT/demo.rrd unless another rerun flag or --no-rerun is given."""
     from scmr_mesh.errors import InputError
@@ -144,19 +153,6 @@ def _rerun_options(args: argparse.Namespace, out: Path):
             raise InputError("--no-rerun cannot be combined with --save/--spawn/--serve/--connect; drop one")
         return None
     return opts or RerunOptions("save", str(out / "demo.rrd"), getattr(args, "rerun_recording_id", None))
-
-
-def _load_records(out: Path) -> list[dict]:
-    import json
-
-    recs = []
-    for f in sorted((out / "robots").glob("*/records.jsonl")):
-        for ln in f.read_text().splitlines():
-            try:
-                recs.append(json.loads(ln))
-            except json.JSONDecodeError:
-                continue
-    return recs
 
 
 def render_timeline(records: Sequence[Mapping[str, Any]], report: Mapping[str, Any], path: Path) -> None:

@@ -198,12 +198,13 @@ class _TermAsInterrupt:
         signal.signal(signal.SIGTERM, self._old)
 
 
-def run_with_output(config: FleetConfig, *, json_path: str | None = None, quiet: bool = False) -> dict:
-    """:func:`run_fleet` with progress on stderr; writes ``json_path`` if given."""
+def run_with_output(config: FleetConfig, *, json_path: str | None = None, quiet: bool = False,
+                    hooks: tuple = ()) -> dict:
+    """:func:`run_fleet` with progress on stderr; writes ``json_path`` if given; ``hooks`` go to the engine."""
     printer = _ProgressPrinter() if not quiet else None
     try:
         with _TermAsInterrupt():
-            report = run_fleet(config, progress=printer)
+            report = run_fleet(config, progress=printer, hooks=tuple(hooks))
     finally:
         if printer is not None:
             printer.close()

@@ -223,4 +223,6 @@ def run_fleet(
     import json
 
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    for h in hooks:
+        h.reported(res, report)
     return report

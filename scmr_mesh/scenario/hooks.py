@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from scmr_mesh.scenario.runner import ScenarioRun
@@ -40,6 +40,13 @@ class Hooks:
 
     def stopped(self, run: "ScenarioRun") -> None:
         """After every peer stopped and the backend was torn down (also after an error)."""
+
+    def reported(self, result: Any, report: Mapping[str, Any]) -> None:
+        """Once the run's report is built (``result``: the :class:`~scmr_mesh.scenario.runner.RunResult`).
+
+        Called by whoever builds the report (``run_fleet``, ``scmr scenario run``): the
+        demo draws its pictures here.
+        """
 
 
 class Say(Hooks):
