@@ -45,6 +45,10 @@ class LoopbackBackend:
             raise ScenarioError(
                 f"scenario {scenario.name}: the loopback backend cannot cut or shape links "
                 f"({link.label}); run it with --backend netns (root) or --backend proxy")
+        if scenario.radio is not None:
+            raise ScenarioError(
+                f"scenario {scenario.name}: the loopback backend cannot apply a radio topology (range_m, nodes); "
+                "run it with --backend netns (root) or --backend proxy")
         self.scenario = scenario
         self.ports = free_ports(scenario.peer_names)
         self.notes: list[str] = []

@@ -116,6 +116,8 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
         marks.append((f.at_s, 1, i, False))
         end = f.end_s if f.end_s is not None and f.end_s < scenario.duration_s else scenario.duration_s
         marks.append((end, 0, i, True))
+    radio = _radio_marks(scenario)
+    marks.extend((t, 2, RADIO, k) for k, (t, _, _) in enumerate(radio))  # (lift slot holds the change's index)
     marks.sort()
     blocks: dict[tuple[str, str], int] = {}
     shapes: dict[tuple[str, str], list[tuple[int, int]]] = {}
@@ -123,6 +125,21 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
     events: list[Event] = []
     held: dict[int, set[tuple[str, str]]] = {}  # lifted faults' cuts still held by another fault
     for at, _, i, lift in marks:
+        if i == RADIO:  # a pair goes out of / comes into radio range, or its bandwidth step changes
+            _, p, change = radio[lift]
+            if change in ("out", "in"):
+                n = blocks.get(p, 0)
+                blocks[p] = n + 1 if change == "out" else n - 1
+                if (change == "out" and n == 0) or (change == "in" and n == 1):
+                    events.append(Event(at, "block" if change == "out" else "unblock", p, fault=RADIO))
+            else:
+                active = shapes.setdefault(p, [])
+                before = min((r for _, r in active), default=None)
+                active[:] = [x for x in active if x[0] != RADIO] + ([(RADIO, change[1])] if change[1] else [])
+                after = min((r for _, r in active), default=None)
+                if after != before:
+                    events.append(Event(at, "shape", p, after, fault=RADIO))
+            continue
         f = scenario.faults[i]
         if f.kind in ("link_down", "partition"):
             still_cut: set[tuple[str, str]] = set()
@@ -178,6 +195,26 @@ def compile_timeline(scenario: Scenario) -> list[Event]:
             if after_n != before_n:
                 events.append(Event(at, "netem", link, after_n, fault=i, lift=lift))
     return events
+
+
+#: ``Event.fault`` of the events a radio topology causes (not a fault of the timeline).
+RADIO = -1
+
+
+def _radio_marks(scenario: Scenario) -> list[tuple[float, tuple[str, str], object]]:
+    """A radio topology's changes: ``(t, pair, "out"|"in"|("rate", kbit))``; pairs out of range at 0 first."""
+    radio = getattr(scenario, "radio", None)
+    if radio is None:
+        return []
+    from scmr_mesh.scenario.radio import rate_changes
+
+    at0 = radio.links_at(0.0)
+    out: list[tuple[float, tuple[str, str], object]] = [
+        (0.0, (a, b) if a <= b else (b, a), "out")
+        for a, b in itertools.combinations(sorted(radio.positions), 2) if _pair(a, b) not in at0]
+    out += [(t, p, "in" if up else "out") for t, p, up in radio.changes(scenario.duration_s)]
+    out += [(t, p, ("rate", r)) for t, p, r in rate_changes(radio, scenario.duration_s)]
+    return out
 
 
 def _netem_value(active: dict[int, tuple[str, float]]) -> tuple[float, float] | None:

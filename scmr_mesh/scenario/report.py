@@ -238,11 +238,13 @@ def build_report(
             else (int(f["ready_unix_ns"]) - int(f["end_unix_ns"])) / 1e6,
         })
     expectations = check_expectations(scenario, {**summ, "leadership": leadership}, telemetry)
+    links = links_over_time(scenario)
     requests = []
     for r in records:
         row = {k: r.get(k) for k in REQUEST_FIELDS}
         if r.get("sent_unix_ns") is not None:
             row["sent_s"] = (int(r["sent_unix_ns"]) - t0_unix_ns) / 1e9
+        row["hops"] = request_hops(scenario, links, row)
         requests.append(row)
     return {
         "scenario": scenario.name,
@@ -269,8 +271,35 @@ def build_report(
         "telemetry": dict(telemetry) if telemetry is not None else None,
         "leadership": dict(leadership) if leadership is not None else None,
         "topology": dict(topology) if topology is not None else None,
+        "links_over_time": links,
         "requests": requests,
     }
+
+
+def links_over_time(scenario: Scenario) -> list[dict[str, Any]] | None:
+    """The radio link graph over time (``[{"t_s", "links"}]``), or None without a radio topology."""
+    if scenario.radio is None:
+        return None
+    from scmr_mesh.scenario.radio import links_timeline
+
+    return links_timeline(scenario.radio, scenario.duration_s)
+
+
+def request_hops(scenario: Scenario, links: Sequence[Mapping[str, Any]] | None,
+                 row: Mapping[str, Any]) -> int | None:
+    """Radio hops from the robot to the node that answered, when the request was sent (0: local; None: failed
+    or no path).  Without a radio topology every peer links to every other: 1 hop to any server."""
+    if not row.get("ok"):
+        return None
+    if row.get("tier") == "local":
+        return 0
+    node = row.get("served_by")
+    if links is None or node is None or row.get("sent_s") is None:
+        return 1
+    from scmr_mesh.scenario.radio import hops
+
+    now = [e for e in links if e["t_s"] <= max(0.0, float(row["sent_s"]))][-1]
+    return hops([tuple(p) for p in now["links"]], str(row.get("robot")), scenario.peer_of(str(node)))
 
 
 def _fmt(v: Any, nd: int = 1) -> str:

@@ -27,7 +27,7 @@ from scmr_mesh.errors import ConfigError, ScenarioError
 from scmr_mesh.qos.faults import FaultRecord
 from scmr_mesh.scenario.faults import AppliedFault, fault_records, fault_tier, metric_faults
 from scmr_mesh.scenario.hooks import Hooks, RecordTail, Say
-from scmr_mesh.scenario.plan import Event, RunOptions, compile_timeline, peer_command
+from scmr_mesh.scenario.plan import RADIO, Event, RunOptions, compile_timeline, peer_command
 from scmr_mesh.scenario.spec import WHOEVER_LEADS, Scenario
 
 __all__ = ["AppliedFault", "Hooks", "RecordTail", "RunResult", "ScenarioRun", "default_data_dir", "fault_records",
@@ -296,6 +296,10 @@ class ScenarioRun:
         self.say(f"[{self.backend_name}] setting up {len(sc.peers)} peers, {len(sc.links)} links"
                  + (f" (namespaces scmrs-{rid}-*)" if rid else ""))
         be.setup()
+        initial = [ev for ev in compile_timeline(sc) if ev.fault == RADIO and ev.at_s == 0.0]
+        if initial:  # pairs out of radio range (and bandwidth by distance) before any peer starts
+            self.say(f"radio topology: {sum(ev.op == 'block' for ev in initial)} pairs out of range at time 0")
+            be.apply_many(initial)
         self.security[:] = _security(sc, be, self.out_dir, self.insecure)
         servers = [p.name for p in sc.peers if p.role != "robot"]
         for p in servers:
@@ -314,7 +318,7 @@ class ScenarioRun:
     def play(self) -> None:
         """Apply the timeline's events when due, then wait for the robots to finish."""
         sc = self.scenario
-        for batch in _batches(compile_timeline(sc)):
+        for batch in _batches([ev for ev in compile_timeline(sc) if not (ev.fault == RADIO and ev.at_s == 0.0)]):
             self.wait_until(self.t0_mono + batch[0].at_s)
             if batch[0].op == "kill" and batch[0].target[0] == WHOEVER_LEADS:
                 batch = self._resolve_leader(batch)
@@ -634,11 +638,15 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
         notes = be.apply_many(batch)
         t_after = time.time_ns()
         for ev in batch:
-            applied[ev.fault].notes.extend(n for n in notes if n not in applied[ev.fault].notes
-                                           and scenario.faults[ev.fault].label in n)
+            if ev.fault != RADIO:
+                applied[ev.fault].notes.extend(n for n in notes if n not in applied[ev.fault].notes
+                                               and scenario.faults[ev.fault].label in n)
         say(f"t={time.monotonic() - t0_mono:5.2f}s  " + ", ".join(
-            f"{ev.op} {'-'.join(ev.target)}" + (f" -> {ev.value}" if ev.value is not None else "") for ev in batch))
+            f"{ev.op} {'-'.join(ev.target)}" + (f" -> {ev.value}" if ev.value is not None else "")
+            + (" (radio)" if ev.fault == RADIO else "") for ev in batch))
     for ev in batch:
+        if ev.fault == RADIO:
+            continue  # the radio topology's own change: no fault to note
         af = applied[ev.fault]
         if ev.lift:
             # the fault's end, unless it is the teardown of one lasting to the end of the run; faults

@@ -204,6 +204,8 @@ class Scenario:
     bootstraps: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     leader_capability: str = "leader"
     explicit_links: bool = False
+    #: Radio topology (positions, range, waypoints): which pairs can talk follows from where they are.
+    radio: Any = None
     #: The ``--node`` name of a peer when it differs from the peer's name (``scmr up``'s
     #: ``cloud`` runs node ``cloud0``, its ``leader`` node ``leader0``); reports name nodes.
     node_names: Mapping[str, str] = field(default_factory=dict)
@@ -247,7 +249,8 @@ class Scenario:
     @property
     def link_faults(self) -> bool:
         """Whether any fault acts on links (then the proxy backend needs a proxy per link)."""
-        return any(f.kind in ("link_down", "partition", "bandwidth", "latency", "loss") for f in self.faults)
+        return self.radio is not None or any(
+            f.kind in ("link_down", "partition", "bandwidth", "latency", "loss") for f in self.faults)
 
     @property
     def peer_names(self) -> tuple[str, ...]:
@@ -395,6 +398,10 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
                        "hand one robot of the ring a cloud or the leader")
     topo = data.get("topology") or {}
     explicit = "links" in topo
+    radio = _parse_radio(topo, names, float(data["duration_s"]), source, check_peer)
+    if radio is not None and explicit:
+        raise _err(source, "topology", "both links and a radio topology (range_m, nodes) are given",
+                   "give topology.links (fixed links) or range_m with nodes (links follow the positions), not both")
     if "links" in topo:
         links = []
         for i, (a, b) in enumerate(topo["links"]):
@@ -407,6 +414,9 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
             links.append((a, b))
         links_t = tuple(links)
         bootstraps = {n: tuple(b for a, b in links_t if a == n) for n in names}
+    elif radio is not None:
+        bootstraps = _radio_bootstraps(radio, names, robots, source)
+        links_t = tuple((names[i], names[j]) for i in range(len(names)) for j in range(i))
     else:
         bootstraps = _default_bootstraps(clouds, leader, robots, fleet.get("leader_bootstrap"))
         # every pair is a potential (gossip) link; the later-started peer connects to the earlier one
@@ -456,8 +466,72 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         description=data.get("description", ""), image_sets=image_sets, links=links_t,
         faults=tuple(sorted(faults, key=lambda x: x.at_s)), expectations=expectations,
         process=data.get("process"), source=source, bootstraps=bootstraps,
-        leader_capability=fleet.get("leader_capability", "leader"), explicit_links=explicit,
+        leader_capability=fleet.get("leader_capability", "leader"), explicit_links=explicit, radio=radio,
     )
+
+
+def _parse_radio(topo: Mapping[str, Any], names: list[str], duration: float, source: str,
+                 check_peer: Callable[[str, str], None]):
+    """The scenario's :class:`~scmr_mesh.scenario.radio.Radio`, or None without ``range_m``/``nodes``."""
+    keys = [k for k in ("range_m", "nodes", "waypoints", "bandwidth") if k in topo]
+    if not keys:
+        return None
+    from scmr_mesh.scenario.radio import Radio
+
+    if "range_m" not in topo or "nodes" not in topo:
+        missing = "range_m" if "range_m" not in topo else "nodes"
+        raise _err(source, f"topology.{missing}", f"a radio topology ({', '.join(keys)}) needs {missing}",
+                   "give range_m = <metres> and a [topology.nodes] table with every peer's [x, y]")
+    nodes = topo["nodes"]
+    for n in nodes:
+        check_peer("topology.nodes", n)
+    missing = [n for n in names if n not in nodes]
+    if missing:
+        raise _err(source, "topology.nodes", f"no position for {', '.join(missing)}",
+                   "give every cloud, leader and robot a position [x, y] in metres")
+    way: dict[str, list[tuple[float, tuple[float, float]]]] = {}
+    for i, w in enumerate(topo.get("waypoints") or []):
+        where = f"topology.waypoints[{i}]"
+        check_peer(f"{where}.node", w["node"])
+        prev = way.get(w["node"], [])
+        if prev and w["at_s"] <= prev[-1][0]:
+            raise _err(source, f"{where}.at_s", f"waypoint at {w['at_s']:g}s of {w['node']!r} is not after its "
+                       f"previous one ({prev[-1][0]:g}s)", "list each node's waypoints in time order")
+        if w["at_s"] > duration:
+            raise _err(source, f"{where}.at_s", f"waypoint at {w['at_s']:g}s is after the end of the run "
+                       f"({duration:g}s)", "use an at_s within duration_s")
+        way.setdefault(w["node"], []).append((float(w["at_s"]), (float(w["pos"][0]), float(w["pos"][1]))))
+    steps = [(float(d), int(k)) for d, k in topo.get("bandwidth") or []]
+    if any(b[0] <= a[0] for a, b in zip(steps, steps[1:])):
+        raise _err(source, "topology.bandwidth", "distances are not increasing",
+                   "list [max_distance_m, kbit_s] steps from the nearest to the farthest")
+    radio = Radio(range_m=float(topo["range_m"]),
+                  positions={n: (float(nodes[n][0]), float(nodes[n][1])) for n in names},
+                  waypoints={n: tuple(v) for n, v in way.items()}, bandwidth=tuple(steps))
+    linked = {n for pair in radio.links_at(0.0) for n in pair}
+    alone = [n for n in names if n not in linked]
+    if alone and len(names) > 1:
+        raise _err(source, "topology.nodes", f"{', '.join(alone)} out of every other peer's range "
+                   f"({radio.range_m:g} m) at time 0", "move it within range_m of a neighbour (it must join the "
+                   "fleet at start), or raise range_m")
+    return radio
+
+
+def _radio_bootstraps(radio, names: list[str], robots: list[RobotSpec], source: str) -> dict[str, tuple[str, ...]]:
+    """Whom each peer is handed under a radio topology: the nearest peer started before it that is in
+    range at time 0 (a robot's own ``bootstrap`` must be in range)."""
+    out: dict[str, tuple[str, ...]] = {}
+    own = {r.id: r.bootstrap for r in robots if r.bootstrap}
+    for i, n in enumerate(names):
+        if n in own:
+            if not radio.in_range(n, own[n], 0.0):
+                raise _err(source, "fleet.robots", f"robot {n!r} bootstraps to {own[n]!r}, out of its radio range "
+                           f"at time 0", "name a peer within range_m of it, or leave bootstrap out")
+            out[n] = (own[n],)
+            continue
+        near = sorted((radio.distance(n, m, 0.0), j, m) for j, m in enumerate(names[:i]) if radio.in_range(n, m, 0.0))
+        out[n] = (near[0][2],) if near else ()
+    return out
 
 
 def _default_bootstraps(clouds: tuple[str, ...], leader: str | None, robots: list[RobotSpec],
