@@ -6,7 +6,7 @@ Layers, lowest first; a module may import its own layer and the ones below:
 base       ``errors``, ``_lazy``, ``_schema``, ``wire``, ``keys``, ``cliargs`` (shared argparse types),
            ``vocab`` (the control vocabulary: tiers and other enums)
 core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, and the
-           pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``
+           pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``, ``scenario/radio.py``
 mesh       ``mesh/``: every Zenoh import of the running system
 viz        ``viz/``: every rerun import
 procs      ``fleet/``, ``scenario/`` (processes and faults), ``thesis/`` (``scmr thesis``: runs scenarios,
@@ -47,7 +47,7 @@ def layer(rel: Path) -> str:
     top = parts[0]
     if top in CORE:
         return "core"
-    if top == "scenario" and rel.name in ("spec.py", "plan.py", "__init__.py"):
+    if top == "scenario" and rel.name in ("spec.py", "plan.py", "radio.py", "__init__.py"):
         return "core"
     if top in ("mesh", "viz", "bench"):
         return top
