@@ -288,3 +288,36 @@ def test_sigkilled_runner_leaves_nothing_running_and_cleanup_removes_its_namespa
             p.kill()
         cleanup_stale(f"scmrs-{rid}-") if rid else None
     assert not list_namespaces(f"scmrs-{rid}-")
+
+
+@pytest.mark.timeout(240)
+def test_a_radio_chain_blocks_every_pair_out_of_range_and_peers_do_not_forward(tmp_path):
+    """Three robots down a tunnel, 10 m apart, range 12 m (issue 22): only neighbours are linked.
+
+    robot1 at the portal is answered by the cloud over 1 hop; robot2 and robot3 have no direct
+    link to any server (their pairs are blackholed before any peer starts) and Zenoh 1.10 peers do
+    not forward for other peers, so neither gets a single answer from the cloud or the leader:
+    they compute alone.  This is the clique's limit the multi-hop tier (routers) removes.
+    """
+    from scmr_mesh.scenario.report import run_report
+    from scmr_mesh.scenario.runner import run_scenario
+
+    sc = parse_scenario({
+        "name": "chain", "seed": 3, "duration_s": 4, "lease_ms": 250,
+        "process": "scmr_mesh.mesh.testing:stub_process",
+        "fleet": {"robots": [{"id": f"robot{i}", "synthetic": "stub", "rate_hz": 5} for i in (1, 2, 3)]},
+        "topology": {"range_m": 12, "nodes": {"cloud": [0, 0], "leader": [0, 1], "robot1": [10, 0],
+                                              "robot2": [20, 0], "robot3": [30, 0]}}})
+    res = run_scenario(sc, backend="netns", out_dir=tmp_path / "run", progress=lambda m: None)
+    rep = run_report(res)
+    rows = rep["request_log"]
+    by = {rid: [r for r in rows if r["robot"] == rid] for rid in ("robot1", "robot2", "robot3")}
+    assert all(by.values()), {k: len(v) for k, v in by.items()}
+    assert any(r["tier"] == "cloud" and r["hops"] == 1 for r in by["robot1"])
+    for rid in ("robot2", "robot3"):  # out of every server's range: no direct link, no forwarding peer
+        assert not [r for r in by[rid] if r["tier"] in ("cloud", "leader")], by[rid][:3]
+        assert all(r["tier"] == "local" and r["hops"] == 0 for r in by[rid] if r["ok"])
+    assert rep["links_over_time"] == [{"t_s": 0.0, "links": [["cloud", "leader"], ["cloud", "robot1"],
+                                                             ["leader", "robot1"], ["robot1", "robot2"],
+                                                             ["robot2", "robot3"]]}]
+    assert not list_namespaces(prefix=f"scmrs-{res.run_id}-")
