@@ -122,6 +122,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     add_viz(bench)
     add_zenoh(bench)
     add_r2r(bench)
+    add_multihop(bench)
 
 
 def add_pipeline(bench: argparse._SubParsersAction) -> None:
@@ -433,6 +434,29 @@ def add_zenoh(bench: argparse._SubParsersAction) -> None:
     b.add_argument("probe", choices=("detect", "stress", "reconnect", "failover", "redundant", "latency", "routers"))
     b.add_argument("probe_args", nargs=argparse.REMAINDER, help="options of the probe")
     b.set_defaults(func=_handler("zenoh", "cmd_bench_zenoh"))
+
+
+def add_multihop(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench multihop``."""
+    b = bench.add_parser(
+        "multihop", help="zenoh routers as multi-hop relays: ToR per hop, reroute after a relay crash",
+        description="Real `scmr router` processes on loopback, each handed only its neighbours: (1) a chain "
+                    "of 0..--max-hops router-to-router links between a queryable and a querier: ToR median per "
+                    "hop count and the cost per hop; (2) a diamond (portal - A - far, portal - B - far): one "
+                    "relay SIGKILLed per run, ms from the kill to the first answer over the other relay.  One "
+                    "benchmark at a time (docs/R2R.md, Multi-hop).")
+    b.add_argument("--max-hops", type=ca.count("hops", lo=1, hi=16, example="5"), default=5, metavar="N",
+                   help="longest chain in router-to-router hops (default 5)")
+    b.add_argument("--queries", type=ca.count("queries", hi=100000, example="200"), default=200, metavar="N",
+                   help="queries per chain length (default 200)")
+    b.add_argument("--runs", type=ca.count("runs", lo=0, hi=1000, example="6"), default=6, metavar="N",
+                   help="diamond runs, killing relay A and B alternately (default 6; 0: chain only)")
+    b.add_argument("--period-ms", type=ca.positive("milliseconds", hi=10000, example="10"), default=10.0,
+                   metavar="MS", help="query period during the diamond runs (default 10)")
+    b.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=600000, example="500"), default=500,
+                   metavar="MS", help="zenoh lease of the routers (default 500)")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
+    b.set_defaults(func=_handler("multihop", "cmd_bench_multihop"))
 
 
 def add_r2r(bench: argparse._SubParsersAction) -> None:
