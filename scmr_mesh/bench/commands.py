@@ -451,6 +451,9 @@ def add_multihop(bench: argparse._SubParsersAction) -> None:
                    help="queries per chain length (default 200)")
     b.add_argument("--runs", type=ca.count("runs", lo=0, hi=1000, example="6"), default=6, metavar="N",
                    help="diamond runs, killing relay A and B alternately (default 6; 0: chain only)")
+    b.add_argument("--silent-runs", type=ca.count("runs", lo=0, hi=1000, example="4"), default=0, metavar="N",
+                   help="(root) diamond runs in network namespaces where a relay goes silent (blackhole routes, "
+                        "no FIN/RST) instead of crashing (default 0)")
     b.add_argument("--period-ms", type=ca.positive("milliseconds", hi=10000, example="10"), default=10.0,
                    metavar="MS", help="query period during the diamond runs (default 10)")
     b.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=600000, example="500"), default=500,

@@ -200,17 +200,138 @@ def diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path) -> list[di
     return out
 
 
+_QUERIER = r"""
+import json, sys, threading, time, zenoh
+ep, key, period_ms, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+conf = zenoh.Config()
+conf.insert_json5("mode", '"client"')
+conf.insert_json5("connect/endpoints", json.dumps([ep]))
+conf.insert_json5("scouting/multicast/enabled", "false")
+lock = threading.Lock()
+with zenoh.open(conf) as s:
+    print(json.dumps({"ready": time.time_ns()}), flush=True)
+    t0, k = time.monotonic_ns(), 0
+    while time.monotonic_ns() - t0 < seconds * 1e9:
+        due = t0 + round(k * period_ms * 1e6)
+        wait = (due - time.monotonic_ns()) / 1e9
+        if wait > 0:
+            time.sleep(wait)
+        sent = time.time_ns()
+        def cb(reply, sent=sent, k=k):
+            if reply.ok is not None:
+                with lock:
+                    print(json.dumps({"k": k, "sent": sent, "ok": time.time_ns()}), flush=True)
+        s.get(key, handler=cb, timeout=30.0)
+        with lock:
+            print(json.dumps({"k": k, "sent": sent}), flush=True)
+        k += 1
+    time.sleep(2)
+"""
+
+_QUERYABLE = r"""
+import json, sys, time, zenoh
+ep, key = sys.argv[1], sys.argv[2]
+conf = zenoh.Config()
+conf.insert_json5("mode", '"client"')
+conf.insert_json5("connect/endpoints", json.dumps([ep]))
+conf.insert_json5("scouting/multicast/enabled", "false")
+with zenoh.open(conf) as s:
+    q = s.declare_queryable(key, lambda query: query.reply(query.key_expr, b"ok"))
+    print("ready", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def silent_diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path, hold_s: float = 12.0) -> list[dict]:
+    """(root) The diamond in network namespaces; relay A or B goes *silent* (blackhole routes, no FIN/RST).
+
+    Each router and client runs in its own namespace (``scmr_mesh.scenario.netns``); the relay's
+    links to the portal and the far router are blackholed at once, as a robot walking out of range
+    would lose them.  Returns per run: queries sent in the ``hold_s`` after the cut, how many were
+    never answered, and ``reroute_ms``: the cut to the first answer to a query sent after it.
+    """
+    import subprocess
+
+    from scmr_mesh.scenario.netns import NetnsBackend, check_root
+    from scmr_mesh.scenario.plan import Event
+    from scmr_mesh.scenario.spec import parse_scenario
+
+    check_root()
+    sc = parse_scenario({"name": "diamond", "seed": 1, "duration_s": 600,
+                         "fleet": {"clouds": ["p"], "leader": False,
+                                   "robots": [{"id": n, "synthetic": "road"} for n in ("a", "b", "f")]}})
+    links = {"a": ["p"], "b": ["p"], "f": ["a", "b"]}
+    out = []
+    for i in range(runs):
+        victim = "a" if i % 2 == 0 else "b"
+        be = NetnsBackend(sc)
+        d = tmp / f"silent{i}"
+        d.mkdir()
+        procs = []
+        try:
+            be.setup()
+            ep = {n: f"tcp/{be.layout.addr(n)}:7449" for n in ("p", "a", "b", "f")}
+            from scmr_mesh.mesh.testing import spawn_peer, wait_for
+
+            for n in ("p", "a", "b", "f"):
+                argv = ["router", "--insecure", "--listen", ep[n], "--lease-ms", str(lease_ms),
+                        "--cfg", "scouting/gossip/enabled:false", "--ready-file", str(d / f"{n}.ready")]
+                for m in links.get(n, []):
+                    argv += ["--connect", ep[m]]
+                procs.append(spawn_peer(argv, log_path=d / f"{n}.log", prefix=["ip", "netns", "exec", be.layout.ns(n)]))
+            wait_for(lambda: all((d / f"{n}.ready").exists() for n in ("p", "a", "b", "f")), timeout=60,
+                     what="routers ready")
+            srv = subprocess.Popen(["ip", "netns", "exec", be.layout.ns("p"), sys.executable, "-c", _QUERYABLE,
+                                    ep["p"], KEY], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            procs.append(srv)
+            assert srv.stdout.readline().strip() == "ready"
+            cli = subprocess.Popen(["ip", "netns", "exec", be.layout.ns("f"), sys.executable, "-c", _QUERIER,
+                                    ep["f"], KEY, str(period_ms), str(2.0 + hold_s)],
+                                   stdout=subprocess.PIPE, text=True)
+            procs.append(cli)
+            lines: list[dict] = []
+            reader = threading.Thread(target=lambda: lines.extend(json.loads(x) for x in cli.stdout), daemon=True)
+            reader.start()
+            wait_for(lambda: sum(1 for x in lines if "ok" in x) >= 20, timeout=30, what="answers before the cut")
+            time.sleep(1.0)
+            t_cut = time.time_ns()
+            be.apply_many([Event(0.0, "block", tuple(sorted((victim, "p")))),
+                           Event(0.0, "block", tuple(sorted((victim, "f"))))])
+            cli.wait(timeout=hold_s + 30)
+            reader.join(timeout=10)
+            srv.stdin.close()
+        finally:
+            from scmr_mesh.mesh.testing import stop_peer
+
+            for p in procs:
+                stop_peer(p, timeout=5)
+            be.teardown()
+        sent = {x["k"]: x["sent"] for x in lines if "ok" not in x and "k" in x}
+        ok = {x["k"]: x["ok"] for x in lines if "ok" in x}
+        after = [k for k, t in sent.items() if t >= t_cut]
+        lost = [k for k in sent if sent[k] >= t_cut - 2 * lease_ms * 10**6 and k not in ok]
+        first = min((ok[k] for k in after if k in ok), default=None)
+        row = {"run": i + 1, "silent": victim, "queries_after_cut": len(after), "never_answered": len(lost),
+               "reroute_ms": None if first is None else (first - t_cut) / 1e6}
+        print(f"multihop silent diamond run {i + 1}: relay {victim} silent: {len(lost)} queries never answered, "
+              f"reroute {row['reroute_ms'] if first is not None else 'NEVER'} ms", file=sys.stderr)
+        out.append(row)
+    return out
+
+
 def cmd_bench_multihop(args) -> int:
     with tempfile.TemporaryDirectory(prefix="scmr-multihop-") as t:
         tmp = Path(t)
         rows = chain(args.max_hops, args.queries, lease_ms=args.lease_ms, tmp=tmp)
         dia = diamond(args.runs, period_ms=args.period_ms, lease_ms=args.lease_ms, tmp=tmp) if args.runs else []
+        silent = (silent_diamond(args.silent_runs, period_ms=args.period_ms, lease_ms=args.lease_ms, tmp=tmp)
+                  if args.silent_runs else [])
     per_hop = slope(rows)
     rr = [r["reroute_ms"] for r in dia if r["reroute_ms"] is not None]
     out = {"benchmark": "multihop", "lease_ms": args.lease_ms, "chain": rows, "cost_per_hop_ms": per_hop,
            "diamond": dia, "reroute_ms_median": statistics.median(rr) if rr else None,
            "reroute_ms_max": max(rr) if rr else None,
-           "reroute_never": sum(1 for r in dia if r["reroute_ms"] is None)}
+           "reroute_never": sum(1 for r in dia if r["reroute_ms"] is None), "silent": silent}
     print(f"multihop: cost per router hop {per_hop:.3f} ms (least squares over {len(rows)} chain lengths); "
           + (f"reroute after a relay crash: median {out['reroute_ms_median']} ms, max {out['reroute_ms_max']} ms, "
              f"never {out['reroute_never']} of {len(dia)}" if dia else "no diamond runs"))
@@ -219,4 +340,9 @@ def cmd_bench_multihop(args) -> int:
             Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
         except OSError as exc:
             raise InputError(f"--json {args.json}: cannot write ({exc})") from None
-    return 1 if out["reroute_never"] else 0
+    if silent:
+        sr = [r["reroute_ms"] for r in silent if r["reroute_ms"] is not None]
+        print(f"multihop: a relay gone silent: reroute median {statistics.median(sr) if sr else None} ms, "
+              f"max {max(sr) if sr else None} ms, never {sum(r['reroute_ms'] is None for r in silent)} of "
+              f"{len(silent)}; queries never answered {sum(r['never_answered'] for r in silent)}")
+    return 1 if out["reroute_never"] or any(r["reroute_ms"] is None for r in silent) else 0
