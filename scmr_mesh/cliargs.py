@@ -196,7 +196,14 @@ def _writable_dir(d: Path) -> str | None:
     if not d.is_dir():
         return f"{d} is a file, not a folder"
     if os.access(d, os.W_OK | os.X_OK):
-        return None
+        # root passes os.access everywhere: try it (/proc, sysfs and full or immutable folders refuse)
+        import tempfile
+
+        try:
+            os.rmdir(tempfile.mkdtemp(prefix=".scmr-probe-", dir=d))
+            return None
+        except OSError as exc:
+            return f"{d} does not take new files ({exc.strerror or exc})"
     try:
         if os.statvfs(d).f_flag & os.ST_RDONLY:
             return f"{d} is on a read-only file system"

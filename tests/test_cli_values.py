@@ -172,7 +172,10 @@ def unusable(tmp_path_factory):
     afile = base / "a-file"
     afile.write_text("x")
     out = {"missing": str(base / "no" / "such" / "thing"), "under-a-file": str(afile / "x"),
-           "a-file": str(afile), "a-folder": str(base)}
+           "a-file": str(afile), "a-folder": str(base),
+           # a folder that takes no new files even for root (issue 25: --ready-file /proc/nope/ready
+           # started the workers, then ended in "internal error: FileNotFoundError")
+           "no-new-files": "/proc/nope/x"}
     ro = base / "ro"
     ro.mkdir()
     mounted = False
@@ -189,7 +192,8 @@ def unusable(tmp_path_factory):
 
 def _bad_paths(mode: str) -> list[str]:
     return {"in-file": ["missing", "a-folder"], "in-dir": ["missing", "a-file"], "in-path": ["missing"],
-            "out-file": ["under-a-file", "a-folder", "read-only"], "out-dir": ["under-a-file", "a-file", "read-only"]
+            "out-file": ["under-a-file", "a-folder", "read-only", "no-new-files"],
+            "out-dir": ["under-a-file", "a-file", "read-only", "no-new-files"]
             }[mode]
 
 
