@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import json
+
 from scmr_mesh.qos.leadership import gap_ms, leadership, wait_ms
 
 S = 1_000_000_000
 T0 = 100 * S
 
 
-def ev(t_s, node, event, term, cause=""):
-    return {"t_unix_ns": T0 + int(t_s * S), "node": node, "event": event, "term": term, "cause": cause}
+def ev(t_s, node, event, term, cause="", *, why="other", by=None):
+    """A role change as the election writes it (qos.roles.RoleChange); ``cause`` is prose nobody parses."""
+    return {"t_unix_ns": T0 + int(t_s * S), "node": node, "event": event, "term": term, "cause": cause,
+            "why": why, "by": by}
 
 
 def rec(robot, t_s, tier, served_by, tor_ms=10.0):
@@ -41,7 +45,7 @@ def test_a_partition_elects_on_the_far_side_and_the_heal_leaves_one():
     faults = [{"kind": "partition", "groups": [["L", "r1"], ["r3", "r4"]],
                "start_unix_ns": T0 + 4 * S, "end_unix_ns": T0 + 10 * S}]
     events = [ev(0, "L", "lead", 1), ev(4.3, "r3", "lead", 2),
-              ev(10.15, "L", "step_down", 2, "outranked by r3 (term 2 vs 1)")]
+              ev(10.15, "L", "step_down", 2, "outranked by r3 (term 2 vs 1)", why="outranked", by="r3")]
     out = leadership(events, [], faults, t0_unix_ns=T0)
     link = out["changes"][1]
     assert (link["from"], link["to"], link["cause"]) == ("L", "r3", "link")
@@ -54,7 +58,7 @@ def test_a_partition_elects_on_the_far_side_and_the_heal_leaves_one():
 
 
 def test_changes_after_the_first_graceful_stop_are_the_end_of_the_run():
-    events = [ev(0, "L", "lead", 1), ev(9.0, "L", "step_down", 1, "stopping"), ev(9.01, "r1", "lead", 2)]
+    events = [ev(0, "L", "lead", 1), ev(9.0, "L", "step_down", 1, "stopping", why="stopping"), ev(9.01, "r1", "lead", 2)]
     out = leadership(events, [], [], t0_unix_ns=T0)
     assert [c["to"] for c in out["changes"]] == ["L"] and out["leaders_at_end"] == ["L"]
 
@@ -73,7 +77,7 @@ def test_gap_and_wait_need_answers_from_both():
 
 def test_a_newer_term_without_a_fault_replaces_the_old_leader():
     """A blink: r1 claims term 2 while L (term 1) still leads in the log; L yields later."""
-    events = [ev(0, "L", "lead", 1), ev(3, "r1", "lead", 2), ev(3.2, "L", "step_down", 2, "outranked by r1 (term 2 vs 1)")]
+    events = [ev(0, "L", "lead", 1), ev(3, "r1", "lead", 2), ev(3.2, "L", "step_down", 2, "outranked by r1 (term 2 vs 1)", why="outranked", by="r1")]
     out = leadership(events, [], [], t0_unix_ns=T0)
     assert [(c["from"], c["to"], c["cause"]) for c in out["changes"]] == [(None, "L", "start"), ("L", "r1", "link")]
     assert out["changes"][1]["succession_ms"] is None  # the loss time is not known: not a pass
@@ -84,12 +88,12 @@ def test_step_down_causes_name_nodes_exactly_and_heals_are_recent():
     faults = [{"kind": "partition", "groups": [["a"], ["r1"], ["r10"]], "start_unix_ns": T0 + S,
                "end_unix_ns": T0 + 2 * S}]
     events = [ev(0, "a", "lead", 1), ev(1.3, "r1", "lead", 2), ev(1.3, "r10", "lead", 2),
-              ev(2.1, "r1", "step_down", 2, "outranked by r10 (term 2 vs 2)"),
-              ev(2.2, "a", "step_down", 2, "outranked by r10 (term 2 vs 1)")]
+              ev(2.1, "r1", "step_down", 2, "outranked by r10 (term 2 vs 2)", why="outranked", by="r10"),
+              ev(2.2, "a", "step_down", 2, "outranked by r10 (term 2 vs 1)", why="outranked", by="r10")]
     out = leadership(events, [], faults, t0_unix_ns=T0)
     heals = [(c["from"], c["to"]) for c in out["changes"] if c["cause"] == "heal"]
     assert heals == [("r1", "r10"), ("a", "r10")]
-    late = leadership(events + [ev(20, "r10", "step_down", 3, "outranked by zz (term 3 vs 2)")], [], faults,
+    late = leadership(events + [ev(20, "r10", "step_down", 3, "outranked by zz (term 3 vs 2)", why="outranked", by="zz")], [], faults,
                       t0_unix_ns=T0)
     assert all(c["t_s"] < 20 for c in late["changes"] if c["cause"] == "heal")  # 18 s after the heal: not a heal
 
@@ -97,13 +101,34 @@ def test_step_down_causes_name_nodes_exactly_and_heals_are_recent():
 def test_no_leader_after_a_heal_is_not_converged_and_a_lost_lead_is_unfilled():
     faults = [{"kind": "partition", "groups": [["a"], ["b"]], "start_unix_ns": T0 + S, "end_unix_ns": T0 + 2 * S},
               {"kind": "crash", "target": "b", "start_unix_ns": T0 + 3 * S, "end_unix_ns": None}]
-    events = [ev(0, "a", "lead", 1), ev(1.3, "b", "lead", 2), ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)")]
+    events = [ev(0, "a", "lead", 1), ev(1.3, "b", "lead", 2), ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)", why="outranked", by="b")]
     out = leadership(events, [], faults, t0_unix_ns=T0)
     assert out["converged_after_heal_ms"] == 100.0
     assert out["leaders_at_end"] == [] and out["unfilled"] == [{"t_s": 3.0, "from": "b", "cause": "crash"}]
     # both leaders gone at 2.1 s (one yields, the other crashes): nobody leads until c at 4 s
     gone = [faults[0], {"kind": "crash", "target": "b", "start_unix_ns": T0 + int(2.1 * S), "end_unix_ns": None}]
     both = leadership([ev(0, "a", "lead", 1), ev(1.3, "b", "lead", 2),
-                       ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)"), ev(4.0, "c", "lead", 3)],
+                       ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)", why="outranked", by="b"), ev(4.0, "c", "lead", 3)],
                       [], gone, t0_unix_ns=T0)
     assert both["converged_after_heal_ms"] == 2000.0  # zero leaders is not one leader
+
+
+def test_the_report_reads_no_prose():
+    """Rewording every cause (what the election logs for people) changes nothing in the report."""
+    events = [ev(0, "a", "lead", 1, "vacancy; best-ranked live candidate", why="vacancy"),
+              ev(1.3, "b", "lead", 2, "vacancy for 300 ms", why="vacancy"),
+              ev(2.1, "a", "step_down", 2, "outranked by b (term 2 vs 1)", why="outranked", by="b"),
+              ev(9.0, "b", "step_down", 2, "stopping", why="stopping"), ev(9.01, "c", "lead", 3, why="vacancy")]
+    faults = [{"kind": "partition", "groups": [["a"], ["b"]], "start_unix_ns": T0, "end_unix_ns": T0 + 2 * S}]
+    reworded = [{**e, "cause": "x"} for e in events]
+    assert leadership(reworded, [], faults, t0_unix_ns=T0) == leadership(events, [], faults, t0_unix_ns=T0)
+
+
+def test_role_changes_round_trip_and_skip_other_lines(tmp_path):
+    from scmr_mesh.qos.leadership import read_events
+    from scmr_mesh.qos.roles import RoleChange, RoleEvent, Why
+
+    c = RoleChange(T0, "r1", RoleEvent.STEP_DOWN, 4, Why.OUTRANKED, "r2", "outranked by r2", ("r2",))
+    (tmp_path / "r1.jsonl").write_text("\n".join([json.dumps(c.to_json()), '{"event": "lead"}', "not json",
+                                                  json.dumps({**c.to_json(), "why": "bogus"})]) + "\n")
+    assert [RoleChange.from_json(e) for e in read_events(tmp_path)] == [c]

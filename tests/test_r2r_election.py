@@ -300,6 +300,7 @@ def test_stopping_does_not_declare_the_peer_service_again():
     node = R2RNode(svc, data, capability=Capability(2e9, 80.0, "test"), events_path=None)
     node.session = object()
     node._lead(1)
+    node.candidate.closing = True  # what Candidate.close() sets: the step-down is the process stopping
     node._step_down("stopping")
     assert svc.declared == ["leader"] and svc.session is None and node.role == "standby"
 

@@ -62,6 +62,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Mapping
 
 from scmr_mesh import keys, wire
+from scmr_mesh.qos.roles import RoleChange, RoleEvent, Why
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +150,9 @@ class Decision:
 
     action: str  # "claim", "step_down" or "stay"
     term: int = 0
-    reason: str = ""
+    reason: str = ""  # for people (logs, the events' ``cause``); code reads ``why`` and ``by``
+    why: Why = Why.OTHER
+    by: str | None = None  # the leader that outranked this one (step_down)
 
 
 def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | None,
@@ -182,13 +185,15 @@ def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | Non
             for b in better[1:]:
                 if outranks(b, top):
                     top = b
-            return Decision("step_down", max_term, f"outranked by {top.node} (term {top.term} vs {me.term})")
+            return Decision("step_down", max_term, f"outranked by {top.node} (term {top.term} vs {me.term})",
+                            Why.OUTRANKED, top.node)
         # a leader this node cannot see, with a newer term, that another candidate follows
         via = [o for o in others if o.follows and o.follows != me.node and o.term > me.term]
         if via:
             v = max(via, key=lambda o: o.term)
             return Decision("step_down", max_term,
-                            f"outranked by {v.follows} (term {v.term} vs {me.term}, seen by {v.node})")
+                            f"outranked by {v.follows} (term {v.term} vs {me.term}, seen by {v.node})",
+                            Why.OUTRANKED, v.follows)
         return Decision("stay", me.term, "leading")
     if leaders:
         return Decision("stay", max_term, "following " + ",".join(sorted(o.node for o in leaders)))
@@ -200,10 +205,11 @@ def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | Non
     ranked = sorted([me, *others], key=rank_key)
     k = ranked.index(me)
     if k == 0:
-        return Decision("claim", max_term + 1, "vacancy; best-ranked live candidate")
+        return Decision("claim", max_term + 1, "vacancy; best-ranked live candidate", Why.VACANCY)
     if vacancy_s is not None and vacancy_s >= k * claim_wait_s:
         return Decision("claim", max_term + 1,
-                        f"vacancy for {vacancy_s * 1e3:.0f} ms; {ranked[0].node} (ranked above) did not claim")
+                        f"vacancy for {vacancy_s * 1e3:.0f} ms; {ranked[0].node} (ranked above) did not claim",
+                        Why.VACANCY)
     return Decision("stay", max_term, f"vacancy; waiting for {ranked[0].node}")
 
 
@@ -269,6 +275,7 @@ class Candidate:
         self.capability = capability
         self.on_lead = on_lead
         self.on_step_down = on_step_down
+        self.closing = False  # set by close(): a step-down now is the process stopping
         self._battery = battery or (lambda: 1.0)
         #: ``fn() -> bool``: whether this node has a link to any other node (default: the session's peers)
         self._linked = linked
@@ -409,11 +416,12 @@ class Candidate:
         """Give up the lead (if held) and every declaration."""
         self._stop.set()
         self._wake.set()
+        self.closing = True
         if self._thread is not None:
             self._thread.join(timeout=5)
         with self._lock:
             if self.leading:
-                self._step_down(reason)
+                self._step_down(reason, Why.STOPPING)
         for obj in [self._token, self._pub, *self._decl]:
             if obj is None:
                 continue
@@ -476,7 +484,7 @@ class Candidate:
                 return self._claim(d, others)
             if d.action == "step_down":
                 self.term = d.term
-                self._step_down(d.reason)
+                self._step_down(d.reason, d.why, d.by)
                 return True
             if d.term > self.term and not self.leading:
                 self.term = d.term
@@ -505,11 +513,11 @@ class Candidate:
         self._vacant_since = None
         self.changes += 1
         log.warning("candidate %s: leading (term %d): %s", self.node, d.term, d.reason)
-        self._event("lead", d.reason, others)
+        self._event(RoleEvent.LEAD, d.reason, others, d.why)
         self._publish()
         return True
 
-    def _step_down(self, reason: str) -> None:
+    def _step_down(self, reason: str, why: Why = Why.OTHER, by: str | None = None) -> None:
         self.leading = False
         self.since_unix_ns = None
         self.changes += 1
@@ -518,7 +526,7 @@ class Candidate:
         except Exception as exc:
             log.error("candidate %s: stepping down failed: %s", self.node, exc)
         log.warning("candidate %s: stepped down (term %d): %s", self.node, self.term, reason)
-        self._event("step_down", reason, self.live_others())
+        self._event(RoleEvent.STEP_DOWN, reason, self.live_others(), why, by)
         self._publish()
 
     def _publish(self) -> None:
@@ -532,11 +540,13 @@ class Candidate:
         except Exception as exc:
             log.debug("candidacy publish failed: %s", exc)
 
-    def _event(self, event: str, cause: str, others: list[Candidacy]) -> None:
+    def _event(self, event: RoleEvent, cause: str, others: list[Candidacy], why: Why = Why.OTHER,
+               by: str | None = None) -> None:
+        """One structured role change (:class:`~scmr_mesh.qos.roles.RoleChange`) in ``events_path``."""
         if self.events_path is None:
             return
-        line = {"t_unix_ns": time.time_ns(), "node": self.node, "event": event, "term": self.term,
-                "cause": cause, "leaders_seen": sorted(o.node for o in others if o.leading)}
+        line = RoleChange(time.time_ns(), self.node, event, self.term, why, by, cause,
+                          tuple(sorted(o.node for o in others if o.leading))).to_json()
         try:
             self.events_path.parent.mkdir(parents=True, exist_ok=True)
             with open(self.events_path, "a", encoding="utf-8") as f:

@@ -139,7 +139,7 @@ class R2RNode:
     def _step_down(self, reason: str) -> None:
         if self.data is not None:
             self.data.leading = False
-        stopping = reason.startswith("stopping")
+        stopping = self.candidate is not None and self.candidate.closing  # the candidate's close(), not a word
         self._serve("peer" if self.serve_peers and not stopping else None)
 
 

@@ -1,8 +1,10 @@
 """Who led the R2R tier, and how well it passed on: the report's ``leadership`` block (pure).
 
 Inputs are what a run leaves behind: each candidate's role changes (JSON
-lines written by :class:`scmr_mesh.mesh.election.Candidate`:
-``{"t_unix_ns", "node", "event": "lead" | "step_down", "term", "cause"}``),
+lines written by :class:`scmr_mesh.mesh.election.Candidate`, structured as
+:class:`scmr_mesh.qos.roles.RoleChange`: ``{"t_unix_ns", "node", "event": "lead" |
+"step_down", "term", "why", "by", "cause"}``; only the typed fields are read, the
+``cause`` text is for people),
 the robots' records (``tier``, ``served_by``, ``received_unix_ns``) and the
 faults the runner injected (``kind``, ``target`` / ``peer``, ``start_unix_ns``,
 ``end_unix_ns``).
@@ -35,18 +37,21 @@ between the last answer of the old leader and the first answer of the new one
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
+
+from scmr_mesh.qos.roles import RoleChange, RoleEvent, Why
 
 LINK_FAULTS = ("link_down", "partition", "bandwidth", "latency", "loss")
 #: A step-down this long after a heal counts as the heal's consolidation (``cause`` heal).
 HEAL_WINDOW_NS = 5_000_000_000
-_OUTRANKED = re.compile(r"outranked by (\S+) \(term")
 
 
 def read_events(folder: str | Path) -> list[dict]:
-    """Every role change in ``folder/*.jsonl``, by time (unreadable lines skipped)."""
+    """Every role change in ``folder/*.jsonl`` (:class:`~scmr_mesh.qos.roles.RoleChange` lines), by time.
+
+    Lines that are not a role change (damaged, another format) are skipped.
+    """
     out: list[dict] = []
     folder = Path(folder)
     if not folder.is_dir():
@@ -57,8 +62,9 @@ def read_events(folder: str | Path) -> list[dict]:
                 e = json.loads(line)
             except ValueError:
                 continue
-            if isinstance(e, dict) and e.get("event") in ("lead", "step_down") and "t_unix_ns" in e:
-                out.append(e)
+            change = RoleChange.from_json(e) if isinstance(e, dict) else None
+            if change is not None:
+                out.append(change.to_json())
     out.sort(key=lambda e: (e["t_unix_ns"], e["event"] != "step_down"))
     return out
 
@@ -192,7 +198,7 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
     # the run ends at end_unix_ns, or when the first candidate stops (a graceful stop comes only
     # at the end: robots finishing their run; crashes are SIGKILLs and write nothing)
     stops = [int(e["t_unix_ns"]) for e in events
-             if e.get("event") == "step_down" and str(e.get("cause", "")).startswith("stopping")]
+             if e.get("event") == RoleEvent.STEP_DOWN and e.get("why") == Why.STOPPING]
     if stops:
         end_unix_ns = min(stops) - 1 if end_unix_ns is None else min(end_unix_ns, min(stops) - 1)
 
@@ -265,8 +271,8 @@ def leadership(events: Sequence[Mapping[str, Any]], records: Sequence[Mapping[st
             if node not in leading:
                 continue
             leading.pop(node)
-            m = _OUTRANKED.search(str((e or {}).get("cause", "")))
-            to = m.group(1) if m and m.group(1) in leading else None
+            by = (e or {}).get("by") if (e or {}).get("why") == Why.OUTRANKED else None
+            to = by if by in leading else None
             recent_heal = any(0 <= t - h <= HEAL_WINDOW_NS for h in heals)
             if to is not None and recent_heal:
                 change(t, node, to, leading[to], "heal", None, heal=True)
