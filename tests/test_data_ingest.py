@@ -21,7 +21,7 @@ import msgpack
 import pytest
 
 from scmr_mesh.data.record import batch_size, encode_records, make_record
-from scmr_mesh.mesh import data_service
+from scmr_mesh.mesh import data_cloud
 from scmr_mesh.mesh.data_service import CloudData, IngestGate, LeaderData, TelemetryAgent, telemetry_key
 
 
@@ -95,7 +95,7 @@ def test_a_cloud_answers_busy_beyond_its_ingest_queue_and_recovers(tmp_path, mon
 def test_an_oversized_batch_is_refused_before_it_is_decoded(tmp_path, monkeypatch):
     cloud = CloudData("c", tmp_path / "ods.sqlite")
     decoded = []
-    monkeypatch.setattr(data_service, "decode_batch", lambda p: decoded.append(p))
+    monkeypatch.setattr(data_cloud, "decode_batch", lambda p: decoded.append(p))  # CloudData lives there
     try:
         q = FakeQuery(_batch("r1", 1, 1000), telemetry_key("cloud", "c", "r1"))
         cloud._on_telemetry(q)
@@ -177,3 +177,16 @@ def test_a_flooded_cloud_stays_within_bounded_memory(tmp_path):
     assert res["cloud_alive"] and a["sent"] > 0 and a["busy"] > 0, res
     assert a["ok"] + a["busy"] + a["refused"] + a["timeout"] == a["sent"], res
     assert res["rss_rise_mb"] < 60, res
+
+
+def test_the_gate_answers_with_a_verdict_not_an_empty_string():
+    """Busy was "" and admitted None (issue 21): callers tested for the empty string."""
+    from scmr_mesh.mesh.data_common import GateAnswer, Verdict
+
+    gate = IngestGate(max_pending=3, max_batch_records=4)
+    assert gate.take(2) == GateAnswer(Verdict.ADMIT) and gate.take(2).verdict is Verdict.BUSY
+    big = gate.take(5)
+    assert big.verdict is Verdict.TOO_LARGE and "exceeds 4" in big.reason and not big.admitted
+    gate.release(2)
+    assert gate.take(1).admitted and gate.stats()["busy"] == 1 and gate.stats()["too_large"] == 1
+    assert gate.check_size(_batch("r1", 1, 1)).admitted

@@ -1,0 +1,360 @@
+"""The robot's telemetry agent: a durable queue flushed to a live tier, data requests with
+failover (:class:`TelemetryAgent`, :func:`fetch_once`; see :mod:`scmr_mesh.mesh.data_service`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+
+from scmr_mesh import keys
+from scmr_mesh.data.errors import QueueError, TelemetryError
+from scmr_mesh.data.queue import TelemetryQueue, seq_ranges
+from scmr_mesh.data.record import TelemetryRecord, encode_records
+from scmr_mesh.errors import MeshError
+from scmr_mesh.mesh.data_common import BATCH, MAX_BACKOFF_S, RETRY_PERIOD_S, _msgpack_encoding, _pack, _unpack, buffer_key, record_from_message, telemetry_key
+
+log = logging.getLogger(__name__)
+
+
+class TelemetryAgent:
+    """A robot's side: on-disk queue, ordered replay, acks, data requests.
+
+    Parameters
+    ----------
+    robot : scmr_mesh.mesh.robot.Robot
+        The robot (attached to a session); its ``publish_telemetry`` is wrapped.
+    queue_dir : path
+        The robot's telemetry queue folder (kept across restarts).
+    max_bytes : int
+        Queue bound; when full, new telemetry is refused and counted.
+    deadline_ms : float
+        Per-attempt deadline of telemetry and data queries.
+    autostart : bool
+        Start the flusher thread (tests call :meth:`flush_once` themselves).
+    """
+
+    def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
+                 deadline_ms: float = 1000.0, autostart: bool = True) -> None:
+        self.robot = robot
+        # a refused record keeps its seq (it is in the record already): the store sees the
+        # gap and every report counts it as lost
+        self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
+        self.deadline_s = deadline_ms / 1e3
+        self.acked_by = {"cloud": 0, "leader": 0}
+        #: records up to this seq were relayed by a leader but not yet stored by a cloud (kept queued)
+        self._relayed_upto = 0
+        self.refused_logged = 0
+        self.publish_errors = 0
+        self.busy_answers = 0      # batches a tier answered busy (kept, retried after a backoff)
+        self._busy_streak = 0
+        self._not_before = 0.0     # monotonic time before which the flusher does not retry
+        self._replay_upto = 0  # records with seq <= this waited through a failed attempt
+        self._queriers: dict[str, Any] = {}
+        self._qlock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        robot.add_telemetry_handler(self._handle)
+        self._thread = threading.Thread(target=self._loop, name=f"telemetry-{robot.id}", daemon=True)
+        if autostart:  # tests drive flush_once() themselves
+            self._thread.start()
+        st = self.queue.stats()
+        if st.depth:
+            log.info("robot %s: %d telemetry records queued from before; replaying", robot.id, st.depth)
+            self._replay_upto = st.next_seq - 1
+
+    # -- producer side
+    def publish(self, message: dict) -> int | None:
+        """Publish ``message`` and queue it for the store (as the robot's handler does); return its seq."""
+        return self._handle(message, self.robot.publish_telemetry)
+
+    def _handle(self, message: dict, forward: Callable[[dict], Any]) -> int | None:
+        """The robot's telemetry handler: ``forward`` (publish) ``message``, queue it; return its telemetry seq.
+
+        Never raises for a refusal: a full queue or a file system that refuses
+        the write (full, read-only, immutable) counts the record as refused
+        with its seq (``refused``, ``refused_seqs`` in :meth:`summary`), logs
+        it, and returns None, so the robot keeps sending frames.
+        """
+        try:
+            forward(message)
+        except Exception as exc:
+            self.publish_errors += 1
+            log.debug("telemetry publish failed: %s", exc)
+        seq = self.queue.next_seq
+        rec = record_from_message(message, seq)
+        try:
+            self.queue.append(_pack(rec.to_dict()), seq=seq)
+        except QueueError as exc:  # QueueFullError, QueueWriteError: refused, counted with its seq
+            self.refused_logged += 1
+            if self.refused_logged in (1, 10, 100) or self.refused_logged % 1000 == 0:
+                log.error("robot %s: telemetry record %d refused (%d so far): %s", self.robot.id, seq,
+                          self.refused_logged, exc)
+            return None
+        self._wake.set()
+        return seq
+
+    # -- sending
+    def _querier(self, key: str):
+        import zenoh
+
+        with self._qlock:
+            q = self._queriers.get(key)
+            if q is None:
+                q = self.robot._session.declare_querier(
+                    key, target=zenoh.QueryTarget.BEST_MATCHING,
+                    consolidation=zenoh.ConsolidationMode.NONE, timeout=self.deadline_s)
+                self._queriers[key] = q
+            return q
+
+    def _ask(self, key: str, payload: bytes) -> tuple[str, Any] | None:
+        """One query; ``("ok", reply)``, ``("err", message)`` or None (unreachable/no reply)."""
+        q = self._querier(key)
+        if not q.matching_status.matching:
+            return None
+        for reply in q.get(payload=payload, encoding=_msgpack_encoding()):
+            if reply.ok is not None:
+                return "ok", _unpack(reply.ok.payload.to_bytes())
+            try:
+                return "err", _unpack(reply.err.payload.to_bytes())
+            except TelemetryError:
+                return "err", reply.err.payload.to_bytes().decode("utf-8", "replace")
+        return None
+
+    def _targets(self) -> list[tuple[str, str]]:
+        view = self.robot.view.snapshot(local=False)
+        return [("cloud", n) for n in view.cloud] + [("leader", n) for n in view.leader]
+
+    def flush_once(self) -> int:
+        """Send the oldest queued records to a tier that takes them; return how many it took.
+
+        A cloud's ack (records stored in the ODS) removes them from the queue.
+        A leader's ack only means *relayed*: the records stay queued (end to
+        end: a leader that dies with them loses nothing) and are not sent to a
+        leader again; they go to a cloud once one is alive.  A busy answer
+        keeps the records and backs off (doubling, jittered).
+        """
+        targets = self._targets()
+        clouds = [t for t in targets if t[0] == "cloud"]
+        leaders = [t for t in targets if t[0] == "leader"]
+        busy_hint_ms = None
+        for tier_targets, after in ((clouds, 0), (leaders, self._relayed_upto)):
+            if not tier_targets:
+                continue
+            batch = self.queue.pending(limit=BATCH, after=after)
+            if not batch:
+                continue
+            payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
+            for tier, node in tier_targets:
+                try:
+                    ans = self._ask(telemetry_key(tier, node, self.robot.id), payload)
+                except Exception as exc:
+                    log.debug("telemetry to %s/%s failed: %s", tier, node, exc)
+                    continue
+                if ans is None:
+                    continue
+                kind, body = ans
+                if kind == "ok":
+                    upto = batch[-1][0]
+                    if tier == "cloud":
+                        replayed = sum(1 for s, _ in batch if s <= self._replay_upto)
+                        self.queue.ack(upto)
+                        if replayed:
+                            self.queue.note_replayed(replayed)
+                    else:
+                        self._relayed_upto = upto
+                    self.acked_by[tier] += len(batch)
+                    self._busy_streak = 0
+                    self._not_before = 0.0
+                    return len(batch)
+                if isinstance(body, dict) and body.get("busy"):
+                    self.busy_answers += 1
+                    busy_hint_ms = max(busy_hint_ms or 0.0, float(body.get("retry_after_ms") or 0.0))
+                    log.info("robot %s: %s/%s busy: %s", self.robot.id, tier, node, body.get("error"))
+                    continue
+                log.warning("robot %s: %s/%s did not store telemetry: %s", self.robot.id, tier, node, body)
+        self._replay_upto = self.queue.next_seq - 1
+        if busy_hint_ms is not None:  # kept; back off (doubling, jittered) before the next attempt
+            self._busy_streak += 1
+            wait = min(MAX_BACKOFF_S, max(busy_hint_ms / 1e3, RETRY_PERIOD_S * 2 ** self._busy_streak))
+            self._not_before = time.monotonic() + wait * random.uniform(0.75, 1.0)
+        return 0
+
+    @property
+    def backoff_s(self) -> float:
+        """Seconds until the flusher tries again after busy answers (0 when it is not backing off)."""
+        return max(0.0, self._not_before - time.monotonic())
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.clear()
+            if self.backoff_s > 0:  # a tier said busy: new records wait too
+                self._stop.wait(self.backoff_s)
+                continue
+            try:
+                sent = self.flush_once()
+            except Exception as exc:  # session closing at shutdown
+                log.debug("telemetry flush: %s", exc)
+                sent = 0
+            if sent and len(self.queue):
+                continue
+            self._wake.wait(RETRY_PERIOD_S if len(self.queue) else 1.0)
+
+    # -- data requests (fail over like frame requests)
+    def fetch(self, selector: str) -> tuple[str, str, dict]:
+        """Items of the data buffer matching ``selector``, from the cloud, else the leader.
+
+        Returns
+        -------
+        (tier, node, items)
+
+        Raises
+        ------
+        MeshError
+            No tier answered.
+        """
+        tried = []
+        for tier, node in self._targets():
+            ans = self._ask(buffer_key(tier, node), _pack({"sel": selector}))
+            tried.append(f"{tier}/{node}={'no reply' if ans is None else ans[0]}")
+            if ans is not None and ans[0] == "ok":
+                return tier, node, ans[1]["items"]
+        raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier alive'})")
+
+    def _drainable(self) -> bool:
+        """Whether a live tier could take some of the queued records now."""
+        if not len(self.queue):
+            return False
+        targets = self._targets()
+        if any(t == "cloud" for t, _ in targets):
+            return True
+        return bool(targets) and bool(self.queue.pending(limit=1, after=self._relayed_upto))
+
+    # -- end
+    def summary(self) -> dict:
+        """The robot's telemetry counters (``OUT/telemetry.json``).
+
+        ``sent`` counts every seq handed out (refused ones included), ``lost``
+        the records that can never reach the store: ``refused`` (refused with
+        their seq, listed as ranges in ``refused_seqs``) plus ``lost_seqs``
+        found on disk at start (corruption, records cut off).
+        """
+        st = self.queue.stats()
+        lost = sorted(set(st.refused_seqs) | set(st.lost_seqs))
+        relayed = len(self.queue.pending(limit=None)) - len(self.queue.pending(limit=None, after=self._relayed_upto))
+        return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
+                "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": len(lost),
+                "relayed_unstored": relayed,
+                "replayed": st.replayed, "acked_by": dict(self.acked_by), "busy_answers": self.busy_answers,
+                "torn_bytes": st.torn_bytes,
+                "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100],
+                "error": st.last_error}
+
+    def close(self, *, drain_s: float = 2.0, summary_path: str | Path | None = None) -> dict:
+        """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
+        end = time.monotonic() + drain_s
+        started = self._thread.is_alive()
+        while started and self._drainable() and time.monotonic() < end:
+            self._wake.set()
+            time.sleep(0.05)
+        self._stop.set()
+        self._wake.set()
+        if started:
+            self._thread.join(timeout=5)
+        for q in list(self._queriers.values()):
+            try:
+                q.undeclare()
+            except Exception:
+                pass
+        self._queriers = {}
+        self.robot.remove_telemetry_handler(self._handle)
+        out = self.summary()
+        if summary_path is not None:
+            tmp = Path(f"{summary_path}.tmp")
+            try:
+                tmp.write_text(json.dumps(out) + "\n")
+                os.replace(tmp, summary_path)
+            except OSError as exc:  # the counts still reach the log and the exit status
+                log.error("robot %s: cannot write %s (%s); telemetry summary: %s", self.robot.id, summary_path,
+                          exc, json.dumps(out))
+        if out["lost"]:
+            log.error("robot %s: %d telemetry record(s) lost (refused %s; lost on disk %s): %s", self.robot.id,
+                      out["lost"], ",".join(out["refused_seqs"]) or "none",
+                      ",".join(seq_ranges(out["lost_seqs"], limit=20)) or "none", out["error"] or "see above")
+        if out["queued"]:
+            log.warning("robot %s: %d telemetry records still queued at exit (kept on disk in %s; "
+                        "replayed at the next start)", self.robot.id, out["queued"], self.queue.path)
+        self.queue.close()
+        return out
+
+
+# ------------------------------------------------------------ CLI plumbing
+
+def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float = 1000.0) -> tuple[str, str, dict]:
+    """One data-buffer request from a fresh session, routed like a robot's (cloud, else leader).
+
+    Parameters
+    ----------
+    selector : str
+        ``state/r1``, ``state/**``, ``maps/*``, ``**``.
+    mesh : scmr_mesh.mesh.config.MeshConfig
+        Where to connect.
+    wait_s : float
+        How long to wait for a cloud or leader liveliness token.
+
+    Returns
+    -------
+    (tier, node, items)
+
+    Raises
+    ------
+    MeshError
+        No tier alive after ``wait_s``, or none answered.
+    """
+    from scmr_mesh.mesh.config import close_session, open_session
+
+    session = open_session(mesh)
+    try:
+        # a liveliness query answers with every token alive now (complete when it returns), so
+        # a cloud is never passed over for a leader whose token happened to arrive first
+        end = time.monotonic() + wait_s
+        alive: dict[str, set[str]] = {"cloud": set(), "leader": set()}
+        while True:
+            left = end - time.monotonic()
+            for reply in session.liveliness().get(keys.ALIVE_ALL, timeout=max(0.05, min(1.0, left))):
+                if reply.ok is not None:
+                    try:
+                        _, tier, node = keys.parse(str(reply.ok.key_expr))
+                    except Exception:
+                        continue
+                    if tier in alive:
+                        alive[tier].add(node)
+            if alive["cloud"] or alive["leader"]:
+                break
+            if time.monotonic() >= end:
+                raise MeshError(f"no cloud or leader alive after {wait_s:g} s (connect={mesh.connect}); "
+                                "check --connect and that the peers run" + (
+                                    "; a secured mesh (the default of scmr up) admits only holders of its "
+                                    "certificates: add --security RUN/certs/mtls.toml --id ROBOT"
+                                    if not mesh.security else ""))
+            time.sleep(0.05)
+        tried = []
+        for tier, node in [("cloud", n) for n in sorted(alive["cloud"])] + [("leader", n) for n in sorted(alive["leader"])]:
+            got = None
+            for reply in session.get(buffer_key(tier, node), payload=_pack({"sel": selector}),
+                                     timeout=deadline_ms / 1e3):
+                got = reply
+                break
+            if got is not None and got.ok is not None:
+                return tier, node, _unpack(got.ok.payload.to_bytes())["items"]
+            tried.append(f"{tier}/{node}={'no reply' if got is None else 'error'}")
+        raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier'})")
+    finally:
+        close_session(session)
