@@ -9,7 +9,7 @@ import pytest
 from scmr_mesh.cli import main
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging import codec, decode_image, encode_png
-from scmr_mesh.mesh import robot
+from scmr_mesh.mesh import frames, robot
 from scmr_mesh.mesh.robot import frames_from_args, image_frames, synthetic_frames
 
 
@@ -79,8 +79,8 @@ def test_robot_cli_refuses_bad_quality_in_one_line(folder, capsys):
 def test_frames_are_made_before_the_robot_sends(folder, monkeypatch):
     """Encoding happens when the source is built (before the robot is ready), not at the first frames."""
     made = []
-    real = robot._encode
-    monkeypatch.setattr(robot, "_encode", lambda rgb, q: (made.append(1), real(rgb, q))[1])
+    real = frames._encode  # the frame sources live in mesh/frames.py
+    monkeypatch.setattr(frames, "_encode", lambda rgb, q: (made.append(1), real(rgb, q))[1])
     synthetic_frames("tunnel", seed=1, distinct=3)
     assert len(made) == 3
     made.clear()

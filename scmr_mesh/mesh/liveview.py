@@ -1,0 +1,226 @@
+"""A robot's view of the mesh and its routing rule: which nodes serve, their load, who leads,
+and the default placement (cloud, then the leader, then peers, then itself); split out of
+:mod:`scmr_mesh.mesh.robot`, whose docstring describes the routing.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+from scmr_mesh import keys, wire
+from scmr_mesh.errors import InputError
+
+log = logging.getLogger(__name__)
+
+# ------------------------------------------------------------------ view
+@dataclass(frozen=True)
+class Reachable:
+    """A snapshot of the live view handed to the placement function.
+
+    Attributes
+    ----------
+    cloud, leader, peer : tuple of str
+        Alive nodes of each tier.  Cloud nodes least loaded first; leaders
+        the elected one first (highest term, then rank: normally exactly one);
+        peers (robots serving robots; never this robot) with spare capacity
+        first, least loaded, then fastest.
+    loads : dict
+        node -> (inflight / workers) from the last load message.
+    local : bool
+        Whether this robot can run the pipeline itself.
+    clocks : dict
+        node -> clock (Hz) of its energy profile, from its load messages.
+    """
+
+    cloud: tuple[str, ...] = ()
+    leader: tuple[str, ...] = ()
+    loads: dict = field(default_factory=dict)
+    local: bool = False
+    peer: tuple[str, ...] = ()
+    clocks: dict = field(default_factory=dict)
+
+    def nodes(self, tier: str) -> tuple[str, ...]:
+        return getattr(self, tier, ()) if tier in keys.TIERS else ()
+
+    def saturated(self, node: str) -> bool:
+        """Whether ``node`` published a load of at least one request per worker."""
+        return self.loads.get(node, 0.0) >= 1.0
+
+
+@dataclass(frozen=True)
+class FrameInfo:
+    """What the placement function knows about a frame."""
+
+    robot: str
+    seq: int
+    bytes: int
+    encoding: str
+
+
+Placement = Callable[[Reachable, FrameInfo], Sequence[str]]
+
+
+def default_placement(view: Reachable, frame: FrameInfo) -> list[str]:
+    """The tiers to try, in order.
+
+    Cloud if a cloud node is alive; then the leader; then, only when no cloud
+    is alive, peer robots with spare capacity (before the leader when the
+    leader is saturated, and in the gap while a new leader is elected); then
+    local execution if this robot can run it.
+    """
+    order = []
+    if view.cloud:
+        order.append("cloud")
+    spare_peers = [p for p in view.peer if not view.saturated(p)]
+    if not view.cloud and spare_peers and (not view.leader or view.saturated(view.leader[0])):
+        order.append("peer")
+    if view.leader:
+        order.append("leader")
+    if not view.cloud and view.peer and "peer" not in order:
+        order.append("peer")  # a busy leader answers "busy": then a peer
+    if view.local:
+        order.append("local")
+    return order
+
+
+class LiveView:
+    """Which serving nodes are alive, how loaded, and who leads, from liveliness,
+    load samples and candidacies (the R2R election, :mod:`scmr_mesh.mesh.election`)."""
+
+    def __init__(self, me: str | None = None) -> None:
+        self.me = me
+        #: ``fn(tier, node) -> bool``: whether the fleet's policy lets ``node`` serve ``tier``
+        #: (set from the security profile); nodes it refuses are never routed to
+        self.trust: Callable[[str, str], bool] | None = None
+        self._lock = threading.Lock()
+        self._alive: dict[str, set[str]] = {t: set() for t in keys.ROLES}
+        self._loads: dict[str, float] = {}
+        self._clocks: dict[str, float] = {}
+        self._cands: dict[str, Any] = {}  # node -> election.Candidacy
+        self.changed = threading.Condition(self._lock)
+        self._rr = itertools.count()
+
+    def on_liveliness(self, sample) -> None:
+        """Liveliness subscriber callback (PUT = alive, DELETE = gone)."""
+        try:
+            _, role, node = keys.parse(str(sample.key_expr))
+        except InputError:
+            return
+        alive = str(sample.kind) == "SampleKind.PUT" or str(sample.kind).endswith("PUT")
+        if alive and role in keys.TIERS and self.trust is not None and not self.trust(role, node):
+            log.warning("liveliness: ignoring %s %s: the fleet's policy does not let %s serve the %s tier",
+                        role, node, node, role)
+            return
+        with self._lock:
+            bucket = self._alive.setdefault(role, set())
+            if alive:
+                bucket.add(node)
+            else:
+                bucket.discard(node)
+                if role != "candidate":
+                    self._loads.pop(node, None)
+                else:
+                    self._cands.pop(node, None)
+            self.changed.notify_all()
+        log.info("liveliness: %s %s %s", role, node, "up" if alive else "down")
+
+    def on_load(self, sample) -> None:
+        """Load subscriber callback."""
+        try:
+            msg = wire.decode(sample.payload.to_bytes(), kind="load")
+        except wire.WireProblem as exc:
+            log.debug("ignoring load sample: %s", exc)
+            return
+        with self._lock:
+            self._loads[msg["node"]] = msg["inflight"] / max(1, msg["workers"])
+            if "clock_hz" in msg:
+                self._clocks[msg["node"]] = float(msg["clock_hz"])
+
+    def on_candidate(self, sample) -> None:
+        """Candidacy subscriber callback: who claims the lead, with which term."""
+        from scmr_mesh.mesh.election import Candidacy
+
+        try:
+            c = Candidacy.from_message(wire.decode(sample.payload.to_bytes(), kind="candidate"))
+        except wire.WireProblem as exc:
+            log.debug("ignoring candidacy: %s", exc)
+            return
+        if c.node != keys.candidate_node(str(sample.key_expr)):
+            log.warning("ignoring a candidacy of %s published on %s (a candidate speaks only for itself)",
+                        c.node, sample.key_expr)
+            return
+        with self._lock:
+            self._cands[c.node] = c
+
+    def mark_busy(self, node: str, amount: float = 1.0) -> None:
+        """Raise a node's load estimate locally (until its next load message)."""
+        with self._lock:
+            self._loads[node] = self._loads.get(node, 0.0) + amount
+
+    def _leaders(self) -> list[str]:
+        """Alive leaders, the elected one first: highest term, then rank (unknown terms last)."""
+        from scmr_mesh.mesh.election import rank_key
+
+        def key(n: str):
+            c = self._cands.get(n)
+            if c is None or not c.leading:
+                return (1, 0, (), n)
+            return (0, -c.term, rank_key(c), n)
+
+        return sorted(self._alive["leader"], key=key)
+
+    def snapshot(self, *, local: bool = False) -> Reachable:
+        with self._lock:
+            loads = dict(self._loads)
+            rr = next(self._rr)
+            clouds = sorted(self._alive["cloud"])
+            # least loaded first; ties broken by rotation so robots spread out
+            if clouds:
+                k = rr % len(clouds)
+                clouds = clouds[k:] + clouds[:k]
+            clouds.sort(key=lambda n: loads.get(n, 0.0))
+            peers = sorted((p for p in self._alive["peer"] if p != self.me),
+                           key=lambda n: (loads.get(n, 0.0) >= 1.0, loads.get(n, 0.0),
+                                          -self._clocks.get(n, 0.0), n))
+            return Reachable(tuple(clouds), tuple(self._leaders()), loads, local, tuple(peers),
+                             dict(self._clocks))
+
+    def leader(self) -> str | None:
+        """The elected leader as this robot sees it (None when none is alive)."""
+        with self._lock:
+            leaders = self._leaders()
+        return leaders[0] if leaders else None
+
+    def candidates(self) -> list[str]:
+        """Live leader-capable nodes other than this robot."""
+        with self._lock:
+            return sorted(n for n in self._alive["candidate"] if n != self.me)
+
+    def wait_for_server(self, tried: set, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until a serving node not in ``tried`` ((tier, node) pairs) is alive."""
+        end = time.monotonic() + timeout
+        with self._lock:
+            while True:
+                if any((t, n) not in tried and n != self.me for t in ("cloud", "leader", "peer")
+                       for n in self._alive.get(t, ())):
+                    return True
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self.changed.wait(left)
+
+    def wait_for_tier(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until some cloud or leader node is alive."""
+        end = time.monotonic() + timeout
+        with self._lock:
+            while not (self._alive["cloud"] or self._alive["leader"]):
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self.changed.wait(left)
+            return True
