@@ -62,7 +62,7 @@ class CpuSampler:
     Parameters
     ----------
     ready_dir : Path
-        The run's ``ready/`` folder (the runner writes ``<peer>`` files with ``{"pid": ...}``).
+        The run's ``ready/`` folder (each peer writes ``<peer>.ready`` with ``{"pid": ...}``).
     period_s : float
         Seconds between samples.
 
@@ -97,7 +97,7 @@ class CpuSampler:
         if not self.ready_dir.is_dir():
             return
         for f in self.ready_dir.iterdir():
-            peer = f.name
+            peer = f.name.removesuffix(".ready")  # the engine's ready files: <peer>.ready, <peer>-2.ready
             if peer in self.pgids:
                 continue
             try:
