@@ -48,7 +48,7 @@ def pg_server(tmp_path_factory):
 
     ``make test`` / ``.ci/run`` install the package when ``initdb`` is missing.
     """
-    from scmr_mesh.data.pgserver import PgServer, available
+    from scmr_mesh.fleet.pgserver import PgServer, available
 
     why = available()
     if why:

@@ -135,7 +135,7 @@ def test_read_only_needs_an_ods_and_errors_are_one_line(pg_server, pg_dsn):
 
 def test_a_server_that_goes_away_fails_inserts_then_serves_again(tmp_path):
     """Inserts while the server is stopped fail with one line (nothing half-stored); then resume."""
-    from scmr_mesh.data.pgserver import PgServer
+    from scmr_mesh.fleet.pgserver import PgServer
 
     pg = PgServer(tmp_path / "pg")
     dsn = pg.start()
@@ -177,7 +177,7 @@ def test_scmr_ods_commands_read_a_postgres_store(pg_dsn):
 def test_scmr_ods_reads_a_run_folders_postgres_cluster_stopped_or_running(tmp_path, capsys):
     """`scmr up --clouds 3` leaves RUN/postgres stopped; `scmr ods --db RUN` starts it for the query."""
     from scmr_mesh.cli import main
-    from scmr_mesh.data.pgserver import PgServer
+    from scmr_mesh.fleet.pgserver import PgServer
 
     import shutil
     import tempfile

@@ -81,7 +81,7 @@ def test_up_with_two_clouds_shares_one_postgres_store(tmp_path):
 @pytest.mark.timeout(180)
 def test_database_down_mid_run_robot_keeps_records_until_it_is_back(tmp_path):
     """No leader: while the database is stopped nothing can store telemetry, so the robot's queue holds it."""
-    from scmr_mesh.data.pgserver import PgServer
+    from scmr_mesh.fleet.pgserver import PgServer
 
     pg = PgServer(tmp_path / "pg")
     dsn = pg.start()

@@ -46,7 +46,7 @@ def test_plan_sites_addresses_and_cleanup():
 @pytest.mark.netns
 @pytest.mark.timeout(240)
 def test_clouds_at_two_sites_share_one_postgres_and_survive_a_node_crash(tmp_path):
-    from scmr_mesh.data.pgserver import PgServer, available
+    from scmr_mesh.fleet.pgserver import PgServer, available
 
     reason = unavailable_reason() or available()
     if reason:

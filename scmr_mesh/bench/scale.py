@@ -108,7 +108,7 @@ def _config(args, clouds: int, run_dir: Path, duration_s: float):
 
 def run_scale(args: argparse.Namespace) -> dict[str, Any]:
     """Run every fleet of the benchmark; return the result (see module docstring)."""
-    from scmr_mesh.data.pgserver import available
+    from scmr_mesh.fleet.pgserver import available
     from scmr_mesh.fleet.output import run_with_output
     from scmr_mesh.fleet.run import default_run_dir
 

@@ -70,7 +70,7 @@ def _open(args):
         with OperationalDataStore(target, readonly=True) as ods:
             yield ods
         return
-    from scmr_mesh.data.pgserver import run_store
+    from scmr_mesh.fleet.pgserver import run_store
 
     with run_store(target) as (store, server):
         if server is not None:

@@ -79,7 +79,7 @@ class FleetHooks(Hooks):
         self.progress = progress
         self.progress_every_s = progress_every_s
         self.fviz = None  # scmr_mesh.viz.FleetViz with rerun flags
-        self.pg = None  # scmr_mesh.data.pgserver.PgServer when the run starts PostgreSQL
+        self.pg = None  # scmr_mesh.fleet.pgserver.PgServer when the run starts PostgreSQL
         self.ods: str | None = config.ods
         self._last_emit = -1e9
         self._n_seen = 0
@@ -153,7 +153,7 @@ class FleetHooks(Hooks):
             return config.ods
         if ods_backend(config) == "sqlite":
             return None  # the cloud nodes' default: <run dir>/ods.sqlite
-        from scmr_mesh.data.pgserver import PgServer, available
+        from scmr_mesh.fleet.pgserver import PgServer, available
 
         why = available()
         if why:
