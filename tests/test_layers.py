@@ -137,6 +137,22 @@ def test_pure_core_has_no_middleware():
             assert not bad, f"{rel} imports {bad}"
 
 
+#: Core modules that are command-line entry points of their own (``python -m ...``).
+CORE_ENTRY_POINTS = {"imaging/_aot.py"}
+
+
+def test_core_folders_start_no_process_and_parse_no_flags():
+    """Folders are layers (issue 21): starting servers (``data/pgserver.py`` -> ``fleet/``) and flag parsing
+    (the negotiator's flags -> ``mesh/negotiation.py``) left the pure core; ``*/commands.py`` is the CLI layer."""
+    for f in FILES:
+        rel = f.relative_to(PKG)
+        if layer(rel) != "core" or rel.as_posix() in CORE_ENTRY_POINTS:
+            continue
+        bad = {n.split(".")[0] for n, _ in imports(f)} & {"subprocess", "argparse", "scmr_mesh.cliargs"}
+        bad |= {n for n, _ in imports(f) if n == "scmr_mesh.cliargs" or n.startswith("scmr_mesh.fleet")}
+        assert not bad, f"{rel} imports {bad}: process management belongs in fleet/, flags in */commands.py"
+
+
 def test_the_rules_catch_an_upward_import(tmp_path):
     """The checker itself: a core module importing the mesh is reported."""
     bad = tmp_path / "x.py"

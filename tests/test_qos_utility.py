@@ -15,10 +15,9 @@ from scmr_mesh.qos.negotiator import (
     Negotiator,
     ServiceTimeModel,
     UtilityRanking,
-    add_arguments,
-    service_setup,
     utility,
 )
+from scmr_mesh.mesh.negotiation import add_arguments, service_setup  # the CLI glue left the pure core
 
 
 def test_eq_3_14_by_hand():

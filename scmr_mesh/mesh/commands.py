@@ -134,9 +134,9 @@ def _service_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
                    help="more log output, and the start-up phases when ready: wall and CPU ms of each "
                         "from exec (same as scmr -v)")
-    from scmr_mesh.qos import negotiator
+    from scmr_mesh.mesh import negotiation
 
-    negotiator.add_arguments(p)
+    negotiation.add_arguments(p)
 
 
 def _r2r_args(p: argparse.ArgumentParser, *, robot: bool) -> None:
@@ -195,12 +195,12 @@ def _candidate_data_dir(args, node: str) -> Path | None:
 
 def _run_candidate(args, node: str, *, capability_default: str | None, workers, body) -> int:
     from scmr_mesh.mesh.peers import run_candidate
-    from scmr_mesh.qos import negotiator
+    from scmr_mesh.mesh import negotiation
 
     capability = _capability(args, default=capability_default)
     return run_candidate(node, _mesh(args), capability=capability, workers=workers, process=args.process,
                          max_request_bytes=args.max_request_bytes, ready_file=args.ready_file, robot_body=body,
-                         setup=negotiator.chain(_policy_setup(args), negotiator.service_setup(args)),
+                         setup=negotiation.chain(_policy_setup(args), negotiation.service_setup(args)),
                          serve_peers=args.serve_peers,
                          data_dir=_candidate_data_dir(args, node), sync_period_s=getattr(args, "sync_period", 1.0),
                          events_path=_leadership_log(args, node), verbose=bool(getattr(args, "verbose", 0)),
@@ -634,9 +634,9 @@ def _data_args(p: argparse.ArgumentParser, role: str) -> None:
 
 def _setup(args, tier: str):
     """Service setup hooks: the data tier, then the priority negotiator (--queue)."""
-    from scmr_mesh.qos import negotiator
+    from scmr_mesh.mesh import negotiation
 
-    return negotiator.chain(_policy_setup(args), _data_setup(args, tier), negotiator.service_setup(args))
+    return negotiation.chain(_policy_setup(args), _data_setup(args, tier), negotiation.service_setup(args))
 
 
 def _data_setup(args, tier: str):
