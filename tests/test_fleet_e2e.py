@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from scmr_mesh.fleet import validate_report
+from test_procs import gone  # noqa: E402 - the tests folder is on sys.path (pytest rootdir)
 
 STUB = ["--synthetic", "stub", "--server-arg=--process", "--server-arg=scmr_mesh.mesh.testing:stub_process",
         "--quiet"]
@@ -25,14 +26,6 @@ STUB = ["--synthetic", "stub", "--server-arg=--process", "--server-arg=scmr_mesh
 
 def scmr(*args: str) -> list[str]:
     return [sys.executable, "-m", "scmr_mesh", *args]
-
-
-def gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
-    except FileNotFoundError:
-        return True
 
 
 def procs_mentioning(text: str) -> list[int]:

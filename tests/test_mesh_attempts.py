@@ -34,3 +34,17 @@ def test_the_winning_reply_is_a_frozen_value():
     assert r == Reply("local", "r1", {"mask_png": b"x"}, 0) and error_outcome("busy") == BUSY
     with pytest.raises(AttributeError):
         r.node = "r2"  # type: ignore[misc]
+
+
+def test_the_robot_and_the_data_services_are_context_managers(tmp_path):
+    """Zenoh resources owned with ``with`` (issue 21): leaving the block closes them."""
+    from scmr_mesh.mesh.data_cloud import CloudData
+    from scmr_mesh.mesh.robot import Robot
+
+    with Robot("r1", tmp_path / "r1") as r:
+        assert not r._records.closed
+    assert r._records.closed
+    with CloudData("c", tmp_path / "ods.sqlite") as cloud:
+        pass
+    with pytest.raises(Exception):
+        cloud.ods.counts()  # closed with the block

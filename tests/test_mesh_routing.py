@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import zenoh
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -22,21 +23,21 @@ class _Payload:
 @dataclass
 class _Sample:
     key_expr: str
-    kind: str
+    kind: object  # a zenoh.SampleKind, as zenoh hands it
     payload: _Payload | None = None
 
 
 def _up(view, role, node):
-    view.on_liveliness(_Sample(keys.alive(role, node), "SampleKind.PUT"))
+    view.on_liveliness(_Sample(keys.alive(role, node), zenoh.SampleKind.PUT))
 
 
 def _down(view, role, node):
-    view.on_liveliness(_Sample(keys.alive(role, node), "SampleKind.DELETE"))
+    view.on_liveliness(_Sample(keys.alive(role, node), zenoh.SampleKind.DELETE))
 
 
 def _load(view, node, inflight, workers=2):
     msg = wire.make_load(node, "cloud", workers=workers, inflight=inflight, served=0)
-    view.on_load(_Sample(keys.load("cloud", node), "SampleKind.PUT", _Payload(wire.encode(msg))))
+    view.on_load(_Sample(keys.load("cloud", node), zenoh.SampleKind.PUT, _Payload(wire.encode(msg))))
 
 
 FRAME = FrameInfo("r1", 0, 1000, "png")
@@ -58,9 +59,9 @@ def test_liveliness_put_and_delete():
 
 def test_foreign_keys_are_ignored():
     v = LiveView()
-    v.on_liveliness(_Sample("scmr/alive/cloud/c1/extra", "SampleKind.PUT"))
-    v.on_liveliness(_Sample("other/alive/cloud/c1", "SampleKind.PUT"))
-    v.on_load(_Sample("scmr/load/cloud/c1", "SampleKind.PUT", _Payload(b"\xc1junk")))
+    v.on_liveliness(_Sample("scmr/alive/cloud/c1/extra", zenoh.SampleKind.PUT))
+    v.on_liveliness(_Sample("other/alive/cloud/c1", zenoh.SampleKind.PUT))
+    v.on_load(_Sample("scmr/load/cloud/c1", zenoh.SampleKind.PUT, _Payload(b"\xc1junk")))
     assert v.snapshot().cloud == ()
 
 

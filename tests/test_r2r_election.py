@@ -14,6 +14,7 @@ import itertools
 import random
 
 import pytest
+import zenoh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -353,7 +354,7 @@ def test_the_view_never_offers_this_robot_as_its_own_peer():
 
     class Sample:
         def __init__(self, key):
-            self.key_expr, self.kind = key, "SampleKind.PUT"
+            self.key_expr, self.kind = key, zenoh.SampleKind.PUT
 
     for key in ("scmr/alive/peer/r1", "scmr/alive/peer/r2", "scmr/alive/peer/r3"):
         v.on_liveliness(Sample(key))

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import InputError, MeshError
+from scmr_mesh.mesh.resources import appeared
 
 log = logging.getLogger(__name__)
 
@@ -594,7 +595,7 @@ def _robot_viz(args, robot):
             view_cb(sample)
             try:
                 _, role, node = keys.parse(str(sample.key_expr))
-                rv.log_liveliness(role, node, str(sample.kind).endswith("PUT"))
+                rv.log_liveliness(role, node, appeared(sample))
             except Exception as exc:  # the viewer never breaks routing
                 log.debug("rerun liveliness log failed: %s", exc)
 

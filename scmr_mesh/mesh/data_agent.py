@@ -257,6 +257,13 @@ class TelemetryAgent:
                 "corruptions": len(st.corruptions), "lost_seqs": st.lost_seqs[:100],
                 "error": st.last_error}
 
+    def __enter__(self):
+        """``with`` owns the Zenoh resources this object declares: leaving it calls :meth:`close`."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self, *, drain_s: float = 2.0, summary_path: str | Path | None = None) -> dict:
         """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
         end = time.monotonic() + drain_s

@@ -122,6 +122,13 @@ class CloudData:
         except Exception as exc:
             _answer(query, {"error": str(exc)}, error=True)
 
+    def __enter__(self):
+        """``with`` owns the Zenoh resources this object declares: leaving it calls :meth:`close`."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         self.ods.close()
 

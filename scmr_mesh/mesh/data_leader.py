@@ -230,6 +230,13 @@ class LeaderData:
         self._thread = threading.Thread(target=self._loop, args=(svc,), name="leader-data", daemon=True)
         self._thread.start()
 
+    def __enter__(self):
+        """``with`` owns the Zenoh resources this object declares: leaving it calls :meth:`close`."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         self._stop.set()
         if self._thread is not None:

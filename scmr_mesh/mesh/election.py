@@ -62,6 +62,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Mapping
 
 from scmr_mesh import keys, wire
+from scmr_mesh.mesh.resources import appeared, undeclare_all
 from scmr_mesh.qos.roles import RoleChange, RoleEvent, Why
 
 log = logging.getLogger(__name__)
@@ -335,7 +336,7 @@ class Candidate:
             return
         if role != "candidate" or node == self.node:
             return
-        alive = str(sample.kind).endswith("PUT")
+        alive = appeared(sample)
         with self._lock:
             if alive:
                 self._tokens.add(node)
@@ -412,6 +413,13 @@ class Candidate:
         except Exception as exc:
             log.debug("candidacy refresh failed: %s", exc)
 
+    def __enter__(self):
+        """``with`` owns the Zenoh resources this object declares: leaving it calls :meth:`close`."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self, *, reason: str = "stopping") -> None:
         """Give up the lead (if held) and every declaration."""
         self._stop.set()
@@ -422,13 +430,7 @@ class Candidate:
         with self._lock:
             if self.leading:
                 self._step_down(reason, Why.STOPPING)
-        for obj in [self._token, self._pub, *self._decl]:
-            if obj is None:
-                continue
-            try:
-                obj.undeclare()
-            except Exception:
-                pass
+        undeclare_all([self._token, self._pub, *self._decl])
         self._token = self._pub = None
         self._decl = []
 

@@ -14,6 +14,7 @@ from typing import Any, Callable, Sequence
 
 from scmr_mesh import keys, wire
 from scmr_mesh.errors import InputError
+from scmr_mesh.mesh.resources import appeared
 
 log = logging.getLogger(__name__)
 
@@ -111,7 +112,7 @@ class LiveView:
             _, role, node = keys.parse(str(sample.key_expr))
         except InputError:
             return
-        alive = str(sample.kind) == "SampleKind.PUT" or str(sample.kind).endswith("PUT")
+        alive = appeared(sample)
         if alive and role in keys.TIERS and self.trust is not None and not self.trust(role, node):
             log.warning("liveliness: ignoring %s %s: the fleet's policy does not let %s serve the %s tier",
                         role, node, node, role)

@@ -74,6 +74,7 @@ from typing import Any, Callable, Iterator
 from scmr_mesh import keys, wire
 from scmr_mesh.errors import InputError
 from scmr_mesh.mesh.attempts import BUSY, Outcome, Reply, error_outcome
+from scmr_mesh.mesh.resources import undeclare_all
 from scmr_mesh.qos.schedule import Schedule
 from scmr_mesh.vocab import Tier
 
@@ -225,17 +226,18 @@ class Robot:
         self._res_pub = session.declare_publisher(keys.results(self.id))
         self._token = session.liveliness().declare_token(keys.alive("robot", self.id))
 
+    def __enter__(self):
+        """``with`` owns the Zenoh resources this object declares: leaving it calls :meth:`close`."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
     def close(self) -> None:
         """Undeclare everything this robot declared and close the records file."""
         for ex in self._tier_threads.values():
             ex.shutdown(wait=False, cancel_futures=True)
-        for obj in [self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub]:
-            if obj is None:
-                continue
-            try:
-                obj.undeclare()
-            except Exception:
-                pass
+        undeclare_all([self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub])
         self._subs, self._queriers, self._token = [], {}, None
         self._tele_pub = self._res_pub = None
         try:
