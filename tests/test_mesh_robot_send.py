@@ -48,7 +48,7 @@ def test_a_held_up_tier_does_not_hold_the_request_or_the_other_tier(tmp_path):
         assert att["outcome"] == "timeout"  # given up after the deadline, cloud thread still held
         att2 = {"tier": "leader", "node": "L1", "outcome": "pending"}
         winner = robot._tier_send(att2, leader, payload)
-        assert winner is not None and winner[:2] == ("leader", "L1") and att2["outcome"] == "ok"
+        assert winner is not None and (winner.tier, winner.node) == ("leader", "L1") and att2["outcome"] == "ok"
         assert cloud.threads[0].startswith("scmr-cloud") and leader.threads[0].startswith("scmr-leader")
         assert att["outcome"] == "timeout"  # the late cloud thread did not touch the record
     finally:
