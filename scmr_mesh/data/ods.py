@@ -38,7 +38,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 from scmr_mesh.data.errors import StoreError
 from scmr_mesh.data.record import TIERS, TelemetryRecord
@@ -161,6 +161,22 @@ def _connect(path: Path, *, readonly: bool) -> sqlite3.Connection:
                           isolation_level=None)
     con.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
     return con
+
+
+def serve_writes(q, connection: Callable[[], Any], failed: Callable[[BaseException], BaseException]) -> None:
+    """The single writer thread's loop (SQLite and PostgreSQL stores): run queued ``(fn, args, future)``
+    items on ``connection()`` until a ``None`` arrives; a failure goes to the future through ``failed``."""
+    while True:
+        item = q.get()
+        if item is None:
+            break
+        fn, args, fut = item
+        if not fut.set_running_or_notify_cancel():
+            continue
+        try:
+            fut.set_result(fn(connection(), *args))
+        except BaseException as exc:
+            fut.set_exception(failed(exc))
 
 
 class OperationalDataStore:
@@ -287,22 +303,15 @@ class OperationalDataStore:
             ready.set_exception(exc)
             return
         ready.set_result(None)
+        def failed(exc: BaseException) -> BaseException:
+            try:
+                con.execute("ROLLBACK")
+            except sqlite3.Error:
+                pass
+            return exc
+
         try:
-            while True:
-                item = self._queue.get()
-                if item is None:
-                    break
-                fn, args, fut = item
-                if not fut.set_running_or_notify_cancel():
-                    continue
-                try:
-                    fut.set_result(fn(con, *args))
-                except BaseException as exc:
-                    try:
-                        con.execute("ROLLBACK")
-                    except sqlite3.Error:
-                        pass
-                    fut.set_exception(exc)
+            serve_writes(self._queue, lambda: con, failed)
         finally:
             con.close()
 

@@ -34,7 +34,7 @@ import time
 from typing import Any, Sequence
 
 from scmr_mesh.data.errors import StoreError
-from scmr_mesh.data.ods import SCHEMA_VERSION, InsertResult, OperationalDataStore, migrations
+from scmr_mesh.data.ods import SCHEMA_VERSION, InsertResult, OperationalDataStore, migrations, serve_writes
 from scmr_mesh.data.record import TelemetryRecord
 
 log = logging.getLogger(__name__)
@@ -161,17 +161,7 @@ class PostgresStore(OperationalDataStore):
             return
         ready.set_result(None)
         try:
-            while True:
-                item = self._queue.get()
-                if item is None:
-                    break
-                fn, args, fut = item
-                if not fut.set_running_or_notify_cancel():
-                    continue
-                try:
-                    fut.set_result(fn(self._writer_con(), *args))
-                except BaseException as exc:
-                    fut.set_exception(self._failed(exc))
+            serve_writes(self._queue, self._writer_con, self._failed)
         finally:
             if self._wcon is not None:
                 self._wcon.close()

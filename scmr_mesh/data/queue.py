@@ -283,21 +283,14 @@ class TelemetryQueue:
 
     # ---------------------------------------------------------------- recovery
     def _read_ack(self) -> int:
-        f = self.path / "ack"
-        try:
-            text = f.read_text().strip()
-        except FileNotFoundError:
-            return 0
-        except OSError as exc:
-            raise QueueError(f"cannot read {str(f)!r}: {exc}") from None
-        if not text.isdigit():
-            log.error("queue %s: ack file holds %r, not a seq; replaying everything "
-                      "(the store de-duplicates)", self.path, text[:40])
-            return 0
-        return int(text)
+        return self._read_seq_file("ack", "replaying everything (the store de-duplicates)")
 
     def _read_head(self) -> int:
-        f = self.path / HEAD_FILE
+        return self._read_seq_file(HEAD_FILE, "a record cut off at the tail cannot be told from a torn append")
+
+    def _read_seq_file(self, name: str, consequence: str) -> int:
+        """The seq a small state file holds (0 when it is missing, or damaged: logged with its ``consequence``)."""
+        f = self.path / name
         try:
             text = f.read_text().strip()
         except FileNotFoundError:
@@ -305,8 +298,7 @@ class TelemetryQueue:
         except OSError as exc:
             raise QueueError(f"cannot read {str(f)!r}: {exc}") from None
         if not text.isdigit():
-            log.error("queue %s: head file holds %r, not a seq; a record cut off at the tail cannot be "
-                      "told from a torn append", self.path, text[:40])
+            log.error("queue %s: %s file holds %r, not a seq; %s", self.path, name, text[:40], consequence)
             return 0
         return int(text)
 
