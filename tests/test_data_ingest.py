@@ -22,30 +22,18 @@ import pytest
 
 from scmr_mesh.data.record import batch_size, encode_records, make_record
 from scmr_mesh.mesh import data_cloud
+from test_data_protocol import FakeQuery as ProtocolFakeQuery
 from scmr_mesh.mesh.data_service import CloudData, IngestGate, LeaderData, TelemetryAgent, telemetry_key
 
 
-class FakeQuery:
-    def __init__(self, payload: bytes, key_expr: str) -> None:
-        self.key_expr = key_expr
-        self._p = payload
-        self.done = threading.Event()
-        self.result = None
-
-    @property
-    def payload(self):
-        return SimpleNamespace(to_bytes=lambda: self._p)
+class FakeQuery(ProtocolFakeQuery):
+    """test_data_protocol's fake query, with the answers decoded."""
 
     def reply(self, key, data: bytes, *, encoding=None) -> None:
-        self.result = ("ok", msgpack.unpackb(data))
-        self.done.set()
+        super().reply(key, msgpack.unpackb(data), encoding=encoding)
 
     def reply_err(self, data: bytes, *, encoding=None) -> None:
-        self.result = ("err", msgpack.unpackb(data))
-        self.done.set()
-
-    def drop(self) -> None:
-        pass
+        super().reply_err(msgpack.unpackb(data), encoding=encoding)
 
 
 def _batch(robot: str, first: int, n: int) -> bytes:
