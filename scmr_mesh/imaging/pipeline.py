@@ -88,7 +88,7 @@ def srm_q(mode: str, q: float = 32, params: RoadParams | None = None) -> float:
     """The SRM Q a mode runs with for the user's ``q``.
 
     ``thesis`` uses ``q`` as given.  ``best`` runs SRM on the half-size working frame
-    with ``params.q`` (4096) scaled by ``q / 32``, so the default ``q = 32`` gives ``params.q``.
+    with ``params.q`` (2048) scaled by ``q / 32``, so the default ``q = 32`` gives ``params.q``.
     """
     if mode == "best":
         try:
@@ -114,7 +114,7 @@ def segment_drivable(
         ``"best"`` (most accurate) or ``"thesis"`` (the dissertation's rules).
     q : float, keyword-only
         SRM complexity parameter Q.  ``thesis`` uses it as given; ``best``
-        runs SRM on the half-size working frame with ``params.q * q / 32`` (4096 by default).
+        runs SRM on the half-size working frame with ``params.q * q / 32`` (2048 by default).
     stages : bool, keyword-only
         Also return the intermediate images.
     params : RoadParams, optional, keyword-only

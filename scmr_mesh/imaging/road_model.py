@@ -8,7 +8,7 @@ the in-sample ones.
 
 Steps, on the frame area-downsampled to 150x112 (:data:`WORK_SHAPE`):
 
-1. **Regions.**  SRM with Q = 4096 (``RoadParams.q``).
+1. **Regions.**  SRM with Q = 2048 (``RoadParams.q``; the CV grid's choice on the 60 shared images).
 2. **Self-supervised seeds** (:func:`seed_regions`).  The regions that cover at least
    ``seed_share`` of the thesis's bottom-centre cell and reach its lower half (ground
    contact: a vehicle ahead ends above it) are taken to be road, as Stanley's vision
@@ -83,7 +83,7 @@ class RoadParams:
     """
 
     gamma: float = 1.0
-    q: float = 4096.0
+    q: float = 2048.0
     seed_share: float = 0.10
     p: float = 0.9
     frac: float = 0.3
