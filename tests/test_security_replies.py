@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace as NS
 
 import pytest
+import zenoh
 
 from scmr_mesh import wire
 from scmr_mesh.mesh.robot import Robot
@@ -64,7 +65,7 @@ def test_a_reply_must_come_from_the_node_and_tier_it_was_sent_to(robot, tier, no
 def test_the_live_view_ignores_tokens_of_nodes_the_fleet_does_not_let_serve(robot):
     for key in ("scmr/alive/cloud/aaa", "scmr/alive/cloud/r2", "scmr/alive/leader/r1", "scmr/alive/peer/r1",
                 "scmr/alive/cloud/cloud0", "scmr/alive/leader/r2", "scmr/alive/peer/leader0"):
-        robot.view.on_liveliness(NS(key_expr=key, kind="SampleKind.PUT"))
+        robot.view.on_liveliness(NS(key_expr=key, kind=zenoh.SampleKind.PUT))
     snap = robot.view.snapshot()
     assert snap.cloud == ("cloud0",) and snap.leader == ("r2",) and snap.peer == ("leader0",)
 
