@@ -48,7 +48,7 @@ def test_the_documented_client_is_served_and_stores_telemetry(tmp_path):
     port = _free_port()
     ods = tmp_path / "ods.sqlite"
     ready = tmp_path / "c.ready"
-    cloud = spawn_peer(["cloud", "--node", "cloud0", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
+    cloud = spawn_peer(["cloud", "--node", "cloud0", "--listen", f"tls/127.0.0.1:{port}", "--workers", "1",
                         "--process", STUB, "--security", str(ROOT / "peers" / "secure" / "mtls.toml"),
                         "--credentials", str(creds), "--ready-file", str(ready), "--ods", str(ods)],
                        log_path=tmp_path / "cloud.log")
