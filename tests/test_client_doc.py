@@ -31,6 +31,27 @@ def test_the_doc_has_a_client_block_that_compiles():
     compile(client_code(), str(DOC), "exec")
 
 
+#: Run after the documented client, in its process: what the docs say about refused queries
+#: (the client's own key answers the same junk payload with a `malformed` error, so the
+#: silence below is the access rules', not the service's).
+CLAIMS = """
+session = zenoh.open(conf)
+for selector in ("scmr/drivable/**", "scmr/drivable/cloud/cloud0/someone_else"):
+    answers = []
+    for reply in session.get(selector, payload=b"x", timeout=2.0):
+        if reply.ok is not None:
+            answers.append(("ok", str(reply.ok.key_expr)))
+        elif reply.err.payload.to_bytes() != b"Timeout":
+            answers.append(("err", reply.err.payload.to_bytes()[:80]))
+    assert not answers, (selector, answers)  # docs: no reply at all under the access rules
+errors = [msgpack.unpackb(r.err.payload.to_bytes(), raw=False)["code"]
+          for r in session.get(f"scmr/drivable/cloud/cloud0/{NAME}", payload=b"x", timeout=5.0)
+          if r.ok is None and r.err.payload.to_bytes() != b"Timeout"]
+assert errors == ["malformed"], errors
+session.close()
+"""
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -58,7 +79,7 @@ def test_the_documented_client_is_served_and_stores_telemetry(tmp_path):
         image = tmp_path / "frame.png"
         image.write_bytes(synthetic_png(1))
         script = tmp_path / "client.py"
-        script.write_text(client_code())
+        script.write_text(client_code() + CLAIMS)
         run = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
                              env={**env, "SCMR_CLIENT_CREDS": str(creds), "SCMR_CLIENT_NAME": "client1",
                                   "SCMR_CLIENT_CONNECT": f"tls/127.0.0.1:{port}", "SCMR_CLIENT_IMAGE": str(image)})
