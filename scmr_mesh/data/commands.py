@@ -84,12 +84,25 @@ def _iso(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
 
 
-def _cmd_counts(args) -> int:
+def _print_json(obj, **kw) -> None:
+    json.dump(obj, sys.stdout, indent=1, **kw)
+    print()
+
+
+def _ask_store(args, query):
+    """What ``query(ods)`` answers from the store ``args`` names, or None when ``--json``
+    asked for it and it was printed as JSON instead."""
     with _open(args) as ods:
-        counts = ods.counts()
+        answer = query(ods)
     if args.json:
-        json.dump(counts, sys.stdout, indent=1)
-        print()
+        _print_json(answer)
+        return None
+    return answer
+
+
+def _cmd_counts(args) -> int:
+    counts = _ask_store(args, lambda ods: ods.counts())
+    if counts is None:
         return 0
     if not counts:
         print("no telemetry stored yet", file=sys.stderr)
@@ -105,11 +118,8 @@ def _cmd_counts(args) -> int:
 
 
 def _cmd_latest(args) -> int:
-    with _open(args) as ods:
-        latest = ods.latest()
-    if args.json:
-        json.dump(latest, sys.stdout, indent=1)
-        print()
+    latest = _ask_store(args, lambda ods: ods.latest())
+    if latest is None:
         return 0
     for robot, r in latest.items():
         pose = "-" if r["pose"] is None else "(" + ", ".join(f"{v:.2f}" for v in r["pose"]) + ")"
@@ -153,8 +163,7 @@ def _cmd_queue(args) -> int:
         raise InputError(f"no telemetry queue folder at {str(path)!r}; pass a robot's queue folder")
     with TelemetryQueue(path, readonly=True) as q:  # the robot may be running: look only
         st = q.stats().to_dict()
-    json.dump(st, sys.stdout, indent=1)
-    print()
+    _print_json(st)
     if st["corruptions"] or st["lost_seqs"]:
         print(f"queue {path}: {len(st['corruptions'])} corrupt stretch(es), "
               f"{len(st['lost_seqs'])} seq(s) lost", file=sys.stderr)
@@ -171,8 +180,7 @@ def _cmd_fetch(args) -> int:
     tier, node, items = fetch_once(args.selector, from_args(args, mode="peer"), wait_s=args.wait_ms / 1e3,
                                    deadline_ms=args.deadline_ms)
     print(f"answered by {tier}/{node}: {len(items)} item(s)", file=sys.stderr)
-    json.dump(items, sys.stdout, indent=1, default=str)
-    print()
+    _print_json(items, default=str)
     return 0
 
 
