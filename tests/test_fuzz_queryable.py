@@ -18,14 +18,13 @@ import zlib
 
 import msgpack
 import pytest
-from conftest import free_port
+from cloud_querier import ask, cloud_querier
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from scmr_mesh import keys, wire
+from scmr_mesh import wire
 from scmr_mesh.imaging.codec import MAX_PIXELS
-from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
-from scmr_mesh.mesh.testing import spawn_peer, stop_peer, synthetic_png, wait_for
+from scmr_mesh.mesh.testing import synthetic_png
 
 LIMIT = 2_000_000
 BAD_CODES = {"malformed", "oversized", "wrong_version"}
@@ -36,25 +35,10 @@ FUZZ = settings(max_examples=25, deadline=None, derandomize=True,
 @pytest.fixture(scope="module")
 def cloud(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("fuzz")
-    port = free_port()
-    ready = tmp / "c.ready"
-    p = spawn_peer(["cloud", "--insecure", "--node", "fz", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
-                    "--max-request-bytes", str(LIMIT), "--ready-file", str(ready),
-                    "--ods", str(tmp / "ods.sqlite")],
-                   log_path=tmp / "c.log")
-    try:
-        p.ready_file = ready
-        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what="cloud ready")
-        assert p.poll() is None, (tmp / "c.log").read_text()[-2000:]
-        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=500))
-        try:
-            q = session.declare_querier(keys.drivable_request("cloud", "fz", "good"), timeout=10.0)
-            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
-            yield p, q
-        finally:
-            close_session(session)
-    finally:
-        assert stop_peer(p) == 0, "the cloud did not stop cleanly after the fuzzing"
+    with cloud_querier(tmp, "fz", "--workers", "1", "--max-request-bytes", str(LIMIT), "--ods", str(tmp / "ods.sqlite"),
+                       requester="good", ready_timeout=60, lease_ms=500, query_timeout=10.0,
+                       stopped="the cloud did not stop cleanly after the fuzzing") as (p, q):
+        yield p, q
 
 
 GOOD_PNG = synthetic_png(3)
@@ -64,21 +48,12 @@ def _good(seq: int = 0, **over) -> dict:
     return {**wire.make_request("good", seq, GOOD_PNG, encoding="png"), **over}
 
 
-def _ask(q, payload: bytes):
-    replies = list(q.get(payload=payload))
-    assert len(replies) == 1, f"expected exactly one reply, got {len(replies)}"
-    r = replies[0]
-    if r.ok is not None:
-        return "ok", wire.decode(r.ok.payload.to_bytes(), kind="reply")
-    return "err", wire.decode(r.err.payload.to_bytes(), kind="error")
-
-
 _seq = iter(range(10**9))
 
 
 def _check_bad_then_good(cloud, payload: bytes, *, needles=(), allow_ok=False) -> dict | None:
     proc, q = cloud
-    kind, msg = _ask(q, payload)
+    kind, msg = ask(q, payload)
     if kind == "ok":
         assert allow_ok, f"a bad request was served: {msg.get('robot')}/{msg.get('seq')}"
     else:
@@ -87,7 +62,7 @@ def _check_bad_then_good(cloud, payload: bytes, *, needles=(), allow_ok=False) -
         low = msg["message"].lower()
         assert any(n.lower() in low for n in needles) if needles else True, (needles, msg["message"])
     seq = next(_seq)
-    kind2, rep = _ask(q, wire.encode(_good(seq)))
+    kind2, rep = ask(q, wire.encode(_good(seq)))
     assert kind2 == "ok" and rep["seq"] == seq, "the service stopped serving good requests"
     assert proc.poll() is None
     return msg if kind == "err" else None
@@ -168,7 +143,7 @@ def test_bombs_and_absurd_dimensions(cloud, width, height, fmt):
         width, height = min(width, 65535), min(height, 65535)
     img = _png(width, height) if fmt == "png" else _jpeg(width, height)
     proc, q = cloud
-    kind, msg = _ask(q, wire.encode(_good(0, image=img, encoding=fmt)))
+    kind, msg = ask(q, wire.encode(_good(0, image=img, encoding=fmt)))
     if width * height > MAX_PIXELS:
         # refused from the header, before any pixel is decoded
         assert kind == "err" and msg["code"] == "malformed" and "pixels" in msg["message"], msg
@@ -233,7 +208,7 @@ def test_service_survives_a_dead_worker(cloud):
     assert dead()
     outcomes = []
     for seq in range(3):
-        kind, msg = _ask(q, wire.encode(_good(10_000 + seq)))
+        kind, msg = ask(q, wire.encode(_good(10_000 + seq)))
         outcomes.append(kind if kind == "ok" else msg["code"])
     assert proc.poll() is None
     # at most the request caught in the crash fails (as "internal"); then it serves again

@@ -8,12 +8,11 @@ import threading
 import time
 
 import pytest
-from conftest import free_port
+from cloud_querier import cloud_querier
 
-from scmr_mesh import keys, wire
-from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
+from scmr_mesh import wire
 from scmr_mesh.mesh.server import ServiceState, default_admission
-from scmr_mesh.mesh.testing import SLOW, spawn_peer, stop_peer, synthetic_png, wait_for
+from scmr_mesh.mesh.testing import SLOW, synthetic_png
 
 
 def _state(**kw) -> ServiceState:
@@ -72,39 +71,25 @@ def test_overloaded_cloud_answers_busy_before_the_queue_grows(tmp_path):
     # admitted (400 ms, then 800 ms), the rest are refused at once; with the old
     # in-flight limit (8 x workers) all 8 were queued, the last answered after 3.2 s.
     # (A third may be admitted if the first finishes before the last request arrives.)
-    port = free_port()
-    ready = tmp_path / "c.ready"
-    p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
-                    "--process", SLOW, "--budget-ms", "900", "--ready-file", str(ready)],
-                   log_path=tmp_path / "c.log", env={"SCMR_STUB_DELAY_MS": "400"})
-    try:
-        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=120, what="cloud ready")
-        assert p.poll() is None, (tmp_path / "c.log").read_text()
-        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
-        try:
-            q = session.declare_querier(keys.drivable_request("cloud", "c1", "t1"), timeout=30.0)
-            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
-            results: dict[int, tuple[str, float]] = {}
-            lock = threading.Lock()
+    with cloud_querier(tmp_path, "c1", "--workers", "1", "--process", SLOW, "--budget-ms", "900",
+                       env={"SCMR_STUB_DELAY_MS": "400"}) as (p, q):
+        results: dict[int, tuple[str, float]] = {}
+        lock = threading.Lock()
 
-            def ask(seq: int) -> None:
-                req = wire.make_request("t1", seq, synthetic_png(seq), encoding="png")
-                for r in q.get(payload=wire.encode(req)):
-                    kind = "ok" if r.ok is not None else "err"
-                    body = (r.ok or r.err).payload.to_bytes()
-                    msg = wire.decode(body, kind="reply" if kind == "ok" else "error")
-                    with lock:
-                        results[seq] = ("ok" if kind == "ok" else msg["code"], time.monotonic())
+        def ask(seq: int) -> None:
+            req = wire.make_request("t1", seq, synthetic_png(seq), encoding="png")
+            for r in q.get(payload=wire.encode(req)):
+                kind = "ok" if r.ok is not None else "err"
+                body = (r.ok or r.err).payload.to_bytes()
+                msg = wire.decode(body, kind="reply" if kind == "ok" else "error")
+                with lock:
+                    results[seq] = ("ok" if kind == "ok" else msg["code"], time.monotonic())
 
-            threads = [threading.Thread(target=ask, args=(i,)) for i in range(8)]
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join(timeout=30)
-        finally:
-            close_session(session)
-    finally:
-        assert stop_peer(p) == 0
+        threads = [threading.Thread(target=ask, args=(i,)) for i in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(timeout=30)
     codes = sorted(c for c, _ in results.values())
     assert len(results) == 8
     assert codes.count("ok") in (2, 3) and codes.count("ok") + codes.count("busy") == 8, codes

@@ -6,44 +6,21 @@ from __future__ import annotations
 
 import msgpack
 import pytest
+from cloud_querier import ask, cloud_querier
 from conftest import free_port
 
 from scmr_mesh import keys, wire
 from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
-from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, synthetic_png, wait_for
+from scmr_mesh.mesh.testing import STUB, spawn_peer, synthetic_png, wait_for
 
 LIMIT = 60_000
 
 
 @pytest.fixture(scope="module")
 def cloud(tmp_path_factory):
-    tmp_path = tmp_path_factory.mktemp("malformed")
-    port = free_port()
-    ready = tmp_path / "c.ready"
-    p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
-                    "--process", STUB, "--max-request-bytes", str(LIMIT), "--ready-file", str(ready)],
-                   log_path=tmp_path / "c.log")
-    try:
-        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=120, what="cloud ready")
-        assert p.poll() is None, (tmp_path / "c.log").read_text()
-        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
-        try:
-            q = session.declare_querier(keys.drivable_request("cloud", "c1", "t1"), timeout=30.0)
-            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
-            yield p, q
-        finally:
-            close_session(session)
-    finally:
-        assert stop_peer(p) == 0
-
-
-def _ask(q, payload: bytes):
-    replies = list(q.get(payload=payload))
-    assert len(replies) == 1
-    r = replies[0]
-    if r.ok is not None:
-        return "ok", wire.decode(r.ok.payload.to_bytes(), kind="reply")
-    return "err", wire.decode(r.err.payload.to_bytes(), kind="error")
+    tmp = tmp_path_factory.mktemp("malformed")
+    with cloud_querier(tmp, "c1", "--workers", "1", "--process", STUB, "--max-request-bytes", str(LIMIT)) as (p, q):
+        yield p, q
 
 
 def _good(seq=1):
@@ -68,22 +45,22 @@ CASES = [
 
 def test_bad_requests_get_error_replies_and_service_keeps_serving(cloud):
     proc, q = cloud
-    kind, rep = _ask(q, wire.encode(_good(0)))
+    kind, rep = ask(q, wire.encode(_good(0)))
     assert kind == "ok" and rep["served_by"] == "c1" and rep["tier"] == "cloud" and rep["seq"] == 0
     for name, payload, code, needle in CASES:
-        kind, msg = _ask(q, payload)
+        kind, msg = ask(q, payload)
         assert kind == "err", name
         assert msg["code"] == code, (name, msg)
         assert needle in msg["message"], (name, msg["message"])
         assert msg["served_by"] == "c1"
     # robot and seq are echoed when the request could be read
-    kind, msg = _ask(q, wire.encode({**_good(7), "image": b"junk"}))
+    kind, msg = ask(q, wire.encode({**_good(7), "image": b"junk"}))
     assert (msg["robot"], msg["seq"]) == ("t1", 7)
     for seq in range(2, 5):
-        kind, rep = _ask(q, wire.encode(_good(seq)))
+        kind, rep = ask(q, wire.encode(_good(seq)))
         assert kind == "ok" and rep["seq"] == seq
     raw = wire.make_request("t1", 9, bytes(range(256)) * 9, encoding="raw", shape=(24, 32, 3))
-    kind, rep = _ask(q, wire.encode(raw))
+    kind, rep = ask(q, wire.encode(raw))
     assert kind == "ok" and rep["shape"] == [225, 300]
     assert proc.poll() is None
 
@@ -91,22 +68,22 @@ def test_bad_requests_get_error_replies_and_service_keeps_serving(cloud):
 def test_error_replies_name_what_was_received_and_the_fix(cloud):
     """Issue #12, item 7: a client reads what it sent, what is wrong, and what to send instead."""
     _, q = cloud
-    _, msg = _ask(q, b"\xc1\xc1\xc1")
+    _, msg = ask(q, b"\xc1\xc1\xc1")
     assert "payload of 3 bytes is not msgpack" in msg["message"] and "0xc1c1c1" in msg["message"]
     assert "wire.make_request" in msg["message"]
     # a schema violation: robot and seq were readable, so they come back
     for bad in ({**_good(5), "encoding": "gif"}, {k: v for k, v in _good(5).items() if k != "mode"},
                 {**_good(5), "priority": -1}, {**_good(5), "v": 99}):
-        _, msg = _ask(q, wire.encode(bad))
+        _, msg = ask(q, wire.encode(bad))
         assert (msg["robot"], msg["seq"]) == ("t1", 5), msg
-    _, msg = _ask(q, wire.encode({**_good(5), "robot": "no spaces allowed", "encoding": "gif"}))
+    _, msg = ask(q, wire.encode({**_good(5), "robot": "no spaces allowed", "encoding": "gif"}))
     assert (msg["robot"], msg["seq"]) == (None, 5)  # an unreadable robot id is never echoed
     # an undecodable image: the wire's terms ([H, W, 3]), not the decoder's Python API
-    _, msg = _ask(q, wire.encode({**_good(6), "image": b"not an image at all"}))
+    _, msg = ask(q, wire.encode({**_good(6), "image": b"not an image at all"}))
     assert "encoding 'png', 19 bytes" in msg["message"] and "[H, W, 3]" in msg["message"]
     assert "shape=(H, W)" not in msg["message"] and (msg["robot"], msg["seq"]) == ("t1", 6)
     raw = wire.make_request("t1", 8, bytes(10), encoding="raw", shape=(4, 4, 3))
-    _, msg = _ask(q, wire.encode(raw))
+    _, msg = ask(q, wire.encode(raw))
     assert "shape [4, 4, 3]" in msg["message"] and "48" in msg["message"] and "[H, W, 3]" in msg["message"]
 
 
@@ -178,29 +155,17 @@ def test_requests_past_their_deadline_are_not_processed(tmp_path):
     """With one slow worker, requests queued past their deadline get 'expired' without the work."""
     from scmr_mesh.mesh.testing import SLOW
 
-    port = free_port()
-    ready = tmp_path / "slow.ready"
-    p = spawn_peer(["cloud", "--insecure", "--node", "slow", "--listen", f"tcp/127.0.0.1:{port}", "--workers", "1",
-                    "--process", SLOW, "--budget-ms", "100000", "--ready-file", str(ready)],
-                   log_path=tmp_path / "slow.log", env={"SCMR_STUB_DELAY_MS": "1000"})  # queue them: no busy
-    try:
-        wait_for(lambda: ready.exists() or p.poll() is not None, timeout=60, what="slow cloud ready")
-        session = open_session(MeshConfig(connect=[f"tcp/127.0.0.1:{port}"], lease_ms=300))
-        try:
-            q = session.declare_querier(keys.drivable_request("cloud", "slow", "t1"), timeout=10.0)
-            wait_for(lambda: q.matching_status.matching, timeout=10, what="matching queryable")
-            pending = [q.get(payload=wire.encode(wire.make_request("t1", i, synthetic_png(i), deadline_ms=300)))
-                       for i in range(3)]
-            out = {}
-            for i, h in enumerate(pending):
-                r = list(h)[0]
-                if r.ok is not None:
-                    out[i] = "ok"
-                else:
-                    out[i] = wire.decode(r.err.payload.to_bytes(), kind="error")["code"]
-        finally:
-            close_session(session)
-        # the first starts at once (300 ms to reach the worker); the others wait >= 1 s for it
-        assert out == {0: "ok", 1: "expired", 2: "expired"}
-    finally:
-        assert stop_peer(p) == 0
+    with cloud_querier(tmp_path, "slow", "--workers", "1", "--process", SLOW, "--budget-ms", "100000",
+                       ready_timeout=60, query_timeout=10.0,
+                       env={"SCMR_STUB_DELAY_MS": "1000"}) as (p, q):  # queue them: no busy
+        pending = [q.get(payload=wire.encode(wire.make_request("t1", i, synthetic_png(i), deadline_ms=300)))
+                   for i in range(3)]
+        out = {}
+        for i, h in enumerate(pending):
+            r = list(h)[0]
+            if r.ok is not None:
+                out[i] = "ok"
+            else:
+                out[i] = wire.decode(r.err.payload.to_bytes(), kind="error")["code"]
+    # the first starts at once (300 ms to reach the worker); the others wait >= 1 s for it
+    assert out == {0: "ok", 1: "expired", 2: "expired"}
