@@ -259,7 +259,8 @@ def _common(p: argparse.ArgumentParser, *, json_help: str) -> None:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``scmr energy {table,sweep,place,profiles}``."""
-    fmt = argparse.RawDescriptionHelpFormatter
+    # the module docstring's examples close the help of `scmr energy` and its subcommands
+    examples = {"epilog": __doc__.split("\n\n", 1)[1], "formatter_class": argparse.RawDescriptionHelpFormatter}
     energy = sub.add_parser(
         "energy",
         help="energy model: Eq 4.9 table, experiment 7 sweep, placement decisions",
@@ -268,8 +269,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "E_cloud = P_i*C/S_c + P_u*D_up/B_u + P_d*D_down/B_d (offloaded, S_c = F*S_r), "
             "E_saved = E_proc - E_cloud.  See docs/ENERGY.md."
         ),
-        epilog=__doc__.split("\n\n", 1)[1],
-        formatter_class=fmt,
+        **examples,
     )
     esub = energy.add_subparsers(dest="energy_command", metavar="SUBCOMMAND")
     energy.set_defaults(func=lambda args: (energy.print_help(sys.stderr), 2)[1])
@@ -294,8 +294,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "E_saved over image size x upload bandwidth for each profile, with the break-even "
             "bandwidth per size in closed form, cross-checked by bisection."
         ),
-        epilog=__doc__.split("\n\n", 1)[1],
-        formatter_class=fmt,
+        **examples,
     )
     s.add_argument("--sizes", type=ca.parsed(lambda t: _list(t, parse_size), what="sizes such as 0.5MB,1MB", example="1MB,3MB", keep_text=True), default=DEFAULT_SIZES, help=f"upload sizes (default {DEFAULT_SIZES})")
     s.add_argument("--bandwidths", type=ca.parsed(lambda t: _list(t, parse_rate), what="rates such as 10Mb/s,20Mb/s", example="10Mb/s,20Mb/s", keep_text=True), default=DEFAULT_BANDWIDTHS, help="upload bandwidths (default 5..100 Mb/s step 5)")
@@ -316,8 +315,7 @@ def register(sub: argparse._SubParsersAction) -> None:
             "choice: least robot energy among options meeting --deadline; if none meets it, the "
             "fastest, flagged as a deadline miss."
         ),
-        epilog=__doc__.split("\n\n", 1)[1],
-        formatter_class=fmt,
+        **examples,
     )
     p.add_argument("--profile", required=True, help="robot profile name (leader, robot1..robot4 or from --profiles-file)")
     p.add_argument("--cycles", type=ca.positive("cycles", example="5e9"), help="C, cycles the task needs (assumed input)")
