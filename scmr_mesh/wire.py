@@ -66,7 +66,7 @@ MAX_TERM = 2**53
 #: Largest sequence number of a request, reply or telemetry message (schemas' ``maximum``):
 #: ``seq + 1`` still encodes as a msgpack int64.
 MAX_SEQ = 2**62
-#: Largest magnitude of any integer in a message (msgpack int64; clocks in ns fit).
+#: Largest magnitude of any number in a message, int or float (msgpack int64; clocks in ns fit).
 MAX_WIRE_INT = 2**63 - 1
 #: Default size caps of the small control messages (bytes), checked before parsing:
 #: a real candidacy or load message is about 200-300 bytes.
@@ -167,13 +167,15 @@ def warm() -> None:
 
 def insane_number(value: Any, schema: Any = None, path: str = "") -> str | None:
     """Path and reason of the first number in ``value`` another node must not send
-    (NaN or inf anywhere, an integer beyond :data:`MAX_WIRE_INT`, a float where
+    (NaN or inf anywhere, a number beyond :data:`MAX_WIRE_INT`, a float where
     ``schema`` wants an integer), or None when all are sane."""
     if isinstance(value, bool) or value is None or isinstance(value, (str, bytes, bytearray)):
         return None
     if isinstance(value, float):
         if not math.isfinite(value):
             return f"{path or '(top level)'} is {value!r}, not a finite number"
+        if abs(value) > MAX_WIRE_INT:
+            return f"{path or '(top level)'} = {value!r} is beyond {MAX_WIRE_INT}"
         if isinstance(schema, dict):
             types = schema.get("type")
             types = types if isinstance(types, list) else [types]
