@@ -21,6 +21,7 @@ the caller keeps using jsonschema for that schema.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping, Sequence
 from numbers import Number
@@ -46,6 +47,14 @@ def _is_integer(x: Any) -> bool:
     return isinstance(x, int) or (isinstance(x, float) and x.is_integer())
 
 
+def _is_finite_number(x: Any) -> bool:
+    return _is_number(x) and (not isinstance(x, float) or math.isfinite(x))
+
+
+def _is_real_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
 _TYPES: dict[str, Check] = {
     "string": lambda x: isinstance(x, str),
     "integer": _is_integer,
@@ -55,6 +64,9 @@ _TYPES: dict[str, Check] = {
     "array": lambda x: isinstance(x, list),
     "object": lambda x: isinstance(x, dict),
 }
+#: ``strict=True``: a wire peer's numbers, where jsonschema's rules are too lax for
+#: untrusted input (an ``integer`` must be a real int, not 1e300; a ``number`` finite).
+_STRICT_TYPES: dict[str, Check] = {**_TYPES, "integer": _is_real_int, "number": _is_finite_number}
 
 
 _TRUE, _FALSE = object(), object()
@@ -78,8 +90,12 @@ def equal(a: Any, b: Any) -> bool:
 
 
 # ------------------------------------------------------------------ compile
-def compile_check(schema: Any) -> Check:
+def compile_check(schema: Any, *, strict: bool = False) -> Check:
     """``check(instance) -> bool`` for ``schema``.
+
+    With ``strict``, ``integer`` accepts only real ints (jsonschema also takes
+    ``1e300``) and ``number`` only finite values (jsonschema also takes NaN and
+    inf): what :mod:`scmr_mesh.wire` asks of another node's message.
 
     Raises
     ------
@@ -102,7 +118,7 @@ def compile_check(schema: Any) -> Check:
         use("type")
         names = schema["type"] if isinstance(schema["type"], list) else [schema["type"]]
         try:
-            tests = [_TYPES[n] for n in names]
+            tests = [(_STRICT_TYPES if strict else _TYPES)[n] for n in names]
         except (KeyError, TypeError):
             raise Unsupported(f"type {schema['type']!r}") from None
         checks.append(tests[0] if len(tests) == 1 else (lambda x, t=tuple(tests): any(f(x) for f in t)))
@@ -137,8 +153,8 @@ def compile_check(schema: Any) -> Check:
         checks.append(lambda x, n=schema["maxItems"]: not isinstance(x, list) or len(x) <= n)
     if "prefixItems" in schema or "items" in schema:
         use("prefixItems", "items")
-        prefix = [compile_check(s) for s in schema.get("prefixItems", [])]
-        rest = compile_check(schema["items"]) if "items" in schema else None
+        prefix = [compile_check(s, strict=strict) for s in schema.get("prefixItems", [])]
+        rest = compile_check(schema["items"], strict=strict) if "items" in schema else None
 
         def items(x, prefix=prefix, rest=rest):
             if not isinstance(x, list):
@@ -155,8 +171,8 @@ def compile_check(schema: Any) -> Check:
         checks.append(lambda x, req=req: not isinstance(x, dict) or all(k in x for k in req))
     if "properties" in schema or "additionalProperties" in schema:
         use("properties", "additionalProperties")
-        props = {k: compile_check(s) for k, s in schema.get("properties", {}).items()}
-        extra = compile_check(schema["additionalProperties"]) if "additionalProperties" in schema else None
+        props = {k: compile_check(s, strict=strict) for k, s in schema.get("properties", {}).items()}
+        extra = compile_check(schema["additionalProperties"], strict=strict) if "additionalProperties" in schema else None
 
         def properties(x, props=props, extra=extra):
             if not isinstance(x, dict):
@@ -173,25 +189,25 @@ def compile_check(schema: Any) -> Check:
         checks.append(properties)
     if "allOf" in schema:
         use("allOf")
-        subs = [compile_check(s) for s in schema["allOf"]]
+        subs = [compile_check(s, strict=strict) for s in schema["allOf"]]
         checks.append(lambda x, subs=subs: all(f(x) for f in subs))
     if "anyOf" in schema:
         use("anyOf")
-        subs = [compile_check(s) for s in schema["anyOf"]]
+        subs = [compile_check(s, strict=strict) for s in schema["anyOf"]]
         checks.append(lambda x, subs=subs: any(f(x) for f in subs))
     if "oneOf" in schema:
         use("oneOf")
-        subs = [compile_check(s) for s in schema["oneOf"]]
+        subs = [compile_check(s, strict=strict) for s in schema["oneOf"]]
         checks.append(lambda x, subs=subs: sum(1 for f in subs if f(x)) == 1)
     if "not" in schema:
         use("not")
-        sub = compile_check(schema["not"])
+        sub = compile_check(schema["not"], strict=strict)
         checks.append(lambda x, sub=sub: not sub(x))
     if "if" in schema:
         use("if", "then", "else")
-        cond = compile_check(schema["if"])
-        then = compile_check(schema.get("then", True))
-        other = compile_check(schema.get("else", True))
+        cond = compile_check(schema["if"], strict=strict)
+        then = compile_check(schema.get("then", True), strict=strict)
+        other = compile_check(schema.get("else", True), strict=strict)
         checks.append(lambda x, c=cond, t=then, e=other: t(x) if c(x) else e(x))
     elif "then" in schema or "else" in schema:
         use("then", "else")  # without "if" they do nothing

@@ -28,7 +28,10 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
+import math
 import re
+import threading
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -57,7 +60,21 @@ ENCODINGS: tuple[str, ...] = ("png", "jpeg", "raw")
 #: Pipeline modes.
 MODES: tuple[str, ...] = ("best", "thesis")
 
+#: Largest election term a candidacy may carry (its schema's ``maximum``): far below
+#: 2**63, so a candidate's ``term + 1`` always encodes and stays an exact float.
+MAX_TERM = 2**53
+#: Largest sequence number of a request, reply or telemetry message (schemas' ``maximum``):
+#: ``seq + 1`` still encodes as a msgpack int64.
+MAX_SEQ = 2**62
+#: Largest magnitude of any number in a message, int or float (msgpack int64; clocks in ns fit).
+MAX_WIRE_INT = 2**63 - 1
+#: Default size caps of the small control messages (bytes), checked before parsing:
+#: a real candidacy or load message is about 200-300 bytes.
+MAX_BYTES: dict[str, int] = {"candidate": 4096, "load": 4096, "telemetry": 64 * 1024, "error": 16 * 1024}
+
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
+
+log = logging.getLogger(__name__)
 
 
 class WireProblem(WireError):
@@ -133,10 +150,55 @@ def validator(kind: str):
     return cls(schema)
 
 
+@functools.lru_cache(maxsize=None)
+def strict_check(kind: str):
+    """Like :func:`fast_check` with ``strict=True``: integers real ints, numbers finite."""
+    from scmr_mesh import _schema
+
+    return _schema.compile_check(load_schema(kind), strict=True)
+
+
 def warm() -> None:
     """Compile every fast check now (about 1 ms); jsonschema loads only to explain a bad message."""
     for kind in KINDS:
         fast_check(kind)
+        strict_check(kind)
+
+
+def insane_number(value: Any, schema: Any = None, path: str = "") -> str | None:
+    """Path and reason of the first number in ``value`` another node must not send
+    (NaN or inf anywhere, a number beyond :data:`MAX_WIRE_INT`, a float where
+    ``schema`` wants an integer), or None when all are sane."""
+    if isinstance(value, bool) or value is None or isinstance(value, (str, bytes, bytearray)):
+        return None
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return f"{path or '(top level)'} is {value!r}, not a finite number"
+        if abs(value) > MAX_WIRE_INT:
+            return f"{path or '(top level)'} = {value!r} is beyond {MAX_WIRE_INT}"
+        if isinstance(schema, dict):
+            types = schema.get("type")
+            types = types if isinstance(types, list) else [types]
+            if "integer" in types and "number" not in types:
+                return f"{path or '(top level)'} is the float {value!r}, not an integer"
+        return None
+    if isinstance(value, int):
+        if abs(value) > MAX_WIRE_INT:
+            return f"{path or '(top level)'} = {value} is beyond {MAX_WIRE_INT}"
+        return None
+    sub = schema if isinstance(schema, dict) else {}
+    if isinstance(value, dict):
+        props = sub.get("properties") or {}
+        for k, v in value.items():
+            why = insane_number(v, props.get(k, sub.get("additionalProperties")), f"{path}/{k}" if path else str(k))
+            if why:
+                return why
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            why = insane_number(v, sub.get("items"), f"{path}/{i}" if path else str(i))
+            if why:
+                return why
+    return None
 
 
 def validate(message: Mapping[str, Any], kind: str) -> Mapping[str, Any]:
@@ -157,12 +219,13 @@ def validate(message: Mapping[str, Any], kind: str) -> Mapping[str, Any]:
             "run the same scmr-mesh version on every peer",
             partial=message,
         )
-    check = fast_check(kind)
-    if check is not None and check(message):
+    if strict_check(kind)(message) and insane_number(message) is None:
         return message
     val = validator(kind)
     if val.is_valid(message):
-        return message
+        # jsonschema takes NaN, inf and 1e300 as an "integer"; another node's message may not
+        why = insane_number(message, load_schema(kind)) or "a number is not finite or not a real integer"
+        raise WireProblem("malformed", f"{kind} field {why} (see schemas/{kind}.schema.json)", partial=message)
     err = min(val.iter_errors(message), key=lambda e: len(e.path))
     where = "/".join(str(p) for p in err.absolute_path) or "(top level)"
     raise WireProblem("malformed", f"{kind} field {where}: {err.message[:300]} (see schemas/{kind}.schema.json)",
@@ -175,8 +238,42 @@ def encode(message: Mapping[str, Any]) -> bytes:
     return msgpack.packb(message, use_bin_type=True)
 
 
+#: Messages :func:`decode` refused, by (expected kind, code); see :func:`rejected`.
+_REJECTED: dict[tuple[str, str], int] = {}
+_REJECTED_LOCK = threading.Lock()
+_LAST_WARNING: dict[str, float] = {}
+#: At most one WARNING per expected kind per this many seconds (the rest only counted).
+WARN_EVERY_S = 10.0
+
+
+def rejected() -> dict[str, dict[str, int]]:
+    """How many received messages this process refused: ``{kind: {code: count}}``."""
+    with _REJECTED_LOCK:
+        out: dict[str, dict[str, int]] = {}
+        for (k, code), n in _REJECTED.items():
+            out.setdefault(k, {})[code] = n
+        return out
+
+
+def _count_rejection(kind: str, exc: WireProblem) -> None:
+    now = time.monotonic()
+    with _REJECTED_LOCK:
+        _REJECTED[(kind, exc.code)] = _REJECTED.get((kind, exc.code), 0) + 1
+        total = sum(n for (k, _), n in _REJECTED.items() if k == kind)
+        last = _LAST_WARNING.get(kind)
+        loud = last is None or now - last >= WARN_EVERY_S
+        if loud:
+            _LAST_WARNING[kind] = now
+    if loud:
+        log.warning("dropped a %s message (%s): %s [%d %s message(s) refused so far]",
+                    kind, exc.code, str(exc)[:300], total, kind)
+
+
 def decode(data: bytes | bytearray, *, kind: str | tuple[str, ...], max_bytes: int | None = None) -> dict:
     """Parse and validate msgpack ``data`` as a message of ``kind``.
+
+    Every refused message is counted (:func:`rejected`) and logged at WARNING,
+    at most once per kind every :data:`WARN_EVERY_S` seconds.
 
     Parameters
     ----------
@@ -185,7 +282,8 @@ def decode(data: bytes | bytearray, *, kind: str | tuple[str, ...], max_bytes: i
     kind : str or tuple of str
         Expected kind(s); the message's own ``kind`` picks the schema.
     max_bytes : int, optional
-        Reject larger payloads with code ``oversized`` before parsing.
+        Reject larger payloads with code ``oversized`` before parsing; default
+        :data:`MAX_BYTES` of the (first) kind, no cap for requests and replies.
 
     Returns
     -------
@@ -198,11 +296,20 @@ def decode(data: bytes | bytearray, *, kind: str | tuple[str, ...], max_bytes: i
         ``oversized``, ``malformed`` or ``wrong_version``.
     """
     kinds = (kind,) if isinstance(kind, str) else tuple(kind)
+    try:
+        return _decode(data, kinds, max_bytes if max_bytes is not None else MAX_BYTES.get(kinds[0]))
+    except WireProblem as exc:
+        _count_rejection(kinds[0], exc)
+        raise
+
+
+def _decode(data: bytes | bytearray, kinds: tuple[str, ...], max_bytes: int | None) -> dict:
     if max_bytes is not None and len(data) > max_bytes:
         raise WireProblem(
             "oversized",
             f"payload of {len(data)} bytes exceeds the limit of {max_bytes} bytes; "
-            "send a smaller or compressed (png/jpeg) frame",
+            + ("send a smaller or compressed (png/jpeg) frame" if kinds[0] == "request"
+               else f"a {kinds[0]} message is a few hundred bytes"),
         )
     fix = _FIX.get(kinds[0], f"send a msgpack map made by scmr_mesh.wire (schemas/{kinds[0]}.schema.json)")
     try:

@@ -29,6 +29,7 @@ links and connections instead.
 from __future__ import annotations
 
 import json
+import math
 import operator
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -309,8 +310,24 @@ def _leaf_errors(err: Any) -> Any:
     return err
 
 
+def _non_finite(value: Any, path: str = "") -> str | None:
+    """Path of the first NaN or inf in ``value`` (TOML has both; the schema's "number" takes them)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return path
+    items = value.items() if isinstance(value, Mapping) else enumerate(value) if isinstance(value, list) else ()
+    for k, v in items:
+        found = _non_finite(v, f"{path}[{k}]" if isinstance(k, int) else f"{path}.{k}" if path else str(k))
+        if found is not None:
+            return found
+    return None
+
+
 def _validate_schema(data: Mapping[str, Any], source: str) -> None:
     import jsonschema
+
+    bad = _non_finite(data)
+    if bad is not None:
+        raise _err(source, bad, "not a finite number (nan/inf)", "write a finite number")
 
     validator = jsonschema.Draft202012Validator(_schema())
     errors = sorted(validator.iter_errors(dict(data)), key=lambda e: (list(map(str, e.absolute_path)), e.validator))
