@@ -141,16 +141,32 @@ def test_pure_core_has_no_middleware():
 CORE_ENTRY_POINTS = {"imaging/_aot.py"}
 
 
+def core_violations(rel: Path, path: Path) -> set[str]:
+    """Imports of process management or flag parsing in the core module ``path`` (at ``rel``)."""
+    if layer(rel) != "core" or rel.as_posix() in CORE_ENTRY_POINTS:
+        return set()
+    bad = {n.split(".")[0] for n, _ in imports(path)} & {"subprocess", "argparse"}
+    bad |= {n for n, _ in imports(path) if n == "scmr_mesh.cliargs" or n.startswith("scmr_mesh.fleet")}
+    return bad
+
+
 def test_core_folders_start_no_process_and_parse_no_flags():
     """Folders are layers (issue 21): starting servers (``data/pgserver.py`` -> ``fleet/``) and flag parsing
     (the negotiator's flags -> ``mesh/negotiation.py``) left the pure core; ``*/commands.py`` is the CLI layer."""
     for f in FILES:
         rel = f.relative_to(PKG)
-        if layer(rel) != "core" or rel.as_posix() in CORE_ENTRY_POINTS:
-            continue
-        bad = {n.split(".")[0] for n, _ in imports(f)} & {"subprocess", "argparse", "scmr_mesh.cliargs"}
-        bad |= {n for n, _ in imports(f) if n == "scmr_mesh.cliargs" or n.startswith("scmr_mesh.fleet")}
+        bad = core_violations(rel, f)
         assert not bad, f"{rel} imports {bad}: process management belongs in fleet/, flags in */commands.py"
+
+
+def test_the_rules_catch_a_process_or_flags_in_the_core(tmp_path):
+    """The checker itself: subprocess in data/, argparse or cliargs in qos/ are reported; commands.py may parse."""
+    bad = tmp_path / "x.py"
+    bad.write_text("import subprocess\nfrom argparse import Namespace\nfrom scmr_mesh import cliargs as ca\n")
+    assert core_violations(Path("data/pgserver.py"), bad) == {"subprocess", "argparse", "scmr_mesh.cliargs"}
+    assert core_violations(Path("qos/negotiator.py"), bad) == {"subprocess", "argparse", "scmr_mesh.cliargs"}
+    assert core_violations(Path("qos/commands.py"), bad) == set()
+    assert core_violations(Path("fleet/pgserver.py"), bad) == set()
 
 
 def test_the_rules_catch_an_upward_import(tmp_path):
