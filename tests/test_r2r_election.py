@@ -360,3 +360,18 @@ def test_the_view_never_offers_this_robot_as_its_own_peer():
         v.on_liveliness(Sample(key))
     v.mark_busy("r3", 2.0)
     assert v.snapshot().peer == ("r2", "r3")  # spare capacity first; never itself
+
+
+def test_an_r2r_node_used_with_with_stops_serving_once():
+    from scmr_mesh.mesh.election import Capability
+    from scmr_mesh.mesh.r2r import R2RNode
+
+    svc, data = _FakeService(), _FakeData()
+    data.close = lambda: setattr(data, "closed", getattr(data, "closed", 0) + 1)
+    with R2RNode(svc, data, capability=Capability(2e9, 80.0, "test"), events_path=None) as node:
+        node.session = object()
+        node._lead(1)
+        assert node.role == "leader" and svc.declared == ["leader"]
+    assert svc.session is None and node.role == "stopped" and data.closed == 1
+    node.close()  # idempotent: the data copy is not closed twice
+    assert data.closed == 1

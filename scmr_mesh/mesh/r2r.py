@@ -17,6 +17,10 @@
 Switching roles undeclares the old queryable and token and declares the new
 ones without draining: requests admitted under the old role are still
 answered by the pool (the reply names the tier they arrived on).
+
+The node owns its declarations: ``with R2RNode(...) as node: node.attach(session)``
+gives up the lead, the candidacy, the served queryable and token and the data
+copy on leaving the block (:meth:`R2RNode.close`).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from pathlib import Path
 from typing import Callable
 
 from scmr_mesh.mesh.election import Candidate, Capability
+from scmr_mesh.vocab import Tier
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +61,10 @@ class R2RNode:
         self.svc = service
         self.data = data
         self.serve_peers = serve_peers
-        self.role = "standby"
+        #: what it serves as: ``Tier.LEADER``, ``Tier.PEER``, or "standby" / "stopped"
+        self.role: Tier | str = "standby"
         self.session = None
+        self._closed = False
         #: ``fn() -> 0..1``: the node's battery (a robot sets its own)
         self.battery: Callable[[], float] = lambda: 1.0
         self._lock = threading.RLock()
@@ -84,8 +91,15 @@ class R2RNode:
             self.data.leader_of = self.candidate.leader
             self.data.start(session=session)
         if self.serve_peers:
-            self._serve("peer")
+            self._serve(Tier.PEER)
         self.candidate.attach(session)
+
+    def __enter__(self) -> R2RNode:
+        """``with`` owns what the node declares: leaving it calls :meth:`close`."""
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def wait_settled(self, timeout: float = 5.0) -> bool:
         """Wait until the candidate has passed its start-up grace and decided once."""
@@ -98,7 +112,10 @@ class R2RNode:
         return False
 
     def close(self) -> None:
-        """Give up the lead and the candidacy, stop serving, stop the data copy."""
+        """Give up the lead and the candidacy, stop serving, stop the data copy (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
         self.candidate.close()
         with self._lock:
             if self.svc.session is not None:
@@ -108,7 +125,7 @@ class R2RNode:
             self.data.close()
 
     # ------------------------------------------------------ role changes
-    def _serve(self, tier: str | None) -> None:
+    def _serve(self, tier: Tier | None) -> None:
         with self._lock:
             t0 = time.perf_counter()
             if self.svc.session is not None:
@@ -116,7 +133,7 @@ class R2RNode:
             if tier is None:
                 self.role = "standby"
                 return
-            extra = self.data.queryables() if (tier == "leader" and self.data is not None) else []
+            extra = self.data.queryables() if (tier == Tier.LEADER and self.data is not None) else []
             self.svc.serve_as(tier, extra)
             self.svc.attach(self.session, warm=not self._warmed)
             self._warmed = True
@@ -125,11 +142,11 @@ class R2RNode:
 
     def _lead(self, term: int) -> None:
         try:
-            self._serve("leader")
+            self._serve(Tier.LEADER)
         except Exception:
             # roll back to what it was (the candidate stays a follower): never half-switched
             try:
-                self._serve("peer" if self.serve_peers else None)
+                self._serve(Tier.PEER if self.serve_peers else None)
             except Exception as exc:
                 log.error("%s: could not go back to serving as peer: %s", self.node, exc)
             raise
@@ -140,7 +157,7 @@ class R2RNode:
         if self.data is not None:
             self.data.leading = False
         stopping = self.candidate is not None and self.candidate.closing  # the candidate's close(), not a word
-        self._serve("peer" if self.serve_peers and not stopping else None)
+        self._serve(Tier.PEER if self.serve_peers and not stopping else None)
 
 
 __all__ = ["R2RNode"]
