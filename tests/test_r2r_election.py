@@ -375,3 +375,87 @@ def test_an_r2r_node_used_with_with_stops_serving_once():
     assert svc.session is None and node.role == "stopped" and data.closed == 1
     node.close()  # idempotent: the data copy is not closed twice
     assert data.closed == 1
+
+
+class _Decl:
+    def __init__(self, log, name):
+        self.log, self.name = log, name
+
+    def undeclare(self):
+        self.log.append(self.name)
+
+    def put(self, *a, **k):
+        pass
+
+
+class _FakeSession:
+    """Records what a Candidate declares and what it gives up (one linked peer)."""
+
+    def __init__(self):
+        self.undeclared: list[str] = []
+        session = self
+
+        class _Live:
+            def declare_subscriber(self, key, cb, history=False):
+                return _Decl(session.undeclared, "liveliness subscriber")
+
+            def declare_token(self, key):
+                return _Decl(session.undeclared, "token")
+
+        class _Info:
+            def peers_zid(self):
+                return iter(["z"])
+
+            def routers_zid(self):
+                return iter([])
+
+        self._live, self.info = _Live(), _Info()
+
+    def liveliness(self):
+        return self._live
+
+    def declare_subscriber(self, key, cb):
+        return _Decl(self.undeclared, "subscriber")
+
+    def declare_queryable(self, key, cb):
+        return _Decl(self.undeclared, "queryable")
+
+    def declare_publisher(self, key):
+        return _Decl(self.undeclared, "publisher")
+
+    def get(self, key, timeout=None):
+        return []
+
+
+def test_a_candidate_used_with_with_gives_up_the_lead_and_every_declaration(tmp_path):
+    from scmr_mesh.mesh.election import Candidate, Capability
+    from scmr_mesh.mesh.testing import wait_for
+    from scmr_mesh.qos.leadership import read_events
+    from scmr_mesh.qos.roles import RoleChange, RoleEvent, Why
+
+    session = _FakeSession()
+    with Candidate("leader0", Capability(3.5e9, 177.0, "leader"), on_lead=lambda t: None,
+                   on_step_down=lambda r: None, grace_s=0.0, events_path=tmp_path / "leader0.jsonl",
+                   heartbeat_s=10.0) as c:
+        c.attach(session)
+        wait_for(lambda: c.leading, timeout=10, what="the lone linked candidate leads")
+    assert sorted(session.undeclared) == ["liveliness subscriber", "publisher", "queryable", "subscriber", "token"]
+    assert not c.leading
+    events = [RoleChange.from_json(e) for e in read_events(tmp_path)]
+    assert [(e.event, e.why) for e in events] == [(RoleEvent.LEAD, Why.VACANCY), (RoleEvent.STEP_DOWN, Why.STOPPING)]
+
+
+def test_candidate_liveliness_is_read_by_the_sample_kind():
+    from scmr_mesh import keys
+    from scmr_mesh.mesh.election import Candidacy, Candidate, Capability
+
+    class Sample:
+        def __init__(self, kind):
+            self.key_expr, self.kind = keys.alive("candidate", "r2"), kind
+
+    c = Candidate("r1", Capability(3.0e9, 10.0, "robot4"), on_lead=lambda t: None, on_step_down=lambda r: None)
+    c._on_token(Sample(zenoh.SampleKind.PUT))
+    c._take(Candidacy("r2", term=1, leading=True), key=keys.candidate("r2"))
+    assert c.leader() == "r2"
+    c._on_token(Sample(zenoh.SampleKind.DELETE))
+    assert c.leader() is None and c.live_others() == []
