@@ -136,7 +136,9 @@ def succession_once(tmp: Path, *, lease_ms: int = 500, insecure: bool = False) -
                     if r["served_by"] == "r1" and r["tier"] == "leader" and r["received_unix_ns"] > t_kill]
 
         wait_for(lambda: events.exists() and answered(), timeout=30, what="r3 served by the new leader")
-        lead = [json.loads(x) for x in events.read_text().splitlines() if '"lead"' in x]
+        from scmr_mesh.qos.leadership import read_events
+
+        lead = [e for e in read_events(events.parent) if e["node"] == "r1" and e["event"] == "lead"]
         local = [r for r in read_records(tmp / "r3" / "records.jsonl")
                  if r["sent_unix_ns"] > t_kill - 1e9 and r["tier"] == "local"]
         return {"claim_ms": (lead[0]["t_unix_ns"] - t_kill) / 1e6 if lead else None,
