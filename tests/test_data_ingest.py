@@ -178,3 +178,23 @@ def test_the_gate_answers_with_a_verdict_not_an_empty_string():
     gate.release(2)
     assert gate.take(1).admitted and gate.stats()["busy"] == 1 and gate.stats()["too_large"] == 1
     assert gate.check_size(_batch("r1", 1, 1)).admitted
+
+
+def test_data_requests_fail_over_cloud_first_in_one_place():
+    """TelemetryAgent.fetch and fetch_once share one failover (issue 21: fetch was written twice)."""
+    from scmr_mesh.errors import MeshError
+    from scmr_mesh.mesh.data_agent import failover_order, fetch_buffer
+
+    order = failover_order(["c1", "c2"], ["L"])
+    assert order == [("cloud", "c1"), ("cloud", "c2"), ("leader", "L")]
+    asked = []
+
+    def ask(key, payload):
+        asked.append(key)
+        return {"scmr/data/cloud/c1/buffer": None, "scmr/data/cloud/c2/buffer": ("err", "busy")}.get(
+            key, ("ok", {"items": {"state/r1": 1}}))
+
+    assert fetch_buffer(order, ask, "state/r1") == ("leader", "L", {"state/r1": 1})
+    assert asked == ["scmr/data/cloud/c1/buffer", "scmr/data/cloud/c2/buffer", "scmr/data/leader/L/buffer"]
+    with pytest.raises(MeshError, match=r"cloud/c1=no reply, cloud/c2=err"):
+        fetch_buffer(order[:2], ask, "state/r1")

@@ -11,7 +11,7 @@ import random
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable
 
 
 from scmr_mesh import keys
@@ -20,8 +20,41 @@ from scmr_mesh.data.queue import TelemetryQueue, seq_ranges
 from scmr_mesh.data.record import TelemetryRecord, encode_records
 from scmr_mesh.errors import MeshError
 from scmr_mesh.mesh.data_common import BATCH, MAX_BACKOFF_S, RETRY_PERIOD_S, _msgpack_encoding, _pack, _unpack, buffer_key, record_from_message, telemetry_key
+from scmr_mesh.vocab import Tier
 
 log = logging.getLogger(__name__)
+
+
+def failover_order(clouds: Iterable[str], leaders: Iterable[str]) -> list[tuple[str, str]]:
+    """Where a data request goes, in order: every live cloud node, then the leader(s).
+
+    >>> failover_order(["c1"], ["L"])
+    [('cloud', 'c1'), ('leader', 'L')]
+    """
+    return [(Tier.CLOUD.value, n) for n in clouds] + [(Tier.LEADER.value, n) for n in leaders]
+
+
+def fetch_buffer(targets: Iterable[tuple[str, str]], ask: Callable[[str, bytes], tuple[str, Any] | None],
+                 selector: str) -> tuple[str, str, dict]:
+    """Items of the data buffer matching ``selector`` from the first target that answers ``ok``.
+
+    ``ask(key, payload)`` returns ``("ok", reply)``, ``("err", ...)`` or None (no reply).  The one
+    failover of data requests: a robot's agent (:meth:`TelemetryAgent.fetch`) and ``scmr ods
+    fetch`` (:func:`fetch_once`) both use it.
+
+    Raises
+    ------
+    MeshError
+        No target answered ``ok`` (the message lists what each said).
+    """
+    tried = []
+    payload = _pack({"sel": selector})
+    for tier, node in targets:
+        ans = ask(buffer_key(tier, node), payload)
+        tried.append(f"{tier}/{node}={'no reply' if ans is None else ans[0]}")
+        if ans is not None and ans[0] == "ok":
+            return tier, node, ans[1]["items"]
+    raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier alive'})")
 
 
 class TelemetryAgent:
@@ -130,7 +163,7 @@ class TelemetryAgent:
 
     def _targets(self) -> list[tuple[str, str]]:
         view = self.robot.view.snapshot(local=False)
-        return [("cloud", n) for n in view.cloud] + [("leader", n) for n in view.leader]
+        return failover_order(view.cloud, view.leader)
 
     def flush_once(self) -> int:
         """Send the oldest queued records to a tier that takes them; return how many it took.
@@ -220,13 +253,7 @@ class TelemetryAgent:
         MeshError
             No tier answered.
         """
-        tried = []
-        for tier, node in self._targets():
-            ans = self._ask(buffer_key(tier, node), _pack({"sel": selector}))
-            tried.append(f"{tier}/{node}={'no reply' if ans is None else ans[0]}")
-            if ans is not None and ans[0] == "ok":
-                return tier, node, ans[1]["items"]
-        raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier alive'})")
+        return fetch_buffer(self._targets(), self._ask, selector)
 
     def _drainable(self) -> bool:
         """Whether a live tier could take some of the queued records now."""
@@ -352,16 +379,11 @@ def fetch_once(selector: str, mesh, *, wait_s: float = 3.0, deadline_ms: float =
                                     "certificates: add --security RUN/certs/mtls.toml --id ROBOT"
                                     if not mesh.security else ""))
             time.sleep(0.05)
-        tried = []
-        for tier, node in [("cloud", n) for n in sorted(alive["cloud"])] + [("leader", n) for n in sorted(alive["leader"])]:
-            got = None
-            for reply in session.get(buffer_key(tier, node), payload=_pack({"sel": selector}),
-                                     timeout=deadline_ms / 1e3):
-                got = reply
-                break
-            if got is not None and got.ok is not None:
-                return tier, node, _unpack(got.ok.payload.to_bytes())["items"]
-            tried.append(f"{tier}/{node}={'no reply' if got is None else 'error'}")
-        raise MeshError(f"no tier answered the data request {selector!r} ({', '.join(tried) or 'no tier'})")
+        def ask(key: str, payload: bytes) -> tuple[str, Any] | None:
+            for reply in session.get(key, payload=payload, timeout=deadline_ms / 1e3):
+                return ("ok", _unpack(reply.ok.payload.to_bytes())) if reply.ok is not None else ("err", None)
+            return None
+
+        return fetch_buffer(failover_order(sorted(alive["cloud"]), sorted(alive["leader"])), ask, selector)
     finally:
         close_session(session)
