@@ -134,7 +134,8 @@ class FleetHooks(Hooks):
         records = run.records
         recent = metrics.tor_values_ms(records[-200:])
         started = run.sup is not None and run.t0_mono is not None
-        alive = ({CLOUD: any(run.up(c) for c in run.scenario.clouds), LEADER: bool(run.leaders())}
+        leaders = run.leaders() if run.sup is not None else []  # reads every candidate's events: once
+        alive = ({CLOUD: any(run.up(c) for c in run.scenario.clouds), LEADER: bool(leaders)}
                  if run.sup is not None and all(c in run.names for c in run.scenario.clouds)
                  else {CLOUD: False, LEADER: False})
         self.progress(Progress(
@@ -143,7 +144,7 @@ class FleetHooks(Hooks):
             tor_p50_ms=metrics.percentile(recent, 50) if recent else None,
             tor_p99_ms=metrics.percentile(recent, 99) if recent else None,
             by_tier=metrics.tier_counts(records), alive=alive, phase=phase,
-            leaders=run.leaders() if started else [],
+            leaders=leaders if started else [],
         ))
 
     def _start_ods(self, run: ScenarioRun) -> str | None:
