@@ -35,6 +35,7 @@ import time
 from typing import Sequence
 
 from scmr_mesh.errors import ScenarioError
+from scmr_mesh.scenario.loopback import free_ports
 from scmr_mesh.scenario.plan import Event, proxy_actions
 from scmr_mesh.scenario.spec import Scenario
 
@@ -303,7 +304,7 @@ class ProxyBackend:
 
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
-        self.ports = {p: free_port() for p in scenario.peer_names}
+        self.ports = free_ports(scenario.peer_names)  # all distinct (held open together while picked)
         self.proxies: dict[tuple[str, str], LinkProxy] = {}
         self.notes: list[str] = []
 
