@@ -439,7 +439,7 @@ def test_a_candidate_used_with_with_gives_up_the_lead_and_every_declaration(tmp_
                    heartbeat_s=10.0) as c:
         c.attach(session)
         wait_for(lambda: c.leading, timeout=10, what="the lone linked candidate leads")
-    assert sorted(session.undeclared) == ["liveliness subscriber", "publisher", "queryable", "subscriber", "token"]
+    assert sorted(session.undeclared) == ["liveliness subscriber", "liveliness subscriber", "publisher", "queryable", "subscriber", "token"]
     assert not c.leading
     events = [RoleChange.from_json(e) for e in read_events(tmp_path)]
     assert [(e.event, e.why) for e in events] == [(RoleEvent.LEAD, Why.VACANCY), (RoleEvent.STEP_DOWN, Why.STOPPING)]

@@ -27,7 +27,9 @@ The rule (pure: :func:`decide`, :func:`rank_key`, :func:`outranks`)
 * **An isolated node does not claim**: a candidate with no Zenoh link to any
   other node (its bootstrap unreachable) has nobody to lead and waits until
   it is linked (a restarted leader whose bootstrap is cut off would otherwise
-  claim alone and then yield after the heal).
+  claim alone and then yield after the heal).  A client of a router (topology
+  shape ``routers``) is always linked to its own router, so there "linked"
+  means that some other node's liveliness token reaches it.
 * **A blinking token does not make the lead flap**: when the leader's token
   blinks off, the best other candidate claims term T+1; when the old leader
   comes back with term T it sees T+1 and steps down.  The lead moved once
@@ -289,6 +291,7 @@ class Candidate:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._tokens: set[str] = set()          # live candidate tokens (other nodes)
+        self._others_alive: set[str] = set()    # every live token of another node (scmr/alive/**)
         self._states: dict[str, Candidacy] = {}  # latest candidacy per other node
         self.term = 0
         self.leading = False
@@ -346,6 +349,18 @@ class Candidate:
         log.info("candidate %s: %s %s", self.node, node, "up" if alive else "gone")
         self._wake.set()
 
+    def _on_any_token(self, sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            _, _, node = keys.parse(key)
+        except Exception:
+            return
+        if node == self.node:
+            return
+        with self._lock:
+            (self._others_alive.add if appeared(sample) else self._others_alive.discard)(key)
+        self._wake.set()
+
     def _on_state(self, sample) -> None:
         try:
             msg = wire.decode(sample.payload.to_bytes(), kind="candidate")
@@ -390,6 +405,7 @@ class Candidate:
         self._session = session
         ls = session.liveliness()
         self._decl.append(ls.declare_subscriber(f"{keys.ALIVE}/candidate/*", self._on_token, history=True))
+        self._decl.append(ls.declare_subscriber(keys.ALIVE_ALL, self._on_any_token, history=True))
         self._decl.append(session.declare_subscriber(keys.CANDIDATES_ALL, self._on_state))
         self._decl.append(session.declare_queryable(keys.candidate(self.node), self._on_query))
         self._pub = session.declare_publisher(keys.candidate(self.node))
@@ -499,9 +515,16 @@ class Candidate:
         if s is None:
             return True
         try:
-            return any(True for _ in s.info.peers_zid()) or any(True for _ in s.info.routers_zid())
+            if any(True for _ in s.info.peers_zid()):
+                return True
+            if not any(True for _ in s.info.routers_zid()):
+                return False
         except Exception:
             return True
+        # a client of a router (topology shape "routers"): the link to its own router says nothing
+        # about the rest of the fleet; linked means some other node's token reaches it
+        with self._lock:
+            return bool(self._others_alive)
 
     def _claim(self, d: Decision, others: list[Candidacy]) -> bool:
         try:

@@ -151,6 +151,7 @@ class Robot:
         self._observers: list[Callable] = []
         self.annotators: list[Callable[[dict, Any], None]] = []
         self._queriers: dict[str, Any] = {}
+        self._born: dict[str, float] = {}  # querier key -> when it was declared (monotonic s)
         self._tier_threads: dict[str, Any] = {}  # tier -> its sender thread (_tier_send)
         self._session = None
         self._subs: list[Any] = []
@@ -263,7 +264,26 @@ class Robot:
                 congestion_control=zenoh.CongestionControl.DROP,
             )
             self._queriers[key] = q
+            self._born[key] = time.monotonic()
         return q
+
+    def _matching(self, tier: str, node: str, q) -> bool:
+        """Whether a queryable matches ``q``; a querier declared moments ago gets a short wait.
+
+        A client of a router (topology shape ``routers``) learns what matches a new querier
+        from its router, one round trip later: measured on loopback, zenoh 1.10.2, a new
+        querier was never matching at once and was after 0.9-1.1 ms (docs/ZENOH.md section
+        13).  Without this wait the first request to a new leader was "unreachable".
+        """
+        if q.matching_status.matching:
+            return True
+        key = keys.drivable_request(tier, node, self.id)
+        until = self._born.get(key, 0.0) + self.MATCH_WAIT_S
+        while time.monotonic() < until:
+            time.sleep(0.0005)
+            if q.matching_status.matching:
+                return True
+        return False
 
     def prepare(self) -> None:
         """Declare queriers for the nodes alive now and warm zenoh's query path.
@@ -384,7 +404,7 @@ class Robot:
             att = {"tier": tier, "node": node, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns()}
             attempts.append(att)
             q = self._querier(tier, node)
-            if not q.matching_status.matching:
+            if not self._matching(tier, node, q):
                 att["outcome"] = Outcome.UNREACHABLE
                 continue
             sendable.append((att, q))
@@ -616,6 +636,8 @@ class Robot:
 
     #: Longest a robot waits for an election in progress before computing a frame alone (s).
     ELECTION_WAIT_S = 0.3
+    #: How long a querier declared just now may take to learn what matches it (:meth:`_matching`).
+    MATCH_WAIT_S = 0.05
 
     def _retry_fresh(self, attempt, tried: set, t_end: float, attempts: list) -> Reply | None:
         """Before local execution: try remote nodes that appeared since the plan was made.

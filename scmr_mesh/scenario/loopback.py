@@ -50,7 +50,9 @@ class LoopbackBackend:
                 f"scenario {scenario.name}: the loopback backend cannot apply a radio topology (range_m, nodes); "
                 "run it with --backend netns (root) or --backend proxy")
         self.scenario = scenario
-        self.ports = free_ports(scenario.peer_names)
+        names = list(scenario.peer_names)
+        routers = [f"router:{p}" for p in names] if scenario.shape == "routers" else []
+        self.ports = free_ports(names + routers)
         self.notes: list[str] = []
 
     def setup(self) -> None:
@@ -67,6 +69,10 @@ class LoopbackBackend:
 
     def listen(self, peer: str) -> list[str]:
         return [self.endpoint(peer)]
+
+    def router_endpoint(self, peer: str) -> str:
+        """Where the router of ``peer``'s host listens (``shape = "routers"``)."""
+        return f"tcp/127.0.0.1:{self.ports[f'router:{peer}']}"
 
     def connect(self, peer: str) -> list[str]:
         return [self.endpoint(b) for b in self.scenario.bootstraps.get(peer, ())]

@@ -282,6 +282,10 @@ class NetnsBackend:
         """Endpoints ``peer`` listens on."""
         return [self.layout.endpoint(peer)]
 
+    def router_endpoint(self, peer: str) -> str:
+        """Where the router on ``peer``'s host listens (``shape = "routers"``)."""
+        return f"tcp/{self.layout.addr(peer)}:{self.layout.port + 1}"
+
     def connect(self, peer: str) -> list[str]:
         """Endpoints ``peer`` is handed: its bootstrap (gossip finds the rest; paths are real)."""
         return [self.layout.endpoint(b) for b in self.connect_names(peer)]

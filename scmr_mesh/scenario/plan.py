@@ -35,6 +35,7 @@ __all__ = [
     "PeerCommand",
     "RunOptions",
     "peer_command",
+    "router_command",
     "NetnsLayout",
     "NS_PREFIX",
     "SUBNET",
@@ -423,7 +424,7 @@ class PeerCommand:
 def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterable[str] = (),
                  connect: Iterable[str] = (), extra_cfg: Iterable[str] = (), security: Iterable[str] = (),
                  options: RunOptions = RunOptions(), images: dict[str, Path] | None = None,
-                 start: int = 1, remaining_s: float | None = None) -> PeerCommand:
+                 start: int = 1, remaining_s: float | None = None, zmode: str | None = None) -> PeerCommand:
     """The command line of ``peer`` (the one builder ``scmr up`` and ``scmr scenario run`` share; pure).
 
     Parameters
@@ -438,6 +439,8 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
         1 for the first start, n for the n-th (a restart); see :attr:`RunOptions.restart_renames`.
     remaining_s : float, optional
         A robot restarted mid-run sends for this long instead of the scenario's duration.
+    zmode : str, optional
+        ``client`` under ``shape = "routers"``: the peer is a client of its host's router.
 
     Examples
     --------
@@ -495,6 +498,8 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
         if options.robot_quiet:
             argv += ["--quiet"]
         argv += ["--start-file", str(run_dir / "ready" / options.start_file)]
+    if zmode is not None:
+        argv += ["--zmode", zmode]
     for ep in listen:
         argv += ["--listen", ep]
     for ep in connect:
@@ -504,4 +509,38 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
         argv += ["--cfg", c]
     argv += [*security, "--ready-file", str(ready)]
     argv += list(options.robot_args if role == "robot" else options.server_args)
+    return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)
+
+
+#: Routers dial their neighbours only (``Scenario.router_dials``): gossip would link them to
+#: routers the scenario does not link (an explicit topology) or retry the unreachable ones.
+ROUTER_CFG: tuple[str, ...] = ("scouting/gossip/enabled:false",)
+
+
+def router_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterable[str],
+                   connect: Iterable[str], security: Iterable[str] = (), options: RunOptions = RunOptions(),
+                   start: int = 1) -> PeerCommand:
+    """The command line of the router on ``peer``'s host (``shape = "routers"``; pure).
+
+    >>> from scmr_mesh.scenario.spec import parse_scenario
+    >>> sc = parse_scenario({"name": "t", "seed": 3, "duration_s": 5, "topology": {"shape": "routers"},
+    ...     "fleet": {"robots": [{"id": "robot1", "synthetic": "road"}]}})
+    >>> c = router_command(sc, "robot1", run_dir=Path("run"), listen=["tcp/10.0.0.3:7448"],
+    ...                    connect=["tcp/10.0.0.1:7448"])
+    >>> c.name, c.argv[3:7]
+    ('router-robot1', ('router', '--node', 'router-robot1', '--listen'))
+    """
+    base = scenario.router_of(peer)
+    name = base if start == 1 or not options.restart_renames else f"{base}-{start}"
+    argv: list[str] = [options.python, "-m", "scmr_mesh"] + (["-v"] if options.verbose else [])
+    argv += ["router", "--node", base]
+    for ep in listen:
+        argv += ["--listen", ep]
+    for ep in connect:
+        argv += ["--connect", ep]
+    argv += ["--lease-ms", str(scenario.lease_ms)]
+    for c in ROUTER_CFG:
+        argv += ["--cfg", c]
+    ready = run_dir / "ready" / f"{name}.ready"
+    argv += [*security, "--ready-file", str(ready)]
     return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)

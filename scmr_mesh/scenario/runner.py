@@ -27,7 +27,7 @@ from scmr_mesh.errors import ConfigError, ScenarioError
 from scmr_mesh.qos.faults import FaultRecord
 from scmr_mesh.scenario.faults import AppliedFault, fault_records, fault_tier, metric_faults
 from scmr_mesh.scenario.hooks import Hooks, RecordTail, Say
-from scmr_mesh.scenario.plan import RADIO, Event, RunOptions, compile_timeline, peer_command
+from scmr_mesh.scenario.plan import RADIO, Event, RunOptions, compile_timeline, peer_command, router_command
 from scmr_mesh.scenario.spec import WHOEVER_LEADS, Scenario
 
 __all__ = ["AppliedFault", "Hooks", "RecordTail", "RunResult", "ScenarioRun", "default_data_dir", "fault_records",
@@ -147,6 +147,8 @@ def scenario_identities(scenario: Scenario):
             out.append(Peer(node, "leader", leader_capable=True, priority_cap=0))
         else:
             out.append(Peer(node, role))
+    if scenario.shape == "routers":  # the router on every peer's host: trusted infrastructure
+        out += [Peer(scenario.router_of(p.name), "router") for p in scenario.peers]
     return out
 
 
@@ -156,12 +158,19 @@ def _security(scenario: Scenario, be, out_dir: Path, insecure: bool) -> list[str
 
     if insecure:
         return list(INSECURE)
-    hosts = sorted({ep.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
-                    for p in scenario.peers for ep in be.listen(p.name) if "/" in ep} - {"127.0.0.1", "::1"})
+    eps = [ep for p in scenario.peers for ep in be.listen(p.name)]
+    if scenario.shape == "routers":
+        eps += [be.router_endpoint(p.name) for p in scenario.peers]
+    hosts = sorted({ep.split("/", 1)[1].rsplit(":", 1)[0].strip("[]") for ep in eps if "/" in ep}
+                   - {"127.0.0.1", "::1"})
     return run_credentials(out_dir, scenario_identities(scenario), hosts=hosts).args()
 
 
 def _make_backend(scenario: Scenario, backend: str):
+    if scenario.shape == "routers" and backend == "proxy":
+        raise ScenarioError(f"scenario {scenario.name}: topology.shape = \"routers\" runs on --backend netns "
+                            "(root: real radio links between hosts) or --backend loopback (no link faults), "
+                            "not on proxy")
     if backend == "netns":
         from scmr_mesh.scenario.netns import NetnsBackend, check_root
 
@@ -201,6 +210,8 @@ class ScenarioRun:
         self.be = None
         self.sup = None
         self.names: dict[str, str] = {}
+        #: peer -> the name of the current process of its host's router (``shape = "routers"``)
+        self.routers: dict[str, str] = {}
         self.starts: dict[str, int] = {}
         self.handed: dict[str, list[str]] = {}
         self.security: list[str] = []
@@ -257,9 +268,13 @@ class ScenarioRun:
 
         n = self.starts[peer] = self.starts.get(peer, 0) + 1
         be = self.be
-        cmd = peer_command(self.scenario, peer, run_dir=self.out_dir, listen=be.listen(peer),
-                           connect=be.connect(peer), extra_cfg=be.extra_cfg(peer), security=self.security,
-                           options=self.options, images=self.images, start=n, remaining_s=remaining_s)
+        if self.scenario.shape == "routers":  # a client of its host's router
+            where = dict(listen=[], connect=[be.router_endpoint(peer)], zmode="client")
+        else:
+            where = dict(listen=be.listen(peer), connect=be.connect(peer))
+        cmd = peer_command(self.scenario, peer, run_dir=self.out_dir, extra_cfg=be.extra_cfg(peer),
+                           security=self.security, options=self.options, images=self.images, start=n,
+                           remaining_s=remaining_s, **where)
         cmd.ready_file.parent.mkdir(parents=True, exist_ok=True)
         self.handed[cmd.name if self.options.restart_renames or n == 1 else f"{cmd.name}-{n}"] = \
             list(cmd.argv[3 + self.options.verbose:])  # what each peer was told (peers.json)
@@ -268,6 +283,29 @@ class ScenarioRun:
         env = {"SCMR_SCENARIO_SEED": str(self.scenario.seed)}
         return PeerSpec(cmd.name, be.wrap(peer, list(cmd.argv)), log_path=cmd.log_path,
                         ready_file=cmd.ready_file, env=env)
+
+    def router_spec(self, peer: str):
+        """The :class:`~scmr_mesh.fleet.procs.PeerSpec` of the next start of ``peer``'s host router."""
+        from scmr_mesh.fleet.procs import PeerSpec
+
+        key = f"router:{peer}"
+        n = self.starts[key] = self.starts.get(key, 0) + 1
+        be, sc = self.be, self.scenario
+        cmd = router_command(sc, peer, run_dir=self.out_dir, listen=[be.router_endpoint(peer)],
+                             connect=[be.router_endpoint(q) for q in sc.router_dials(peer)],
+                             security=self.security, options=self.options, start=n)
+        cmd.ready_file.parent.mkdir(parents=True, exist_ok=True)
+        self.handed[cmd.name] = list(cmd.argv[3 + self.options.verbose:])
+        return PeerSpec(cmd.name, be.wrap(peer, list(cmd.argv)), log_path=cmd.log_path, ready_file=cmd.ready_file)
+
+    def start_router(self, peer: str, *, wait: bool = True):
+        """Start the router of ``peer``'s host (``shape = "routers"``); with ``wait``, until it is ready."""
+        spec = self.router_spec(peer)
+        proc = self.sup.start(spec)
+        self.routers[peer] = spec.name
+        if wait:
+            self.sup.wait_ready([spec.name], timeout=self.ready_timeout)
+        return proc
 
     def start_peer(self, peer: str, *, remaining_s: float | None = None):
         spec = self.spec_for(peer, remaining_s=remaining_s)
@@ -301,6 +339,12 @@ class ScenarioRun:
             self.say(f"radio topology: {sum(ev.op == 'block' for ev in initial)} pairs out of range at time 0")
             be.apply_many(initial)
         self.security[:] = _security(sc, be, self.out_dir, self.insecure)
+        if sc.shape == "routers":
+            for p in sc.peers:
+                self.start_router(p.name, wait=False)
+            self.sup.wait_ready(list(self.routers.values()), timeout=self.ready_timeout)
+            self.say(f"routers ready: one on each of the {len(sc.peers)} hosts; every peer is its host "
+                     "router's client")
         servers = [p.name for p in sc.peers if p.role != "robot"]
         for p in servers:
             self.start_peer(p)
@@ -324,8 +368,19 @@ class ScenarioRun:
                 batch = self._resolve_leader(batch)
                 if batch is None:
                     continue
+            if batch[0].op == "start" and batch[0].target[0] == WHOEVER_LEADS:
+                hit = self.applied[batch[0].fault].resolved
+                if hit is None:
+                    continue  # nobody led, nobody was crashed: nothing to restart
+                batch = [dataclasses.replace(ev, target=(hit,)) for ev in batch]
+            if sc.shape == "routers" and batch[0].op == "start":  # the host comes back: its router first
+                self.start_router(batch[0].target[0])
             _apply_batch(batch, self.be, self.sup, self.names, self.applied, self._restart_spec, sc,
                          self.t0_mono, lambda m: self.say(m))
+            if sc.shape == "routers" and batch[0].op == "kill":  # a crash takes the host down, router and all
+                router = self.routers[batch[0].target[0]]
+                self.sup.kill(router)
+                self.applied[batch[0].fault].killed.append(router)
         self.wait_until(self.t0_mono + sc.duration_s)
         self.say("duration over; waiting for robots to finish")
         grace = 30.0 + 2.0 * sc.lease_ms / 1000 + max((r.deadline_ms or 0) for r in sc.robots) / 1000

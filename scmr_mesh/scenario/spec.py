@@ -210,6 +210,27 @@ class Scenario:
     #: The ``--node`` name of a peer when it differs from the peer's name (``scmr up``'s
     #: ``cloud`` runs node ``cloud0``, its ``leader`` node ``leader0``); reports name nodes.
     node_names: Mapping[str, str] = field(default_factory=dict)
+    #: How peers link (``topology.shape``): ``clique``, every peer a Zenoh peer linked to the
+    #: others it can reach (one hop); ``routers``, a Zenoh router on every peer's host, linked to
+    #: the routers it can reach, the peer its client, so traffic crosses several radio hops
+    #: (docs/R2R.md "Multi-hop").
+    shape: str = "clique"
+
+    def router_of(self, peer: str) -> str:
+        """The name of the router on ``peer``'s host (``shape = "routers"``; its certificate's name)."""
+        return f"router-{self.node_of(peer)}"
+
+    def router_dials(self, peer: str) -> tuple[str, ...]:
+        """The peers whose routers ``peer``'s router dials (``shape = "routers"``).
+
+        With ``topology.links``, the peers it is linked to; otherwise every peer started
+        before it (each pair is dialled from one side; a pair out of radio range fails to
+        connect, kernel-side, until it comes into range, and the dial is retried).
+        """
+        if self.explicit_links:
+            return tuple(b for a, b in self.links if a == peer)
+        names = self.peer_names
+        return names[:names.index(peer)]
 
     def node_of(self, peer: str) -> str:
         """The node name peer ``peer`` runs as (its ``--node``/``--id``)."""
@@ -484,6 +505,7 @@ def parse_scenario(data: Mapping[str, Any], *, source: str = "<dict>") -> Scenar
         faults=tuple(sorted(faults, key=lambda x: x.at_s)), expectations=expectations,
         process=data.get("process"), source=source, bootstraps=bootstraps,
         leader_capability=fleet.get("leader_capability", "leader"), explicit_links=explicit, radio=radio,
+        shape=topo.get("shape", "clique"),
     )
 
 
