@@ -27,11 +27,17 @@ GOOD = {
 
 def test_shipped_scenarios_are_the_six_and_valid():
     names = {p.stem for p in SHIPPED}
+    multihop = {"tunnel-chain", "relay-loss", "mine-mobility"}
     assert names == {"baseline", "cloud-link-drop", "cloud-crash", "partition", "flapping-link", "bandwidth-sweep",
-                     "leader-crash", "split-fleet", "gossip-discovery", "cascade"}
+                     "leader-crash", "split-fleet", "gossip-discovery", "cascade"} | multihop
     for p in SHIPPED:
         sc = load_scenario(p)
         assert sc.name == p.stem
+        if p.stem in multihop:  # the multi-hop tier (issue 22): routers on a radio topology, real mine frames
+            assert sc.shape == "routers" and sc.radio is not None
+            assert all(len(sc.image_sets[r.image_set]) == 5 for r in sc.robots)
+            continue
+        assert sc.shape == "clique"
         # Table 4.2: four robots with five images each
         assert len(sc.robots) == 4
         assert all(len(sc.image_sets[r.image_set]) == 5 for r in sc.robots)

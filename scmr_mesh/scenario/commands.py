@@ -152,8 +152,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
          f"ToR p50 {s['tor_ms']['p50'] and round(s['tor_ms']['p50'], 1)} ms p99 "
          f"{s['tor_ms']['p99'] and round(s['tor_ms']['p99'], 1)} ms, tiers {s['by_tier']}")
     for f in report["faults"]:
-        _out(f"  fault {f['label']}: failover gap {f['failover_gap_ms']} ms"
-             + ("" if f.get("ended_at_s") is None else f", failback gap {f['failback_gap_ms']} ms"))
+        line = f"  fault {f['label']}: "
+        if f.get("tier") is not None or not (f.get("reroute_ms") or f.get("no_path")):
+            line += f"failover gap {f['failover_gap_ms']} ms" + (
+                "" if f.get("ended_at_s") is None else f", failback gap {f['failback_gap_ms']} ms")
+        if f.get("reroute_ms") or f.get("no_path"):
+            line += ("; " if f.get("tier") is not None else "") + "reroute " + ", ".join(
+                f"{r} {'never' if v is None else f'{v:.0f} ms'}" for r, v in f["reroute_ms"].items())
+            if f.get("no_path"):
+                line += f"; no path to any server: {', '.join(f['no_path'])}"
+        _out(line)
+    mh = report.get("multihop") or {}
+    if mh.get("max_hops") is not None and mh["max_hops"] > 1:
+        _out(f"  multi-hop: up to {mh['max_hops']} radio hops; {mh['alone_with_path']} frames computed alone "
+             f"with a path to a server; longest reroute {mh['max_reroute_ms']} ms; "
+             f"longest split lead {mh['split_leader_ms']} ms")
     from scmr_mesh.fleet.output import format_leadership, format_telemetry
 
     _out("  " + format_telemetry(report.get("telemetry")))

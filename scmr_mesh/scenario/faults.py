@@ -78,7 +78,7 @@ def fault_records(scenario: Scenario, applied: Sequence[AppliedFault], t0_unix_n
         target = (",".join(scenario.node_of(p) for p in crashed) if crashed else
                   "-".join(f.link) if f.link else " | ".join(",".join(g) for g in f.groups or ()))
         out.append(FaultRecord(
-            kind=f.kind, target=target, label=f.label, tier=tier, link=f.link, robots=robots,
+            kind=f.kind, target=target, label=f.label, tier=tier, link=f.link, robots=robots, groups=f.groups,
             at_s=f.at_s, for_s=f.for_s, fallback=("peer", "leader") if tier == "leader" else None,
             peer=(af.killed[0] if af.killed else str(af.resolved)) if af.resolved else None,
             start_unix_ns=af.start_unix_ns if af.start_unix_ns is not None else t0_unix_ns + int(f.at_s * 1e9),

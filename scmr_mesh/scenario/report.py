@@ -59,6 +59,7 @@ def _metric_values(summary: Mapping[str, Any], telemetry: Mapping[str, Any] | No
         "peer_answers": tiers.get("peer", 0),
         "local_answers": tiers.get("local", 0),
         **_leadership_values(summary.get("leadership")),
+        **(summary.get("multihop") or {}),
     }
 
 
@@ -214,6 +215,10 @@ def build_report(
     from scmr_mesh.qos.metrics import summarize
 
     summ = summarize(records, faults, robots=len(scenario.robots))
+    from scmr_mesh.scenario.livegraph import LiveGraph, alone_with_path, reroutes, split_leader_ms
+
+    graph = LiveGraph(scenario, faults, t0_unix_ns)
+    rerouted = dict(zip(graph.keys, reroutes(graph, records)))
     faults_out = []
     robot_ids = {r.id for r in scenario.robots}
     for f in summ["faults"]:
@@ -236,16 +241,25 @@ def build_report(
             "failback_gap_ms": f.get("failback_gap_ms"), "notes": f.get("notes", []), "during": during,
             "restart_ready_after_ms": None if f.get("ready_unix_ns") is None or f.get("end_unix_ns") is None
             else (int(f["ready_unix_ns"]) - int(f["end_unix_ns"])) / 1e6,
+            **rerouted.get((str(f.get("label", "")), int(f["start_unix_ns"])),
+                           {"reroute_ms": {}, "no_path": [], "reroute_max_ms": None}),
         })
-    expectations = check_expectations(scenario, {**summ, "leadership": leadership}, telemetry)
     links = links_over_time(scenario)
     requests = []
     for r in records:
         row = {k: r.get(k) for k in REQUEST_FIELDS}
         if r.get("sent_unix_ns") is not None:
             row["sent_s"] = (int(r["sent_unix_ns"]) - t0_unix_ns) / 1e9
-        row["hops"] = request_hops(scenario, links, row)
+        row["hops"] = request_hops(scenario, links, row, graph)
         requests.append(row)
+    multihop = {
+        "max_hops": max((q["hops"] for q in requests if q["hops"] is not None), default=None),
+        "alone_with_path": alone_with_path(graph, records),
+        "max_reroute_ms": _max_reroute(faults_out),
+        "split_leader_ms": None if leadership is None else split_leader_ms(
+            graph, leadership.get("leaders_over_time") or [], scenario.duration_s),
+    }
+    expectations = check_expectations(scenario, {**summ, "leadership": leadership, "multihop": multihop}, telemetry)
     return {
         "scenario": scenario.name,
         "description": scenario.description,
@@ -272,8 +286,20 @@ def build_report(
         "leadership": dict(leadership) if leadership is not None else None,
         "topology": dict(topology) if topology is not None else None,
         "links_over_time": links,
+        "multihop": multihop,
         "requests": requests,
     }
+
+
+def _max_reroute(faults_out: Sequence[Mapping[str, Any]]) -> float | None:
+    """The largest reroute of any fault (0.0: no fault rerouted anyone; None: a robot never rerouted)."""
+    vals = []
+    for f in faults_out:
+        per = f.get("reroute_ms") or {}
+        if any(v is None for v in per.values()):
+            return None
+        vals += list(per.values())
+    return max(vals) if vals else 0.0
 
 
 def links_over_time(scenario: Scenario) -> list[dict[str, Any]] | None:
@@ -286,9 +312,11 @@ def links_over_time(scenario: Scenario) -> list[dict[str, Any]] | None:
 
 
 def request_hops(scenario: Scenario, links: Sequence[Mapping[str, Any]] | None,
-                 row: Mapping[str, Any]) -> int | None:
+                 row: Mapping[str, Any], graph: Any = None) -> int | None:
     """Radio hops from the robot to the node that answered, when the request was sent (0: local; None: failed
-    or no path).  Without a radio topology every peer links to every other: 1 hop to any server."""
+    or no path).  Without a radio topology every peer links to every other: 1 hop to any server.  With
+    ``graph`` (a :class:`~scmr_mesh.scenario.livegraph.LiveGraph`), over the live graph: crashed relays
+    and cut links are not paths."""
     if not row.get("ok"):
         return None
     if row.get("tier") == "local":
@@ -296,6 +324,8 @@ def request_hops(scenario: Scenario, links: Sequence[Mapping[str, Any]] | None,
     node = row.get("served_by")
     if links is None or node is None or row.get("sent_s") is None:
         return 1
+    if graph is not None:
+        return graph.path_len(str(row.get("robot")), scenario.peer_of(str(node)), max(0.0, float(row["sent_s"])))
     from scmr_mesh.scenario.radio import hops
 
     now = [e for e in links if e["t_s"] <= max(0.0, float(row["sent_s"]))][-1]
@@ -383,6 +413,20 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
                  f"{_fmt(f['failover_gap_ms'])} | {_fmt(f['failback_gap_ms'])} | {_during(f.get('during'))} |")
     if not report["faults"]:
         L.append("| (none) | | | | | | |")
+    rr = [f for f in report["faults"] if f.get("reroute_ms") or f.get("no_path")]
+    if rr:
+        L += ["", "Reroute (robots whose path to their server the fault broke: from the fault to their first "
+              "remote answer; scmr_mesh/scenario/livegraph.py):", "", "| fault | robot | reroute ms |", "|---|---|---|"]
+        for f in rr:
+            for r, v in f["reroute_ms"].items():
+                L.append(f"| {str(f['label']).replace('|', chr(92) + '|')} | {r} | {_fmt(v)} |")
+            for r in f.get("no_path") or []:
+                L.append(f"| {str(f['label']).replace('|', chr(92) + '|')} | {r} | no path to any server |")
+    mh = report.get("multihop") or {}
+    if mh:
+        L += ["", f"Multi-hop: most radio hops to a server {_fmt(mh.get('max_hops'))}; frames computed alone with a "
+              f"path to a server {_fmt(mh.get('alone_with_path'))}; longest reroute {_fmt(mh.get('max_reroute_ms'))} "
+              f"ms; longest time a connected part had two leaders {_fmt(mh.get('split_leader_ms'))} ms."]
     for f in report["faults"]:
         if f.get("restart_ready_after_ms") is not None:
             L += ["", f"{f['label']}: the restarted peer was ready {f['restart_ready_after_ms']:.0f} ms after its "

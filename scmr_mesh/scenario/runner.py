@@ -373,10 +373,15 @@ class ScenarioRun:
                 if hit is None:
                     continue  # nobody led, nobody was crashed: nothing to restart
                 batch = [dataclasses.replace(ev, target=(hit,)) for ev in batch]
+            router = None
             if sc.shape == "routers" and batch[0].op == "start":  # the host comes back: its router first
-                self.start_router(batch[0].target[0])
+                router = self.start_router(batch[0].target[0])
             _apply_batch(batch, self.be, self.sup, self.names, self.applied, self._restart_spec, sc,
                          self.t0_mono, lambda m: self.say(m))
+            if router is not None and self.applied[batch[0].fault].end_unix_ns is not None:
+                # the host was back (its router relaying) when the router started, before the peer
+                af = self.applied[batch[0].fault]
+                af.end_unix_ns = min(af.end_unix_ns, router.started_unix_ns)
             if sc.shape == "routers" and batch[0].op == "kill":  # a crash takes the host down, router and all
                 router = self.routers[batch[0].target[0]]
                 self.sup.kill(router)
