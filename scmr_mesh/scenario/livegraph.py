@@ -86,6 +86,10 @@ class LiveGraph:
             a = (int(f["start_unix_ns"]) - t0_unix_ns) / 1e9
             b = float("inf") if f.get("end_unix_ns") is None else (int(f["end_unix_ns"]) - t0_unix_ns) / 1e9
             self.windows.append((a, b, frozenset(self.crashed(f)), frozenset(self.cut(f))))
+        #: radio pairs going out of range: ``(t_s, pair)`` (a relay walking away is a silent loss too)
+        self.radio_losses: list[tuple[float, Pair]] = []
+        if scenario.radio is not None:
+            self.radio_losses = [(t, _pair(*p)) for t, p, up in scenario.radio.changes(scenario.duration_s) if not up]
 
     # ------------------------------------------------------------ what a fault does
     def crashed(self, f: Mapping[str, Any]) -> set[str]:
@@ -154,24 +158,30 @@ class LiveGraph:
                 out.append(part)
         return out
 
-    def servers(self, robot: str) -> set[str]:
-        """Nodes that may serve ``robot``: the clouds, the leader, leader-capable robots but itself."""
+    def servers(self, robot: str, *, itself: bool = False) -> set[str]:
+        """Nodes that may serve ``robot``: the clouds, the leader, leader-capable robots (``itself``:
+        ``robot`` too when it may lead: it then serves itself as its part's leader)."""
         sc = self.scenario
-        return (set(sc.clouds) | ({sc.leader} if sc.leader else set()) | set(sc.candidates)) - {robot}
+        out = set(sc.clouds) | ({sc.leader} if sc.leader else set()) | set(sc.candidates)
+        return out if itself else out - {robot}
 
-    def reaches_server(self, robot: str, t: float) -> bool:
-        """Whether ``robot`` has a path at ``t`` to any node that may serve it."""
+    def reaches_server(self, robot: str, t: float, *, itself: bool = False) -> bool:
+        """Whether ``robot`` has a path at ``t`` to any node that may serve it (see :meth:`servers`)."""
         nodes, edges = self.at(t)
         if robot not in nodes:
             return False
-        return bool(set(_bfs(self._adj(edges), robot)) & self.servers(robot))
+        return bool(set(_bfs(self._adj(edges), robot)) & self.servers(robot, itself=itself))
 
     def breaks(self, i: int, robot: str, server: str) -> bool:
         """Whether fault window ``i`` breaks a shortest path from ``robot`` to ``server`` (or takes it down)."""
         a, _, crashed, pairs = self.windows[i]
+        return self._breaks(a, crashed, pairs, robot, server, without=i)
+
+    def _breaks(self, a: float, crashed: frozenset[str], pairs: frozenset[Pair], robot: str, server: str,
+                without: int | None = None) -> bool:
         if server in crashed:
             return True
-        nodes, edges = self.at(a - 1e-9, without=i)
+        nodes, edges = self.at(a - 1e-4, without=without)  # just before (radio times are rounded to 1 µs)
         adj = self._adj(edges)
         d_r, d_s = _bfs(adj, robot), _bfs(adj, server)
         if server not in d_r:
@@ -188,9 +198,10 @@ def _remote_ok(r: Mapping[str, Any]) -> bool:
     return bool(r.get("ok")) and r.get("tier") not in (None, "local")
 
 
-def reroutes(graph: LiveGraph, records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+def reroutes(graph: LiveGraph, records: Sequence[Mapping[str, Any]], *, radio: bool = False) -> list[dict[str, Any]]:
     """Per fault window (in :attr:`LiveGraph.windows` order): ``{"reroute_ms": {robot: ms | None},
-    "reroute_max_ms", "no_path": [...]}``.
+    "reroute_max_ms", "no_path": [...]}``; with ``radio``, then one per radio pair going out of
+    range (:attr:`LiveGraph.radio_losses`, with ``t_s`` and ``link``).
 
     A robot is affected when the last remote answer it had before the fault came
     from a node the fault took down or over a shortest path the fault broke.
@@ -208,7 +219,10 @@ def reroutes(graph: LiveGraph, records: Sequence[Mapping[str, Any]]) -> list[dic
         rows.sort(key=lambda r: int(r["sent_unix_ns"]))
     t0 = graph.t0
     out = []
-    for i, (a, _, crashed, _) in enumerate(graph.windows):
+    losses = [(a, crashed, pairs, i) for i, (a, _, crashed, pairs) in enumerate(graph.windows)]
+    if radio:
+        losses += [(t, frozenset(), frozenset({p}), None) for t, p in graph.radio_losses]
+    for a, crashed, pairs, i in losses:
         start_ns = t0 + int(round(a * 1e9))
         per: dict[str, float | None] = {}
         no_path: list[str] = []
@@ -219,16 +233,17 @@ def reroutes(graph: LiveGraph, records: Sequence[Mapping[str, Any]]) -> list[dic
             if not before or before[-1].get("served_by") is None:
                 continue
             server = graph.scenario.peer_of(str(before[-1]["served_by"]))
-            if server == robot or not graph.breaks(i, robot, server):
+            if server == robot or not graph._breaks(a, crashed, pairs, robot, server, without=i):
                 continue
-            if not graph.reaches_server(robot, a + 1e-9):
+            if not graph.reaches_server(robot, a + 1e-4, itself=True):
                 no_path.append(robot)
                 continue
             first = next((r for r in rows if int(r["sent_unix_ns"]) >= start_ns and _remote_ok(r)
                           and r.get("received_unix_ns") is not None), None)
             per[robot] = None if first is None else round((int(first["received_unix_ns"]) - start_ns) / 1e6, 3)
         vals = list(per.values())
-        out.append({"reroute_ms": per, "no_path": no_path,
+        out.append({**({} if i is not None else {"t_s": round(a, 6), "link": list(next(iter(pairs)))}),
+                    "reroute_ms": per, "no_path": no_path,
                     "reroute_max_ms": None if any(v is None for v in vals) else (max(vals) if vals else None)})
     return out
 

@@ -218,7 +218,9 @@ def build_report(
     from scmr_mesh.scenario.livegraph import LiveGraph, alone_with_path, reroutes, split_leader_ms
 
     graph = LiveGraph(scenario, faults, t0_unix_ns)
-    rerouted = dict(zip(graph.keys, reroutes(graph, records)))
+    rr_all = reroutes(graph, records, radio=True)
+    rerouted = dict(zip(graph.keys, rr_all))
+    radio_rr = [r for r in rr_all[len(graph.keys):] if r["reroute_ms"] or r["no_path"]]
     faults_out = []
     robot_ids = {r.id for r in scenario.robots}
     for f in summ["faults"]:
@@ -255,7 +257,8 @@ def build_report(
     multihop = {
         "max_hops": max((q["hops"] for q in requests if q["hops"] is not None), default=None),
         "alone_with_path": alone_with_path(graph, records),
-        "max_reroute_ms": _max_reroute(faults_out),
+        "max_reroute_ms": _max_reroute(faults_out + radio_rr),
+        "radio_reroutes": radio_rr,
         "split_leader_ms": None if leadership is None else split_leader_ms(
             graph, leadership.get("leaders_over_time") or [], scenario.duration_s),
     }
