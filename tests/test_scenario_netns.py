@@ -321,3 +321,84 @@ def test_a_radio_chain_blocks_every_pair_out_of_range_and_peers_do_not_forward(t
                                                              ["leader", "robot1"], ["robot1", "robot2"],
                                                              ["robot2", "robot3"]]}]
     assert not list_namespaces(prefix=f"scmrs-{res.run_id}-")
+
+
+class _LinkProbe:
+    """A run hook that lists, once the run has gone 1.5 s, every established TCP link of every host.
+
+    Read from the kernel (``ss`` in each namespace), not from zenoh: what is really connected.
+    """
+
+    def __init__(self) -> None:
+        self.links: dict[str, set[str]] | None = None
+
+    def setup(self, run) -> None: ...
+    def say(self, run, message) -> None: ...
+    def stopped(self, run) -> None: ...
+    def reported(self, result, report) -> None: ...
+
+    def tick(self, run) -> None:
+        if self.links is not None or run.t0_mono is None or run.elapsed_s() < 1.5:
+            return
+        lay = run.be.layout
+        by_addr = {lay.addr(p): p for p in lay.peers}
+        self.links = {}
+        for p in lay.peers:
+            out = subprocess.run(["ip", "netns", "exec", lay.ns(p), "ss", "-tnH", "state", "established"],
+                                 capture_output=True, text=True, check=True).stdout
+            far = set()
+            for line in out.splitlines():
+                remote = line.split()[-1].rsplit(":", 1)[0]
+                if remote in by_addr and by_addr[remote] != p:
+                    far.add(by_addr[remote])
+            self.links[p] = far
+
+
+@pytest.mark.timeout(300)
+def test_routers_relay_down_a_radio_chain_and_a_cut_off_part_elects_its_own_leader(tmp_path):
+    """The same tunnel with ``topology.shape = "routers"`` (issue 22): robots relay for each other.
+
+    robot4, three radio hops from the portal, is served by the cloud over 4 hops through the routers
+    on robot1's, robot2's and robot3's hosts; no host holds a TCP link to a host out of its radio
+    range (read from the kernel).  When robot2's host crashes, robot3 (leader-capable) and robot4
+    have no path to the portal: robot3 leads their part and serves both; when robot2 is back, one
+    leader remains.
+    """
+    from scmr_mesh.scenario.radio import Radio
+    from scmr_mesh.scenario.report import run_report
+    from scmr_mesh.scenario.runner import run_scenario
+
+    sc = parse_scenario({
+        "name": "chain", "seed": 3, "duration_s": 9, "lease_ms": 250,
+        "process": "scmr_mesh.mesh.testing:stub_process",
+        "fleet": {"robots": [{"id": "robot1", "synthetic": "stub", "rate_hz": 5},
+                             {"id": "robot2", "synthetic": "stub", "rate_hz": 5},
+                             {"id": "robot3", "synthetic": "stub", "rate_hz": 5, "leader_capable": True},
+                             {"id": "robot4", "synthetic": "stub", "rate_hz": 5}]},
+        "topology": {"shape": "routers", "range_m": 12,
+                     "nodes": {"cloud": [0, 0], "leader": [0, 1], "robot1": [10, 0], "robot2": [20, 0],
+                               "robot3": [30, 0], "robot4": [40, 0]}},
+        "faults": [{"kind": "crash", "peer": "robot2", "at_s": 3.0, "for_s": 3.0}]})
+    probe = _LinkProbe()
+    res = run_scenario(sc, backend="netns", out_dir=tmp_path / "run", progress=lambda m: None, hooks=[probe])
+    rep = run_report(res)
+    rows = rep["request_log"]
+    # 1. real relaying: robot4 served by the cloud over four radio hops before the crash
+    assert any(r["robot"] == "robot4" and r["tier"] == "cloud" and r["hops"] == 4 for r in rows)
+    # 2. no host is linked to a host out of its range (the routers dial everyone; the kernel refuses)
+    radio: Radio = sc.radio
+    assert probe.links is not None
+    for host, far in probe.links.items():
+        for other in far:
+            assert radio.in_range(host, other, 1.5), f"{host} holds a TCP link to {other}, out of its range"
+    assert "robot2" in probe.links["robot3"] and "robot1" in probe.links["robot2"]
+    # 3. cut off, robot3 leads its own part and serves itself; after the heal one leader remains
+    assert any(r["robot"] == "robot4" and r["tier"] == "leader" and r["served_by"] == "robot3" for r in rows)
+    lead = rep["leadership"]
+    assert any(set(e["leaders"]) == {"leader", "robot3"} for e in lead["leaders_over_time"]), lead
+    assert len(lead["leaders_at_end"]) == 1, lead
+    crash = next(f for f in rep["faults"] if f["kind"] == "crash")
+    assert set(crash["reroute_ms"]) == {"robot3", "robot4"} and None not in crash["reroute_ms"].values(), crash
+    assert rep["multihop"]["alone_with_path"] == 0, [r for r in rows if r["tier"] == "local"]
+    assert rep["ror"] == 1.0
+    assert not list_namespaces(prefix=f"scmrs-{res.run_id}-")

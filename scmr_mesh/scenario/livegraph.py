@@ -160,7 +160,8 @@ class LiveGraph:
 
     def servers(self, robot: str, *, itself: bool = False) -> set[str]:
         """Nodes that may serve ``robot``: the clouds, the leader, leader-capable robots (``itself``:
-        ``robot`` too when it may lead: it then serves itself as its part's leader)."""
+        ``robot`` too when it may lead: it then serves itself as its part's leader, if the part
+        holds another node)."""
         sc = self.scenario
         out = set(sc.clouds) | ({sc.leader} if sc.leader else set()) | set(sc.candidates)
         return out if itself else out - {robot}
@@ -170,7 +171,9 @@ class LiveGraph:
         nodes, edges = self.at(t)
         if robot not in nodes:
             return False
-        return bool(set(_bfs(self._adj(edges), robot)) & self.servers(robot, itself=itself))
+        part = set(_bfs(self._adj(edges), robot))
+        # a candidate alone claims nothing (election: an isolated node does not claim)
+        return bool(part & self.servers(robot, itself=itself and len(part) > 1))
 
     def breaks(self, i: int, robot: str, server: str) -> bool:
         """Whether fault window ``i`` breaks a shortest path from ``robot`` to ``server`` (or takes it down)."""
