@@ -203,11 +203,14 @@ class LiveView:
             return sorted(n for n in self._alive["candidate"] if n != self.me)
 
     def wait_for_server(self, tried: set, timeout: float) -> bool:
-        """Wait up to ``timeout`` s until a serving node not in ``tried`` ((tier, node) pairs) is alive."""
+        """Wait up to ``timeout`` s until a serving node not in ``tried`` ((tier, node) pairs) is alive
+        (this robot's own node counts as a leader, not as a peer)."""
         end = time.monotonic() + timeout
         with self._lock:
             while True:
-                if any((t, n) not in tried and n != self.me for t in ("cloud", "leader", "peer")
+                # this robot itself counts once it leads (a leader-capable robot cut off with its
+                # part serves itself as the part's leader; waiting for another wasted the wait)
+                if any((t, n) not in tried and (n != self.me or t == "leader") for t in ("cloud", "leader", "peer")
                        for n in self._alive.get(t, ())):
                     return True
                 left = end - time.monotonic()

@@ -645,7 +645,9 @@ class Robot:
         When no untried node is alive but leader-capable nodes are, and a lead
         is passing on (no leader alive, or the leader did not answer), wait up
         to :data:`ELECTION_WAIT_S` (within the request's deadline) for the new
-        leader or a free peer.  A leader and peers that answer ``busy`` do not
+        leader or a free peer; nodes that appeared are tried first, and one that
+        vanished meanwhile (a peer that is turning leader drops its peer queryable)
+        does not end the wait.  A leader and peers that answer ``busy`` do not
         make it wait: the frame runs locally at once.
         """
         waited = False
@@ -660,7 +662,10 @@ class Robot:
             lead_lost = not fresh.leader or any(
                 a["tier"] == Tier.LEADER and a["outcome"] in (Outcome.NO_REPLY, Outcome.UNREACHABLE, Outcome.TIMEOUT)
                 for a in attempts)
-            if new or waited or not self.view.candidates() or not lead_lost:
+            # a node tried just now that answered busy: run locally at once; one that vanished
+            # (a peer turning leader drops its peer queryable: no_reply) does not end the wait
+            busy = any(a["outcome"] == BUSY for a in attempts[-len(new):]) if new else False
+            if busy or waited or not self.view.candidates() or not lead_lost:
                 return None
             waited = True
             left = min(self.ELECTION_WAIT_S, t_end - time.monotonic())
