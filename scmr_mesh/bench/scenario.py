@@ -59,6 +59,15 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
         "failback_gap_ms": stats(back),
         "tor_ms": stats(tors),
         "expectations_held": [all(e["held"] for e in r["expectations"]) for r in runs],
+        "expectations_failed": sorted({e["name"] for r in runs for e in r["expectations"] if not e["held"]}),
+        "shape": sc.shape,
+        "multihop": {k: [(r.get("multihop") or {}).get(k) for r in runs]
+                     for k in ("max_hops", "alone_with_path", "max_reroute_ms", "split_leader_ms")},
+        "reroute_ms_per_robot": stats([v for r in runs for f in r["faults"] + (r.get("multihop") or {}).get(
+            "radio_reroutes", []) for v in (f.get("reroute_ms") or {}).values()]),
+        "robot_host": {k: stats([(r.get("hosts") or {}).get("robot_mean", {}).get(k) for r in runs])["median"]
+                       for k in ("peak_rss_mb", "cpu_s", "links")},
+        "local_answers": [r["summary"]["by_tier"].get("local", 0) for r in runs],
         "out": str(base),
         "note": "measured on a shared, busy 2-core machine" if (os.cpu_count() or 0) <= 2 else "",
     }

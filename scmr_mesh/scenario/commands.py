@@ -102,6 +102,8 @@ def _with_overrides(sc, args: argparse.Namespace):
         if args.lease_ms < 10:
             raise ConfigError(f"--lease-ms must be at least 10, got {args.lease_ms}")
         changes["lease_ms"] = args.lease_ms
+    if getattr(args, "shape", None):
+        changes["shape"] = args.shape
     return dataclasses.replace(sc, **changes) if changes else sc
 
 
@@ -188,6 +190,9 @@ def _override_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--process", metavar="MODULE:FUNC", help="override the scenario's process function "
                    "(e.g. scmr_mesh.mesh.testing:stub_process to measure the network failover without the pipeline)")
     p.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=3600000, example="500"), metavar="MS", help="override the scenario's zenoh lease")
+    p.add_argument("--shape", choices=("clique", "routers"), default=None,
+                   help="override the scenario's topology.shape: run the same scenario on the clique (peers, one "
+                        "hop) or on routers (a router on every host, several hops) to compare them (docs/R2R.md)")
     p.add_argument("--insecure", action="store_true",
                    help="run the peers without authentication (default: a development CA and one certificate "
                         "per peer in OUT/certs, valid for every address peers listen on; mutual TLS and the "

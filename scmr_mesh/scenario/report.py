@@ -648,6 +648,7 @@ def run_report(res: Any, *, thesis_csv: Path | None = None, extra: Mapping[str, 
         "peers": res.peers,
         "security": "insecure" if res.insecure else "mtls+acl",
         "energy": energy_report(sc, res.records),
+        "hosts": host_costs(sc, getattr(res, "costs", None) or {}),
     })
     if report["rate_hz"] is None:
         del report["rate_hz"]
@@ -655,6 +656,21 @@ def run_report(res: Any, *, thesis_csv: Path | None = None, extra: Mapping[str, 
     report["problems"] = run_problems(report)
     validate_report(report)
     return report
+
+
+def host_costs(scenario: Scenario, costs: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
+    """The report's ``hosts``: the network's shape and what each host cost (``RunResult.costs``).
+
+    ``per_host``: peak RSS (MB), CPU (s) and, on netns, TCP links to other hosts, per peer (its
+    router included under ``shape = "routers"``); ``robot_mean``: the same averaged over robots.
+    """
+    robots = [costs[r.id] for r in scenario.robots if r.id in costs]
+    mean = {}
+    for k in ("peak_rss_mb", "cpu_s", "links"):
+        vals = [c[k] for c in robots if c.get(k) is not None]
+        if vals:
+            mean[k] = round(sum(vals) / len(vals), 2)
+    return {"shape": scenario.shape, "per_host": {k: dict(v) for k, v in costs.items()}, "robot_mean": mean}
 
 
 def energy_report(scenario: Scenario, records: Sequence[Mapping[str, Any]]) -> dict[str, Any] | None:

@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Sequence
@@ -77,6 +78,8 @@ class RunResult:
     wall_s: float | None = None
     #: The peers ran without authentication (``--insecure``).
     insecure: bool = False
+    #: Per host at the end of the run: peak RSS (MB), CPU (s), TCP links (netns) (``ScenarioRun.sample_costs``).
+    costs: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def leadership(self) -> dict[str, Any]:
         """The ``leadership`` block from the candidates' role changes (``out_dir/leadership``)."""
@@ -227,6 +230,7 @@ class ScenarioRun:
         self.ended_mono: float | None = None
         self.telemetry: dict[str, Any] | None = None
         self.interrupted = False
+        self.costs: dict[str, dict[str, Any]] = {}
         self._warned: set[str] = set()
 
     # ------------------------------------------------------------ hooks
@@ -420,6 +424,7 @@ class ScenarioRun:
         sc, sup = self.scenario, self.sup
         try:
             if sup is not None and sup.procs:
+                self.costs = self.sample_costs()
                 self.say("stopping")
                 sup.stop([self.names[r.id] for r in sc.robots if r.id in self.names], timeout=5.0)
                 self.read_records()
@@ -437,6 +442,37 @@ class ScenarioRun:
                 finally:
                     self.ended_mono = time.monotonic()
                     self._hook("stopped")
+
+    def sample_costs(self) -> dict[str, dict[str, Any]]:
+        """What each host costs at the end of the run: its processes' peak RSS (MB) and CPU (s), and
+        on netns its established TCP links to other hosts (read from the kernel).  Per peer; under
+        ``shape = "routers"`` a host's figures include its router's."""
+        out: dict[str, dict[str, Any]] = {}
+        for p in self.scenario.peer_names:
+            names = [n for n in (self.names.get(p), self.routers.get(p)) if n]
+            rss = cpu = 0.0
+            seen = False
+            for n in names:
+                proc = self.sup.procs.get(n)
+                got = _proc_cost(proc.pid) if proc is not None and proc.alive() else None
+                if got is not None:
+                    seen = True
+                    rss += got[0]
+                    cpu += got[1]
+            if seen:
+                out[p] = {"peak_rss_mb": round(rss, 1), "cpu_s": round(cpu, 2)}
+        layout = getattr(self.be, "layout", None)
+        if layout is not None:
+            by_addr = {layout.addr(q): q for q in layout.peers}
+            for p in out:
+                try:
+                    got = subprocess.run(["ip", "netns", "exec", layout.ns(p), "ss", "-tnH", "state", "established"],
+                                         capture_output=True, text=True, timeout=10).stdout
+                except (OSError, subprocess.TimeoutExpired):
+                    continue
+                remote = {line.split()[-1].rsplit(":", 1)[0] for line in got.splitlines() if line.split()}
+                out[p]["links"] = len([a for a in remote if by_addr.get(a) not in (None, p)])
+        return out
 
     # ------------------------------------------------------------ helpers
     def wait_until(self, t_mono: float) -> None:
@@ -517,7 +553,7 @@ class ScenarioRun:
                          robots_started_unix_ns=self.robots_started,
                          peer_logs={n: str(self.out_dir / "logs" / f"{n}.log") for n in self.names.values()},
                          telemetry=self.telemetry, topology=topology, peers=peers, killed_unix_ns=ended,
-                         interrupted=self.interrupted, insecure=self.insecure,
+                         interrupted=self.interrupted, insecure=self.insecure, costs=self.costs,
                          wall_s=None if self.ended_mono is None or self.t0_mono is None
                          else round(self.ended_mono - self.t0_mono, 3))
 
@@ -717,6 +753,18 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
                         applied[k].end_unix_ns = t_after
         elif af.start_unix_ns is None:
             af.start_unix_ns = t_before
+
+
+def _proc_cost(pid: int) -> tuple[float, float] | None:
+    """``(peak RSS MB, CPU s)`` of a live process from /proc (None when unreadable)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    hwm = next((int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:")), 0)
+    ticks = os.sysconf("SC_CLK_TCK")
+    return hwm / 1024.0, (int(stat[11]) + int(stat[12])) / ticks
 
 
 def read_run_records(robots_dir: Path) -> list[dict[str, Any]]:
