@@ -97,6 +97,9 @@ class FleetConfig:
         4.3's robot1..robot4 by default); each robot then runs ``--profile
         NAME`` and the energy model places its frames (docs/ENERGY.md).
         Empty (the default): no energy model, robots offload every frame.
+    shape : {"clique", "routers"}
+        How the peers link (``--shape``): ``routers`` runs one zenoh router for the host and every
+        peer as its client (docs/R2R.md "Multi-hop").
     insecure : bool
         Run the fleet without authentication (``--insecure``).  By default a
         development CA and one certificate per peer are made in
@@ -128,6 +131,8 @@ class FleetConfig:
     leader_crash_s: float | None = None
     profiles: Sequence[str] = ()
     insecure: bool = False
+    #: ``topology.shape`` of the fleet's scenario: ``clique`` or ``routers`` (one router for the host).
+    shape: str = "clique"
 
     def check(self) -> None:
         """Raise :class:`InputError` naming the bad value and the fix."""
@@ -361,7 +366,7 @@ def fleet_scenario(config: FleetConfig) -> "Scenario":
         links=tuple((names[i], names[j]) for i in range(len(names)) for j in range(i)),
         faults=tuple(sorted(faults, key=lambda f: f.at_s)), source="scmr up",
         bootstraps={n: tuple(topo[n]["connect"]) for n in names},
-        node_names={**{name: node for name, node in clouds}, LEADER: "leader0"})
+        node_names={**{name: node for name, node in clouds}, LEADER: "leader0"}, shape=config.shape)
 
 
 def fleet_options(config: FleetConfig, *, ods: str | None = None) -> "RunOptions":

@@ -51,8 +51,7 @@ class LoopbackBackend:
                 "run it with --backend netns (root) or --backend proxy")
         self.scenario = scenario
         names = list(scenario.peer_names)
-        routers = [f"router:{p}" for p in names] if scenario.shape == "routers" else []
-        self.ports = free_ports(names + routers)
+        self.ports = free_ports(names + (["router"] if scenario.shape == "routers" else []))
         self.notes: list[str] = []
 
     def setup(self) -> None:
@@ -70,9 +69,16 @@ class LoopbackBackend:
     def listen(self, peer: str) -> list[str]:
         return [self.endpoint(peer)]
 
+    #: Every peer runs on this one host: under ``shape = "routers"`` they are all clients of one
+    #: router (links grow with N, not N^2; rmw_zenoh's one router per host).
+    ONE_HOST = "localhost"
+
+    def host_of(self, peer: str) -> str:
+        return self.ONE_HOST
+
     def router_endpoint(self, peer: str) -> str:
-        """Where the router of ``peer``'s host listens (``shape = "routers"``)."""
-        return f"tcp/127.0.0.1:{self.ports[f'router:{peer}']}"
+        """Where the router of ``peer``'s host (the one router) listens (``shape = "routers"``)."""
+        return f"tcp/127.0.0.1:{self.ports['router']}"
 
     def connect(self, peer: str) -> list[str]:
         return [self.endpoint(b) for b in self.scenario.bootstraps.get(peer, ())]

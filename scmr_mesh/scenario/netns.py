@@ -282,6 +282,10 @@ class NetnsBackend:
         """Endpoints ``peer`` listens on."""
         return [self.layout.endpoint(peer)]
 
+    def host_of(self, peer: str) -> str:
+        """The host ``peer`` runs on: its own namespace."""
+        return peer
+
     def router_endpoint(self, peer: str) -> str:
         """Where the router on ``peer``'s host listens (``shape = "routers"``)."""
         return f"tcp/{self.layout.addr(peer)}:{self.layout.port + 1}"

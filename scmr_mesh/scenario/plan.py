@@ -519,8 +519,11 @@ ROUTER_CFG: tuple[str, ...] = ("scouting/gossip/enabled:false",)
 
 def router_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterable[str],
                    connect: Iterable[str], security: Iterable[str] = (), options: RunOptions = RunOptions(),
-                   start: int = 1) -> PeerCommand:
+                   start: int = 1, name: str | None = None) -> PeerCommand:
     """The command line of the router on ``peer``'s host (``shape = "routers"``; pure).
+
+    ``name``: the router's identity when it is not ``Scenario.router_of(peer)`` (the loopback
+    backend's one router for the whole host).
 
     >>> from scmr_mesh.scenario.spec import parse_scenario
     >>> sc = parse_scenario({"name": "t", "seed": 3, "duration_s": 5, "topology": {"shape": "routers"},
@@ -530,7 +533,7 @@ def router_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iter
     >>> c.name, c.argv[3:7]
     ('router-robot1', ('router', '--node', 'router-robot1', '--listen'))
     """
-    base = scenario.router_of(peer)
+    base = name or scenario.router_of(peer)
     name = base if start == 1 or not options.restart_renames else f"{base}-{start}"
     argv: list[str] = [options.python, "-m", "scmr_mesh"] + (["-v"] if options.verbose else [])
     argv += ["router", "--node", base]

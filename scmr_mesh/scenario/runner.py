@@ -136,8 +136,19 @@ def check_out_dir(out_dir: Path, *, flag: str = "--out") -> None:
                             f"give a new {flag} or delete that folder")
 
 
-def scenario_identities(scenario: Scenario):
-    """The identities of a scenario's peers (pure): names, roles, lead grants."""
+def router_hosts(scenario: Scenario, be) -> dict[str, str]:
+    """Under ``shape = "routers"``: each host's router name -> the peer whose host it is (the first
+    peer on it); one per peer on netns, one for the whole host on loopback."""
+    out: dict[str, str] = {}
+    for p in scenario.peer_names:
+        host = be.host_of(p)
+        name = scenario.router_of(p) if host == p else f"router-{host}"
+        out.setdefault(name, p)
+    return out
+
+
+def scenario_identities(scenario: Scenario, routers: Sequence[str] = ()):
+    """The identities of a scenario's peers (pure): names, roles, lead grants; ``routers``: router names."""
     from scmr_mesh.security.credentials import Peer
 
     capable = set(scenario.candidates)
@@ -150,8 +161,7 @@ def scenario_identities(scenario: Scenario):
             out.append(Peer(node, "leader", leader_capable=True, priority_cap=0))
         else:
             out.append(Peer(node, role))
-    if scenario.shape == "routers":  # the router on every peer's host: trusted infrastructure
-        out += [Peer(scenario.router_of(p.name), "router") for p in scenario.peers]
+    out += [Peer(n, "router") for n in routers]  # the routers of the hosts: trusted infrastructure
     return out
 
 
@@ -162,11 +172,13 @@ def _security(scenario: Scenario, be, out_dir: Path, insecure: bool) -> list[str
     if insecure:
         return list(INSECURE)
     eps = [ep for p in scenario.peers for ep in be.listen(p.name)]
+    routers: list[str] = []
     if scenario.shape == "routers":
         eps += [be.router_endpoint(p.name) for p in scenario.peers]
+        routers = list(router_hosts(scenario, be))
     hosts = sorted({ep.split("/", 1)[1].rsplit(":", 1)[0].strip("[]") for ep in eps if "/" in ep}
                    - {"127.0.0.1", "::1"})
-    return run_credentials(out_dir, scenario_identities(scenario), hosts=hosts).args()
+    return run_credentials(out_dir, scenario_identities(scenario, routers), hosts=hosts).args()
 
 
 def _make_backend(scenario: Scenario, backend: str):
@@ -292,24 +304,41 @@ class ScenarioRun:
         """The :class:`~scmr_mesh.fleet.procs.PeerSpec` of the next start of ``peer``'s host router."""
         from scmr_mesh.fleet.procs import PeerSpec
 
-        key = f"router:{peer}"
-        n = self.starts[key] = self.starts.get(key, 0) + 1
         be, sc = self.be, self.scenario
+        name = next(n for n, p in router_hosts(sc, be).items() if p == peer)
+        key = f"router:{name}"
+        n = self.starts[key] = self.starts.get(key, 0) + 1
+        one_host = be.host_of(peer) != peer  # every peer on one host: one router, nobody to dial
         cmd = router_command(sc, peer, run_dir=self.out_dir, listen=[be.router_endpoint(peer)],
-                             connect=[be.router_endpoint(q) for q in sc.router_dials(peer)],
-                             security=self.security, options=self.options, start=n)
+                             connect=[] if one_host else [be.router_endpoint(q) for q in sc.router_dials(peer)],
+                             security=self.security, options=self.options, start=n, name=name)
         cmd.ready_file.parent.mkdir(parents=True, exist_ok=True)
         self.handed[cmd.name] = list(cmd.argv[3 + self.options.verbose:])
         return PeerSpec(cmd.name, be.wrap(peer, list(cmd.argv)), log_path=cmd.log_path, ready_file=cmd.ready_file)
 
     def start_router(self, peer: str, *, wait: bool = True):
         """Start the router of ``peer``'s host (``shape = "routers"``); with ``wait``, until it is ready."""
-        spec = self.router_spec(peer)
+        rep = router_hosts(self.scenario, self.be)
+        host = next(p for n, p in rep.items() if self.be.host_of(p) == self.be.host_of(peer))
+        spec = self.router_spec(host)
         proc = self.sup.start(spec)
-        self.routers[peer] = spec.name
+        for p in self.scenario.peer_names:
+            if self.be.host_of(p) == self.be.host_of(peer):
+                self.routers[p] = spec.name
         if wait:
             self.sup.wait_ready([spec.name], timeout=self.ready_timeout)
         return proc
+
+    def _router_up(self, peer: str) -> bool:
+        name = self.routers.get(peer)
+        proc = self.sup.procs.get(name) if name else None
+        return proc is not None and proc.alive()
+
+    def _host_down(self, peer: str) -> bool:
+        """Whether no peer on ``peer``'s host runs any more (a crash of the last one takes the host)."""
+        host = self.be.host_of(peer)
+        return not any(self.proc(p) is not None and self.proc(p).alive()
+                       for p in self.scenario.peer_names if self.be.host_of(p) == host)
 
     def start_peer(self, peer: str, *, remaining_s: float | None = None):
         spec = self.spec_for(peer, remaining_s=remaining_s)
@@ -344,10 +373,11 @@ class ScenarioRun:
             be.apply_many(initial)
         self.security[:] = _security(sc, be, self.out_dir, self.insecure)
         if sc.shape == "routers":
-            for p in sc.peers:
-                self.start_router(p.name, wait=False)
-            self.sup.wait_ready(list(self.routers.values()), timeout=self.ready_timeout)
-            self.say(f"routers ready: one on each of the {len(sc.peers)} hosts; every peer is its host "
+            hosts = router_hosts(sc, be)
+            for p in hosts.values():
+                self.start_router(p, wait=False)
+            self.sup.wait_ready(sorted(set(self.routers.values())), timeout=self.ready_timeout)
+            self.say(f"routers ready: one on each of the {len(hosts)} host(s); every peer is its host "
                      "router's client")
         servers = [p.name for p in sc.peers if p.role != "robot"]
         for p in servers:
@@ -378,16 +408,16 @@ class ScenarioRun:
                     continue  # nobody led, nobody was crashed: nothing to restart
                 batch = [dataclasses.replace(ev, target=(hit,)) for ev in batch]
             router = None
-            if sc.shape == "routers" and batch[0].op == "start":  # the host comes back: its router first
-                router = self.start_router(batch[0].target[0])
+            if sc.shape == "routers" and batch[0].op == "start" and not self._router_up(batch[0].target[0]):
+                router = self.start_router(batch[0].target[0])  # the host comes back: its router first
             _apply_batch(batch, self.be, self.sup, self.names, self.applied, self._restart_spec, sc,
                          self.t0_mono, lambda m: self.say(m))
             if router is not None and self.applied[batch[0].fault].end_unix_ns is not None:
                 # the host was back (its router relaying) when the router started, before the peer
                 af = self.applied[batch[0].fault]
                 af.end_unix_ns = min(af.end_unix_ns, router.started_unix_ns)
-            if sc.shape == "routers" and batch[0].op == "kill":  # a crash takes the host down, router and all
-                router = self.routers[batch[0].target[0]]
+            if sc.shape == "routers" and batch[0].op == "kill" and self._host_down(batch[0].target[0]):
+                router = self.routers[batch[0].target[0]]  # the host is down: its router with it
                 self.sup.kill(router)
                 self.applied[batch[0].fault].killed.append(router)
         self.wait_until(self.t0_mono + sc.duration_s)
@@ -449,7 +479,8 @@ class ScenarioRun:
         ``shape = "routers"`` a host's figures include its router's."""
         out: dict[str, dict[str, Any]] = {}
         for p in self.scenario.peer_names:
-            names = [n for n in (self.names.get(p), self.routers.get(p)) if n]
+            own_router = self.routers.get(p) if self.be.host_of(p) == p else None  # a shared one: not its own
+            names = [n for n in (self.names.get(p), own_router) if n]
             rss = cpu = 0.0
             seen = False
             for n in names:
