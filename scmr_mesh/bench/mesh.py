@@ -97,7 +97,10 @@ def _run_entry(report: Mapping[str, Any]) -> dict[str, Any]:
     return {"robots": report["robots"], "rate_hz": report["rate_hz"], "duration_s": report["duration_s"],
             "requests": report["requests"], "succeeded": report["succeeded"], "ror": report["ror"],
             "tor_ms": report["tor_ms"], "by_tier": report["by_tier"], "run_dir": report["run_dir"],
-            "tor_admitted_ms": admitted_tor(Path(report["run_dir"]))}
+            "tor_admitted_ms": admitted_tor(Path(report["run_dir"])),
+            # the network's shape and what it costs per robot (peak RSS, CPU, open sockets)
+            "shape": (report.get("hosts") or {}).get("shape"), "hosts": report.get("hosts"),
+            "telemetry_lost": (report.get("telemetry") or {}).get("lost")}
 
 
 # ------------------------------------------------------------------ capacity

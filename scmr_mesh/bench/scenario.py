@@ -66,7 +66,7 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
         "reroute_ms_per_robot": stats([v for r in runs for f in r["faults"] + (r.get("multihop") or {}).get(
             "radio_reroutes", []) for v in (f.get("reroute_ms") or {}).values()]),
         "robot_host": {k: stats([(r.get("hosts") or {}).get("robot_mean", {}).get(k) for r in runs])["median"]
-                       for k in ("peak_rss_mb", "cpu_s", "links")},
+                       for k in ("peak_rss_mb", "cpu_s", "links", "sockets")},
         "local_answers": [r["summary"]["by_tier"].get("local", 0) for r in runs],
         "out": str(base),
         "note": "measured on a shared, busy 2-core machine" if (os.cpu_count() or 0) <= 2 else "",

@@ -661,12 +661,13 @@ def run_report(res: Any, *, thesis_csv: Path | None = None, extra: Mapping[str, 
 def host_costs(scenario: Scenario, costs: Mapping[str, Mapping[str, Any]]) -> dict[str, Any]:
     """The report's ``hosts``: the network's shape and what each host cost (``RunResult.costs``).
 
-    ``per_host``: peak RSS (MB), CPU (s) and, on netns, TCP links to other hosts, per peer (its
-    router included under ``shape = "routers"``); ``robot_mean``: the same averaged over robots.
+    ``per_host``: peak RSS (MB), CPU (s), open sockets and, on netns, TCP links to other hosts, per
+    peer (its router included under ``shape = "routers"``; a router shared by a whole host has its own
+    entry); ``robot_mean``: the same averaged over robots.
     """
     robots = [costs[r.id] for r in scenario.robots if r.id in costs]
     mean = {}
-    for k in ("peak_rss_mb", "cpu_s", "links"):
+    for k in ("peak_rss_mb", "cpu_s", "links", "sockets"):
         vals = [c[k] for c in robots if c.get(k) is not None]
         if vals:
             mean[k] = round(sum(vals) / len(vals), 2)

@@ -420,6 +420,9 @@ class ScenarioRun:
                 router = self.routers[batch[0].target[0]]  # the host is down: its router with it
                 self.sup.kill(router)
                 self.applied[batch[0].fault].killed.append(router)
+        # what each host costs, sampled while the robots still run (they exit at the end of the run)
+        self.wait_until(self.t0_mono + max(sc.duration_s / 2, sc.duration_s - 1.0))
+        self.costs = self.sample_costs()
         self.wait_until(self.t0_mono + sc.duration_s)
         self.say("duration over; waiting for robots to finish")
         grace = 30.0 + 2.0 * sc.lease_ms / 1000 + max((r.deadline_ms or 0) for r in sc.robots) / 1000
@@ -454,7 +457,6 @@ class ScenarioRun:
         sc, sup = self.scenario, self.sup
         try:
             if sup is not None and sup.procs:
-                self.costs = self.sample_costs()
                 self.say("stopping")
                 sup.stop([self.names[r.id] for r in sc.robots if r.id in self.names], timeout=5.0)
                 self.read_records()
@@ -474,14 +476,16 @@ class ScenarioRun:
                     self._hook("stopped")
 
     def sample_costs(self) -> dict[str, dict[str, Any]]:
-        """What each host costs at the end of the run: its processes' peak RSS (MB) and CPU (s), and
-        on netns its established TCP links to other hosts (read from the kernel).  Per peer; under
-        ``shape = "routers"`` a host's figures include its router's."""
+        """What each host costs near the end of the run: its processes' peak RSS (MB) and CPU (s) so
+        far, and on netns its established TCP links to other hosts (read from the kernel).  Per peer;
+        under ``shape = "routers"`` a host's figures include its router's, and a router shared by
+        every peer of the host (loopback) has its own entry."""
         out: dict[str, dict[str, Any]] = {}
         for p in self.scenario.peer_names:
             own_router = self.routers.get(p) if self.be.host_of(p) == p else None  # a shared one: not its own
             names = [n for n in (self.names.get(p), own_router) if n]
             rss = cpu = 0.0
+            socks = 0
             seen = False
             for n in names:
                 proc = self.sup.procs.get(n)
@@ -490,8 +494,14 @@ class ScenarioRun:
                     seen = True
                     rss += got[0]
                     cpu += got[1]
+                    socks += got[2]
             if seen:
-                out[p] = {"peak_rss_mb": round(rss, 1), "cpu_s": round(cpu, 2)}
+                out[p] = {"peak_rss_mb": round(rss, 1), "cpu_s": round(cpu, 2), "sockets": socks}
+        for name in sorted({n for p, n in self.routers.items() if self.be.host_of(p) != p}):  # one for many
+            proc = self.sup.procs.get(name)
+            got = _proc_cost(proc.pid) if proc is not None and proc.alive() else None
+            if got is not None:
+                out[name] = {"peak_rss_mb": round(got[0], 1), "cpu_s": round(got[1], 2), "sockets": got[2]}
         layout = getattr(self.be, "layout", None)
         if layout is not None:
             by_addr = {layout.addr(q): q for q in layout.peers}
@@ -786,8 +796,8 @@ def _apply_batch(batch: list[Event], be, sup, names: dict[str, str], applied: li
             af.start_unix_ns = t_before
 
 
-def _proc_cost(pid: int) -> tuple[float, float] | None:
-    """``(peak RSS MB, CPU s)`` of a live process from /proc (None when unreadable)."""
+def _proc_cost(pid: int) -> tuple[float, float, int] | None:
+    """``(peak RSS MB, CPU s, open sockets)`` of a live process from /proc (None when unreadable)."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
         stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -795,7 +805,16 @@ def _proc_cost(pid: int) -> tuple[float, float] | None:
         return None
     hwm = next((int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:")), 0)
     ticks = os.sysconf("SC_CLK_TCK")
-    return hwm / 1024.0, (int(stat[11]) + int(stat[12])) / ticks
+    socks = 0
+    try:
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            try:
+                socks += os.readlink(f"/proc/{pid}/fd/{fd}").startswith("socket:")
+            except OSError:
+                pass
+    except OSError:
+        pass
+    return hwm / 1024.0, (int(stat[11]) + int(stat[12])) / ticks, socks
 
 
 def read_run_records(robots_dir: Path) -> list[dict[str, Any]]:
