@@ -45,6 +45,9 @@ MAX_MESSAGE_KEY = "transport/link/rx/max_message_size"
 #: ~600 MB before the service could refuse it (docs/ZENOH.md section 9).
 MAX_MESSAGE_BYTES = 40 << 20
 
+#: How long a client keeps trying to reach its router when it opens (ms).
+CLIENT_CONNECT_TIMEOUT_MS = 30000
+
 #: scmr defaults: zenoh key -> JSON value.
 DEFAULTS: dict[str, Any] = {
     "scouting/multicast/enabled": False,
@@ -168,6 +171,11 @@ def build_config(mc: MeshConfig):
         _insert(conf, key, value, source="--cfg")
         wbc_pinned = wbc_pinned or key.strip("/") == WAIT_BEFORE_CLOSE_KEY
     _insert(conf, "mode", json.dumps(mc.mode), source="mode")
+    if mc.mode == "client" and _untouched(conf, pristine, "connect/timeout_ms"):
+        # a client tries its router once by default and fails to open; a router busy with a fleet's
+        # TLS handshakes (256 robots starting together on 16 cores, load 230) refused some: retry
+        # (every 50 ms, connect/retry) for up to CLIENT_CONNECT_TIMEOUT_MS (docs/ZENOH.md section 13)
+        _insert(conf, "connect/timeout_ms", json.dumps(CLIENT_CONNECT_TIMEOUT_MS), source="client mode")
     if mc.listen:
         _insert(conf, "listen/endpoints", json.dumps(list(mc.listen)), source="--listen")
     if mc.connect:
