@@ -420,8 +420,9 @@ class ScenarioRun:
                 router = self.routers[batch[0].target[0]]  # the host is down: its router with it
                 self.sup.kill(router)
                 self.applied[batch[0].fault].killed.append(router)
-        # what each host costs, sampled while the robots still run (they exit at the end of the run)
-        self.wait_until(self.t0_mono + max(sc.duration_s / 2, sc.duration_s - 1.0))
+        # what each host costs, sampled at half time, while every robot still runs (a robot sends for
+        # duration_s from its own start, and the first started seconds before time 0)
+        self.wait_until(self.t0_mono + sc.duration_s / 2)
         self.costs = self.sample_costs()
         self.wait_until(self.t0_mono + sc.duration_s)
         self.say("duration over; waiting for robots to finish")
@@ -476,8 +477,7 @@ class ScenarioRun:
                     self._hook("stopped")
 
     def sample_costs(self) -> dict[str, dict[str, Any]]:
-        """What each host costs near the end of the run: its processes' peak RSS (MB) and CPU (s) so
-        far, and on netns its established TCP links to other hosts (read from the kernel).  Per peer;
+        """What each host costs at half time: its processes' peak RSS (MB) and CPU (s) so far, and
         under ``shape = "routers"`` a host's figures include its router's, and a router shared by
         every peer of the host (loopback) has its own entry."""
         out: dict[str, dict[str, Any]] = {}
