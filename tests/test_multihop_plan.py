@@ -155,3 +155,14 @@ def test_a_client_is_linked_only_when_another_nodes_token_reaches_it():
         assert not c._is_linked()
     finally:
         c.close()
+
+
+def test_scenario_plan_shows_each_hosts_router_and_refuses_a_proxy_plan(capsys):
+    from scmr_mesh.cli import main
+
+    assert main(["scenario", "plan", "peers/scenarios/relay-loss.toml", "--backend", "netns"]) == 0
+    out = capsys.readouterr().out
+    assert "router router-robot3 on tcp/198.18.0.14:7448 dials cloud, leader, robot1, robot2; robot3 is its client" in out
+    assert main(["scenario", "plan", "peers/scenarios/relay-loss.toml", "--backend", "proxy"]) == 1
+    err = capsys.readouterr().err
+    assert 'shape = "routers" has no proxy plan' in err and err.count("\n") == 1

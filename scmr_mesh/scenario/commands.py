@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from scmr_mesh import cliargs as ca
-from scmr_mesh.errors import ConfigError, ScmrError
+from scmr_mesh.errors import ConfigError, ScenarioError, ScmrError
 
 DESCRIPTION = """\
 Scripted fault scenarios against a fleet on one host (thesis chapter 4).
@@ -70,6 +70,15 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         for when, action in layout.plan(events):
             w = when if isinstance(when, str) else f"t={when:g}s"
             _out(f"{w:>9}  {_fmt_cmd(action)}")
+        if sc.shape == "routers":  # who runs where (the processes are started by `scenario run`)
+            for p in sc.peer_names:
+                rep = f"tcp/{layout.addr(p)}:{layout.port + 1}"
+                dials = ", ".join(sc.router_dials(p)) or "nobody"
+                _out(f"{'hosts':>9}  {layout.ns(p)}: router {sc.router_of(p)} on {rep} dials {dials}; "
+                     f"{p} is its client")
+    elif sc.shape == "routers":
+        raise ScenarioError(f"scenario {sc.name}: topology.shape = \"routers\" has no proxy plan; "
+                            "use --backend netns (scmr scenario plan FILE --backend netns)")
     else:
         _out(f"    setup  one TCP proxy per link: {', '.join(a + '->' + b for a, b in sc.links)}; gossip off")
         for e in events:
