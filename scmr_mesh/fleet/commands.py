@@ -52,10 +52,11 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
     g.add_argument("--bootstrap", default="cloud", metavar="PEER",
                    help="the one peer every robot is handed to connect to (cloud or leader); gossip scouting "
                         "finds the rest (default: %(default)s)")
-    g.add_argument("--shape", choices=("clique", "routers"), default="clique",
-                   help="how the peers link: clique (default), every peer a zenoh peer linked to every other "
-                        "(links grow with N^2); routers, one zenoh router for this host and every peer its "
-                        "client (links grow with N; docs/R2R.md Multi-hop, docs/DEPLOY.md)")
+    g.add_argument("--shape", choices=("auto", "clique", "routers"), default="auto",
+                   help="how the peers link: clique, every peer a zenoh peer linked to every other (links "
+                        "grow with N^2); routers, one zenoh router for this host and every peer its client "
+                        "(links grow with N); auto (default): clique up to 32 robots, routers above, where "
+                        "the clique was measured to break (docs/BENCHMARKS.md 'One host, many robots')")
 
 
 def _profile_list(text: str) -> tuple[str, ...]:
@@ -80,7 +81,7 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
         rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
         leader_crash_s=getattr(args, "leader_crash", None), profiles=getattr(args, "profiles", None) or (),
-        insecure=args.insecure, shape=getattr(args, "shape", "clique"),
+        insecure=args.insecure, shape=getattr(args, "shape", "auto"),
     )
 
 

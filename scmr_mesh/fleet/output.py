@@ -73,6 +73,13 @@ def format_summary(report: Mapping[str, Any]) -> str:
         lines.append("  security: " + ("mutual TLS + access rules (certificates in RUN/certs)"
                                        if report["security"] == "mtls+acl"
                                        else "NONE (--insecure): anyone who reached the ports could join"))
+    hosts = report.get("hosts") or {}
+    if hosts.get("shape"):
+        mean = hosts.get("robot_mean") or {}
+        lines.append("  network: " + ("every peer a client of one zenoh router for this host"
+                                      if hosts["shape"] == "routers" else "a clique: every peer linked to every other")
+                     + (f"; per robot {mean['peak_rss_mb']:.0f} MB, {mean['sockets']:.0f} socket(s) at half time"
+                        if mean.get("peak_rss_mb") is not None and mean.get("sockets") is not None else ""))
     for f in report.get("faults", []):
         start = (f["start_unix_ns"] - report.get("started_unix_ns", f["start_unix_ns"])) / 1e9
         if f.get("end_unix_ns") is None:
