@@ -59,6 +59,9 @@ def agent(argv: list[str]) -> int:
                     help="seconds to wait before acting (peers that are expected never to connect)")
     ap.add_argument("--peers", type=int, default=None,
                     help="before acting, wait until this many peers are connected (at most 60 s)")
+    ap.add_argument("--mode", default="peer", help="zenoh mode: peer, client (of a router) or router")
+    ap.add_argument("--await-alive", default=None,
+                    help="before acting, wait until this liveliness key is seen (at most 60 s)")
     ap.add_argument("--duration", type=float, default=2.0)
     ap.add_argument("--hold", action="store_true",
                     help="after the duration, keep serving until stdin is closed (the harness decides when)")
@@ -70,7 +73,7 @@ def agent(argv: list[str]) -> int:
             print(json.dumps(kw), flush=True)
 
     prof = None if a.kind == "none" else SecurityProfile(kind=a.kind, credentials=Path(a.creds), acl=a.acl)
-    conf = secure_config(prof, identity=a.id, listen=a.listen, connect=a.connect, lease_ms=1000)
+    conf = secure_config(prof, identity=a.id, listen=a.listen, connect=a.connect, lease_ms=1000, mode=a.mode)
     with zenoh.open(conf) as s:
         keep = []
         for k in a.serve:
@@ -87,6 +90,11 @@ def agent(argv: list[str]) -> int:
             end = time.time() + 60
             while len(list(s.info.peers_zid())) < a.peers and time.time() < end:
                 time.sleep(0.02)
+        if a.await_alive:
+            end = time.time() + 60
+            while time.time() < end and a.await_alive not in {
+                    str(r.ok.key_expr) for r in s.liveliness().get(a.await_alive, timeout=0.5) if r.ok}:
+                time.sleep(0.05)
         time.sleep(a.delay)
         out(ev="peers", n=len(list(s.info.peers_zid())))
         if a.alive:
@@ -210,7 +218,7 @@ def credentials(tmp_path_factory):
     from scmr_mesh.security.credentials import create_credentials
 
     d = tmp_path_factory.mktemp("creds")
-    create_credentials(d / "fleet", "cloud,leader,robot1,robot2,rogue")
+    create_credentials(d / "fleet", "cloud,leader,robot1,robot2,rogue,router0")
     create_credentials(d / "other", "cloud,robot1,robot2")  # a different CA
     return d / "fleet", d / "other"
 
@@ -315,6 +323,59 @@ def test_usrpwd_keeps_out_peers_without_password(credentials, tmp_path):
     for k in ("none", "wrong"):
         assert _peers(evs[k]) == [0], k
         assert _replies(evs[k], "scmr/drivable/cloud/cloud/robot1") == [], k
+
+
+def _behind_router(creds: Path, *, acl: bool) -> dict[str, list[dict]]:
+    """A router (the multi-hop tier's shape) with the cloud, a rogue and robot1 as its clients.
+
+    The rogue holds a valid robot certificate and, as in issue 25 item 4, declares a
+    cloud token and answers on the cloud's keys.  Ordered by conditions: the rogue
+    first, then the cloud, and robot1 acts once the cloud's token reaches it.
+    """
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    base = ["--creds", str(creds)] + (["--acl"] if acl else [])
+    agents: dict[str, Agent] = {}
+    try:
+        agents["router0"] = Agent(base + ["--id", "router0", "--mode", "router", "--listen", ep,
+                                          "--duration", "0", "--hold"])
+        agents["router0"].wait_event("ready")
+        agents["rogue"] = Agent(base + [
+            "--id", "rogue", "--mode", "client", "--connect", ep, "--serve", "scmr/drivable/cloud/cloud/*",
+            "--serve", "scmr/drivable/cloud/fake/*", "--token", "scmr/alive/cloud/fake",
+            "--duration", "0", "--hold"])
+        agents["rogue"].wait_event("ready")
+        agents["cloud"] = Agent(base + [
+            "--id", "cloud", "--mode", "client", "--connect", ep, "--serve", "scmr/drivable/cloud/cloud/*",
+            "--token", "scmr/alive/cloud/cloud", "--duration", "0", "--hold"])
+        agents["cloud"].wait_event("ready")
+        agents["robot1"] = Agent(base + [
+            "--id", "robot1", "--mode", "client", "--connect", ep, "--await-alive", "scmr/alive/cloud/cloud",
+            "--query", "scmr/drivable/cloud/cloud/robot1", "--query", "scmr/drivable/cloud/fake/robot1",
+            "--alive", "scmr/alive/**", "--duration", "1.5"])
+        out = {"robot1": agents["robot1"].finish()}
+        for k in ("rogue", "cloud", "router0"):
+            out[k] = agents[k].finish()
+        return out
+    finally:
+        for a in agents.values():
+            a.kill()
+
+
+def test_a_router_enforces_the_fleets_rules_for_its_clients(credentials):
+    """Issue 25 item 4, closed in the design: a client attached to a router that enforces the
+    fleet's rules (every router of the multi-hop tier does) cannot be fooled by a robot certificate
+    playing the cloud, whatever the client checks itself.  Control: the same without the rules."""
+    creds, _ = credentials
+    secured = _behind_router(creds, acl=True)
+    alive = [e["keys"] for e in secured["robot1"] if e["ev"] == "alive"]
+    assert alive and "scmr/alive/cloud/fake" not in alive[0] and "scmr/alive/cloud/cloud" in alive[0]
+    real = _replies(secured["robot1"], "scmr/drivable/cloud/cloud/robot1")
+    assert real and set(real) == {"served-by-cloud"}  # the rogue's answers on the cloud's key never arrive
+    assert _replies(secured["robot1"], "scmr/drivable/cloud/fake/robot1") == []
+    control = _behind_router(creds, acl=False)
+    alive_ctl = [e["keys"] for e in control["robot1"] if e["ev"] == "alive"]
+    assert "scmr/alive/cloud/fake" in alive_ctl[0]
+    assert "served-by-rogue" in _replies(control["robot1"], "scmr/drivable/cloud/cloud/robot1")
 
 
 if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "agent":
