@@ -238,6 +238,11 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     0.767; on the first 17 images 0.818 / 0.799).  Every dataset beats the trivial bottom-half
     prior but the forest floor (0.702 vs 0.748): the open defect of issue 27, asserted as such so
     the test says when it is fixed.
+
+    Issue 27 (calibrated abstention, a horizontal opening, and the operating point: the best IoU
+    among combinations with mean precision >= 0.85 on the training images) raised the measurement
+    to 0.794 / 0.772, precision 0.887 in-sample / 0.849 cross-validated; the floors follow
+    (0.79 / 0.77, precision 0.88 / 0.84).  The forest floor rose to 0.728, still below its prior.
     """
     import json
 
@@ -248,8 +253,11 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert sum(r["n"] for r in res["per_dataset"].values()) == len(items) >= 60
     chosen = res["in_sample"]["params"]
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
-    assert res["mean"]["in_sample_iou"] >= 0.78
-    assert res["mean"]["cv_iou"] >= 0.76
+    assert res["mean"]["in_sample_iou"] >= 0.79
+    assert res["mean"]["cv_iou"] >= 0.77
+    assert res["mean"]["in_sample_precision"] >= 0.88
+    assert res["mean"]["cv_precision"] >= 0.84
+    assert res["min_precision"] == 0.85
     known = {"umich_forest_traversable"}  # issue 27: loses to the bottom-half prior
     for d, r in res["per_dataset"].items():
         if d in known:
@@ -257,4 +265,4 @@ def test_cross_validation_on_the_shared_images(roads_dir):
         else:
             assert r["cv_iou"] > r["bottom_half_iou"], d
     table = format_cv_table(res)
-    assert "CV IoU" in table and "rellis3d" in table
+    assert "CV IoU" in table and "rellis3d" in table and "prec" in table and "recall" in table

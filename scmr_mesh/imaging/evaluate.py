@@ -279,6 +279,12 @@ def format_table(result: dict) -> str:
         vals = " ".join(f"{pd[n]['iou']:11.3f}" if n in pd else f"{'-':>11s}" for n in names)
         mean_iou = res["mean"]["iou"] if "mean" in res else res["iou"]
         lines.append(f"{name:22s} {vals} {mean_iou:7.3f}")
+    lines.append("")
+    lines.append(f"{'precision / recall':22s} " + " ".join(f"{n[:11]:>11s}" for n in names) + f" {'all':>11s}")
+    for name, res in cols:
+        pd, mean = res["per_dataset"], res["mean"] if "mean" in res else res
+        vals = " ".join(f"{pd[n]['precision']:5.3f}/{pd[n]['recall']:5.3f}" if n in pd else f"{'-':>11s}" for n in names)
+        lines.append(f"{name:22s} {vals} {mean['precision']:5.3f}/{mean['recall']:5.3f}")
     return "\n".join(lines)
 
 
