@@ -92,6 +92,9 @@ class RoadParams:
     cap : float
         When the seed is weak the mask shrinks to the rows below this fraction of the height,
         the part of the frame the robot is sure is ground (see :func:`abstain`).
+    standing : bool
+        When the seed is weak, also drop the non-seed regions with most of their pixels above
+        ``cap`` (they stand on the ground: walls, trunks, building bases).
     """
 
     gamma: float = 1.0
@@ -108,6 +111,7 @@ class RoadParams:
     reach: float = 0.35
     dim: float = 0.0
     cap: float = 0.5
+    standing: bool = True
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -296,7 +300,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     seed_px = slot[labels] >= 0
     seed_grey = float(grey[seed_px].mean()) if seed_px.any() else 0.0
     return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
-                        "seed_grey": seed_grey, "grounded": grounded}
+                        "seed_grey": seed_grey, "grounded": grounded, "labels": labels}
 
 
 def _grounded(labels: np.ndarray, n_regions: int, share: float) -> bool:
@@ -352,6 +356,23 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
         confidence, reason = 0.0, ABSTAIN_REASONS[0]
     else:
         reason = ABSTAIN_REASONS[1] if reach_conf <= dim_conf else ABSTAIN_REASONS[2]
+    row = int(params.cap * h)
     sure = candidate.copy()
-    sure[: int(params.cap * h)] = 0
+    sure[:row] = 0
+    labels = info.get("labels")
+    if labels is not None and params.standing:
+        # a region with most of its pixels above the sure rows stands on the ground (a wall, a
+        # trunk, a building base; ground seen in perspective has most of its pixels low): it goes,
+        # unless it is a seed; then only what still touches a seed stays
+        k = int(labels.max()) + 1
+        above = np.bincount(labels[:row].ravel(), minlength=k)
+        total = np.bincount(labels.ravel(), minlength=k)
+        drop = above * 2 > total
+        drop[info["seeds"]] = False
+        sure[drop[labels]] = 0
+        n, comp = cv2.connectedComponents(sure, connectivity=4)
+        keep = np.zeros(n, np.uint8)
+        keep[comp[np.isin(labels, info["seeds"]) & (sure > 0)]] = 1
+        keep[0] = 0
+        sure = keep[comp]
     return sure, confidence, reason
