@@ -240,9 +240,10 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     the test says when it is fixed.
 
     Issue 27 (calibrated abstention, a horizontal opening, and the operating point: the best IoU
-    among combinations with mean precision >= 0.85 on the training images) raised the measurement
-    to 0.794 / 0.772, precision 0.887 in-sample / 0.849 cross-validated; the floors follow
-    (0.79 / 0.77, precision 0.88 / 0.84).  The forest floor rose to 0.728, still below its prior.
+    among combinations with mean precision >= 0.88 on the training images) raised the measurement
+    to 0.797 / 0.777 (0.743 averaged over datasets, was 0.731), precision 0.890 in-sample / 0.878
+    cross-validated (was 0.861 / 0.856); the floors follow (0.79 / 0.77 / 0.74, precision 0.88 /
+    0.87).  The forest floor rose to 0.730, still below its prior (0.748).
     """
     import json
 
@@ -255,9 +256,10 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
     assert res["mean"]["in_sample_iou"] >= 0.79
     assert res["mean"]["cv_iou"] >= 0.77
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.74
     assert res["mean"]["in_sample_precision"] >= 0.88
-    assert res["mean"]["cv_precision"] >= 0.84
-    assert res["min_precision"] == 0.85
+    assert res["mean"]["cv_precision"] >= 0.87
+    assert res["min_precision"] == 0.88
     known = {"umich_forest_traversable"}  # issue 27: loses to the bottom-half prior
     for d, r in res["per_dataset"].items():
         if d in known:

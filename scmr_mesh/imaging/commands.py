@@ -64,7 +64,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "shared images, 2 cores)")
     p.add_argument("--min-precision", type=float, default=None, metavar="P",
                    help="with --cv, the operating point: choose the best IoU among the combinations whose mean "
-                        "precision on the training images is at least P (default 0.85; 0 = IoU alone)")
+                        "precision on the training images is at least P (default 0.88; 0 = IoU alone)")
     p.add_argument("--json", type=ca.PathArg("out-file", as_path=True), metavar="FILE", help="write the full result as JSON here")
     p.set_defaults(func=cmd_eval)
 

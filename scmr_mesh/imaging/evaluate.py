@@ -307,7 +307,10 @@ CV_GRID: dict[str, tuple] = {
 #: The operating point: cross-validation chooses, among the combinations whose mean precision on
 #: the training images is at least this, the one with the highest mean IoU there (issue 27: a
 #: robot drives where the mask is green, so green where it cannot drive is the costly error).
-MIN_PRECISION = 0.85
+#: The target is 0.85 on held-out data; precision on the training images overstates it, hence
+#: the margin.  0.88 was picked after comparing 0.85 / 0.88 / 0.90 on the cross-validation
+#: itself (docs/ACCURACY.md gives all three), so its cross-validated figures are a little optimistic.
+MIN_PRECISION = 0.88
 
 
 def cross_validate(
