@@ -263,8 +263,9 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     info : dict
         ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
         the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
-        the seed pixels), ``grounded`` (False when no region had ground contact and the
-        largest region of the cell was taken instead).
+        the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
+        had ground contact and the largest region of the cell was taken instead), and for
+        :func:`abstain` ``labels``, ``sizes`` (pixels per region) and ``seed_pixels`` ((h, w) bool).
     """
     from scmr_mesh.imaging._aot import road_share_kernel
 
@@ -298,9 +299,10 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     keep[cell_comp[slot[cell_lab] >= 0]] = 1
     keep[0] = 0
     seed_px = slot[labels] >= 0
-    seed_grey = float(grey[seed_px].mean()) if seed_px.any() else 0.0
+    seed_grey = float(grey[seed_px].mean()) if params.dim > 0 and seed_px.any() else float("nan")
     return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
-                        "seed_grey": seed_grey, "grounded": grounded, "labels": labels}
+                        "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
+                        "sizes": seg.sizes, "seed_pixels": seed_px}
 
 
 def _grounded(labels: np.ndarray, n_regions: int, share: float) -> bool:
@@ -364,15 +366,14 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
         # a region with most of its pixels above the sure rows stands on the ground (a wall, a
         # trunk, a building base; ground seen in perspective has most of its pixels low): it goes,
         # unless it is a seed; then only what still touches a seed stays
-        k = int(labels.max()) + 1
-        above = np.bincount(labels[:row].ravel(), minlength=k)
-        total = np.bincount(labels.ravel(), minlength=k)
+        total = info["sizes"]
+        above = np.bincount(labels[:row].ravel(), minlength=total.size)
         drop = above * 2 > total
         drop[info["seeds"]] = False
         sure[drop[labels]] = 0
         n, comp = cv2.connectedComponents(sure, connectivity=4)
         keep = np.zeros(n, np.uint8)
-        keep[comp[np.isin(labels, info["seeds"]) & (sure > 0)]] = 1
+        keep[comp[info["seed_pixels"] & (sure > 0)]] = 1
         keep[0] = 0
         sure = keep[comp]
     return sure, confidence, reason
