@@ -330,8 +330,10 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
       ground (trunks, building bases, leaf litter against a hillside), a low-contrast seed;
     * **dim seed**: the seed's mean grey level is below ``dim`` (dusk, night).
 
-    Then the mask keeps only its rows below ``cap`` of the height (the ground just ahead).
-    On a textured floor (leaf litter) no single region may cover enough of the cell, so a
+    Then the mask keeps only its rows below ``cap`` of the height (the ground just ahead);
+    with ``standing`` (and ``info`` from :func:`classify`) it also drops the non-seed regions
+    with most of their pixels above that row (walls, trunks, building bases standing on the
+    ground) and keeps only what still touches a seed.  On a textured floor (leaf litter) no single region may cover enough of the cell, so a
     seed without ground contact shrinks the same way rather than emptying the mask.
 
     Returns
