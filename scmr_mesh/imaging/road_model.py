@@ -265,7 +265,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
         the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
         had ground contact and the largest region of the cell was taken instead), and for
-        :func:`abstain` ``labels``, ``sizes`` (pixels per region) and ``seed_pixels`` ((h, w) bool).
+        :func:`abstain` ``labels`` and ``sizes`` (pixels per region).
     """
     from scmr_mesh.imaging._aot import road_share_kernel
 
@@ -298,11 +298,13 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     keep = np.zeros(n_comp, np.uint8)
     keep[cell_comp[slot[cell_lab] >= 0]] = 1
     keep[0] = 0
-    seed_px = slot[labels] >= 0
-    seed_grey = float(grey[seed_px].mean()) if params.dim > 0 and seed_px.any() else float("nan")
+    seed_grey = float("nan")
+    if params.dim > 0:
+        seed_px = slot[labels] >= 0
+        seed_grey = float(grey[seed_px].mean()) if seed_px.any() else 0.0
     return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
                         "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
-                        "sizes": seg.sizes, "seed_pixels": seed_px}
+                        "sizes": seg.sizes}
 
 
 def _grounded(labels: np.ndarray, n_regions: int, share: float) -> bool:
@@ -372,10 +374,11 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
         above = np.bincount(labels[:row].ravel(), minlength=total.size)
         drop = above * 2 > total
         drop[info["seeds"]] = False
-        sure[drop[labels]] = 0
-        n, comp = cv2.connectedComponents(sure, connectivity=4)
+        low, low_labels = sure[row:], labels[row:]   # the rows above are empty now
+        low[drop[low_labels]] = 0
+        n, comp = cv2.connectedComponents(low, connectivity=4)
         keep = np.zeros(n, np.uint8)
-        keep[comp[info["seed_pixels"] & (sure > 0)]] = 1
+        keep[comp[np.isin(low_labels, info["seeds"]) & (low > 0)]] = 1
         keep[0] = 0
-        sure = keep[comp]
+        sure[row:] = keep[comp]
     return sure, confidence, reason
