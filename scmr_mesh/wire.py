@@ -410,9 +410,15 @@ def make_reply(
     tier: str,
     server_ms: float,
     queue_ms: float = 0.0,
+    confidence: float | None = None,
+    abstained: str | None = None,
 ) -> dict:
-    """Build a reply message answering ``request``."""
-    return {
+    """Build a reply message answering ``request``.
+
+    ``confidence`` (clamped to [0, 1]) and ``abstained`` are optional (issue 27): left out of
+    the message when None, so replies stay valid for readers of the older schema's fields.
+    """
+    msg = {
         "v": WIRE_VERSION,
         "kind": "reply",
         "robot": request["robot"],
@@ -426,6 +432,11 @@ def make_reply(
         "server_ms": float(max(0.0, server_ms)),
         "queue_ms": float(max(0.0, queue_ms)),
     }
+    if confidence is not None:
+        msg["confidence"] = float(min(1.0, max(0.0, confidence)))
+    if abstained is not None:
+        msg["abstained"] = str(abstained)[:64]
+    return msg
 
 
 _ROBOT_ID = re.compile(r"[A-Za-z0-9_.\-]{1,64}")

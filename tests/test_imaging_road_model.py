@@ -20,6 +20,7 @@ from scmr_mesh.imaging.road_model import (
     SHADE_DIRECTION,
     WORK_SHAPE,
     RoadParams,
+    abstain,
     chi2_quantile,
     classify,
     feature_tables,
@@ -110,10 +111,12 @@ def test_a_differently_coloured_verge_is_not_road():
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(kind=st.sampled_from(SCENE_KINDS), seed=st.integers(0, 50))
 def test_a_wider_ellipsoid_never_shrinks_the_road(kind, seed):
-    """Monotone in p: every step after the chi-square test (horizon, connectivity, column fill) keeps a superset."""
+    """Monotone in p: every step after the chi-square test (horizon, connectivity, opening, column fill)
+    keeps a superset.  Abstention is off here: it is deliberately not monotone (a wider ellipsoid
+    that leaks up to the horizon makes the model trust its seed less and shrink)."""
     rgb, _ = make_scene(kind, seed=seed)
-    narrow = segment_drivable(rgb, params=RoadParams(p=0.9)).mask
-    wide = segment_drivable(rgb, params=RoadParams(p=0.999)).mask
+    narrow = segment_drivable(rgb, params=RoadParams(p=0.9, reach=0.0)).mask
+    wide = segment_drivable(rgb, params=RoadParams(p=0.999, reach=0.0)).mask
     assert not np.any((narrow > 0) & (wide == 0))
 
 
@@ -157,7 +160,67 @@ def test_seeds_without_ground_contact_fall_back_to_the_largest_cell_region():
     assert seeds.tolist() == [1]       # the largest share of the cell
 
 
+def _road_scene(road_rgb, *, road_to_top=False):
+    """A 300x225 frame: sky above, verges (green) left and right, a road of ``road_rgb`` in the middle.
+
+    With ``road_to_top`` a wall of the road's colour stands behind it up to the top of the frame
+    (the seed's appearance also matches what stands on the ground).
+    """
+    img = np.zeros((225, 300, 3), np.uint8)
+    img[:] = (70, 110, 200)
+    img[110:] = (40, 120, 40)
+    img[110:, 80:220] = road_rgb
+    if road_to_top:
+        img[:110, 100:200] = road_rgb
+    rng = np.random.default_rng(0)
+    return np.clip(img + rng.normal(0, 2, img.shape), 0, 255).astype(np.uint8)
+
+
+def test_a_trusted_seed_gives_the_full_model():
+    res = segment_drivable(_road_scene((120, 120, 120)))
+    assert res.confidence == 1.0 and res.abstained is None
+    assert (res.mask[130:, 100:200] == 255).all()
+
+
+def test_a_seed_that_reaches_the_top_abstains_to_the_ground_ahead():
+    """Issue 27 item 1: road-like regions reaching the top of the frame -> shrink below ``cap``, and say so."""
+    params = RoadParams()
+    res = segment_drivable(_road_scene((120, 120, 120), road_to_top=True), params=params)
+    assert res.abstained == "seed reaches the horizon"
+    assert 0.0 <= res.confidence < 1.0
+    assert not res.mask[: int(params.cap * 225) - 2].any()   # nothing green above the sure rows
+    assert (res.mask[130:, 100:200] == 255).all()            # the ground just ahead stays green
+    off = segment_drivable(_road_scene((120, 120, 120), road_to_top=True), params=RoadParams(reach=0.0))
+    assert off.abstained is None and off.mask[:50, 120:180].all()  # control: without abstention it over-fills
+
+
+def test_a_dim_seed_abstains_when_asked():
+    dark = _road_scene((25, 25, 25))
+    assert segment_drivable(dark).abstained is None          # dim = 0 (the shipped choice) never triggers
+    res = segment_drivable(dark, params=RoadParams(dim=40.0))
+    assert res.abstained == "dim seed" and res.confidence == pytest.approx(25 / 40, abs=0.1)
+
+
+def test_confidence_falls_as_the_candidate_reaches_higher():
+    info = {"seed_grey": 100.0, "grounded": True}
+    params = RoadParams(reach=0.4)
+    confs = []
+    for top in (60, 40, 20, 0):
+        cand = np.zeros(WORK_SHAPE, np.uint8)
+        cand[top:, 50:100] = 1
+        mask, conf, reason = abstain(cand, info, params)
+        confs.append(conf)
+        if conf < 1:
+            assert reason == "seed reaches the horizon" and not mask[: int(params.cap * WORK_SHAPE[0])].any()
+        else:
+            assert reason is None and (mask == cand).all()
+    assert confs[0] == 1.0 and confs == sorted(confs, reverse=True) and confs[-1] == 0.0
+    mask, conf, reason = abstain(np.ones(WORK_SHAPE, np.uint8), {**info, "grounded": False}, params)
+    assert conf == 0.0 and reason == "seed not ground" and mask[-1].all()
+
+
 @pytest.mark.parametrize("bad", [dict(gamma=0), dict(p=1.0), dict(noise=0), dict(horizon=1.0), dict(gap=-1),
+                                 dict(reach=1.0), dict(cap=1.0), dict(opening=-1), dict(dim=300),
                                  dict(seed_share=0), dict(frac=0), dict(frac=1.5), dict(q=0), dict(q=float("inf")),
                                  dict(shade=-0.1), dict(sunlit=300)])
 def test_bad_params_are_refused(bad):
@@ -175,6 +238,12 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     0.767; on the first 17 images 0.818 / 0.799).  Every dataset beats the trivial bottom-half
     prior but the forest floor (0.702 vs 0.748): the open defect of issue 27, asserted as such so
     the test says when it is fixed.
+
+    Issue 27 (calibrated abstention, a horizontal opening, and the operating point: the best IoU
+    among combinations with mean precision >= 0.88 on the training images) raised the measurement
+    to 0.797 / 0.777 (0.743 averaged over datasets, was 0.731), precision 0.890 in-sample / 0.878
+    cross-validated (was 0.861 / 0.856); the floors follow (0.79 / 0.77 / 0.74, precision 0.88 /
+    0.87).  The forest floor rose to 0.730, still below its prior (0.748).
     """
     import json
 
@@ -185,8 +254,12 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert sum(r["n"] for r in res["per_dataset"].values()) == len(items) >= 60
     chosen = res["in_sample"]["params"]
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
-    assert res["mean"]["in_sample_iou"] >= 0.78
-    assert res["mean"]["cv_iou"] >= 0.76
+    assert res["mean"]["in_sample_iou"] >= 0.79
+    assert res["mean"]["cv_iou"] >= 0.77
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.74
+    assert res["mean"]["in_sample_precision"] >= 0.88
+    assert res["mean"]["cv_precision"] >= 0.87
+    assert res["min_precision"] == 0.88
     known = {"umich_forest_traversable"}  # issue 27: loses to the bottom-half prior
     for d, r in res["per_dataset"].items():
         if d in known:
@@ -194,4 +267,4 @@ def test_cross_validation_on_the_shared_images(roads_dir):
         else:
             assert r["cv_iou"] > r["bottom_half_iou"], d
     table = format_cv_table(res)
-    assert "CV IoU" in table and "rellis3d" in table
+    assert "CV IoU" in table and "rellis3d" in table and "prec" in table and "recall" in table

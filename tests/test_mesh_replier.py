@@ -74,3 +74,33 @@ def test_a_stuck_reply_holds_neither_the_caller_nor_the_other_replies(service):
         release.set()
     wait_for(lambda: stuck.sent and service.replier.pending == 0, timeout=10, what="the stuck reply to go out")
     assert wire.decode(stuck.sent[0][1], kind="reply")["seq"] == 1 and stuck.dropped
+
+
+def test_the_reply_carries_the_road_models_confidence_and_abstention(service):
+    """Issue 27: the worker's confidence and abstained reason reach the robot; a worker without them (older
+    code, thesis mode) gives a reply without the fields."""
+    with_fields, without = FakeQuery(), FakeQuery()
+    req = wire.make_request("r1", 7, b"x", encoding="png")
+    with service.state.lock:
+        service.state.inflight += 2
+    service._finish(with_fields, req, _done({**OUT, "confidence": 0.4, "abstained": "seed reaches the horizon"}), 0.0, 0.0)
+    service._finish(without, dict(req, seq=8), _done({**OUT, "confidence": None, "abstained": None}), 0.0, 0.0)
+    wait_for(lambda: with_fields.sent and without.sent, timeout=10, what="both replies")
+    rep = wire.decode(with_fields.sent[0][1], kind="reply")
+    assert rep["confidence"] == 0.4 and rep["abstained"] == "seed reaches the horizon"
+    rep = wire.decode(without.sent[0][1], kind="reply")
+    assert "confidence" not in rep and "abstained" not in rep
+
+
+@pytest.mark.parametrize("mode", ["best", "thesis"])
+def test_the_worker_reports_confidence_in_best_only(mode):
+    from scmr_mesh.imaging import encode_png
+    from scmr_mesh.imaging.synthetic import make_scene
+    from scmr_mesh.mesh.work import process_frame
+
+    out = process_frame(encode_png(make_scene("dirt_road", seed=1)[0]), encoding="png", shape=None, mode=mode)
+    if mode == "best":
+        assert 0.0 <= out["confidence"] <= 1.0
+        assert out["abstained"] is None or isinstance(out["abstained"], str)
+    else:
+        assert out["confidence"] is None and out["abstained"] is None

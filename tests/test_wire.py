@@ -189,3 +189,29 @@ def test_a_schema_violation_keeps_what_was_readable_and_names_the_fix():
         wire.decode(wire.encode([1, 2]), kind="request")
     junk = wire.make_error("malformed", "m", served_by="c", tier="cloud", request={"robot": "x" * 65, "seq": -1})
     assert (junk["robot"], junk["seq"]) == (None, None)
+
+
+@given(st.one_of(st.none(), st.floats(-2, 3, allow_nan=False)),
+       st.one_of(st.none(), st.sampled_from(["seed not ground", "seed reaches the horizon", "dim seed"])))
+def test_reply_confidence_and_abstained_round_trip(confidence, abstained):
+    """Issue 27: the optional fields travel when given (confidence clamped to [0, 1]) and are absent otherwise."""
+    req = wire.make_request("r1", 5, b"x")
+    rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n", shape=(225, 300), threshold=7, timings_ms={},
+                          served_by="c1", tier="cloud", server_ms=1.0, confidence=confidence, abstained=abstained)
+    out = wire.decode(wire.encode(rep), kind="reply")
+    assert out == rep
+    assert ("confidence" in out) == (confidence is not None) and ("abstained" in out) == (abstained is not None)
+    if confidence is not None:
+        assert 0.0 <= out["confidence"] <= 1.0
+
+
+def test_reply_with_confidence_out_of_range_is_refused():
+    req = wire.make_request("r1", 5, b"x")
+    rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n", shape=(225, 300), threshold=7, timings_ms={},
+                          served_by="c1", tier="cloud", server_ms=1.0)
+    assert "confidence" not in rep and "abstained" not in rep  # an older reader's reply
+    wire.decode(wire.encode(rep), kind="reply")
+    with pytest.raises(wire.WireProblem):
+        wire.decode(wire.encode({**rep, "confidence": 1.5}), kind="reply")
+    with pytest.raises(wire.WireProblem):
+        wire.decode(wire.encode({**rep, "abstained": 3}), kind="reply")

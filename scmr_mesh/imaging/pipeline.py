@@ -29,7 +29,7 @@ import numpy as np
 
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
-from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, classify, tone_curve
+from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, abstain, classify, tone_curve
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
     bottom_centre,
@@ -68,12 +68,21 @@ class DrivableResult:
         region-mean image, ``"otsu"`` (225, 300) uint8 black/white image,
         ``"histogram"`` (256,) int64 counts, ``"edges"`` (225, 300) float32
         Sobel magnitude; plus ``"channel"`` (0-d int) the dominant channel.
+    confidence : float or None
+        ``best``: how far the road model trusts its seed, in [0, 1] (1 = the mask is the
+        full road model; below 1 the mask was shrunk to the ground just ahead, see
+        :func:`scmr_mesh.imaging.road_model.abstain`).  ``thesis``: None (no model).
+    abstained : str or None
+        Why the mask was shrunk to what the model is sure of (one of
+        :data:`scmr_mesh.imaging.road_model.ABSTAIN_REASONS`), or None.
     """
 
     mask: np.ndarray
     threshold: int
     timings_ms: dict = field(default_factory=dict)
     stages: dict | None = None
+    confidence: float | None = None
+    abstained: str | None = None
 
 
 def _clock() -> float:
@@ -219,13 +228,8 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     t["otsu"] = t4 - t3
     t["edges"] = 0.0
 
-    candidate, _info = classify(small, seg, params)
-    t6 = _clock()
+    mask, confidence, abstained, t6 = _best_mask(small, seg, params)
     t["classify"] = t6 - t4
-    gap = int(round(params.gap * ww / FRAME_SHAPE[1]))
-    small_mask = fill_columns(candidate, max_gap=gap)
-    up = cv2.resize(small_mask, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_LINEAR)
-    mask = np.where(up >= 128, 255, 0).astype(np.uint8)
     t7 = _clock()
     t["sparse"] = t7 - t6
     t["total"] = t7 - t1
@@ -246,7 +250,40 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
             "edges": sobel_magnitude(grey),
             "channel": np.array(channel),
         }
-    return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages)
+    return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages,
+                          confidence=confidence, abstained=abstained)
+
+
+def _best_mask(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, float, str | None, float]:
+    """The road model on SRM regions of the working frame: mask (225, 300), confidence, abstained, clock after classify."""
+    candidate, info = classify(small, seg, params)
+    if params.opening > 1:
+        candidate = cv2.morphologyEx(candidate, cv2.MORPH_OPEN, np.ones((1, int(params.opening)), np.uint8))
+    candidate, confidence, abstained = abstain(candidate, info, params)
+    t6 = _clock()
+    gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
+    small_mask = fill_columns(candidate, max_gap=gap)
+    up = cv2.resize(small_mask, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_LINEAR)
+    return np.where(up >= 128, 255, 0).astype(np.uint8), confidence, abstained, t6
+
+
+def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
+    """``best``'s masks of one frame for several :class:`RoadParams`, running SRM once per distinct (q, gamma).
+
+    Yields ``(mask, confidence, abstained)`` in the order of ``params_list``; each mask equals
+    ``segment_drivable(rgb, params=params).mask`` (used by cross-validation).
+    """
+    frame = resize_frame(as_rgb(rgb, name="rgb"))
+    wh, ww = WORK_SHAPE
+    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    segs: dict = {}
+    for params in params_list:
+        params = params.check()
+        key = (srm_q("best", q, params), params.gamma)
+        if key not in segs:
+            segs[key] = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=key[0])
+        mask, confidence, abstained, _t = _best_mask(small, segs[key], params)
+        yield mask, confidence, abstained
 
 
 _CELL_INDEX: list = []

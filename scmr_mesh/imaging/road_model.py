@@ -80,6 +80,21 @@ class RoadParams:
         Rows above this fraction of the height are never drivable (0 = no prior).
     gap : int
         Longest run of non-road pixels (in 300x225 frame pixels) the column fill bridges.
+    opening : int
+        Width (working-frame pixels) of a horizontal opening of the candidate mask before the
+        column fill: it removes road-like strips narrower than this, such as tree trunks, poles
+        and building edges joined to the road (0 or 1 = off).
+    reach : float
+        The seed is weak when its candidate mask reaches above this fraction of the height
+        (it has leaked into what stands on the ground: trunks, buildings, the sky; 0 = never).
+    dim : float
+        The seed is weak when its mean grey level is below this (dusk, night; 0 = never).
+    cap : float
+        When the seed is weak the mask shrinks to the rows below this fraction of the height,
+        the part of the frame the robot is sure is ground (see :func:`abstain`).
+    standing : bool
+        When the seed is weak, also drop the non-seed regions with most of their pixels above
+        ``cap`` (they stand on the ground: walls, trunks, building bases).
     """
 
     gamma: float = 1.0
@@ -92,6 +107,11 @@ class RoadParams:
     sunlit: float = 80.0
     horizon: float = 0.0
     gap: int = 20
+    opening: int = 9
+    reach: float = 0.35
+    dim: float = 0.0
+    cap: float = 0.5
+    standing: bool = True
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -114,6 +134,14 @@ class RoadParams:
             raise InputError(f"horizon must be in [0, 1), got {self.horizon}")
         if int(self.gap) < 0:
             raise InputError(f"gap must be >= 0, got {self.gap}")
+        if not 0 <= int(self.opening) <= 64:
+            raise InputError(f"opening must be an integer width in [0, 64], got {self.opening}")
+        if not 0 <= self.reach < 1:
+            raise InputError(f"reach must be in [0, 1), got {self.reach}")
+        if not 0 <= self.dim <= 255:
+            raise InputError(f"dim must be a grey level in [0, 255], got {self.dim}")
+        if not 0 <= self.cap < 1:
+            raise InputError(f"cap must be in [0, 1), got {self.cap}")
         return self
 
     def as_dict(self) -> dict:
@@ -205,7 +233,8 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray
     The second condition is a ground-contact check: the road is the surface the robot
     stands on, so in a forward camera it continues down to the cell's lower rows, while
     a vehicle ahead stands *on* the road and ends above them (its lower edge is road).
-    When no region passes both tests the largest region of the cell is the seed.
+    When no region passes both tests the largest region of the cell is the seed (and
+    :func:`classify` reports the seed as not ground).
     """
     cell = bottom_centre(roi(labels))
     counts = np.bincount(cell.ravel(), minlength=n_regions)
@@ -233,7 +262,10 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         1 = road-like and 4-connected to a seed region.
     info : dict
         ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
-        the share of its pixels inside a seed ellipsoid).
+        the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
+        the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
+        had ground contact and the largest region of the cell was taken instead), and for
+        :func:`abstain` ``labels`` and ``sizes`` (pixels per region).
     """
     from scmr_mesh.imaging._aot import road_share_kernel
 
@@ -241,6 +273,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     h, w = labels.shape
     k = seg.n_regions
     seeds = seed_regions(labels, k, params.seed_share)
+    grounded = _grounded(labels, k, params.seed_share)
     slot = np.full(k, -1, np.int32)
     slot[seeds] = np.arange(seeds.size, dtype=np.int32)
     grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
@@ -265,4 +298,87 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     keep = np.zeros(n_comp, np.uint8)
     keep[cell_comp[slot[cell_lab] >= 0]] = 1
     keep[0] = 0
-    return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share}
+    seed_grey = float("nan")
+    if params.dim > 0:
+        seed_px = slot[labels] >= 0
+        seed_grey = float(grey[seed_px].mean()) if seed_px.any() else 0.0
+    return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
+                        "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
+                        "sizes": seg.sizes}
+
+
+def _grounded(labels: np.ndarray, n_regions: int, share: float) -> bool:
+    """Whether some region passes :func:`seed_regions`' share and ground-contact tests."""
+    cell = bottom_centre(roi(labels))
+    counts = np.bincount(cell.ravel(), minlength=n_regions)
+    low = np.bincount(cell[cell.shape[0] // 2:].ravel(), minlength=n_regions)
+    return bool(np.any((counts >= share * cell.size) & (low > 0)))
+
+
+#: Reasons :func:`abstain` gives for shrinking the mask (the reply's ``abstained``).
+ABSTAIN_REASONS = ("seed not ground", "seed reaches the horizon", "dim seed")
+
+
+def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.ndarray, float, str | None]:
+    """Calibrated abstention: shrink the candidate mask to what the model is sure of when its seed is weak.
+
+    A robot drives where the mask is green, so green where it cannot drive is the costly
+    error.  Three signs say the seed cannot be trusted to extend:
+
+    * **seed not ground**: no region of the bottom-centre cell reaches its lower half (the
+      largest region was taken instead: a vehicle, a wall, a trunk close ahead);
+    * **seed reaches the horizon**: the road-like regions connected to the seed reach above
+      ``reach`` of the height, so the seed's appearance also matches what stands on the
+      ground (trunks, building bases, leaf litter against a hillside), a low-contrast seed;
+    * **dim seed**: the seed's mean grey level is below ``dim`` (dusk, night).
+
+    Then the mask keeps only its rows below ``cap`` of the height (the ground just ahead);
+    with ``standing`` (and ``info`` from :func:`classify`) it also drops the non-seed regions
+    with most of their pixels above that row (walls, trunks, building bases standing on the
+    ground) and keeps only what still touches a seed.  On a textured floor (leaf litter) no single region may cover enough of the cell, so a
+    seed without ground contact shrinks the same way rather than emptying the mask.
+
+    Returns
+    -------
+    mask : (h, w) uint8
+        The candidate, shrunk when the seed is weak.
+    confidence : float in [0, 1]
+        1 for a strong seed; lower the further the candidate reaches above ``reach`` and the
+        darker the seed is below ``dim``; 0 when the seed is not ground.  It is a score for
+        ranking frames, not a probability (docs/ACCURACY.md reports the precision of the
+        frames above and below 1).
+    abstained : str or None
+        One of :data:`ABSTAIN_REASONS` when the mask was shrunk, else None.
+    """
+    h = candidate.shape[0]
+    rows = np.flatnonzero(candidate.any(axis=1))
+    top = rows[0] / h if rows.size else 1.0
+    reach_conf = 1.0 if params.reach <= 0 else float(min(1.0, top / params.reach))
+    dim_conf = 1.0 if params.dim <= 0 else float(min(1.0, info["seed_grey"] / params.dim))
+    confidence = min(reach_conf, dim_conf)
+    if info["grounded"] and confidence >= 1.0:
+        return candidate, 1.0, None
+    if not info["grounded"]:
+        confidence, reason = 0.0, ABSTAIN_REASONS[0]
+    else:
+        reason = ABSTAIN_REASONS[1] if reach_conf <= dim_conf else ABSTAIN_REASONS[2]
+    row = int(params.cap * h)
+    sure = candidate.copy()
+    sure[:row] = 0
+    labels = info.get("labels")
+    if labels is not None and params.standing:
+        # a region with most of its pixels above the sure rows stands on the ground (a wall, a
+        # trunk, a building base; ground seen in perspective has most of its pixels low): it goes,
+        # unless it is a seed; then only what still touches a seed stays
+        total = info["sizes"]
+        above = np.bincount(labels[:row].ravel(), minlength=total.size)
+        drop = above * 2 > total
+        drop[info["seeds"]] = False
+        low, low_labels = sure[row:], labels[row:]   # the rows above are empty now
+        low[drop[low_labels]] = 0
+        n, comp = cv2.connectedComponents(low, connectivity=4)
+        keep = np.zeros(n, np.uint8)
+        keep[comp[np.isin(low_labels, info["seeds"]) & (low > 0)]] = 1
+        keep[0] = 0
+        sure[row:] = keep[comp]
+    return sure, confidence, reason

@@ -36,7 +36,9 @@ Output (``--out DIR``)
 * ``DIR/records.jsonl``: one JSON object per finished request, flushed per
   line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
   received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"peer"|"local"|null),
-  served_by, attempts [{tier, node, outcome, t_unix_ns}], error``.
+  served_by, attempts [{tier, node, outcome, t_unix_ns}], error, server_ms,
+  confidence, abstained`` (the road model's trust in the mask and why it shrank it,
+  issue 27; null from servers that do not send them and in ``thesis`` mode).
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
   (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode),
@@ -587,6 +589,8 @@ class Robot:
             "attempts": trip.attempts, "error": error,
             "server_ms": round(float(w.body.get("server_ms", 0.0)), 3) if w is not None and w.tier != Tier.LOCAL
             else None,
+            "confidence": None if w is None else w.body.get("confidence"),
+            "abstained": None if w is None else w.body.get("abstained"),
         }
 
     def _deliver(self, seq: int, frame: Frame, record: dict, winner: Reply | None, outbox_file: Path) -> None:
@@ -685,7 +689,8 @@ class Robot:
             return None
         att["outcome"] = Outcome.OK
         return Reply(Tier.LOCAL, self.id, {"mask_png": out["mask_png"], "cpu_ms": cpu_ms,
-                                           "timings_ms": out.get("timings_ms", {})}, 0)
+                                           "timings_ms": out.get("timings_ms", {}),
+                                           "confidence": out.get("confidence"), "abstained": out.get("abstained")}, 0)
 
     def _account(self, record: dict) -> None:
         self._last_seq = record["seq"]

@@ -614,6 +614,8 @@ class Service:
                 tier=req.get("_tier", self.tier),
                 server_ms=(now - t_arrival) * 1e3,
                 queue_ms=max(0.0, (now - t_sub) * 1e3 - worker_ms),
+                confidence=out.get("confidence"),
+                abstained=out.get("abstained"),
             )
             payload = wire.encode(reply)
         except Exception as exc:

@@ -92,7 +92,8 @@ def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str 
     -------
     dict
         ``mask_png`` (PNG of the (225, 300) uint8 0/255 mask), ``shape``,
-        ``threshold``, ``timings_ms`` (per stage, plus ``decode`` and ``encode``).
+        ``threshold``, ``timings_ms`` (per stage, plus ``decode`` and ``encode``), and
+        ``confidence`` and ``abstained`` (``best``'s calibrated abstention; None in ``thesis``).
     """
     from scmr_mesh.imaging import decode_frame, encode_png, segment_drivable
     from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS
@@ -114,6 +115,8 @@ def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str 
         "shape": tuple(res.mask.shape[:2]),
         "threshold": int(res.threshold),
         "timings_ms": timings,
+        "confidence": getattr(res, "confidence", None),
+        "abstained": getattr(res, "abstained", None),
     }
 
 

@@ -1,0 +1,57 @@
+"""``best`` scored against the synthetic scenes' exact truth, per kind (issue 27 item 3).
+
+The demo's overlays are these scenes: road green, verges, walls, rocks and sky red.  A robot
+drives where the mask is green, so precision (no green where it cannot drive) is held on every
+kind; IoU >= 0.85 is the target of every kind.  Two kinds are below it today and are asserted
+as such (``KNOWN_BELOW``), so the test says when one is fixed:
+
+* ``structured_road``: a grey gravel verge of the asphalt's brightness is taken for road (seeds
+  1, 2, 4), and the far road in a cast shadow is lost (seed 0);
+* ``desert``: the sand reaches the horizon at 28-42 % of the height, so the road model's
+  "seed reaches the horizon" abstention fires on every frame and keeps only the rows below
+  ``cap``; the column fill bridges the rocks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scmr_mesh.imaging.evaluate import score
+from scmr_mesh.imaging.pipeline import segment_drivable
+from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
+
+SEEDS = range(8)
+IOU_TARGET = 0.85
+PRECISION_FLOOR = 0.85
+#: Kinds whose mean IoU is below the target today (issue 27 item 3, open): measured 2026-11-26,
+#: seeds 0-7, structured_road 0.746, desert 0.639 (dirt_road 0.899, tunnel 0.865, hallway 0.943).
+KNOWN_BELOW = {"structured_road", "desert"}
+
+
+def _scores(kind: str) -> list[dict]:
+    out = []
+    for seed in SEEDS:
+        img, truth = make_scene(kind, seed=seed)
+        out.append(score(segment_drivable(img).mask, truth))
+    return out
+
+
+@pytest.mark.parametrize("kind", SCENE_KINDS)
+def test_best_against_the_exact_truth_of_each_kind(kind):
+    rows = _scores(kind)
+    iou = float(np.mean([r["iou"] for r in rows]))
+    precision = float(np.mean([r["precision"] for r in rows]))
+    assert precision >= PRECISION_FLOOR, f"{kind}: mean precision {precision:.3f} (green where it cannot drive)"
+    if kind in KNOWN_BELOW:
+        assert iou < IOU_TARGET, f"{kind} now reaches {iou:.3f}: drop it from KNOWN_BELOW"
+    else:
+        assert iou >= IOU_TARGET, f"{kind}: mean IoU {iou:.3f} < {IOU_TARGET}"
+
+
+def test_the_scorer_catches_an_over_filled_mask():
+    """Control: the bottom half painted green fails the precision floor on the structured road."""
+    img, truth = make_scene("structured_road", seed=0)
+    half = np.zeros_like(truth)
+    half[truth.shape[0] // 2:] = 255
+    assert score(half, truth)["precision"] < PRECISION_FLOOR
