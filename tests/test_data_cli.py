@@ -114,3 +114,11 @@ def test_public_names_resolve_and_import_stays_light():
     code = "import sys, scmr_mesh.data; print('sqlite3' in sys.modules, 'msgpack' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_queue_help_says_what_exit_1_means(capsys):
+    """issue 25 item 2: the help and the exit status agree (lost seqs exit 1, and the help says so)."""
+    with pytest.raises(SystemExit):
+        main(["ods", "queue", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "exit 1 when it found a corrupt stretch or records lost to one" in text

@@ -223,7 +223,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     q = ods_sub.add_parser("queue", help="inspect a robot's on-disk telemetry queue",
                            description="Print a telemetry queue's counters (depth, acked seq, "
                            "refused, torn bytes, corruptions, lost seqs) as JSON; exit 1 when "
-                           "it found corruption.  Read-only: safe while the robot runs (the robot "
+                           "it found a corrupt stretch or records lost to one (lost_seqs: seqs the "
+                           "queue can no longer deliver), 0 otherwise.  Read-only: safe while the robot runs (the robot "
                            "itself repairs a torn tail when it opens its queue).")
     q.add_argument("dir", type=ca.PathArg("in-dir", what="a robot's telemetry queue folder", example="runs/demo/queues/r1"), metavar="DIR", help="the robot's queue folder")
     q.set_defaults(func=_cmd_queue)
