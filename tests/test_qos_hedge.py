@@ -1,0 +1,80 @@
+"""The hedge-delay rule and the hedge budget (scmr_mesh.qos.hedge, issue 24): pure, analytic cases. <1 s."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from scmr_mesh.qos.hedge import AnswerTimes, HedgeBudget, HedgeRule, hedge_delay_ms
+
+
+def test_delay_is_p95_plus_margin():
+    # 20 answers 1..20 ms: p95 (type 7) = 1 + 0.95 x 19 = 19.05; + margin 20
+    xs = [float(i) for i in range(1, 21)]
+    assert hedge_delay_ms(xs, deadline_ms=1000) == pytest.approx(39.05)
+    rule = HedgeRule(margin_ms=5.0, floor_ms=0.0, quantile=0.5)
+    assert hedge_delay_ms(xs, deadline_ms=1000, rule=rule) == pytest.approx(10.5 + 5.0)
+
+
+def test_floor_and_cold_start():
+    assert hedge_delay_ms([1.0] * 50, deadline_ms=1000) == 30.0  # 1 + 20 < floor 30
+    assert hedge_delay_ms([1.0] * 4, deadline_ms=1000) == 150.0  # fewer than min_samples: cold_ms
+    assert hedge_delay_ms([], deadline_ms=1000, rule=HedgeRule(cold_ms=10.0, floor_ms=25.0)) == 25.0
+
+
+def test_one_slow_answer_in_a_window_moves_the_delay_only_as_far_as_the_p95():
+    w = AnswerTimes(window=20)
+    for _ in range(19):
+        w.add(5.0)
+    w.add(900.0)  # one stall in 20: the p95 (rank 18.05) interpolates 5 and 900 at 0.05
+    d = hedge_delay_ms(w.values(), deadline_ms=1000)
+    assert d == pytest.approx(5.0 + 0.05 * 895.0 + 20.0)
+    for _ in range(20):  # the window forgets it
+        w.add(5.0)
+    assert hedge_delay_ms(w.values(), deadline_ms=1000) == 30.0
+
+
+def test_bounded_by_the_deadline():
+    # delay 30 + min_left 50 = 80: fits in 80, not in 79.9; time already spent counts
+    assert hedge_delay_ms([1.0] * 10, deadline_ms=80) == 30.0
+    assert hedge_delay_ms([1.0] * 10, deadline_ms=79.9) is None
+    assert hedge_delay_ms([1.0] * 10, deadline_ms=200, elapsed_ms=121) is None
+    assert hedge_delay_ms([1.0] * 10, deadline_ms=200, elapsed_ms=120) == 30.0
+
+
+def test_bad_values_are_refused_with_what_was_given():
+    with pytest.raises(ValueError, match="deadline_ms must be a finite number > 0, got 0"):
+        hedge_delay_ms([1.0], deadline_ms=0)
+    with pytest.raises(ValueError, match="floor_ms .* got -1"):
+        HedgeRule(floor_ms=-1)
+    with pytest.raises(ValueError, match="quantile must be in"):
+        HedgeRule(quantile=1.5)
+    with pytest.raises(ValueError, match="ratio must be in"):
+        HedgeBudget(ratio=2.0)
+
+
+def test_non_finite_samples_are_ignored():
+    assert hedge_delay_ms([float("nan"), float("inf"), -1.0] + [1.0] * 5, deadline_ms=1000) == 30.0
+
+
+@given(st.lists(st.booleans(), max_size=400), st.floats(0.0, 1.0), st.integers(1, 5))
+@settings(max_examples=200)
+def test_budget_never_allows_more_than_ratio_times_requests_plus_burst(wants, ratio, burst):
+    b = HedgeBudget(ratio=ratio, burst=burst)
+    taken = 0
+    for want in wants:  # one request each: it earns, then may want a hedge
+        b.earn()
+        taken += want and b.take()
+    assert taken <= ratio * len(wants) + burst + 1e-9
+
+
+@given(st.lists(st.floats(0.0, 1e4), min_size=5, max_size=100), st.floats(1.0, 1e5))
+@settings(max_examples=200)
+def test_delay_is_at_least_the_floor_and_leaves_time_for_the_hedge(xs, deadline):
+    rule = HedgeRule()
+    d = hedge_delay_ms(xs, deadline_ms=deadline, rule=rule)
+    if d is not None:
+        assert d >= rule.floor_ms
+        assert d + rule.min_left_ms <= deadline
+        assert d >= sorted(xs)[int(0.95 * (len(xs) - 1))] + rule.margin_ms - 1e-6
