@@ -78,3 +78,12 @@ def test_delay_is_at_least_the_floor_and_leaves_time_for_the_hedge(xs, deadline)
         assert d >= rule.floor_ms
         assert d + rule.min_left_ms <= deadline
         assert d >= sorted(xs)[int(0.95 * (len(xs) - 1))] + rule.margin_ms - 1e-6
+
+
+def test_hedge_ms_flag_values():
+    from scmr_mesh.mesh.commands import _hedge_ms
+
+    assert [_hedge_ms(v) for v in ("auto", "OFF", "40", "0.5")] == ["auto", "off", 40.0, 0.5]
+    for bad, why in (("abc", "not auto, off or a number"), ("4000000", "more than an hour")):
+        with pytest.raises(ValueError, match=why):
+            _hedge_ms(bad)
