@@ -24,7 +24,7 @@ def test_floor_and_cold_start():
 
 
 def test_one_slow_answer_in_a_window_moves_the_delay_only_as_far_as_the_p95():
-    w = AnswerTimes(window=20)
+    w = AnswerTimes(window=20, warmup=0)
     for _ in range(19):
         w.add(5.0)
     w.add(900.0)  # one stall in 20: the p95 (rank 18.05) interpolates 5 and 900 at 0.05
@@ -87,3 +87,14 @@ def test_hedge_ms_flag_values():
     for bad, why in (("abc", "not auto, off or a number"), ("4000000", "more than an hour")):
         with pytest.raises(ValueError, match=why):
             _hedge_ms(bad)
+
+
+def test_the_first_answer_of_a_tier_is_not_learnt():
+    w = AnswerTimes(window=64)  # warmup 1 by default
+    for ms in [100.0] + [10.0] * 8:  # a cold first answer, then a steady tier
+        w.add(ms)
+    assert len(w) == 8 and hedge_delay_ms(w.values(), deadline_ms=1000) == 30.0
+    w0 = AnswerTimes(window=64, warmup=0)
+    for ms in [100.0] + [10.0] * 8:
+        w0.add(ms)
+    assert hedge_delay_ms(w0.values(), deadline_ms=1000) > 80.0  # control: the cold answer sets the p95

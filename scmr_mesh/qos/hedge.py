@@ -10,8 +10,9 @@ The rule (:func:`hedge_delay_ms`)::
 
     delay = max(floor_ms, p95(recent answer times of the tier) + margin_ms)
 
-with the p95 over the last ``window`` good answers of that tier; with fewer than
-``min_samples`` answers the delay is ``cold_ms``.  No hedge (``None``) when the
+with the p95 over the last ``window`` good answers of that tier (its very first
+answer, which carries one-off costs, left out: :class:`AnswerTimes`); with fewer
+than ``min_samples`` answers the delay is ``cold_ms``.  No hedge (``None``) when the
 delay leaves the hedge less than ``min_left_ms`` of the request's deadline.
 
 Hedges are rationed (:class:`HedgeBudget`, a token bucket): each request earns
@@ -20,7 +21,7 @@ overloaded tier (its answers grow, so does its p95) therefore cannot make every
 robot send every frame twice: no hedge storm.  A *busy* answer is an answer: it
 never triggers a hedge (the robot fails over to the next tier, as before).
 
->>> w = AnswerTimes(window=8)
+>>> w = AnswerTimes(window=8, warmup=0)
 >>> for ms in (5, 6, 7, 5, 6, 8, 6, 40):
 ...     w.add(ms)
 >>> round(hedge_delay_ms(w.values(), deadline_ms=1000), 1)  # p95 28.8 + 20
@@ -108,14 +109,33 @@ def hedge_delay_ms(recent_ms: Sequence[float], *, deadline_ms: float, elapsed_ms
 
 
 class AnswerTimes:
-    """The last ``window`` good answer times of one tier (ms)."""
+    """The last ``window`` good answer times of one tier (ms), without its first ``warmup`` answers.
 
-    def __init__(self, window: int = 64) -> None:
+    A tier's first answer carries one-off costs (the querier's route, the first
+    frame through a cold pipeline: 75-106 ms where the next took 10-40 ms in
+    ``cloud-link-drop`` at load 5); with the 8 answers a robot has before a fault
+    at 4 s, the p95 is about the largest of them, so one cold answer would
+    set the hedge delay.
+
+    >>> w = AnswerTimes(window=3, warmup=1)
+    >>> for ms in (90, 5, 6, 7, 8):
+    ...     w.add(ms)
+    >>> w.values(), len(w)
+    ([6.0, 7.0, 8.0], 3)
+    """
+
+    def __init__(self, window: int = 64, *, warmup: int = 1) -> None:
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window!r}")
+        if warmup < 0:
+            raise ValueError(f"warmup must be >= 0, got {warmup!r}")
         self._xs: deque[float] = deque(maxlen=window)
+        self._skip = int(warmup)
 
     def add(self, ms: float) -> None:
+        if self._skip > 0:
+            self._skip -= 1
+            return
         self._xs.append(float(ms))
 
     def values(self) -> list[float]:
