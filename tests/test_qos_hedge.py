@@ -98,3 +98,24 @@ def test_the_first_answer_of_a_tier_is_not_learnt():
     for ms in [100.0] + [10.0] * 8:
         w0.add(ms)
     assert hedge_delay_ms(w0.values(), deadline_ms=1000) > 80.0  # control: the cold answer sets the p95
+
+
+def test_hedges_reach_the_summary_and_the_expectation_metrics():
+    from scmr_mesh.qos.metrics import summarize
+    from scmr_mesh.scenario.report import _metric_values
+
+    def rec(seq, tier, hedged=False, won=False):
+        atts = [{"tier": "cloud", "node": "c", "outcome": "ok" if tier == "cloud" else "superseded"}]
+        if hedged:
+            atts.append({"tier": "leader", "node": "L", "outcome": "ok" if won else "superseded", "hedge": True})
+        return {"robot": "r1", "seq": seq, "ok": True, "tier": tier, "sent_unix_ns": seq * 10**9,
+                "received_unix_ns": seq * 10**9 + 10**7, "tor_ms": 10.0, "attempts": atts,
+                "hedged": hedged, "hedge_won": won}
+
+    recs = [rec(0, "cloud"), rec(1, "leader", True, True), rec(2, "cloud", True, False), rec(3, "cloud")]
+    s = summarize(recs)
+    assert s["hedges"] == {"hedged": 2, "hedge_won": 1, "hedge_rate": 0.5,
+                           "duplicates_by_tier": {"cloud": 1, "leader": 1}}
+    assert (s["per_robot"]["r1"]["hedged"], s["per_robot"]["r1"]["hedge_won"]) == (2, 1)
+    m = _metric_values(s)
+    assert (m["hedged"], m["hedge_rate"]) == (2, 0.5)

@@ -400,7 +400,8 @@ class Robot:
             log.debug("replier identity unknown: %s", exc)
         return None
 
-    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list) -> Reply | None:
+    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list,
+              seq: int | None = None) -> Reply | None:
         """Send ``payload`` to every target at once; return the first good reply.
 
         Returns the winning :class:`Reply` or None.  Appends one
@@ -421,7 +422,7 @@ class Robot:
             sendable.append((att, q))
         if len(sendable) == 1:
             att, q = sendable[0]
-            return self._tier_send(att, q, payload)
+            return self._tier_send(att, q, payload, seq)
         results: queue.Queue = queue.Queue()
         live = []
         for att, q in sendable:
@@ -456,7 +457,7 @@ class Robot:
                 if att["outcome"] == Outcome.PENDING:
                     att["outcome"] = Outcome.NO_REPLY
                 continue
-            winner = self._judge(att, reply)
+            winner = self._judge(att, reply, seq)
         for att, token in live:
             if att["outcome"] == Outcome.PENDING:
                 att["outcome"] = Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT
@@ -670,7 +671,7 @@ class Robot:
             targets = [(t, view.nodes(t)[0]) for t in (Tier.CLOUD, Tier.LEADER) if t in plan and view.nodes(t)]
             if targets:
                 trip.bytes_up += len(payload) * len(targets)
-                trip.winner = self._send(targets, payload, trip.attempts)
+                trip.winner = self._send(targets, payload, trip.attempts, seq)
             plan = [t for t in plan if t == Tier.LOCAL] if trip.winner is None else []
         t_end = time.monotonic() + opts.deadline_ms / 1e3
         t_start = time.perf_counter() if t_start is None else t_start
@@ -679,7 +680,7 @@ class Robot:
         def attempt(tier: str, node: str) -> Reply | None:
             trip.tried.add((tier, node))
             before = len(trip.attempts)
-            w = self._send([(tier, node)], payload, trip.attempts)
+            w = self._send([(tier, node)], payload, trip.attempts, seq)
             if trip.attempts[before]["outcome"] != Outcome.UNREACHABLE:
                 trip.bytes_up += len(payload)
             if w is None and trip.attempts[before]["outcome"] == BUSY:

@@ -58,6 +58,9 @@ def _metric_values(summary: Mapping[str, Any], telemetry: Mapping[str, Any] | No
         "telemetry_lost": None if telemetry is None or telemetry.get("lost") is None else telemetry["lost"],
         "peer_answers": tiers.get("peer", 0),
         "local_answers": tiers.get("local", 0),
+        # hedged requests (issue 24): how many, and their share of the requests
+        "hedged": (summary.get("hedges") or {}).get("hedged", 0),
+        "hedge_rate": (summary.get("hedges") or {}).get("hedge_rate"),
         **_leadership_values(summary.get("leadership")),
     }
 
