@@ -120,7 +120,6 @@ class Replier:
             t.join(timeout=max(0.0, end - time.monotonic()))
 
 
-@dataclass
 class RecentRequests:
     """The last ``size`` requests a service took in, by (robot, seq, sent time): a bounded dedupe.
 
@@ -164,6 +163,7 @@ def _ident(req: dict) -> tuple:
     return (req["robot"], req["seq"], req.get("sent_unix_ns"))
 
 
+@dataclass
 class Refusal:
     """Why the admission function turned a request away (sent as an error reply)."""
 
