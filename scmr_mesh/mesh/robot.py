@@ -29,6 +29,13 @@ still answered.  When nothing answers the robot runs the pipeline itself
 hangs.  ``--redundant`` sends each frame to the best cloud node and a leader at
 once and keeps the first good reply (``bytes_up`` counts both sends).
 
+Hedged requests (issue 24, docs/R2R.md): when the tier tried first has not
+answered within a hedge delay learnt from its recent answers
+(:mod:`scmr_mesh.qos.hedge`; ``--hedge-ms``), the same request goes to the first
+node of the next live tier; the first good answer wins and the other query is
+cancelled.  A ``busy`` answer never triggers a hedge, no hedge goes to a
+saturated node, and hedges are rationed (a token bucket per robot).
+
 Output (``--out DIR``)
 ----------------------
 * ``DIR/outbox/<seq>.<ext>``: frames waiting for an answer (removed when done).
@@ -36,7 +43,8 @@ Output (``--out DIR``)
 * ``DIR/records.jsonl``: one JSON object per finished request, flushed per
   line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
   received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"peer"|"local"|null),
-  served_by, attempts [{tier, node, outcome, t_unix_ns}], error``.
+  served_by, attempts [{tier, node, outcome, t_unix_ns, hedge?}], error, server_ms,
+  hedged, hedge_won``.
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
   (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode),
