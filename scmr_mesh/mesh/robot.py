@@ -47,7 +47,7 @@ Output (``--out DIR``)
   hedged, hedge_won``.
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
-  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode),
+  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode, or a hedged copy answered first),
   ``bad_reply``.
 
 Hooks
