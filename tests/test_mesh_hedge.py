@@ -210,3 +210,16 @@ def test_every_request_is_answered_at_most_once(tmp_path, plan):
         assert [r["seq"] for r in recs] == list(range(len(plan)))  # one record per request
     finally:
         robot.close()
+
+
+def test_a_service_remembers_recent_requests_boundedly():
+    from scmr_mesh.mesh.server import RecentRequests
+
+    r = RecentRequests(size=3)
+    assert r.add(("r1", 1, 10)) and not r.add(("r1", 1, 10)) and r.duplicates == 1
+    assert r.add(("r1", 1, 11))  # the same seq from a restarted robot (another sending time) is new
+    r.forget(("r1", 1, 10))  # refused busy: a later copy may be taken in
+    assert r.add(("r1", 1, 10))
+    for seq in range(2, 6):
+        r.add(("r1", seq, 10))
+    assert len(r._seen) == 3 and r.add(("r1", 1, 11))  # bounded: the oldest are forgotten
