@@ -46,7 +46,8 @@ WIRE_VERSION = 1
 KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load", "candidate")
 #: Codes of error replies.
 ERROR_CODES: tuple[str, ...] = (
-    "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired", "forbidden"
+    "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired", "forbidden",
+    "duplicate",
 )
 #: Zenoh encoding of every scmr message (msgpack maps); JSON payloads (``scmr/results/*``)
 #: declare ``application/json``, so generic Zenoh tools can show either.

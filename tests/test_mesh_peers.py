@@ -276,12 +276,15 @@ def test_dead_worker_costs_at_most_a_resend(fleet):
     recs = fleet.records("r1")
     assert all(r["ok"] for r in recs)
     # only the frames around the worker's death (the one it died on, any sent while the pool
-    # was being replaced) left the cloud, each after an explicit cloud failure, for the leader
+    # was being replaced) left the cloud, each after an explicit cloud failure or, when the cloud
+    # stayed silent past the hedge delay, as a hedge to the leader (issue 24)
     off = [i for i, r in enumerate(recs) if r["tier"] != "cloud"]
     assert off == list(range(off[0], off[0] + len(off))) if off else True
     for i in off:
         assert recs[i]["tier"] == "leader"
-        assert recs[i]["attempts"][0]["outcome"] in ("error:internal", "timeout", "no_reply")
+        first = recs[i]["attempts"][0]["outcome"]
+        assert first in ("error:internal", "timeout", "no_reply") or (first == "superseded" and recs[i]["hedge_won"]), \
+            recs[i]["attempts"]
 
 
 def test_second_cloud_node_is_a_warm_standby(fleet):

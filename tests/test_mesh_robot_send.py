@@ -27,7 +27,7 @@ class FakeQuerier:
     def __init__(self, robot: str, node: str, tier: str, block: threading.Event | None = None) -> None:
         self.block, self.robot, self.node, self.tier, self.threads = block, robot, node, tier, []
 
-    def get(self, payload, *, encoding=None):
+    def get(self, payload, *, encoding=None, cancellation_token=None):
         self.threads.append(threading.current_thread().name)
         if self.block is not None:
             self.block.wait(30)  # a push waiting for queue space on a dead link

@@ -58,6 +58,9 @@ def cmd_bench_scenario(args: argparse.Namespace) -> int:
                                        if f["failover_by_robot"] and f["failover_gap_ms"] is None),
         "failback_gap_ms": stats(back),
         "tor_ms": stats(tors),
+        # hedged requests per run (issue 24): hedged, answered by the hedge
+        "hedged": [r["summary"].get("hedged", 0) for r in runs],
+        "hedge_won": [r["summary"].get("hedge_won", 0) for r in runs],
         "expectations_held": [all(e["held"] for e in r["expectations"]) for r in runs],
         "expectations_failed": sorted({e["name"] for r in runs for e in r["expectations"] if not e["held"]}),
         "shape": sc.shape,

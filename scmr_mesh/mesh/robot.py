@@ -29,6 +29,13 @@ still answered.  When nothing answers the robot runs the pipeline itself
 hangs.  ``--redundant`` sends each frame to the best cloud node and a leader at
 once and keeps the first good reply (``bytes_up`` counts both sends).
 
+Hedged requests (issue 24, docs/R2R.md): when the tier tried first has not
+answered within a hedge delay learnt from its recent answers
+(:mod:`scmr_mesh.qos.hedge`; ``--hedge-ms``), the same request goes to the first
+node of the next live tier; the first good answer wins and the other query is
+cancelled.  A ``busy`` answer never triggers a hedge, no hedge goes to a
+saturated node, and hedges are rationed (a token bucket per robot).
+
 Output (``--out DIR``)
 ----------------------
 * ``DIR/outbox/<seq>.<ext>``: frames waiting for an answer (removed when done).
@@ -36,12 +43,13 @@ Output (``--out DIR``)
 * ``DIR/records.jsonl``: one JSON object per finished request, flushed per
   line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
   received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"peer"|"local"|null),
-  served_by, attempts [{tier, node, outcome, t_unix_ns}], error, server_ms,
-  confidence, abstained`` (the road model's trust in the mask and why it shrank it,
-  issue 27; null from servers that do not send them and in ``thesis`` mode).
+  served_by, attempts [{tier, node, outcome, t_unix_ns, hedge?}], error, server_ms,
+  hedged, hedge_won, confidence, abstained`` (``confidence`` and ``abstained``: the road
+  model's trust in the mask and why it shrank it, issue 27; null from servers that do not
+  send them and in ``thesis`` mode).
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
-  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode),
+  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode, or a hedged copy answered first),
   ``bad_reply``.
 
 Hooks
@@ -101,6 +109,23 @@ class _Trip:
     tried: set[tuple[str, str]] = field(default_factory=set)
     bytes_up: int = 0
     winner: Reply | None = None
+    hedged: bool = False     # a second copy went to another tier (at most one per request)
+    hedge_won: bool = False  # and it answered first
+
+
+@dataclass
+class _Sent:
+    """One query sent on its tier's thread: its attempt record, its future, its cancellation token."""
+
+    att: dict
+    fut: Any
+    token: Any
+
+    def cancel(self) -> None:
+        try:
+            self.token.cancel()
+        except Exception:  # already finished
+            pass
 
 
 @dataclass
@@ -114,6 +139,10 @@ class RobotOptions:
     mode: str = "best"
     process: str = "scmr_mesh.mesh.work:process_frame"
     max_nodes_per_tier: int = 2
+    #: hedged requests (docs/R2R.md "Hedged requests"): a silent tier is hedged to the next live one
+    hedge: bool = True
+    #: a fixed hedge delay (ms); None: learnt per tier from its recent answers (scmr_mesh.qos.hedge)
+    hedge_ms: float | None = None
 
 
 class Robot:
@@ -170,6 +199,10 @@ class Robot:
         #: telemetry messages whose publishing raised (counted; the robot keeps sending frames)
         self.telemetry_errors = 0
         self._telemetry_handlers: list[Callable[[dict, Callable[[dict], Any]], Any]] = []
+        from scmr_mesh.qos.hedge import AnswerTimes, HedgeBudget
+
+        self._answer_times = {t: AnswerTimes() for t in keys.TIERS}
+        self._hedge_budget = HedgeBudget()
 
     # ------------------------------------------------------------ hooks
     def add_observer(self, fn: Callable[[dict, Any, Any], None]) -> None:
@@ -329,7 +362,7 @@ class Robot:
                 log.warning("local warm-up failed: %s", exc)
                 self._local_ok = False
 
-    def _judge(self, att: dict, reply) -> Reply | None:
+    def _judge(self, att: dict, reply, seq: int | None = None) -> Reply | None:
         """Set ``att["outcome"]`` from one zenoh reply; return the :class:`Reply` if it is good.
 
         A good reply came on this robot's own request key of the node it was sent to,
@@ -345,7 +378,7 @@ class Robot:
                 att["outcome"] = Outcome.BAD_REPLY
                 log.warning("bad reply from %s: %s", att["node"], exc)
                 return None
-            problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply)
+            problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply, seq)
             if problem:
                 att["outcome"] = Outcome.BAD_REPLY
                 att["message"] = problem[:200]
@@ -363,9 +396,15 @@ class Robot:
             att["outcome"] = Outcome.TIMEOUT if text == "Timeout" else error_outcome(text)
         return None
 
-    def _reply_problem(self, att: dict, key: str, msg: dict, reply) -> str | None:
-        """Why a decoded reply cannot be trusted (None: it can); see :meth:`_judge`."""
+    def _reply_problem(self, att: dict, key: str, msg: dict, reply, seq: int | None = None) -> str | None:
+        """Why a decoded reply cannot be trusted (None: it can); see :meth:`_judge`.
+
+        With ``seq``, a reply to another frame (a late duplicate of an earlier,
+        hedged request) is refused: it is never taken for this frame's mask.
+        """
         tier, node = att["tier"], att["node"]
+        if seq is not None and msg["seq"] != seq:
+            return f"reply answers frame {msg['seq']}, this request is frame {seq}"
         expected = keys.drivable_request(tier, node, self.id)
         if key != expected:
             return f"reply came on {key!r}, expected {expected!r}"
@@ -391,7 +430,8 @@ class Robot:
             log.debug("replier identity unknown: %s", exc)
         return None
 
-    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list) -> Reply | None:
+    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list,
+              seq: int | None = None) -> Reply | None:
         """Send ``payload`` to every target at once; return the first good reply.
 
         Returns the winning :class:`Reply` or None.  Appends one
@@ -412,7 +452,7 @@ class Robot:
             sendable.append((att, q))
         if len(sendable) == 1:
             att, q = sendable[0]
-            return self._tier_send(att, q, payload)
+            return self._tier_send(att, q, payload, seq)
         results: queue.Queue = queue.Queue()
         live = []
         for att, q in sendable:
@@ -447,7 +487,7 @@ class Robot:
                 if att["outcome"] == Outcome.PENDING:
                     att["outcome"] = Outcome.NO_REPLY
                 continue
-            winner = self._judge(att, reply)
+            winner = self._judge(att, reply, seq)
         for att, token in live:
             if att["outcome"] == Outcome.PENDING:
                 att["outcome"] = Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT
@@ -459,44 +499,165 @@ class Robot:
         return winner
 
     # ------------------------------------------- one sender thread per tier
-    def _tier_send(self, att: dict, q, payload: bytes) -> Reply | None:
-        """Send one query on its tier's own thread and wait for the outcome here.
+    def _tier_executor(self, tier: str):
+        from concurrent.futures import ThreadPoolExecutor
+
+        ex = self._tier_threads.get(tier)
+        if ex is None:
+            ex = self._tier_threads[tier] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}")
+        return ex
+
+    def _start(self, att: dict, q, payload: bytes, seq: int | None) -> _Sent:
+        """Send one query on its tier's own thread (:meth:`_collect`); the outcome is read later.
 
         Cloud and leader queries never share a thread: a send held up by one
         tier's dead link holds that tier's thread, and the request gives up on it
         after the deadline and goes on to the next tier (issue 14, docs/ZENOH.md
-        section 8).  The attempt record is only written here, on the request thread.
+        section 8).  The attempt record is only written on the request thread.
         """
-        from concurrent.futures import ThreadPoolExecutor
+        import zenoh
+
+        token = zenoh.CancellationToken()
+        fut = self._tier_executor(att["tier"]).submit(self._collect, dict(att), q, payload, token, seq)
+        return _Sent(att, fut, token)
+
+    def _finish_sent(self, sent: _Sent, *, wait_s: float) -> Reply | None:
+        """Wait up to ``wait_s`` for one sent query; write its outcome to its attempt; learn its answer time."""
         from concurrent.futures import TimeoutError as FutureTimeout
 
-        tier = att["tier"]
-        ex = self._tier_threads.get(tier)
-        if ex is None:
-            ex = self._tier_threads[tier] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}")
+        att = sent.att
         try:
-            fut = ex.submit(self._collect, dict(att), q, payload)
-            scratch, winner = fut.result(timeout=self.options.deadline_ms / 1e3 + 0.25)
+            scratch, winner, answer_ms = sent.fut.result(timeout=max(0.0, wait_s))
         except FutureTimeout:
             att["outcome"] = Outcome.TIMEOUT  # the tier's thread is still held by zenoh
+            sent.cancel()
             return None
         except RuntimeError as exc:  # closed while sending
             att["outcome"] = error_outcome(f"send ({exc})")
             return None
         att.update(scratch)
+        if winner is not None and answer_ms is not None:
+            self._answer_times[str(att["tier"])].add(answer_ms)
         return winner
 
-    def _collect(self, att: dict, q, payload: bytes) -> tuple[dict, Reply | None]:
+    def _tier_send(self, att: dict, q, payload: bytes, seq: int | None = None) -> Reply | None:
+        """Send one query on its tier's thread and wait (deadline + 0.25 s) for its outcome."""
+        return self._finish_sent(self._start(att, q, payload, seq), wait_s=self.options.deadline_ms / 1e3 + 0.25)
+
+    def _collect(self, att: dict, q, payload: bytes, token=None,
+                 seq: int | None = None) -> tuple[dict, Reply | None, float | None]:
         winner = None
+        answer_ms = None
+        t0 = time.perf_counter()
         try:
-            for reply in q.get(payload=payload, encoding=_msgpack()):  # ends at the querier timeout = deadline
-                w = self._judge(att, reply)
-                winner = winner or w
+            kw = {} if token is None else {"cancellation_token": token}
+            # ends at the querier timeout = deadline, or when the token is cancelled (a hedge won)
+            for reply in q.get(payload=payload, encoding=_msgpack(), **kw):
+                w = self._judge(att, reply, seq)
+                if w is not None and winner is None:
+                    winner, answer_ms = w, (time.perf_counter() - t0) * 1e3
         except Exception as exc:
             att["outcome"] = error_outcome(f"send ({exc})")
         if att["outcome"] == Outcome.PENDING:
             att["outcome"] = Outcome.NO_REPLY
-        return att, winner
+        return att, winner, answer_ms
+
+    # ----------------------------------------------------------- hedging
+    def hedge_delay_ms(self, tier: str, elapsed_ms: float = 0.0) -> float | None:
+        """When to hedge a request sent to ``tier`` (ms from its start), or None: no hedge.
+
+        ``--hedge-ms MS`` fixes it; by default it is learnt from the tier's
+        recent answers (:func:`scmr_mesh.qos.hedge.hedge_delay_ms`).
+        """
+        from scmr_mesh.qos.hedge import hedge_delay_ms
+
+        opts = self.options
+        if not opts.hedge:
+            return None
+        if opts.hedge_ms is not None:
+            return opts.hedge_ms if elapsed_ms + opts.hedge_ms < opts.deadline_ms else None
+        return hedge_delay_ms(self._answer_times[str(tier)].values(), deadline_ms=opts.deadline_ms,
+                              elapsed_ms=elapsed_ms)
+
+    def _hedge_target(self, plan: list, tier: str, tried: set) -> tuple[str, Any] | None:
+        """The next live tier's first node after ``tier`` in ``plan`` (not tried, not saturated, matching)."""
+        later = plan[plan.index(tier) + 1:] if tier in plan else []
+        fresh = self.view.snapshot(local=False)
+        for t in later:
+            if t == Tier.LOCAL or t == tier:
+                continue
+            for node in fresh.nodes(t)[:1]:
+                if (t, node) in tried or fresh.saturated(node):
+                    continue  # a busy node is not hedged to: its admission stays in charge
+                q = self._querier(t, node)
+                if self._matching(t, node, q):
+                    return (t, node), q
+        return None
+
+    def _send_hedged(self, tier: str, node: str, payload: bytes, trip: _Trip, plan: list, seq: int,
+                     t_start: float) -> Reply | None:
+        """One attempt at ``tier``/``node``, hedged to the next live tier when it is silent too long.
+
+        The primary's own outcome decides when it answers before the hedge delay
+        (an error or ``busy`` answer goes on to the normal failover, never to a
+        hedge).  Past the delay the same request goes to the next live tier; the
+        first good answer wins, the other query is cancelled and its attempt
+        marked ``superseded``.
+        """
+        from concurrent.futures import FIRST_COMPLETED, wait
+
+        att = {"tier": tier, "node": node, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns()}
+        trip.attempts.append(att)
+        trip.tried.add((tier, node))
+        q = self._querier(tier, node)
+        if not self._matching(tier, node, q):
+            att["outcome"] = Outcome.UNREACHABLE
+            return None
+        trip.bytes_up += len(payload)
+        primary = self._start(att, q, payload, seq)
+        t_sent = time.monotonic()
+        limit = t_sent + self.options.deadline_ms / 1e3 + 0.25
+        delay = None if trip.hedged else self.hedge_delay_ms(tier, (time.perf_counter() - t_start) * 1e3)
+        if delay is not None:
+            done, _ = wait([primary.fut], timeout=delay / 1e3)
+        target = None
+        if delay is not None and not done:
+            target = self._hedge_target(plan, tier, trip.tried)
+        if target is None or not self._hedge_budget.take():
+            w = self._finish_sent(primary, wait_s=limit - time.monotonic())
+            if w is None and att["outcome"] == BUSY:
+                self.view.mark_busy(node)
+            return w
+        (htier, hnode), hq = target
+        hatt = {"tier": htier, "node": hnode, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(),
+                "hedge": True}
+        trip.attempts.append(hatt)
+        trip.tried.add((htier, hnode))
+        trip.bytes_up += len(payload)
+        trip.hedged = True
+        log.info("robot %s: %s/%s silent for %.0f ms on request %s: hedged to %s/%s", self.id, tier, node,
+                 delay, seq, htier, hnode)
+        hedge = self._start(hatt, hq, payload, seq)
+        live = {primary.fut: primary, hedge.fut: hedge}
+        winner = None
+        while live and winner is None:
+            left = limit - time.monotonic()
+            if left <= 0:
+                break
+            done, _ = wait(list(live), timeout=left, return_when=FIRST_COMPLETED)
+            for fut in done:
+                sent = live.pop(fut)
+                w = self._finish_sent(sent, wait_s=0)
+                if w is not None and winner is None:
+                    winner = w
+                    trip.hedge_won = sent is hedge
+        for sent in live.values():  # the loser (or both, past the deadline)
+            sent.cancel()
+            sent.att["outcome"] = Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT
+        for a in (att, hatt):
+            if winner is None and a["outcome"] == BUSY:
+                self.view.mark_busy(a["node"])
+        return winner
 
     def request(self, seq: int, frame: Frame) -> dict:
         """Process one frame through the mesh (or locally); return its record.
@@ -508,7 +669,7 @@ class Robot:
         outbox_file = self._to_outbox(seq, frame)
         sent_ns = time.time_ns()
         t_start = time.perf_counter()
-        trip = self._route(seq, frame, self._request_payload(seq, frame, sent_ns))
+        trip = self._route(seq, frame, self._request_payload(seq, frame, sent_ns), t_start)
         tor_ms = (time.perf_counter() - t_start) * 1e3
         record = self._make_record(seq, frame, trip, sent_ns, time.time_ns(), tor_ms)
         self._deliver(seq, frame, record, trip.winner, outbox_file)
@@ -529,7 +690,7 @@ class Robot:
                                              priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns,
                                              deadline_ms=opts.deadline_ms))
 
-    def _route(self, seq: int, frame: Frame, payload: bytes) -> _Trip:
+    def _route(self, seq: int, frame: Frame, payload: bytes, t_start: float | None = None) -> _Trip:
         """Try the placement's tiers in order (all at once with ``redundant``) until one answers."""
         opts = self.options
         trip = _Trip()
@@ -540,14 +701,16 @@ class Robot:
             targets = [(t, view.nodes(t)[0]) for t in (Tier.CLOUD, Tier.LEADER) if t in plan and view.nodes(t)]
             if targets:
                 trip.bytes_up += len(payload) * len(targets)
-                trip.winner = self._send(targets, payload, trip.attempts)
+                trip.winner = self._send(targets, payload, trip.attempts, seq)
             plan = [t for t in plan if t == Tier.LOCAL] if trip.winner is None else []
         t_end = time.monotonic() + opts.deadline_ms / 1e3
+        t_start = time.perf_counter() if t_start is None else t_start
+        self._hedge_budget.earn()
 
         def attempt(tier: str, node: str) -> Reply | None:
             trip.tried.add((tier, node))
             before = len(trip.attempts)
-            w = self._send([(tier, node)], payload, trip.attempts)
+            w = self._send([(tier, node)], payload, trip.attempts, seq)
             if trip.attempts[before]["outcome"] != Outcome.UNREACHABLE:
                 trip.bytes_up += len(payload)
             if w is None and trip.attempts[before]["outcome"] == BUSY:
@@ -569,7 +732,9 @@ class Robot:
                 continue
             nodes = self.view.snapshot(local=False).nodes(tier) or view.nodes(tier)
             for node in nodes[: opts.max_nodes_per_tier]:
-                trip.winner = attempt(tier, node)
+                if (tier, node) in trip.tried:  # a hedge already went there
+                    continue
+                trip.winner = self._send_hedged(tier, node, payload, trip, plan, seq, t_start)
                 if trip.winner is not None:
                     break
         return trip
@@ -586,7 +751,7 @@ class Robot:
             "bytes_down": int(w.nbytes) if w is not None else 0, "sent_unix_ns": sent_ns,
             "received_unix_ns": received_ns, "tor_ms": round(tor_ms, 3), "ok": w is not None,
             "tier": None if w is None else str(w.tier), "served_by": None if w is None else w.node,
-            "attempts": trip.attempts, "error": error,
+            "attempts": trip.attempts, "error": error, "hedged": trip.hedged, "hedge_won": trip.hedge_won,
             "server_ms": round(float(w.body.get("server_ms", 0.0)), 3) if w is not None and w.tier != Tier.LOCAL
             else None,
             "confidence": None if w is None else w.body.get("confidence"),

@@ -120,6 +120,49 @@ class Replier:
             t.join(timeout=max(0.0, end - time.monotonic()))
 
 
+class RecentRequests:
+    """The last ``size`` requests a service took in, by (robot, seq, sent time): a bounded dedupe.
+
+    A hedged request (docs/R2R.md) can reach one node twice (the node serves
+    two tiers, or a copy came round another way); the second copy is answered
+    ``duplicate`` at once instead of running the pipeline again.  The robot's
+    sending time is part of the identity, so a restarted robot's seq 0 is new.
+
+    >>> r = RecentRequests(size=2)
+    >>> r.add(("r1", 1, 10)), r.add(("r1", 1, 10)), r.add(("r1", 2, 11)), r.add(("r1", 3, 12)), r.add(("r1", 1, 10))
+    (True, False, True, True, True)
+    """
+
+    def __init__(self, size: int = 4096) -> None:
+        from collections import OrderedDict
+
+        self.size = int(size)
+        self._seen: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        #: duplicates refused so far
+        self.duplicates = 0
+
+    def add(self, ident: tuple) -> bool:
+        """Remember ``ident``; False (and counted) when it is already remembered."""
+        with self._lock:
+            if ident in self._seen:
+                self.duplicates += 1
+                return False
+            self._seen[ident] = None
+            while len(self._seen) > self.size:
+                self._seen.popitem(last=False)
+            return True
+
+    def forget(self, ident: tuple) -> None:
+        """A request refused (busy): a later copy of it may be taken in."""
+        with self._lock:
+            self._seen.pop(ident, None)
+
+
+def _ident(req: dict) -> tuple:
+    return (req["robot"], req["seq"], req.get("sent_unix_ns"))
+
+
 @dataclass
 class Refusal:
     """Why the admission function turned a request away (sent as an error reply)."""
@@ -300,6 +343,8 @@ class Service:
         self._stop = threading.Event()
         self._load_thread: threading.Thread | None = None
         self.replier = Replier()
+        #: requests taken in lately: a second copy of one is answered ``duplicate`` (hedged requests)
+        self.recent = RecentRequests()
         self.pool = WorkerPool(workers, process=process, clock=clock)
         self.worker_pids = self.pool.start()
         if clock is not None:
@@ -503,8 +548,14 @@ class Service:
                                   f"{keys.drivable_request(tier, self.node, req['robot'])}", req)
                 return
             self._cap_priority(req)
+            if not self.recent.add(_ident(req)):
+                self._reply_error(query, "duplicate",
+                                  f"request {req['robot']}/{req['seq']} already reached {self.node} (a hedged copy); "
+                                  "it is served once: wait for the first copy's answer", req)
+                return
             refusal = self.admission(req, self.state)
             if refusal is not None:
+                self.recent.forget(_ident(req))
                 self._reply_error(query, refusal.code, refusal.message, req, refusal.retry_after_ms)
                 return
             if self.negotiator is not None:
@@ -547,6 +598,7 @@ class Service:
                       payload=(query, req, t_arrival), size=len(req["image"]))
         for e in d.refused:
             q, r, _ = e.payload
+            self.recent.forget(_ident(r))
             self._reply_error(
                 q, "busy",
                 f"server too busy, try later: request {r['robot']}/{r['seq']} with priority {e.priority} "

@@ -47,6 +47,12 @@ Failover gap (per robot, per fault)
     the fault); a robot with such requests but no fallback answer has gap
     ``None``.  Per fault the report keeps the largest gap, or ``None`` if any
     affected robot never got a fallback answer.
+Hedges (issue 24)
+    A request is *hedged* when its record says ``"hedged": true`` (a second
+    copy went to the next live tier because the first was silent past the hedge
+    delay); ``hedge_won`` when that copy's answer was the one used.  The
+    *duplicate* of a hedged request is the copy whose answer was not used (the
+    hedge's when neither answered), counted on the tier it was sent to.
 Failback gap (per fault with an end)
     From the restore time (``end_unix_ns``) to the first answer the restored
     tier gives again (the earliest ``received`` of a request it served);
@@ -63,6 +69,7 @@ __all__ = [
     "TIERS",
     "failback_gap_ms",
     "failover_gaps_ms",
+    "hedge_counts",
     "largest_gap",
     "percentile",
     "ror",
@@ -288,13 +295,47 @@ def failback_gap_ms(records: Iterable[Record], fault: Fault) -> float | None:
     return (min(firsts) - end) / 1e6 if firsts else None
 
 
+def hedge_counts(records: Iterable[Record]) -> dict[str, Any]:
+    """``{"hedged", "hedge_won", "hedge_rate", "duplicates_by_tier"}`` of ``records`` (module docstring).
+
+    >>> recs = [{"hedged": True, "hedge_won": True, "attempts": [
+    ...     {"tier": "cloud", "outcome": "superseded"}, {"tier": "leader", "outcome": "ok", "hedge": True}]},
+    ...     {"hedged": False, "attempts": [{"tier": "cloud", "outcome": "ok"}]}]
+    >>> hedge_counts(recs)
+    {'hedged': 1, 'hedge_won': 1, 'hedge_rate': 0.5, 'duplicates_by_tier': {'cloud': 1}}
+    """
+    n = hedged = won = 0
+    dup: dict[str, int] = {}
+    for r in records:
+        n += 1
+        if not r.get("hedged"):
+            continue
+        hedged += 1
+        won += bool(r.get("hedge_won"))
+        atts = list(r.get("attempts") or [])
+        i = next((k for k, a in enumerate(atts) if a.get("hedge")), None)
+        if i is None:
+            continue
+        pair = [atts[i - 1], atts[i]] if i > 0 else [atts[i]]
+        ok = [a for a in pair if a.get("outcome") == "ok"]
+        unused = [a for a in pair if a not in ok] if ok else [atts[i]]
+        for a in unused:
+            t = str(a.get("tier"))
+            dup[t] = dup.get(t, 0) + 1
+    return {"hedged": hedged, "hedge_won": won, "hedge_rate": (hedged / n) if n else None,
+            "duplicates_by_tier": dict(sorted(dup.items()))}
+
+
 def _group_summary(recs: list[Record]) -> dict[str, Any]:
+    h = hedge_counts(recs)
     return {
         "requests": len(recs),
         "succeeded": sum(_ok(r) for r in recs),
         "ror": ror(recs),
         "tor_ms": tor_summary(recs),
         "by_tier": tier_counts(recs),
+        "hedged": h["hedged"],
+        "hedge_won": h["hedge_won"],
     }
 
 
@@ -318,7 +359,8 @@ def summarize(
     -------
     dict
         ``robots, requests, succeeded, ror, tor_ms{p50,p90,p99,max,mean},
-        by_tier{cloud,leader,local,failed}, per_robot{id: {...}},
+        by_tier{cloud,leader,local,failed}, hedged, hedge_won,
+        hedges{hedged,hedge_won,hedge_rate,duplicates_by_tier}, per_robot{id: {...}},
         per_tier{tier: tor_ms}, failover_gaps_ms[...], failback_gaps_ms[...],
         faults[...]`` where each fault gains ``failover_gap_ms``,
         ``failover_by_robot`` and ``failback_gap_ms``.
@@ -334,6 +376,7 @@ def summarize(
         "robots": robots if robots is not None else len(by_robot),
         **_group_summary(recs),
     }
+    out["hedges"] = hedge_counts(recs)
     out["per_robot"] = {k: _group_summary(v) for k, v in sorted(by_robot.items())}
     out["per_tier"] = {k: tor_summary(v) for k, v in sorted(by_tier.items())}
     fault_out = []

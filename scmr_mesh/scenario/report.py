@@ -58,6 +58,9 @@ def _metric_values(summary: Mapping[str, Any], telemetry: Mapping[str, Any] | No
         "telemetry_lost": None if telemetry is None or telemetry.get("lost") is None else telemetry["lost"],
         "peer_answers": tiers.get("peer", 0),
         "local_answers": tiers.get("local", 0),
+        # hedged requests (issue 24): how many, and their share of the requests
+        "hedged": (summary.get("hedges") or {}).get("hedged", 0),
+        "hedge_rate": (summary.get("hedges") or {}).get("hedge_rate"),
         **_leadership_values(summary.get("leadership")),
         **(summary.get("multihop") or {}),
     }
@@ -276,6 +279,9 @@ def build_report(
         "summary": {
             "requests": summ["requests"], "succeeded": summ["succeeded"], "ror": summ["ror"],
             "tor_ms": summ["tor_ms"], "by_tier": summ["by_tier"],
+            "hedged": summ["hedges"]["hedged"], "hedge_won": summ["hedges"]["hedge_won"],
+            "hedge_rate": summ["hedges"]["hedge_rate"],
+            "hedge_duplicates_by_tier": summ["hedges"]["duplicates_by_tier"],
         },
         "per_robot": summ["per_robot"],
         "per_tier": summ["per_tier"],
@@ -379,6 +385,11 @@ def _leadership_md(lead: Mapping[str, Any] | None, topo: Mapping[str, Any] | Non
     return L
 
 
+def _dups(by_tier: Mapping[str, int] | None) -> str:
+    """``cloud 3, leader 1`` (``none`` when no copy was duplicate work)."""
+    return ", ".join(f"{t} {n}" for t, n in (by_tier or {}).items() if n) or "none"
+
+
 def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     """The report as Markdown."""
     s = report["summary"]
@@ -395,19 +406,23 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
         L.append("| (none) | | |")
     L += ["", "## Summary", "",
           f"{s['requests']} requests, {s['succeeded']} succeeded, RoR {_fmt(s['ror'], 3)}; "
-          f"ToR p50 {_fmt(s['tor_ms'].get('p50'))} ms, p99 {_fmt(s['tor_ms'].get('p99'))} ms.", "",
+          f"ToR p50 {_fmt(s['tor_ms'].get('p50'))} ms, p99 {_fmt(s['tor_ms'].get('p99'))} ms; "
+          f"hedged {s.get('hedged', 0)}, won by the hedge {s.get('hedge_won', 0)}, duplicate work "
+          f"{_dups(s.get('hedge_duplicates_by_tier'))}.", "",
           "| tier | answers | ToR p50 ms | ToR p99 ms |", "|---|---|---|---|"]
     for tier, n in s["by_tier"].items():
         t = report["per_tier"].get(tier, {})
         L.append(f"| {tier} | {n} | {_fmt(t.get('p50'))} | {_fmt(t.get('p99'))} |")
     L += ["", "### Per robot", "",
-          "| robot | requests | RoR | ToR p50 ms | ToR p99 ms | cloud | leader | peer | local | failed |",
-          "|---|---|---|---|---|---|---|---|---|---|"]
+          "| robot | requests | RoR | ToR p50 ms | ToR p99 ms | cloud | leader | peer | local | failed | hedged "
+          "| hedge won |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for rid, g in report["per_robot"].items():
         bt = g["by_tier"]
         L.append(f"| {rid} | {g['requests']} | {_fmt(g['ror'], 3)} | {_fmt(g['tor_ms'].get('p50'))} | "
                  f"{_fmt(g['tor_ms'].get('p99'))} | {bt.get('cloud', 0)} | {bt.get('leader', 0)} | "
-                 f"{bt.get('peer', 0)} | {bt.get('local', 0)} | {bt.get('failed', 0)} |")
+                 f"{bt.get('peer', 0)} | {bt.get('local', 0)} | {bt.get('failed', 0)} | {g.get('hedged', 0)} | "
+                 f"{g.get('hedge_won', 0)} |")
     L += _leadership_md(report.get("leadership"), report.get("topology"))
     L += ["", "## Faults", "", "| fault | applied at s | lifted at s | tier lost | failover gap ms | failback gap ms "
           "| during: requests, ToR p50 ms, tiers |", "|---|---|---|---|---|---|---|"]

@@ -1,0 +1,225 @@
+"""Hedged requests in the robot's routing (issue 24), with fake queriers: no middleware, <3 s.
+
+A cloud that never answers (a silent link) is hedged to the leader and the leader's answer
+wins; a ``busy`` cloud is failed over from, never hedged; hedges are rationed; a reply to
+another frame is refused; and, for any mix of silent, slow, busy and fast tiers, every
+request is answered at most once in the records.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from scmr_mesh import keys, wire
+from scmr_mesh.mesh.frames import Frame
+from scmr_mesh.mesh.robot import Robot, RobotOptions
+from scmr_mesh.qos.metrics import hedge_counts
+
+
+class _Sample:
+    def __init__(self, key: str, kind) -> None:
+        self.key_expr, self.kind = key, kind
+
+
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self._d = data
+
+    def to_bytes(self) -> bytes:
+        return self._d
+
+
+class _Reply:
+    def __init__(self, payload: bytes, key: str, *, error: bool = False) -> None:
+        sample = type("Sample", (), {"payload": _Payload(payload), "key_expr": key})()
+        self.ok, self.err = (None, sample) if error else (sample, None)
+        self.replier_id = None
+
+
+class FakeTier:
+    """A querier of one node: ``behaviour`` is ``fast``, ``slow`` (answers after ``slow_s`` unless
+    cancelled), ``silent`` (never answers; the query ends when cancelled or at ``hold_s``) or ``busy``."""
+
+    def __init__(self, robot: str, tier: str, node: str, behaviour: str = "fast", *, slow_s: float = 0.05,
+                 hold_s: float = 5.0, seq_offset: int = 0) -> None:
+        self.robot, self.tier, self.node, self.behaviour = robot, tier, node, behaviour
+        self.slow_s, self.hold_s, self.seq_offset = slow_s, hold_s, seq_offset
+        self.matching_status = type("M", (), {"matching": True})()
+        self.calls = 0
+
+    def _wait_cancel(self, token, s: float) -> bool:
+        """Hold the query up to ``s`` (a link that carries nothing); True if the robot cancelled it."""
+        end = time.monotonic() + s
+        while time.monotonic() < end:
+            if token is not None and token.is_cancelled:
+                return True
+            time.sleep(0.001)
+        return False
+
+    def get(self, payload, *, encoding=None, cancellation_token=None):
+        self.calls += 1
+        key = keys.drivable_request(self.tier, self.node, self.robot)
+        req = wire.decode(payload, kind="request")
+        if self.behaviour == "silent":
+            self._wait_cancel(cancellation_token, self.hold_s)
+            return iter([])
+        if self.behaviour == "busy":
+            err = wire.make_error("busy", "server too busy", served_by=self.node, tier=self.tier, request=req)
+            return iter([_Reply(wire.encode(err), key, error=True)])
+        if self.behaviour == "slow" and self._wait_cancel(cancellation_token, self.slow_s):
+            return iter([])
+        req = dict(req, seq=req["seq"] + self.seq_offset)
+        rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n..", shape=(225, 300), threshold=1,
+                              timings_ms={}, served_by=self.node, tier=self.tier, server_ms=1.0)
+        return iter([_Reply(wire.encode(rep), key)])
+
+
+def _robot(tmp_path, cloud: str, leader: str, **opts):
+    r = Robot("r1", tmp_path, options=RobotOptions(local_fallback=False, **opts))
+    for role, node in (("cloud", "c1"), ("leader", "L1")):
+        r.view.on_liveliness(_Sample(keys.alive(role, node), zenoh.SampleKind.PUT))
+    fakes = {"cloud": FakeTier("r1", "cloud", "c1", cloud), "leader": FakeTier("r1", "leader", "L1", leader)}
+    r._queriers[keys.drivable_request("cloud", "c1", "r1")] = fakes["cloud"]
+    r._queriers[keys.drivable_request("leader", "L1", "r1")] = fakes["leader"]
+    return r, fakes
+
+
+FRAME = Frame("f.png", b"\x89PNG....", "png")
+
+
+def test_a_silent_cloud_is_hedged_to_the_leader_and_the_leader_wins(tmp_path):
+    robot, fakes = _robot(tmp_path, "silent", "fast", deadline_ms=5000, hedge_ms=20)
+    try:
+        rec = robot.request(0, FRAME)
+        assert rec["ok"] and rec["tier"] == "leader" and rec["served_by"] == "L1"
+        assert rec["hedged"] and rec["hedge_won"]
+        cloud, leader = rec["attempts"]
+        assert (cloud["tier"], cloud["outcome"]) == ("cloud", "superseded") and "hedge" not in cloud
+        assert (leader["tier"], leader["outcome"], leader["hedge"]) == ("leader", "ok", True)
+        assert rec["bytes_up"] == 2 * len(robot._request_payload(0, FRAME, rec["sent_unix_ns"]))
+        assert fakes["leader"].calls == 1
+        # the cancelled cloud query freed the cloud's sender thread: the next frame's cloud query runs
+        fakes["cloud"].behaviour = "fast"
+        rec2 = robot.request(1, FRAME)
+        assert rec2["tier"] == "cloud" and not rec2["hedged"]
+    finally:
+        robot.close()
+
+
+def test_a_fast_cloud_is_never_hedged_and_teaches_the_delay(tmp_path):
+    robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=5000)
+    try:
+        recs = [robot.request(i, FRAME) for i in range(8)]
+        assert all(r["tier"] == "cloud" and not r["hedged"] for r in recs)
+        assert fakes["leader"].calls == 0
+        assert len(robot._answer_times["cloud"]) == 7  # the first answer (one-off costs) is not learnt
+        assert robot.hedge_delay_ms("cloud") == 30.0  # learnt: fast answers, so the floor
+        assert robot.hedge_delay_ms("leader") == 150.0  # no answers yet: the cold delay
+    finally:
+        robot.close()
+
+
+def test_a_busy_answer_fails_over_without_a_hedge(tmp_path):
+    robot, fakes = _robot(tmp_path, "busy", "fast", deadline_ms=5000, hedge_ms=1000)
+    try:
+        rec = robot.request(0, FRAME)
+        assert rec["ok"] and rec["tier"] == "leader" and not rec["hedged"] and not rec["hedge_won"]
+        assert [a["outcome"] for a in rec["attempts"]] == ["error:busy", "ok"]
+        assert all("hedge" not in a for a in rec["attempts"])
+    finally:
+        robot.close()
+
+
+def test_no_hedge_to_a_saturated_leader(tmp_path):
+    robot, fakes = _robot(tmp_path, "slow", "fast", deadline_ms=5000, hedge_ms=5)
+    fakes["cloud"].slow_s = 0.1
+    robot.view.mark_busy("L1")  # the leader said busy before: its admission stays in charge
+    try:
+        rec = robot.request(0, FRAME)
+        assert rec["tier"] == "cloud" and not rec["hedged"] and fakes["leader"].calls == 0
+    finally:
+        robot.close()
+
+
+def test_hedges_are_rationed_no_storm_when_the_cloud_is_slow(tmp_path):
+    robot, fakes = _robot(tmp_path, "slow", "slow", deadline_ms=5000, hedge_ms=1)
+    fakes["cloud"].slow_s = fakes["leader"].slow_s = 0.03
+    try:
+        n = 20
+        recs = [robot.request(i, FRAME) for i in range(n)]
+        hedged = sum(r["hedged"] for r in recs)
+        budget = robot._hedge_budget
+        assert 1 <= hedged <= budget.ratio * n + budget.burst
+        assert all(r["ok"] for r in recs)
+    finally:
+        robot.close()
+
+
+def test_a_reply_to_another_frame_is_refused(tmp_path):
+    robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=2000, hedge=False)
+    fakes["cloud"].seq_offset = -1  # a late answer to the frame before
+    try:
+        rec = robot.request(5, FRAME)
+        assert rec["tier"] == "leader"
+        assert rec["attempts"][0]["outcome"] == "bad_reply" and "frame 4" in rec["attempts"][0]["message"]
+    finally:
+        robot.close()
+
+
+def test_hedge_off_waits_for_the_silent_cloud(tmp_path):
+    robot, fakes = _robot(tmp_path, "silent", "fast", deadline_ms=300, hedge=False)
+    fakes["cloud"].hold_s = 0.05  # the query ends without a reply (as at a lease expiry)
+    try:
+        rec = robot.request(0, FRAME)
+        assert rec["tier"] == "leader" and not rec["hedged"]
+        assert [a["outcome"] for a in rec["attempts"]] == ["no_reply", "ok"]
+    finally:
+        robot.close()
+
+
+BEHAVIOURS = st.sampled_from(["fast", "slow", "silent", "busy"])
+
+
+@given(st.lists(st.tuples(BEHAVIOURS, BEHAVIOURS), min_size=1, max_size=4))
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_every_request_is_answered_at_most_once(tmp_path, plan):
+    robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=400, hedge_ms=2)
+    for f in fakes.values():
+        f.slow_s, f.hold_s = 0.01, 0.03
+    try:
+        recs = []
+        for i, (c, l) in enumerate(plan):
+            fakes["cloud"].behaviour, fakes["leader"].behaviour = c, l
+            recs.append(robot.request(i, FRAME))
+        for r in recs:
+            oks = [a for a in r["attempts"] if a["outcome"] == "ok"]
+            assert len(oks) == (1 if r["ok"] else 0), r
+            if r["ok"]:
+                assert (oks[0]["tier"], oks[0]["node"]) == (r["tier"], r["served_by"])
+            assert sum(bool(a.get("hedge")) for a in r["attempts"]) == int(r["hedged"])
+            assert not r["hedge_won"] or (r["hedged"] and oks[0].get("hedge"))
+            assert all(a["outcome"] != "pending" for a in r["attempts"])
+        h = hedge_counts(recs)
+        assert h["hedged"] == sum(r["hedged"] for r in recs) and h["hedge_won"] <= h["hedged"]
+        assert [r["seq"] for r in recs] == list(range(len(plan)))  # one record per request
+    finally:
+        robot.close()
+
+
+def test_a_service_remembers_recent_requests_boundedly():
+    from scmr_mesh.mesh.server import RecentRequests
+
+    r = RecentRequests(size=3)
+    assert r.add(("r1", 1, 10)) and not r.add(("r1", 1, 10)) and r.duplicates == 1
+    assert r.add(("r1", 1, 11))  # the same seq from a restarted robot (another sending time) is new
+    r.forget(("r1", 1, 10))  # refused busy: a later copy may be taken in
+    assert r.add(("r1", 1, 10))
+    for seq in range(2, 6):
+        r.add(("r1", seq, 10))
+    assert len(r._seen) == 3 and r.add(("r1", 1, 11))  # bounded: the oldest are forgotten
