@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "them on the other datasets and score this one; prints cross-validated and in-sample "
                         "IoU, precision and recall and the bottom-half baseline per dataset (about 30 s on the "
                         "shared images, 2 cores)")
-    p.add_argument("--min-precision", type=float, default=None, metavar="P",
+    p.add_argument("--min-precision", type=ca.Number(lo=0, hi=1, what="precision", example="0.88"), default=None, metavar="P",
                    help="with --cv, the operating point: choose the best IoU among the combinations whose mean "
                         "precision on the training images is at least P (default 0.88; 0 = IoU alone)")
     p.add_argument("--json", type=ca.PathArg("out-file", as_path=True), metavar="FILE", help="write the full result as JSON here")
