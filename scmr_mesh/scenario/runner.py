@@ -78,7 +78,7 @@ class RunResult:
     wall_s: float | None = None
     #: The peers ran without authentication (``--insecure``).
     insecure: bool = False
-    #: Per host at the end of the run: peak RSS (MB), CPU (s), TCP links (netns) (``ScenarioRun.sample_costs``).
+    #: Per host at half time: peak RSS (MB), CPU (s), sockets, TCP links (netns) (``ScenarioRun.sample_costs``).
     costs: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def leadership(self) -> dict[str, Any]:
@@ -477,12 +477,14 @@ class ScenarioRun:
                     self._hook("stopped")
 
     def sample_costs(self) -> dict[str, dict[str, Any]]:
-        """What each host costs at half time: its processes' peak RSS (MB) and CPU (s) so far, and
-        under ``shape = "routers"`` a host's figures include its router's, and a router shared by
-        every peer of the host (loopback) has its own entry."""
+        """What each host costs at half time: its processes' peak RSS (MB), CPU (s) so far and open
+        sockets, and on netns its established TCP links to other hosts (read from the kernel).  Per
+        peer; under ``shape = "routers"`` a host's figures include its router's, and a router shared
+        by every peer of the host (loopback) has its own entry."""
+        host_of = getattr(self.be, "host_of", lambda p: p)
         out: dict[str, dict[str, Any]] = {}
         for p in self.scenario.peer_names:
-            own_router = self.routers.get(p) if self.be.host_of(p) == p else None  # a shared one: not its own
+            own_router = self.routers.get(p) if host_of(p) == p else None  # a shared one: not its own
             names = [n for n in (self.names.get(p), own_router) if n]
             rss = cpu = 0.0
             socks = 0
@@ -497,7 +499,7 @@ class ScenarioRun:
                     socks += got[2]
             if seen:
                 out[p] = {"peak_rss_mb": round(rss, 1), "cpu_s": round(cpu, 2), "sockets": socks}
-        for name in sorted({n for p, n in self.routers.items() if self.be.host_of(p) != p}):  # one for many
+        for name in sorted({n for p, n in self.routers.items() if host_of(p) != p}):  # one for many
             proc = self.sup.procs.get(name)
             got = _proc_cost(proc.pid) if proc is not None and proc.alive() else None
             if got is not None:
