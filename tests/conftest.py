@@ -6,6 +6,8 @@ import itertools
 import os
 import re
 import socket
+import subprocess
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -69,3 +71,32 @@ def pg_dsn(pg_server, request) -> str:
     """The URL of a fresh, empty database on the session's PostgreSQL server."""
     name = re.sub(r"[^a-z0-9_]", "_", request.node.name.lower())[:40]
     return pg_server.create_database(f"t{next(_DB_NUMBER)}_{name}")
+
+
+def _ip(*argv: str) -> None:
+    subprocess.run(argv, check=True, capture_output=True, timeout=20)
+
+
+@contextmanager
+def bridged_hosts(prefix: str, addr: dict[str, str]):
+    """Network namespaces ``<prefix>-<host>``, one per key of ``addr``, on one bridge (``<prefix>-br``),
+    each with ``eth0`` at its address (/24) and no route out; deleted on exit.  Yields host -> namespace
+    name.  Kill what runs inside before leaving."""
+    names = {h: f"{prefix}-{h}" for h in ("br", *addr)}
+    try:
+        _ip("ip", "netns", "add", names["br"])
+        _ip("ip", "-n", names["br"], "link", "add", "br0", "type", "bridge")
+        _ip("ip", "-n", names["br"], "link", "set", "br0", "up")
+        for i, h in enumerate(addr):
+            ns = names[h]
+            _ip("ip", "netns", "add", ns)
+            _ip("ip", "-n", ns, "link", "set", "lo", "up")
+            _ip("ip", "-n", names["br"], "link", "add", f"v{i}", "type", "veth", "peer", "name", "eth0", "netns", ns)
+            _ip("ip", "-n", names["br"], "link", "set", f"v{i}", "master", "br0")
+            _ip("ip", "-n", names["br"], "link", "set", f"v{i}", "up")
+            _ip("ip", "-n", ns, "addr", "add", f"{addr[h]}/24", "dev", "eth0")
+            _ip("ip", "-n", ns, "link", "set", "eth0", "up")
+        yield names
+    finally:
+        for ns in names.values():
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)

@@ -27,8 +27,12 @@ import shutil
 import signal
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conftest import bridged_hosts  # noqa: E402
 
 pytestmark = [
     pytest.mark.netns,
@@ -81,61 +85,43 @@ with zenoh.open(conf) as s:
 """
 
 
-def _run(*argv: str) -> None:
-    subprocess.run(argv, check=True, capture_output=True, timeout=20)
-
-
 def test_blackholed_cloud_send_does_not_stall_the_leader_path(repo_root):
     tag = secrets.token_hex(2)
-    names = {p: f"scmrs-{tag}-{p}" for p in ("br", "cloud", "leader", "robot")}
     addr = {"cloud": "198.18.0.10", "leader": "198.18.0.11", "robot": "198.18.0.12"}
     procs: list[subprocess.Popen] = []
-    try:
-        _run("ip", "netns", "add", names["br"])
-        _run("ip", "-n", names["br"], "link", "add", "br0", "type", "bridge")
-        _run("ip", "-n", names["br"], "link", "set", "br0", "up")
-        for i, p in enumerate(("cloud", "leader", "robot")):
-            ns = names[p]
-            _run("ip", "netns", "add", ns)
-            _run("ip", "-n", ns, "link", "set", "lo", "up")
-            _run("ip", "-n", names["br"], "link", "add", f"v{i}", "type", "veth", "peer", "name", "eth0", "netns", ns)
-            _run("ip", "-n", names["br"], "link", "set", f"v{i}", "master", "br0")
-            _run("ip", "-n", names["br"], "link", "set", f"v{i}", "up")
-            _run("ip", "-n", ns, "addr", "add", f"{addr[p]}/24", "dev", "eth0")
-            _run("ip", "-n", ns, "link", "set", "eth0", "up")
-        ep = {p: f"tcp/{a}:7447" for p, a in addr.items()}
-        env = dict(os.environ, PYTHONPATH=str(repo_root))
-        env.pop("RUST_LOG", None)
-        env.pop("SCMR_ZENOH_LOG", None)
+    with bridged_hosts(f"scmrs-{tag}", addr) as names:
+        try:
+            ep = {p: f"tcp/{a}:7447" for p, a in addr.items()}
+            env = dict(os.environ, PYTHONPATH=str(repo_root))
+            env.pop("RUST_LOG", None)
+            env.pop("SCMR_ZENOH_LOG", None)
 
-        def start(role: str, connect: list[str]) -> subprocess.Popen:
-            argv = ["ip", "netns", "exec", names[role], sys.executable, "-c", PEER, role, ep[role],
-                    ",".join(connect), str(LEASE_MS), addr["cloud"], str(WINDOW_S)]
-            p = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                 text=True, env=env, start_new_session=True)
-            procs.append(p)
-            return p
+            def start(role: str, connect: list[str]) -> subprocess.Popen:
+                argv = ["ip", "netns", "exec", names[role], sys.executable, "-c", PEER, role, ep[role],
+                        ",".join(connect), str(LEASE_MS), addr["cloud"], str(WINDOW_S)]
+                p = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True, env=env, start_new_session=True)
+                procs.append(p)
+                return p
 
-        servers = [start("cloud", []), start("leader", [ep["cloud"]])]
-        for s in servers:
-            assert s.stdout.readline().strip() == "ready", s.stderr.read()
-        robot = start("robot", [ep["cloud"], ep["leader"]])
-        out, err = robot.communicate(timeout=60)
-        assert robot.returncode == 0, err[-2000:]
-        res = json.loads(out.strip().splitlines()[-1])
-        # the leader answered while the cloud was still silently gone ...
-        assert res["first_leader_ok_s"] is not None, (
-            f"no leader answer within {WINDOW_S} s of the cloud's blackhole: {res}")
-        # ... because the send to the dead cloud gave up within a few leases, not zenoh's default 5 s
-        assert res["push_s"] < WINDOW_S, res
-        # and the robot never went quiet on its other links (the leader did not expire it)
-        assert res["other_links_dropped"] == [], res
-    finally:
-        for p in procs:
-            try:
-                os.killpg(p.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
-            p.wait(timeout=10)
-        for ns in names.values():
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
+            servers = [start("cloud", []), start("leader", [ep["cloud"]])]
+            for s in servers:
+                assert s.stdout.readline().strip() == "ready", s.stderr.read()
+            robot = start("robot", [ep["cloud"], ep["leader"]])
+            out, err = robot.communicate(timeout=60)
+            assert robot.returncode == 0, err[-2000:]
+            res = json.loads(out.strip().splitlines()[-1])
+            # the leader answered while the cloud was still silently gone ...
+            assert res["first_leader_ok_s"] is not None, (
+                f"no leader answer within {WINDOW_S} s of the cloud's blackhole: {res}")
+            # ... because the send to the dead cloud gave up within a few leases, not zenoh's default 5 s
+            assert res["push_s"] < WINDOW_S, res
+            # and the robot never went quiet on its other links (the leader did not expire it)
+            assert res["other_links_dropped"] == [], res
+        finally:
+            for p in procs:
+                try:
+                    os.killpg(p.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                p.wait(timeout=10)

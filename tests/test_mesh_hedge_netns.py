@@ -19,8 +19,12 @@ import secrets
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from conftest import bridged_hosts  # noqa: E402
 
 from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, wait_for
 
@@ -67,64 +71,46 @@ close_session(session)
 """
 
 
-def _run(*argv: str) -> None:
-    subprocess.run(argv, check=True, capture_output=True, timeout=20)
-
-
 def test_silent_cloud_mid_request_is_answered_by_the_leader_as_a_hedge(repo_root, tmp_path):
     tag = secrets.token_hex(2)
-    names = {p: f"scmrh-{tag}-{p}" for p in ("br", "cloud", "leader", "robot")}
     addr = {"cloud": "198.18.3.10", "leader": "198.18.3.11", "robot": "198.18.3.12"}
     procs: list[subprocess.Popen] = []
-    try:
-        _run("ip", "netns", "add", names["br"])
-        _run("ip", "-n", names["br"], "link", "add", "br0", "type", "bridge")
-        _run("ip", "-n", names["br"], "link", "set", "br0", "up")
-        for i, p in enumerate(("cloud", "leader", "robot")):
-            ns = names[p]
-            _run("ip", "netns", "add", ns)
-            _run("ip", "-n", ns, "link", "set", "lo", "up")
-            _run("ip", "-n", names["br"], "link", "add", f"v{i}", "type", "veth", "peer", "name", "eth0", "netns", ns)
-            _run("ip", "-n", names["br"], "link", "set", f"v{i}", "master", "br0")
-            _run("ip", "-n", names["br"], "link", "set", f"v{i}", "up")
-            _run("ip", "-n", ns, "addr", "add", f"{addr[p]}/24", "dev", "eth0")
-            _run("ip", "-n", ns, "link", "set", "eth0", "up")
-        ep = {p: f"tcp/{a}:7447" for p, a in addr.items()}
-        svc = ["--insecure", "--workers", "1", "--process", STUB, "--lease-ms", str(LEASE_MS)]
+    with bridged_hosts(f"scmrh-{tag}", addr) as names:
+        try:
+            ep = {p: f"tcp/{a}:7447" for p, a in addr.items()}
+            svc = ["--insecure", "--workers", "1", "--process", STUB, "--lease-ms", str(LEASE_MS)]
 
-        def start(role: str, args: list[str]) -> subprocess.Popen:
-            p = spawn_peer([role, "--node", role, "--listen", ep[role], *args, *svc,
-                            "--ready-file", str(tmp_path / f"{role}.ready")],
-                           log_path=tmp_path / f"{role}.log", prefix=["ip", "netns", "exec", names[role]],
-                           env={"PYTHONPATH": str(repo_root)})
-            procs.append(p)
-            return p
+            def start(role: str, args: list[str]) -> subprocess.Popen:
+                p = spawn_peer([role, "--node", role, "--listen", ep[role], *args, *svc,
+                                "--ready-file", str(tmp_path / f"{role}.ready")],
+                               log_path=tmp_path / f"{role}.log", prefix=["ip", "netns", "exec", names[role]],
+                               env={"PYTHONPATH": str(repo_root)})
+                procs.append(p)
+                return p
 
-        for role, p in (("cloud", start("cloud", [])), ("leader", start("leader", ["--connect", ep["cloud"]]))):
-            wait_for(lambda: (tmp_path / f"{role}.ready").exists() or p.poll() is not None, timeout=120,
-                     what=f"{role} ready")
-            assert p.poll() is None, (tmp_path / f"{role}.log").read_text()[-3000:]
-        env = dict(os.environ, PYTHONPATH=str(repo_root))
-        env.pop("RUST_LOG", None)
-        robot = subprocess.run(["ip", "netns", "exec", names["robot"], sys.executable, "-c", ROBOT, str(tmp_path / "r1"),
-                                ep["cloud"], ep["leader"], addr["cloud"], str(LEASE_MS), str(DEADLINE_MS)],
-                               capture_output=True, text=True, env=env, timeout=120)
-        assert robot.returncode == 0, robot.stderr[-3000:]
-        res = json.loads(robot.stdout.strip().splitlines()[-1])
-        assert res["dup"] == ["ok", "duplicate"], res["dup"]
-        assert res["warm"] == ["cloud"] * 8
-        rec = res["rec"]
-        assert rec["ok"] and rec["tier"] == "leader" and rec["served_by"] == "leader", rec
-        assert rec["hedged"] and rec["hedge_won"], rec
-        cloud, leader = rec["attempts"]
-        # the cloud's query was cancelled because the leader answered first: not ended by the lease
-        # (no_reply) nor by the deadline (timeout) ...
-        assert (cloud["tier"], cloud["outcome"]) == ("cloud", "superseded"), rec["attempts"]
-        assert (leader["tier"], leader["outcome"], leader.get("hedge")) == ("leader", "ok", True)
-        # ... and the cloud was still alive in the robot's view when the answer came: its lease ran on
-        assert res["cloud_alive_after"] == ["cloud"], res
-    finally:
-        for p in procs:
-            stop_peer(p, timeout=5)
-        for ns in names.values():
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=20)
+            for role, p in (("cloud", start("cloud", [])), ("leader", start("leader", ["--connect", ep["cloud"]]))):
+                wait_for(lambda: (tmp_path / f"{role}.ready").exists() or p.poll() is not None, timeout=120,
+                         what=f"{role} ready")
+                assert p.poll() is None, (tmp_path / f"{role}.log").read_text()[-3000:]
+            env = dict(os.environ, PYTHONPATH=str(repo_root))
+            env.pop("RUST_LOG", None)
+            robot = subprocess.run(["ip", "netns", "exec", names["robot"], sys.executable, "-c", ROBOT, str(tmp_path / "r1"),
+                                    ep["cloud"], ep["leader"], addr["cloud"], str(LEASE_MS), str(DEADLINE_MS)],
+                                   capture_output=True, text=True, env=env, timeout=120)
+            assert robot.returncode == 0, robot.stderr[-3000:]
+            res = json.loads(robot.stdout.strip().splitlines()[-1])
+            assert res["dup"] == ["ok", "duplicate"], res["dup"]
+            assert res["warm"] == ["cloud"] * 8
+            rec = res["rec"]
+            assert rec["ok"] and rec["tier"] == "leader" and rec["served_by"] == "leader", rec
+            assert rec["hedged"] and rec["hedge_won"], rec
+            cloud, leader = rec["attempts"]
+            # the cloud's query was cancelled because the leader answered first: not ended by the lease
+            # (no_reply) nor by the deadline (timeout) ...
+            assert (cloud["tier"], cloud["outcome"]) == ("cloud", "superseded"), rec["attempts"]
+            assert (leader["tier"], leader["outcome"], leader.get("hedge")) == ("leader", "ok", True)
+            # ... and the cloud was still alive in the robot's view when the answer came: its lease ran on
+            assert res["cloud_alive_after"] == ["cloud"], res
+        finally:
+            for p in procs:
+                stop_peer(p, timeout=5)
