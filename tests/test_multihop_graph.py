@@ -139,21 +139,10 @@ def _simulate(n: int, edges: set[tuple[int, int]], *, routed: bool, seed: int, s
     robots that do not run for the lead: they relay (routed) but hold no candidacy.
     """
     rng = random.Random(seed)
-    adj = {i: set() for i in range(n)}
-    for a, b in edges:
-        adj[a].add(b)
-        adj[b].add(a)
+    adj = _adjacency(n, edges)
 
     def seen(i: int) -> set[int]:
-        if not routed:
-            return adj[i] - plain
-        part, todo = {i}, [i]
-        while todo:
-            for m in adj[todo.pop()]:
-                if m not in part:
-                    part.add(m)
-                    todo.append(m)
-        return part - {i} - plain
+        return (_component(adj, i) if routed else adj[i]) - {i} - plain
 
     state = dict(start) if start else {
         i: Candidacy(f"c{i}", clock_hz=rng.choice([1.5e9, 2.5e9, 3.5e9]), battery=rng.choice([0.5, 0.9]))
@@ -186,23 +175,33 @@ def _simulate(n: int, edges: set[tuple[int, int]], *, routed: bool, seed: int, s
     return state
 
 
-def _parts(n: int, edges: set[tuple[int, int]]) -> list[set[int]]:
-    adj = {i: set() for i in range(n)}
+def _adjacency(n: int, edges: set[tuple[int, int]]) -> dict[int, set[int]]:
+    adj: dict[int, set[int]] = {i: set() for i in range(n)}
     for a, b in edges:
         adj[a].add(b)
         adj[b].add(a)
+    return adj
+
+
+def _component(adj: dict[int, set[int]], i: int) -> set[int]:
+    """The connected part of ``i`` (``i`` included)."""
+    part, todo = {i}, [i]
+    while todo:
+        for m in adj[todo.pop()]:
+            if m not in part:
+                part.add(m)
+                todo.append(m)
+    return part
+
+
+def _parts(n: int, edges: set[tuple[int, int]]) -> list[set[int]]:
+    adj = _adjacency(n, edges)
     out, seen = [], set()
     for i in range(n):
-        if i in seen:
-            continue
-        part, todo = {i}, [i]
-        while todo:
-            for m in adj[todo.pop()]:
-                if m not in part:
-                    part.add(m)
-                    todo.append(m)
-        seen |= part
-        out.append(part)
+        if i not in seen:
+            part = _component(adj, i)
+            seen |= part
+            out.append(part)
     return out
 
 
