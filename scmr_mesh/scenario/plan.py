@@ -500,16 +500,17 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
         argv += ["--start-file", str(run_dir / "ready" / options.start_file)]
     if zmode is not None:
         argv += ["--zmode", zmode]
-    for ep in listen:
-        argv += ["--listen", ep]
-    for ep in connect:
-        argv += ["--connect", ep]
-    argv += ["--lease-ms", str(scenario.lease_ms)]
-    for c in extra_cfg:
-        argv += ["--cfg", c]
-    argv += [*security, "--ready-file", str(ready)]
+    argv += _link_args(scenario, listen, connect, extra_cfg, security, ready)
     argv += list(options.robot_args if role == "robot" else options.server_args)
     return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)
+
+
+def _link_args(scenario: Scenario, listen: Iterable[str], connect: Iterable[str], cfg: Iterable[str],
+               security: Iterable[str], ready: Path) -> list[str]:
+    """The flags every process of a run ends with: endpoints, lease, ``--cfg``, security, ready file."""
+    argv = [a for ep in listen for a in ("--listen", ep)] + [a for ep in connect for a in ("--connect", ep)]
+    argv += ["--lease-ms", str(scenario.lease_ms)] + [a for c in cfg for a in ("--cfg", c)]
+    return argv + [*security, "--ready-file", str(ready)]
 
 
 #: Routers dial their neighbours only (``Scenario.router_dials``): gossip would link them to
@@ -537,13 +538,6 @@ def router_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iter
     name = base if start == 1 or not options.restart_renames else f"{base}-{start}"
     argv: list[str] = [options.python, "-m", "scmr_mesh"] + (["-v"] if options.verbose else [])
     argv += ["router", "--node", base]
-    for ep in listen:
-        argv += ["--listen", ep]
-    for ep in connect:
-        argv += ["--connect", ep]
-    argv += ["--lease-ms", str(scenario.lease_ms)]
-    for c in ROUTER_CFG:
-        argv += ["--cfg", c]
     ready = run_dir / "ready" / f"{name}.ready"
-    argv += [*security, "--ready-file", str(ready)]
+    argv += _link_args(scenario, listen, connect, ROUTER_CFG, security, ready)
     return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)
