@@ -32,10 +32,10 @@ Times are seconds from time 0.  Faults are the run's
 from __future__ import annotations
 
 import itertools
-from collections import deque
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
+from scmr_mesh.scenario.radio import adjacency, distances as _bfs
 from scmr_mesh.scenario.spec import Scenario
 
 __all__ = ["LiveGraph", "alone_with_path", "reroutes", "split_leader_ms"]
@@ -45,18 +45,6 @@ Pair = tuple[str, str]
 
 def _pair(a: str, b: str) -> Pair:
     return (a, b) if a <= b else (b, a)
-
-
-def _bfs(adj: Mapping[str, set[str]], src: str) -> dict[str, int]:
-    dist = {src: 0}
-    todo = deque([src])
-    while todo:
-        n = todo.popleft()
-        for m in adj.get(n, ()):
-            if m not in dist:
-                dist[m] = dist[n] + 1
-                todo.append(m)
-    return dist
 
 
 class LiveGraph:
@@ -131,13 +119,7 @@ class LiveGraph:
         edges = {p for p in self.possible(t) - cut if p[0] in nodes and p[1] in nodes}
         return nodes, edges
 
-    @staticmethod
-    def _adj(edges: Iterable[Pair]) -> dict[str, set[str]]:
-        adj: dict[str, set[str]] = {}
-        for x, y in edges:
-            adj.setdefault(x, set()).add(y)
-            adj.setdefault(y, set()).add(x)
-        return adj
+    _adj = staticmethod(adjacency)
 
     def path_len(self, a: str, b: str, t: float) -> int | None:
         """Hops from ``a`` to ``b`` over the live graph at ``t`` (None: no path, or either is down)."""

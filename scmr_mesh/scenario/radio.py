@@ -30,7 +30,7 @@ from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
-__all__ = ["Radio", "hops", "links_timeline", "rate_changes"]
+__all__ = ["Radio", "adjacency", "distances", "hops", "links_timeline", "rate_changes"]
 
 Pos = tuple[float, float]
 
@@ -171,21 +171,28 @@ def links_timeline(radio: Radio, duration_s: float) -> list[dict]:
     return out
 
 
-def hops(links: Iterable[tuple[str, str]], a: str, b: str) -> int | None:
-    """Radio hops from ``a`` to ``b`` over ``links`` (0 when a == b; None: no path)."""
-    if a == b:
-        return 0
+def adjacency(links: Iterable[tuple[str, str]]) -> dict[str, set[str]]:
+    """Each node's neighbours over undirected ``links``."""
     adj: dict[str, set[str]] = {}
     for x, y in links:
         adj.setdefault(x, set()).add(y)
         adj.setdefault(y, set()).add(x)
-    seen, todo = {a}, deque([(a, 0)])
+    return adj
+
+
+def distances(adj: Mapping[str, Iterable[str]], src: str) -> dict[str, int]:
+    """Hops from ``src`` to every node it reaches (breadth first; ``src`` itself at 0)."""
+    dist = {src: 0}
+    todo = deque([src])
     while todo:
-        n, d = todo.popleft()
+        n = todo.popleft()
         for m in adj.get(n, ()):
-            if m == b:
-                return d + 1
-            if m not in seen:
-                seen.add(m)
-                todo.append((m, d + 1))
-    return None
+            if m not in dist:
+                dist[m] = dist[n] + 1
+                todo.append(m)
+    return dist
+
+
+def hops(links: Iterable[tuple[str, str]], a: str, b: str) -> int | None:
+    """Radio hops from ``a`` to ``b`` over ``links`` (0 when a == b; None: no path)."""
+    return distances(adjacency(links), a).get(b)
