@@ -152,7 +152,7 @@ def test_no_orphans_when_the_supervisor_is_sigkilled(tmp_path):
     """SIGKILL the supervising process: PR_SET_PDEATHSIG takes its children down."""
     pidfile = tmp_path / "pids.json"
     parent = textwrap.dedent(f"""
-        import json, sys, time
+        import json, os, sys, time
         from pathlib import Path
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_procs import spec
@@ -162,7 +162,9 @@ def test_no_orphans_when_the_supervisor_is_sigkilled(tmp_path):
         for n in ("cloud", "leader", "r0"):
             sup.start(spec(tmp, n))
         sup.wait_ready(["cloud", "leader", "r0"], timeout=20)
-        Path({str(pidfile)!r}).write_text(json.dumps([p.pid for p in sup.procs.values()]))
+        # written whole, then renamed: the test never reads a half-written file
+        Path({str(pidfile)!r} + ".tmp").write_text(json.dumps([p.pid for p in sup.procs.values()]))
+        os.replace({str(pidfile)!r} + ".tmp", {str(pidfile)!r})
         time.sleep(60)
     """)
     p = subprocess.Popen([sys.executable, "-c", parent], start_new_session=True)
