@@ -4,6 +4,7 @@ cloud crashes (quiet and under CPU hogs) and an overload run."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
@@ -30,6 +31,11 @@ MESH_TARGETS = {"tor_p50_ms": 15.0, "tor_p99_ms": 50.0, "crash_ror": 1.0,
                 "failover_gap_median_ms": 20.0, "failback_gap_max_ms": 500.0,
                 "hogs_failover_gap_max_ms": 1000.0, "hogs_failback_gap_max_ms": 1000.0,
                 "tor_admitted_p99_ms": 100.0}
+
+
+#: ``scmr bench mesh`` plays fleets above this many robots this many to a ``scmr swarm`` process
+#: (``--robots-per-process`` overrides): 64 robot interpreters on a 2-core box left the cloud no CPU.
+SWARM_ABOVE = 16
 
 
 def _stat(values: Sequence[float | None]) -> dict[str, Any]:
@@ -306,8 +312,12 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
     runs = []
     for n in sizes:
         say(f"bench mesh: {n} robots at {args.rate:g} Hz for {args.duration:g} s ...")
-        rep = run_with_output(_config_from_args(args, n, root / f"robots-{n}"))
-        runs.append(_run_entry(rep))
+        cfg = _config_from_args(args, n, root / f"robots-{n}")
+        if getattr(args, "robots_per_process", None) is None and n > SWARM_ABOVE:
+            # the load generator: a process per robot left a 2-core box's cloud no CPU (issue 23)
+            cfg = dataclasses.replace(cfg, robots_per_process=SWARM_ABOVE)
+        rep = run_with_output(cfg)
+        runs.append(dict(_run_entry(rep), robots_per_process=cfg.robots_per_process))
         t, a = rep["tor_ms"], runs[-1]["tor_admitted_ms"]
         say(f"  {n} robots: {rep['requests']} requests, RoR {rep['ror']}, ToR p50 {_ms(t['p50'])} "
             f"p99 {_ms(t['p99'])} max {_ms(t['max'])} ms; admitted by cloud/leader p99 {_ms(a['p99'])} ms, "

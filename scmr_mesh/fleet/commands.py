@@ -57,6 +57,13 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
                         "grow with N^2); routers, one zenoh router for this host and every peer its client "
                         "(links grow with N); auto (default): clique up to 32 robots, routers above, where "
                         "the clique was measured to break (docs/BENCHMARKS.md 'One host, many robots')")
+    g.add_argument("--robots-per-process", type=ca.count("robots per process", hi=256, example="16"), default=None,
+                   metavar="K",
+                   help="play K robots per process with `scmr swarm` (a load generator: each robot keeps its "
+                        "own identity, certificate, session and records, they share one interpreter).  Robots "
+                        "named by a fault and leader-capable robots keep their own process.  Default: 1 for "
+                        "scmr up (a process per robot, as on real robots); scmr bench mesh plays robots 16 "
+                        "to a process above 16 robots")
 
 
 def _profile_list(text: str) -> tuple[str, ...]:
@@ -82,6 +89,7 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
         leader_crash_s=getattr(args, "leader_crash", None), profiles=getattr(args, "profiles", None) or (),
         insecure=args.insecure, shape=getattr(args, "shape", "auto"),
+        robots_per_process=getattr(args, "robots_per_process", None) or 1,
     )
 
 

@@ -134,6 +134,8 @@ class FleetConfig:
     insecure: bool = False
     #: ``topology.shape`` of the fleet's scenario: ``auto``, ``clique`` or ``routers`` (one router for the host).
     shape: str = "auto"
+    #: Robots played by one ``scmr swarm`` process (``--robots-per-process``; 1: a process each).
+    robots_per_process: int = 1
 
     def check(self) -> None:
         """Raise :class:`InputError` naming the bad value and the fix."""
@@ -396,7 +398,8 @@ def fleet_options(config: FleetConfig, *, ods: str | None = None) -> "RunOptions
     return RunOptions(python=config.python, verbose=True, robot_quiet=False, robot_seed=False,
                       workers=config.workers, server_args=tuple(config.server_args),
                       robot_args=tuple(config.robot_args), ods=ods if ods is not None else config.ods,
-                      start_file=FLEET_READY, restart_renames=False)
+                      start_file=FLEET_READY, restart_renames=False,
+                      robots_per_process=config.robots_per_process)
 
 
 def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, ods: str | None = None,

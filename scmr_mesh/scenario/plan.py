@@ -408,6 +408,9 @@ class RunOptions:
     #: A restarted peer runs under a new name (``cloud-2``: its own log, ready file and, for a
     #: robot, records folder) or under its own (``scmr up``: one log per peer).
     restart_renames: bool = True
+    #: Robots played by one ``scmr swarm`` process (1: a process per robot).  Only robots that
+    #: no fault names, that are not leader-capable and share a host are grouped (:func:`swarm_groups`).
+    robots_per_process: int = 1
 
 
 @dataclass(frozen=True)
@@ -503,6 +506,46 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
     argv += _link_args(scenario, listen, connect, extra_cfg, security, ready)
     argv += list(options.robot_args if role == "robot" else options.server_args)
     return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)
+
+
+def swarm_groups(scenario: Scenario, per_process: int, host_of=lambda p: p) -> list[list[str]]:
+    """The scenario's robots as the processes that play them (pure): lists of ids, one per process.
+
+    With ``per_process`` > 1, robots that no fault names (a crash, a link, a partition), that are
+    not leader-capable and that share a host (``host_of``) are played ``per_process`` to a
+    ``scmr swarm`` process; every other robot, and every robot of a scenario with a radio
+    topology, keeps its own process.
+
+    >>> from scmr_mesh.scenario.spec import parse_scenario
+    >>> sc = parse_scenario({"name": "t", "seed": 1, "duration_s": 5, "fleet": {"robots": [
+    ...     {"id": f"r{i}", "synthetic": "road"} for i in range(1, 6)]},
+    ...     "faults": [{"kind": "crash", "at_s": 1, "peer": "r5"}]})
+    >>> swarm_groups(sc, 2, host_of=lambda p: "h")
+    [['r1', 'r2'], ['r3', 'r4'], ['r5']]
+    >>> swarm_groups(sc, 1)
+    [['r1'], ['r2'], ['r3'], ['r4'], ['r5']]
+    """
+    ids = [r.id for r in scenario.robots]
+    if per_process <= 1 or scenario.radio is not None:
+        return [[r] for r in ids]
+    named: set[str] = set()
+    for f in scenario.faults:
+        named.update(f.link or ())
+        named.update(p for g in (f.groups or ()) for p in g)
+        named.update(f.peers or ())
+        if f.peer:
+            named.add(f.peer)
+    capable = {r.id for r in scenario.robots if r.leader_capable}
+    by_host: dict[str, list[str]] = {}
+    out: list[list[str]] = []
+    for rid in ids:
+        if rid in named or rid in capable:
+            out.append([rid])
+        else:
+            by_host.setdefault(host_of(rid), []).append(rid)
+    for members in by_host.values():
+        out.extend(members[i:i + per_process] for i in range(0, len(members), per_process))
+    return out
 
 
 def _link_args(scenario: Scenario, listen: Iterable[str], connect: Iterable[str], cfg: Iterable[str],

@@ -28,7 +28,8 @@ from scmr_mesh.errors import ConfigError, ScenarioError
 from scmr_mesh.qos.faults import FaultRecord
 from scmr_mesh.scenario.faults import AppliedFault, fault_records, fault_tier, metric_faults
 from scmr_mesh.scenario.hooks import Hooks, RecordTail, Say
-from scmr_mesh.scenario.plan import RADIO, Event, RunOptions, compile_timeline, peer_command, router_command
+from scmr_mesh.scenario.plan import (RADIO, Event, RunOptions, compile_timeline, peer_command, router_command,
+                                     swarm_groups)
 from scmr_mesh.scenario.spec import WHOEVER_LEADS, Scenario
 
 __all__ = ["AppliedFault", "Hooks", "RecordTail", "RunResult", "ScenarioRun", "default_data_dir", "fault_records",
@@ -282,6 +283,13 @@ class ScenarioRun:
         """The :class:`~scmr_mesh.fleet.procs.PeerSpec` of the next start of ``peer``."""
         from scmr_mesh.fleet.procs import PeerSpec
 
+        cmd = self._command(peer, remaining_s=remaining_s)
+        env = {"SCMR_SCENARIO_SEED": str(self.scenario.seed)}
+        return PeerSpec(cmd.name, self.be.wrap(peer, list(cmd.argv)), log_path=cmd.log_path,
+                        ready_file=cmd.ready_file, env=env)
+
+    def _command(self, peer: str, *, remaining_s: float | None = None):
+        """The :class:`~scmr_mesh.scenario.plan.PeerCommand` of the next start of ``peer``."""
         n = self.starts[peer] = self.starts.get(peer, 0) + 1
         be = self.be
         if self.scenario.shape == "routers":  # a client of its host's router
@@ -296,9 +304,31 @@ class ScenarioRun:
             list(cmd.argv[3 + self.options.verbose:])  # what each peer was told (peers.json)
         if self.scenario.role(peer) == "robot" and cmd.name not in self.tails:
             self.tails[cmd.name] = RecordTail(self.out_dir / "robots" / cmd.name / "records.jsonl")
-        env = {"SCMR_SCENARIO_SEED": str(self.scenario.seed)}
-        return PeerSpec(cmd.name, be.wrap(peer, list(cmd.argv)), log_path=cmd.log_path,
-                        ready_file=cmd.ready_file, env=env)
+        return cmd
+
+    def start_swarm(self, robots: Sequence[str]):
+        """Start one ``scmr swarm`` process playing ``robots`` (each its own identity and session)."""
+        from scmr_mesh.fleet.procs import PeerSpec
+
+        name = f"swarm-{robots[0]}"
+        head = 3 + int(self.options.verbose)  # python -m scmr_mesh [-v] robot ...
+        members = []
+        for rid in robots:
+            argv = list(self._command(rid).argv)
+            assert argv[head] == "robot", argv
+            members.append(argv[head + 1:])
+        plan = self.out_dir / "swarms" / f"{name}.json"
+        plan.parent.mkdir(parents=True, exist_ok=True)
+        plan.write_text(json.dumps({"robots": members}, indent=1) + "\n")
+        ready = self.out_dir / "ready" / f"{name}.ready"
+        argv = [self.options.python, "-m", "scmr_mesh"] + (["-v"] if self.options.verbose else [])
+        argv += ["swarm", "--plan", str(plan), "--ready-file", str(ready)]
+        spec = PeerSpec(name, self.be.wrap(robots[0], argv), log_path=self.out_dir / "logs" / f"{name}.log",
+                        ready_file=ready, env={"SCMR_SCENARIO_SEED": str(self.scenario.seed)})
+        proc = self.sup.start(spec)
+        for rid in robots:
+            self.names[rid] = name
+        return proc
 
     def router_spec(self, peer: str):
         """The :class:`~scmr_mesh.fleet.procs.PeerSpec` of the next start of ``peer``'s host router."""
@@ -385,9 +415,14 @@ class ScenarioRun:
         self.sup.wait_ready([self.names[p] for p in servers], timeout=self.ready_timeout)
         self.say(f"servers ready: {', '.join(servers)}; starting {len(sc.robots)} robots")
         self.robots_started = time.time_ns()
-        for r in sc.robots:
-            self.start_peer(r.id)
-        self.sup.wait_ready([self.names[r.id] for r in sc.robots], timeout=self.ready_timeout)
+        groups = swarm_groups(sc, self.options.robots_per_process, be.host_of)
+        for g in groups:
+            self.start_peer(g[0]) if len(g) == 1 else self.start_swarm(g)
+        swarms = sum(len(g) > 1 for g in groups)
+        if swarms:
+            self.say(f"{sum(len(g) for g in groups if len(g) > 1)} robots played by {swarms} swarm process(es) "
+                     f"(--robots-per-process {self.options.robots_per_process})")
+        self.sup.wait_ready(sorted({self.names[r.id] for r in sc.robots}), timeout=self.ready_timeout)
         self.t0_unix_ns = time.time_ns()
         self.t0_mono = time.monotonic()
         (self.out_dir / "ready" / self.options.start_file).write_text(f"{self.t0_unix_ns}\n")
@@ -459,7 +494,7 @@ class ScenarioRun:
         try:
             if sup is not None and sup.procs:
                 self.say("stopping")
-                sup.stop([self.names[r.id] for r in sc.robots if r.id in self.names], timeout=5.0)
+                sup.stop(sorted({self.names[r.id] for r in sc.robots if r.id in self.names}), timeout=5.0)
                 self.read_records()
                 servers = [p.name for p in sc.peers if p.role != "robot"]
                 self.telemetry = _count_telemetry(self.out_dir, sc, sup, self.names, servers,
