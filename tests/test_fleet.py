@@ -230,6 +230,9 @@ def test_bench_targets():
     assert t["tor_p50_4x5hz_ok"] is True and t["tor_p99_4x5hz_ok"] is False and t["tor_admitted_p99_ok"] is True
     assert t["crash_ror_ok"] and t["failover_ok"] and t["failback_ok"] is False  # median 15 ms; max 520 ms
     assert bench_targets([run4, run16], None)["tor_admitted_p99_ok"] is False
+    assert t["hedge_rate_ok"] is None  # not measured
+    assert bench_targets([dict(run4, hedge_rate=0.01), dict(run16, hedge_rate=0.03)], None)["hedge_rate_ok"] is False
+    assert bench_targets([dict(run4, hedge_rate=0.02)], None)["hedge_rate_ok"] is True
     hogs = {"ror_min": 1.0, "failover_gap_ms": _stat([40.0, 900.0]), "failback_gap_ms": _stat([800.0, None])}
     t = bench_targets([], {"ror_min": 0.99, "failover_gap_ms": _stat([None]), "failback_gap_ms": _stat([])}, hogs)
     assert t["tor_p50_4x5hz_ok"] is None and not t["crash_ror_ok"] and not t["failover_ok"] and not t["failback_ok"]

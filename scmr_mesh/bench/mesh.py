@@ -30,7 +30,7 @@ from scmr_mesh.fleet.run import default_run_dir
 MESH_TARGETS = {"tor_p50_ms": 15.0, "tor_p99_ms": 50.0, "crash_ror": 1.0,
                 "failover_gap_median_ms": 20.0, "failback_gap_max_ms": 500.0,
                 "hogs_failover_gap_max_ms": 1000.0, "hogs_failback_gap_max_ms": 1000.0,
-                "tor_admitted_p99_ms": 100.0}
+                "tor_admitted_p99_ms": 100.0, "hedge_rate_fault_free": 0.02}
 
 
 #: ``scmr bench mesh`` plays fleets above this many robots this many to a ``scmr swarm`` process
@@ -59,6 +59,8 @@ def bench_targets(runs: Sequence[Mapping[str, Any]], crash: Mapping[str, Any] | 
     admitted = [r["tor_admitted_ms"]["p99"] for r in runs if r.get("tor_admitted_ms", {}).get("p99") is not None]
     out["tor_admitted_p99_ok"] = (all(v <= MESH_TARGETS["tor_admitted_p99_ms"] for v in admitted)
                                   if admitted else None)
+    rates = [r["hedge_rate"] for r in runs if r.get("hedge_rate") is not None]
+    out["hedge_rate_ok"] = all(v <= MESH_TARGETS["hedge_rate_fault_free"] for v in rates) if rates else None
     if crash is not None:
         fo, fb = crash["failover_gap_ms"], crash["failback_gap_ms"]
         out["crash_ror_ok"] = crash["ror_min"] == 1.0
@@ -99,11 +101,21 @@ def admitted_tor(run_dir: Path) -> dict[str, Any]:
             "p99": round(metrics.percentile(tor, 99), 1) if tor else None, "busy_answers": busy}
 
 
+def hedges(run_dir: Path) -> dict[str, Any]:
+    """Requests hedged to a second tier and their share of the run's requests (issue 24)."""
+    recs = _records(run_dir)
+    hedged = sum(1 for r in recs if r.get("hedged"))
+    return {"hedged": hedged, "hedge_won": sum(1 for r in recs if r.get("hedge_won")),
+            "hedge_rate": round(hedged / len(recs), 4) if recs else None}
+
+
 def _run_entry(report: Mapping[str, Any]) -> dict[str, Any]:
     return {"robots": report["robots"], "rate_hz": report["rate_hz"], "duration_s": report["duration_s"],
             "requests": report["requests"], "succeeded": report["succeeded"], "ror": report["ror"],
             "tor_ms": report["tor_ms"], "by_tier": report["by_tier"], "run_dir": report["run_dir"],
             "tor_admitted_ms": admitted_tor(Path(report["run_dir"])),
+            # fault-free runs: hedges stay under MESH_TARGETS["hedge_rate_fault_free"]
+            **hedges(Path(report["run_dir"])),
             # the network's shape and what it costs per robot (peak RSS, CPU, open sockets)
             "shape": (report.get("hosts") or {}).get("shape"), "hosts": report.get("hosts"),
             "telemetry_lost": (report.get("telemetry") or {}).get("lost")}
@@ -321,7 +333,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         t, a = rep["tor_ms"], runs[-1]["tor_admitted_ms"]
         say(f"  {n} robots: {rep['requests']} requests, RoR {rep['ror']}, ToR p50 {_ms(t['p50'])} "
             f"p99 {_ms(t['p99'])} max {_ms(t['max'])} ms; admitted by cloud/leader p99 {_ms(a['p99'])} ms, "
-            f"{a['busy_answers']} busy answers")
+            f"{a['busy_answers']} busy answers; hedged {runs[-1]['hedged']} ({runs[-1]['hedge_rate']})")
     crash = hogs = None
     if args.crash_robots > 0 and args.crash_runs > 0:
         say(f"bench mesh: {args.crash_runs} crash runs, {args.crash_robots} robots, cloud down "
