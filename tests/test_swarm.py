@@ -62,5 +62,8 @@ def test_a_secured_fleet_serves_robots_played_by_a_swarm(tmp_path):
             assert recs and all(r["ok"] and r["robot"] == rid for r in recs), recs[:3]
         assert rep["ror"] == 1.0 and rep["telemetry"]["lost"] == 0, rep["telemetry"]
         assert rep["peers"]["swarm-r2"]["exit"] == 0
+        # each member is charged its share of the one process, not the whole process each
+        hosts = rep["hosts"]["per_host"]
+        assert hosts["r2"]["shared_by"] == hosts["r3"]["shared_by"] == 2 and "shared_by" not in hosts["r1"]
     finally:
         kill_leftovers(run_dir)

@@ -518,6 +518,9 @@ class ScenarioRun:
         by every peer of the host (loopback) has its own entry."""
         host_of = getattr(self.be, "host_of", lambda p: p)
         out: dict[str, dict[str, Any]] = {}
+        sharing: dict[str, int] = {}  # a swarm process plays several robots: each gets its share
+        for p in self.scenario.peer_names:
+            sharing[self.names.get(p, "")] = sharing.get(self.names.get(p, ""), 0) + 1
         for p in self.scenario.peer_names:
             own_router = self.routers.get(p) if host_of(p) == p else None  # a shared one: not its own
             names = [n for n in (self.names.get(p), own_router) if n]
@@ -529,11 +532,14 @@ class ScenarioRun:
                 got = _proc_cost(proc.pid) if proc is not None and proc.alive() else None
                 if got is not None:
                     seen = True
-                    rss += got[0]
-                    cpu += got[1]
-                    socks += got[2]
+                    k = sharing.get(n, 1) if n == self.names.get(p) else 1
+                    rss += got[0] / k
+                    cpu += got[1] / k
+                    socks += got[2] / k
             if seen:
-                out[p] = {"peak_rss_mb": round(rss, 1), "cpu_s": round(cpu, 2), "sockets": socks}
+                out[p] = {"peak_rss_mb": round(rss, 1), "cpu_s": round(cpu, 2), "sockets": round(socks, 1)}
+                if sharing.get(self.names.get(p, ""), 1) > 1:
+                    out[p]["shared_by"] = sharing[self.names[p]]  # its share of one swarm process
         for name in sorted({n for p, n in self.routers.items() if host_of(p) != p}):  # one for many
             proc = self.sup.procs.get(name)
             got = _proc_cost(proc.pid) if proc is not None and proc.alive() else None
