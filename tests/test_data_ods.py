@@ -210,14 +210,15 @@ def test_run_telemetry_reads_the_fleet_layout(tmp_path):
             q.append(b"x")
         q.ack(2)
     rep = run_telemetry(tmp_path)["telemetry"]  # no cloud ever stored anything
-    assert rep["ods"] is None and (rep["sent"], rep["lost"]) == (7, 7)
-    assert rep["per_robot"]["r2"]["queued"] == 2
+    # issue 25 item 9: what r2 still holds (3-4) is queued, not lost; what it let go of (1-2) is lost
+    assert rep["ods"] is None and (rep["sent"], rep["lost"], rep["queued"]) == (7, 5, 2)
+    assert rep["per_robot"]["r2"]["queued"] == 2 and rep["per_robot"]["r2"]["missing"] == ["1-2"]
     with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
         ods.insert([make_record("r1", s) for s in (1, 2, 3)] + [make_record("r2", s) for s in (1, 2)],
                    received_from="cloud")
     rep = run_telemetry(tmp_path)["telemetry"]
-    assert (rep["sent"], rep["stored"], rep["lost"]) == (7, 5, 2)
-    assert rep["per_robot"]["r2"]["missing"] == ["3-4"] and rep["per_robot"]["r2"]["queued"] == 2
+    assert (rep["sent"], rep["stored"], rep["queued"], rep["lost"]) == (7, 5, 2, 0)
+    assert rep["per_robot"]["r2"]["missing"] == [] and rep["per_robot"]["r2"]["queued_seqs"] == ["3-4"]
 
 
 def test_a_reused_seq_with_other_content_is_a_conflict_not_a_silent_duplicate(tmp_path, caplog):
