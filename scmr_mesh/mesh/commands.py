@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.data.retention import DEFAULT_KEEP_MASKS
 from scmr_mesh.errors import InputError, MeshError
 from scmr_mesh.mesh.resources import appeared
 
@@ -256,6 +257,15 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                         "own within one frame period (from --id and --seed), as independent robots would, and "
                         "send until time 0 + --duration; 'scmr up' and 'scmr demo' pass RUN/ready/fleet.ready, "
                         "'scmr scenario run' OUT/ready/run.start.  With no such file it waits (and says so)")
+    g.add_argument("--drain-s", type=ca.non_negative("seconds", hi=3600, example="5"), default=5.0, metavar="S",
+                   help="drain phase: after the last frame, keep sending queued telemetry for up to S seconds "
+                        "while a tier can take it (default 5); what is left stays queued on disk and is sent at "
+                        "the next start (reported as queued, not lost)")
+    g.add_argument("--keep-masks", type=ca.count("masks", lo=1, hi=10**9, example="1000"), default=DEFAULT_KEEP_MASKS,
+                   metavar="N", help=f"keep only the newest N masks in OUT/inbox (default {DEFAULT_KEEP_MASKS}); "
+                                     "older ones are deleted as new ones arrive, so a long run's folder stays bounded")
+    g.add_argument("--keep-all", action="store_true",
+                   help="keep every mask in OUT/inbox (no retention; the folder grows with the run)")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from scmr_mesh.viz import (
         add_rerun_peer_args,  # light: rerun itself is imported only with a flag
@@ -453,7 +463,8 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
     opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
                         priority=args.priority, mode=args.mode or "best",
                         process=getattr(args, "process", None) or DEFAULT_PROCESS,
-                        hedge=hedge != "off", hedge_ms=hedge if isinstance(hedge, float) else None)
+                        hedge=hedge != "off", hedge_ms=hedge if isinstance(hedge, float) else None,
+                        keep_masks=None if getattr(args, "keep_all", False) else getattr(args, "keep_masks", DEFAULT_KEEP_MASKS))
     profile = _energy_profile(args)
     robot = Robot(args.id, args.out, options=opts)
     fleet = fleet_policy(args)
@@ -506,7 +517,7 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
                           progress=progress)
     finally:
         if agent is not None:  # drain, write OUT/telemetry.json, keep the rest queued on disk
-            telemetry = agent.close(summary_path=Path(args.out) / "telemetry.json")
+            telemetry = agent.close(drain_s=args.drain_s, summary_path=Path(args.out) / "telemetry.json")
         robot.close()
         if rerun_viz is not None:
             rerun_viz.close()
