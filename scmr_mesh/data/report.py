@@ -45,19 +45,21 @@ def telemetry_report(
         ``lost``: refused by its disk and not delivered from memory, found
         corrupt on its disk); reported per robot as ``lost_on_robot``.
     refused : mapping robot -> int, optional
-        Records each robot's queue refused (full, or the file system refused
-        the write); they kept their seqs, so they are already among the
-        missing seqs and in ``lost`` (reported as ``refused`` per robot).
+        Records each robot's disk queue refused (full, or the file system
+        refused the write), reported as ``refused`` per robot; each was kept
+        in the robot's memory and sent from there unless its memory bound was
+        hit too, so a refused record is stored or lost like any other.
 
     Returns
     -------
     dict
         ``{"telemetry": {"sent", "stored", "duplicates", "lost", "conflicts",
         "per_robot": {robot: {"sent", "stored", "duplicates", "conflicts",
-        "lost", "missing", "unexpected" [, "queued"]}}}}`` where ``stored``
-        counts distinct ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost =
-        sent - stored``, ``missing`` lists the missing seqs as ranges (at most
-        20), ``unexpected`` counts stored seqs beyond ``sent``, and
+        "lost", "missing", "unexpected" [, "queued", "queued_seqs"]}}}}`` (and a
+        total ``queued`` with ``held``) where ``stored`` counts distinct
+        ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost = sent - stored -
+        queued``, ``missing`` lists the lost seqs as ranges (at most 20),
+        ``unexpected`` counts stored seqs beyond ``sent``, and
         ``conflicts`` counts messages refused because their ``(robot, seq)``
         was already stored with other content (a robot that started over with
         a fresh queue: those messages are lost even when ``lost`` is 0).

@@ -523,7 +523,7 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
             rerun_viz.close()
     extra = {"energy": placer.summary()} if placer is not None else {}
     if telemetry is not None:
-        extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
+        extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "dropped", "lost")}
     if robot.telemetry_errors:
         extra["telemetry_errors"] = robot.telemetry_errors
     emit_json_line({"robot": args.id, **stats, **extra})
@@ -599,8 +599,15 @@ def _robot_problem(rid: str, telemetry: dict | None, errors: int) -> str | None:
     problems = []
     if telemetry is not None and telemetry["lost"]:
         refused = ",".join(telemetry["refused_seqs"])
+        mem = telemetry.get("memory") or {}
+        why = []
+        if telemetry.get("dropped"):
+            why.append(f"{telemetry['dropped']} dropped with the memory buffer full")
+        if mem.get("unsent"):
+            why.append(f"{mem['unsent']} still in memory at exit")
         problems.append(f"{telemetry['lost']} of {telemetry['sent']} telemetry records lost"
-                        + (f" (refused seqs {refused}: {telemetry['error']})" if refused else "")
+                        + (f" (refused by the disk: seqs {refused}: {telemetry['error']}"
+                           + (f"; {', '.join(why)}" if why else "") + ")" if refused else "")
                         + "; see OUT/telemetry.json")
     if errors:
         problems.append(f"{errors} telemetry message(s) could not be produced (see the log)")

@@ -483,8 +483,10 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     if tel:
         L += ["## Telemetry (data tier)", "",
               f"{tel.get('sent', 0)} sent, {tel.get('stored', 0)} stored, {tel.get('duplicates', 0)} duplicates, "
-              f"**{tel.get('lost', 0)} lost** (lost = sent - stored over seqs 1..sent; docs/DATA.md).", "",
-              "| robot | sent | stored | duplicates | lost | missing seqs | queued |", "|---|---|---|---|---|---|---|"]
+              f"{tel.get('queued', 0)} queued, **{tel.get('lost', 0)} lost** (over seqs 1..sent: queued = still on "
+              "a robot's disk when it stopped, sent at its next start; lost = neither stored nor queued; "
+              "docs/DATA.md).", "",
+              "| robot | sent | stored | duplicates | lost | lost seqs | queued |", "|---|---|---|---|---|---|---|"]
         for rid, t in (tel.get("per_robot") or {}).items():
             L.append(f"| {rid} | {t.get('sent', 0)} | {t.get('stored', 0)} | {t.get('duplicates', 0)} | "
                      f"{t.get('lost', 0)} | {', '.join(t.get('missing') or []) or '-'} | {_fmt(t.get('queued'))} |")
