@@ -23,6 +23,7 @@ def telemetry_report(
     refused: Mapping[str, int] | None = None,
     held: Mapping[str, Iterable[int]] | None = None,
     robot_lost: Mapping[str, int] | None = None,
+    dropped: Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
     """Count telemetry per robot and in total.
 
@@ -44,6 +45,9 @@ def telemetry_report(
         Records each robot itself counts as lost (its ``telemetry.json``
         ``lost``: refused by its disk and not delivered from memory, found
         corrupt on its disk); reported per robot as ``lost_on_robot``.
+    dropped : mapping robot -> int, optional
+        Records each robot dropped because its disk refused them and its
+        memory buffer was full too (among the lost); reported as ``dropped``.
     refused : mapping robot -> int, optional
         Records each robot's disk queue refused (full, or the file system
         refused the write), reported as ``refused`` per robot; each was kept
@@ -103,6 +107,8 @@ def telemetry_report(
                 row["queued"] = int(queued.get(robot, 0))
             if robot_lost is not None:
                 row["lost_on_robot"] = int(robot_lost.get(robot, 0))
+            if dropped is not None:
+                row["dropped"] = int(dropped.get(robot, 0))
             if refused is not None:
                 row["refused"] = int(refused.get(robot, 0))
             per_robot[robot] = row
@@ -110,7 +116,7 @@ def telemetry_report(
         if own:
             ods.close()
     keys = (("sent", "stored", "duplicates", "lost", "conflicts") + (("refused",) if refused is not None else ())
-            + (("queued",) if held is not None else ()))
+            + (("queued",) if held is not None else ()) + (("dropped",) if dropped is not None else ()))
     total = {k: sum(r[k] for r in per_robot.values()) for k in keys}
     return {"telemetry": {**total, "per_robot": per_robot}}
 
@@ -193,7 +199,7 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     if robots is None:
         base = queues if queues.is_dir() else run_dir / "robots"
         robots = sorted(p.name for p in base.iterdir() if p.is_dir()) if base.is_dir() else []
-    sent, held, refused, robot_lost = {}, {}, {}, {}
+    sent, held, refused, robot_lost, dropped = {}, {}, {}, {}, {}
     for rid in robots:
         qdir = queues / rid if (queues / rid).is_dir() else run_dir / "robots" / rid / "telemetry-queue"
         # peers with a run dir keep the queue there, across restarts: what it still holds is queued
@@ -204,10 +210,11 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
         try:
             refused[rid] = int(d.get("refused", 0))
             robot_lost[rid] = int(d.get("lost", refused[rid]))
+            dropped[rid] = int(d.get("dropped", 0))
             sent[rid] = max(sent[rid], int(d.get("sent", 0)))
         except (TypeError, ValueError):
-            refused[rid] = robot_lost[rid] = 0
-    kw = {"refused": refused, "held": held, "robot_lost": robot_lost}
+            refused[rid] = robot_lost[rid] = dropped[rid] = 0
+    kw = {"refused": refused, "held": held, "robot_lost": robot_lost, "dropped": dropped}
     if is_dsn(ods_path):  # a PostgreSQL store (several cloud nodes)
         from scmr_mesh.data.ods_pg import redact
 
@@ -224,13 +231,13 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
             rep = telemetry_report(ods, sent, **kw)
             rep["telemetry"]["ods"] = str(ods)
             return rep
-    rep = _nothing_stored(sent, held, refused, robot_lost)
+    rep = _nothing_stored(sent, held, refused, robot_lost, dropped)
     rep["ods"] = None
     return {"telemetry": rep}
 
 
 def _nothing_stored(sent: Mapping[str, int], held: Mapping[str, Iterable[int]], refused: Mapping[str, int],
-                    robot_lost: Mapping[str, int]) -> dict[str, Any]:
+                    robot_lost: Mapping[str, int], dropped: Mapping[str, int]) -> dict[str, Any]:
     """The telemetry block when no store can show a record stored: what robots hold is queued, the rest lost."""
     per = {}
     for r in sent:
@@ -239,9 +246,9 @@ def _nothing_stored(sent: Mapping[str, int], held: Mapping[str, Iterable[int]], 
         per[r] = {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": len(gone),
                   "missing": seq_ranges(gone, limit=20), "unexpected": 0, "queued": len(kept),
                   "queued_seqs": seq_ranges(sorted(kept), limit=20), "refused": refused.get(r, 0),
-                  "lost_on_robot": robot_lost.get(r, 0)}
+                  "lost_on_robot": robot_lost.get(r, 0), "dropped": dropped.get(r, 0)}
     total = {k: sum(p[k] for p in per.values()) for k in ("sent", "stored", "duplicates", "lost", "conflicts",
-                                                          "refused", "queued")}
+                                                          "refused", "queued", "dropped")}
     return {**total, "per_robot": per}
 
 
@@ -312,7 +319,7 @@ def unreadable_telemetry(run_dir: str | Path, robots: list[str] | None, why: str
             sent[rid], held[rid] = queue_held(qdir) if qdir.is_dir() else (robot_sent(run_dir / "robots" / rid)[0], [])
         except Exception:  # the robots' own counts are unreadable too: nothing known
             sent[rid], held[rid] = 0, []
-    rep = _nothing_stored(sent, held, {}, {})
+    rep = _nothing_stored(sent, held, {}, {}, {})
     return {**rep, "ods": _redact(ods) if is_dsn(ods) else str(ods if ods is not None else run_dir / "ods.sqlite"),
             "error": f"the store could not be read ({why})"}
 

@@ -133,6 +133,8 @@ def format_telemetry(tel: Mapping[str, Any] | None) -> str:
     extra = []
     if tel.get("refused"):
         extra.append(f"{tel['refused']} refused by the robots' disks")
+    if tel.get("dropped"):
+        extra.append(f"{tel['dropped']} dropped: disk and memory buffer both full")
     if tel.get("conflicts"):
         extra.append(f"{tel['conflicts']} conflicts")
     if tel.get("error"):

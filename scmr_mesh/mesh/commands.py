@@ -29,6 +29,7 @@ from pathlib import Path
 
 from scmr_mesh import cliargs as ca
 from scmr_mesh.data.retention import DEFAULT_KEEP_MASKS
+from scmr_mesh.mesh.data_agent import MEMORY_BUFFER_BYTES
 from scmr_mesh.errors import InputError, MeshError
 from scmr_mesh.mesh.resources import appeared
 
@@ -261,6 +262,11 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                    help="drain phase: after the last frame, keep sending queued telemetry for up to S seconds "
                         "while a tier can take it (default 5); what is left stays queued on disk and is sent at "
                         "the next start (reported as queued, not lost)")
+    g.add_argument("--telemetry-memory-bytes", type=ca.count("bytes", lo=0, hi=1 << 40, example="4194304"),
+                   default=MEMORY_BUFFER_BYTES, metavar="N",
+                   help="telemetry records the disk queue refuses (full disk, I/O error, queue full) are kept in "
+                        f"memory up to N bytes (default {MEMORY_BUFFER_BYTES}, about 14,000 records) and sent from "
+                        "there while a cloud stores them; beyond it they are dropped and counted; 0: no buffer")
     g.add_argument("--keep-masks", type=ca.count("masks", lo=1, hi=10**9, example="1000"), default=DEFAULT_KEEP_MASKS,
                    metavar="N", help=f"keep only the newest N masks in OUT/inbox (default {DEFAULT_KEEP_MASKS}); "
                                      "older ones are deleted as new ones arrive, so a long run's folder stays bounded")
@@ -691,7 +697,10 @@ def _data_agent(robot, args):
     """Queue the robot's telemetry on disk until a tier stores it (data_service.TelemetryAgent)."""
     from scmr_mesh.mesh.data_service import attach_robot
 
-    return attach_robot(robot, args)
+    agent = attach_robot(robot, args)
+    if agent is not None:  # records the disk refuses wait in memory up to this bound (docs/DATA.md)
+        agent.memory_bytes = int(getattr(args, "telemetry_memory_bytes", agent.memory_bytes))
+    return agent
 
 
 def _cmd_router(args) -> int:
