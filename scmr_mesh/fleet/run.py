@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -200,7 +201,7 @@ class FleetHooks(Hooks):
         try:
             pg.stop(timeout=5.0)  # reaps it and kills what is left of its group (backends hold its memory)
             pg.start(timeout=30.0)
-        except (PgServerError, OSError) as exc:
+        except (PgServerError, OSError, subprocess.SubprocessError) as exc:  # the run goes on; tried again
             out["error"] = str(exc)
             self._pg_retry_at = time.monotonic() + PG_RETRY_S
             log.error("restarting the run's PostgreSQL failed (%s); trying again in %g s", exc, PG_RETRY_S)
