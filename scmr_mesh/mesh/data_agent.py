@@ -87,8 +87,8 @@ class TelemetryAgent:
                  deadline_ms: float = 1000.0, autostart: bool = True,
                  memory_bytes: int = MEMORY_BUFFER_BYTES) -> None:
         self.robot = robot
-        # a refused record keeps its seq (it is in the record already): the store sees the
-        # gap and every report counts it as lost
+        # a refused record keeps its seq (it is in the record already) and waits in memory
+        # (_mem); one never delivered leaves a gap the store sees, and every report counts it lost
         self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
         self.deadline_s = deadline_ms / 1e3
         self.acked_by = {"cloud": 0, "leader": 0}
@@ -106,7 +106,7 @@ class TelemetryAgent:
         self._mem_size = 0
         self._mem_lock = threading.Lock()
         self.mem_held = 0          # records the disk refused that the memory buffer took
-        self._mem_delivered: set[int] = set()  # their seqs a cloud stored
+        self.mem_delivered = 0     # of those, stored by a cloud
         self.dropped = 0           # refused by the disk and beyond the memory bound: lost
         self.ack_write_errors = 0  # acks the disk would not record (the records were stored all the same)
         self._queriers: dict[str, Any] = {}
@@ -204,7 +204,7 @@ class TelemetryAgent:
             with self._mem_lock:
                 for s in [s for s in self._mem if s <= upto]:
                     self._mem_size -= len(self._mem.pop(s))
-                    self._mem_delivered.add(s)
+                    self.mem_delivered += 1
 
     # -- sending
     def _querier(self, key: str):
@@ -352,14 +352,14 @@ class TelemetryAgent:
         """
         st = self.queue.stats()
         with self._mem_lock:
-            delivered = set(self._mem_delivered)
             unsent = len(self._mem)
-            mem = {"held": self.mem_held, "delivered": len(delivered), "unsent": unsent,
+            mem = {"held": self.mem_held, "delivered": self.mem_delivered, "unsent": unsent,
                    "bytes": self._mem_size, "max_bytes": self.memory_bytes}
-        lost = sorted((set(st.refused_seqs) - delivered) | set(st.lost_seqs))
+        # every refused record was delivered from memory, is still there (dies with the process) or was dropped
+        lost = self.dropped + unsent + len(set(st.lost_seqs))
         relayed = len(self.queue.pending(limit=None)) - len(self.queue.pending(limit=None, after=self._relayed_upto))
         return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
-                "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": len(lost),
+                "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": lost,
                 "dropped": self.dropped, "memory": mem,
                 "relayed_unstored": relayed,
                 "replayed": st.replayed, "acked_by": dict(self.acked_by), "busy_answers": self.busy_answers,
