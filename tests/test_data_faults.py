@@ -131,13 +131,15 @@ def test_the_agent_counts_an_unwritable_record_as_refused_with_its_seq(tmp_path)
     seg = _segment(tmp_path / "q")
     subprocess.run(["chattr", "+i", str(seg)], check=True)
     try:
-        assert agent.publish(_message(2)) is None  # refused, never raised
-        assert agent.publish(_message(3)) is None
+        assert agent.publish(_message(2)) == 2  # refused by the disk, never raised: kept in memory
+        assert agent.publish(_message(3)) == 3
     finally:
         subprocess.run(["chattr", "-i", str(seg)], check=True)
     assert agent.publish(_message(4)) == 4
     out = agent.close(drain_s=0, summary_path=tmp_path / "telemetry.json")
+    # no store took them: the two records die in memory with the agent
     assert out["sent"] == 4 and out["refused"] == 2 and out["refused_seqs"] == ["2-3"] and out["lost"] == 2
+    assert out["memory"]["unsent"] == 2 and out["dropped"] == 0
     assert "Operation not permitted" in out["error"]
     assert json.loads((tmp_path / "telemetry.json").read_text())["refused"] == 2
 
@@ -169,3 +171,49 @@ def test_a_robot_on_a_full_disk_keeps_sending_and_reports_the_loss(tmp_path):
         with TelemetryQueue(qdir, readonly=True) as q:  # what is on disk is intact
             st = q.stats()
             assert st.corruptions == [] and st.torn_bytes == 0 and st.depth == s["queued"]
+
+
+def _cloud_stub(rid: str = "r1"):
+    """A robot stub that sees cloud node c0 alive, and the seqs that cloud stored (an ack for each batch)."""
+    from scmr_mesh.data.record import decode_records
+
+    robot = _robot_stub(rid)
+    robot.view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("c0",), leader=()))
+    stored: list[int] = []
+
+    def ask(key, payload):
+        stored.extend(r.seq for r in decode_records(payload))
+        return "ok", {"stored": True}
+
+    return robot, ask, stored
+
+
+def test_a_full_disk_with_a_live_store_delivers_from_memory_and_drops_only_beyond_its_bound(tmp_path):
+    """Issue #25 item 2: the queue on a real, completely full tmpfs while a cloud acknowledges.
+
+    Every record goes to the cloud from the memory buffer (before: refused with its seq, never sent, counted
+    lost); once the memory bound is hit too, the rest are dropped and counted, and only those are lost.
+    """
+    with full_tmpfs(tmp_path / "mnt", free_pages=0):
+        robot, ask, stored = _cloud_stub()
+        agent = TelemetryAgent(robot, tmp_path / "mnt" / "q", autostart=False, memory_bytes=1500)
+        agent._ask = ask
+        for i in range(1, 11):
+            assert agent.publish(_message(i)) == i  # written nowhere on disk, kept in memory
+            assert agent.flush_once() == 1
+        assert stored == list(range(1, 11))
+        s = agent.summary()
+        assert s["refused"] == 10 and s["memory"]["delivered"] == 10 and s["lost"] == 0 and s["dropped"] == 0
+        # no store now: the memory buffer fills up to its bound, then records are dropped and counted
+        robot.view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=(), leader=()))
+        kept = [agent.publish(_message(i)) for i in range(11, 41)]
+        held = [k for k in kept if k is not None]
+        assert 0 < len(held) < 30 and kept[:len(held)] == held  # the oldest are kept, the rest dropped
+        s = agent.summary()
+        assert s["dropped"] == 30 - len(held) and s["memory"]["unsent"] == len(held)
+        robot.view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("c0",), leader=()))
+        while agent.flush_once():
+            pass
+        assert stored == list(range(1, 11)) + held
+        out = agent.close(drain_s=0, summary_path=None)
+        assert out["sent"] == 40 and out["lost"] == out["dropped"] == 30 - len(held) and out["memory"]["unsent"] == 0

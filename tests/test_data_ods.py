@@ -205,19 +205,25 @@ def test_run_telemetry_reads_the_fleet_layout(tmp_path):
 
     (tmp_path / "robots" / "r1").mkdir(parents=True)
     (tmp_path / "robots" / "r1" / "telemetry.json").write_text(json.dumps({"sent": 3, "queued": 0}))
+    (tmp_path / "robots" / "r3").mkdir(parents=True)  # r3's disk and memory were full: it dropped seq 2
+    (tmp_path / "robots" / "r3" / "telemetry.json").write_text(json.dumps(
+        {"sent": 2, "queued": 0, "refused": 2, "dropped": 1, "lost": 1}))
     with TelemetryQueue(tmp_path / "robots" / "r2" / "telemetry-queue") as q:  # r2 crashed: no summary
         for _ in range(4):
             q.append(b"x")
         q.ack(2)
     rep = run_telemetry(tmp_path)["telemetry"]  # no cloud ever stored anything
-    assert rep["ods"] is None and (rep["sent"], rep["lost"]) == (7, 7)
-    assert rep["per_robot"]["r2"]["queued"] == 2
+    # issue 25 item 9: what r2 still holds (3-4) is queued, not lost; what it let go of (1-2) is lost
+    assert rep["ods"] is None and (rep["sent"], rep["lost"], rep["queued"]) == (9, 7, 2)
+    assert rep["per_robot"]["r2"]["queued"] == 2 and rep["per_robot"]["r2"]["missing"] == ["1-2"]
+    assert rep["dropped"] == 1 and rep["per_robot"]["r3"]["dropped"] == 1 and rep["refused"] == 2
     with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
-        ods.insert([make_record("r1", s) for s in (1, 2, 3)] + [make_record("r2", s) for s in (1, 2)],
-                   received_from="cloud")
+        ods.insert([make_record("r1", s) for s in (1, 2, 3)] + [make_record("r2", s) for s in (1, 2)]
+                   + [make_record("r3", 1)], received_from="cloud")
     rep = run_telemetry(tmp_path)["telemetry"]
-    assert (rep["sent"], rep["stored"], rep["lost"]) == (7, 5, 2)
-    assert rep["per_robot"]["r2"]["missing"] == ["3-4"] and rep["per_robot"]["r2"]["queued"] == 2
+    assert (rep["sent"], rep["stored"], rep["queued"], rep["lost"], rep["dropped"]) == (9, 6, 2, 1, 1)
+    assert rep["per_robot"]["r3"]["missing"] == ["2"]
+    assert rep["per_robot"]["r2"]["missing"] == [] and rep["per_robot"]["r2"]["queued_seqs"] == ["3-4"]
 
 
 def test_a_reused_seq_with_other_content_is_a_conflict_not_a_silent_duplicate(tmp_path, caplog):

@@ -292,3 +292,47 @@ def test_bench_scale_window_counts_cloud_answers_only(tmp_path):
     w = served_in_window({"started_unix_ns": t0, "run_dir": str(tmp_path)}, duration_s=10)
     assert w["window_s"] == 7.0 and w["served"] == 70 and w["served_per_s"] == 10.0  # 2 s warm-up, 1 s tail
     assert w["other"] == 2 and w["by_node"] == {"cloud0": 35, "cloud1": 35}
+
+
+def test_the_runs_postgresql_is_restarted_when_it_dies_and_a_failed_start_is_retried():
+    """FleetHooks supervises the run's PostgreSQL (issue 25 item 9), here with a stand-in server."""
+    from types import SimpleNamespace
+
+    from scmr_mesh.fleet.pgserver import PgServerError
+    from scmr_mesh.fleet.run import FleetHooks
+    from scmr_mesh.scenario.report import run_problems
+
+    class Server:
+        def __init__(self):
+            self.proc, self.up, self.starts, self.fail = SimpleNamespace(returncode=-9), False, 0, 1
+            self.log_path = "postgres.log"
+
+        def alive(self):
+            return self.up
+
+        def stop(self, timeout=None):
+            pass
+
+        def start(self, timeout=None):
+            self.starts += 1
+            if self.fail:
+                self.fail -= 1
+                raise PgServerError("pre-existing shared memory block is still in use")
+            self.up = True
+
+    hooks, run = FleetHooks(FleetConfig(clouds=2)), SimpleNamespace(elapsed_s=lambda: 3.5)
+    hooks.pg = pg = Server()
+    hooks._watch_ods(run)
+    (out,) = hooks.ods_outages  # seen, the first start failed: retried later, not at once
+    assert pg.starts == 1 and out["exit"] == -9 and out["gap_ms"] is None and "shared memory" in out["error"]
+    assert run_problems({"ods": {"outages": [out]}, "telemetry": {"lost": 0}}) == [
+        "the run's PostgreSQL data store was killed by signal 9 at 3.50 s; it could not be restarted "
+        "(pre-existing shared memory block is still in use)"]
+    hooks._watch_ods(run)
+    assert pg.starts == 1  # within PG_RETRY_S of the failure
+    hooks._pg_retry_at = 0.0
+    hooks._watch_ods(run)
+    hooks._watch_ods(run)  # alive again: nothing to do
+    assert pg.starts == 2 and len(hooks.ods_outages) == 1 and out["gap_ms"] is not None and out["error"] is None
+    assert run_problems({"ods": {"outages": [out]}, "telemetry": {"lost": 0}}) == [
+        f"the run's PostgreSQL data store was killed by signal 9 at 3.50 s; restarted after {out['gap_ms']:.0f} ms"]

@@ -44,26 +44,61 @@ def _procs_mentioning(text: str) -> list[int]:
     return out
 
 
+def _children_named(ppid: int, comm: str) -> list[int]:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                stat = (d / "stat").read_text()
+            except OSError:
+                continue
+            name, rest = stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+            if name == comm and int(rest[1]) == ppid and rest[0] != "Z":
+                out.append(int(d.name))
+    return out
+
+
 @pytest.mark.timeout(180)
-def test_up_with_two_clouds_shares_one_postgres_store(tmp_path):
+def test_up_with_two_clouds_shares_one_postgres_store_and_restarts_it_when_it_dies(tmp_path):
+    """Both nodes serve and store on the run's PostgreSQL; SIGKILLed mid-run, it is restarted (issue 25 item 9).
+
+    Before, nobody noticed: the clouds logged errors to the end and the report called the robots' queued
+    records lost.  Now the outage is in the report and on the console (a problem: exit 1), and every
+    record is stored after the restart, in the run or in the robots' drain phase.
+    """
+    import os
+    import signal
+
     run_dir = tmp_path / "run"
-    r = subprocess.run(
-        [sys.executable, "-m", "scmr_mesh", "up", "--robots", "3", "--clouds", "2", "--duration", "5",
+    up = subprocess.Popen(
+        [sys.executable, "-m", "scmr_mesh", "up", "--robots", "3", "--clouds", "2", "--duration", "6",
          "--rate", "5", "--synthetic", "stub", "--server-arg=--process", f"--server-arg={STUB}", "--quiet",
          "--lease-ms", LEASE, "--run-dir", str(run_dir)],
-        capture_output=True, text=True, timeout=170)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert r.returncode == 0, r.stdout + r.stderr
+        records = run_dir / "robots" / "r1" / "records.jsonl"
+        wait_for(lambda: up.poll() is not None or (_children_named(up.pid, "postgres") and records.is_file()
+                                                   and len(read_records(records)) >= 5),
+                 timeout=120, what="the fleet to serve r1 five frames")
+        (pg_pid,) = _children_named(up.pid, "postgres")
+        os.kill(pg_pid, signal.SIGKILL)
+        out, err = up.communicate(timeout=150)
+        assert up.returncode == 1, out + err
         rep = json.loads((run_dir / "report.json").read_text())
         assert rep["clouds"] == 2 and rep["ods"]["backend"] == "postgresql"
         assert rep["ods"]["store"].startswith("postgresql://")
+        (outage,) = rep["ods"]["outages"]
+        assert outage["exit"] == -9 and outage["gap_ms"] is not None and outage["restarted_unix_ns"] > outage["down_unix_ns"]
+        assert rep["problems"] == [f"the run's PostgreSQL data store was killed by signal 9 at {outage['t_s']:.2f} s; "
+                                   f"restarted after {outage['gap_ms']:.0f} ms"], rep["problems"]
+        assert "PROBLEM: the run's PostgreSQL data store was killed by signal 9" in out
         assert rep["ror"] == 1.0
         served = {rec["served_by"] for rid in ("r1", "r2", "r3")
                   for rec in read_records(run_dir / "robots" / rid / "records.jsonl")}
         assert {"cloud0", "cloud1"} <= served  # robots spread over both nodes
         tel = rep["telemetry"]
         assert tel["ods"] == rep["ods"]["store"]
-        assert tel["sent"] > 0 and tel["stored"] == tel["sent"] and tel["lost"] == 0
+        assert tel["sent"] > 0 and tel["stored"] + tel["queued"] == tel["sent"] and tel["lost"] == 0, tel
         # both cloud nodes logged the same store, and the server is gone
         for name in ("cloud", "cloud1"):
             assert "(postgresql)" in (run_dir / "logs" / f"{name}.log").read_text()
@@ -71,6 +106,9 @@ def test_up_with_two_clouds_shares_one_postgres_store(tmp_path):
         assert not _procs_mentioning(f"unix_socket_directories={sock}"), "the run's PostgreSQL outlived it"
         assert not _procs_mentioning(str(run_dir))
     finally:
+        if up.poll() is None:
+            up.kill()
+            up.wait()
         for pid in _procs_mentioning(str(run_dir)):
             try:
                 __import__("os").kill(pid, 9)

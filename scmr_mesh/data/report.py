@@ -8,7 +8,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 from scmr_mesh.data.errors import StoreError
 from scmr_mesh.data.ods import OperationalDataStore, is_dsn
@@ -21,6 +21,9 @@ def telemetry_report(
     *,
     queued: Mapping[str, int] | None = None,
     refused: Mapping[str, int] | None = None,
+    held: Mapping[str, Iterable[int]] | None = None,
+    robot_lost: Mapping[str, int] | None = None,
+    dropped: Mapping[str, int] | None = None,
 ) -> dict[str, Any]:
     """Count telemetry per robot and in total.
 
@@ -31,23 +34,36 @@ def telemetry_report(
     sent : mapping robot -> int
         How many telemetry messages each robot produced (its seqs are ``1..sent``).
     queued : mapping robot -> int, optional
-        Messages still in each robot's on-disk queue at the end (reported as
-        ``queued``; they are not in the store yet, so they also count as lost
-        until they are replayed).
+        Messages still in each robot's on-disk queue at the end, when their
+        seqs are not known (reported as ``queued``; without ``held`` they are
+        not told apart from lost ones).
+    held : mapping robot -> seqs, optional
+        The seqs still in each robot's on-disk queue at the end.  A missing
+        seq the robot still holds is ``queued`` (delivered at its next start),
+        never ``lost``; ``queued`` then counts those (held and not stored).
+    robot_lost : mapping robot -> int, optional
+        Records each robot itself counts as lost (its ``telemetry.json``
+        ``lost``: refused by its disk and not delivered from memory, found
+        corrupt on its disk); reported per robot as ``lost_on_robot``.
+    dropped : mapping robot -> int, optional
+        Records each robot dropped because its disk refused them and its
+        memory buffer was full too (among the lost); reported as ``dropped``.
     refused : mapping robot -> int, optional
-        Records each robot's queue refused (full, or the file system refused
-        the write); they kept their seqs, so they are already among the
-        missing seqs and in ``lost`` (reported as ``refused`` per robot).
+        Records each robot's disk queue refused (full, or the file system
+        refused the write), reported as ``refused`` per robot; each was kept
+        in the robot's memory and sent from there unless its memory bound was
+        hit too, so a refused record is stored or lost like any other.
 
     Returns
     -------
     dict
         ``{"telemetry": {"sent", "stored", "duplicates", "lost", "conflicts",
         "per_robot": {robot: {"sent", "stored", "duplicates", "conflicts",
-        "lost", "missing", "unexpected" [, "queued"]}}}}`` where ``stored``
-        counts distinct ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost =
-        sent - stored``, ``missing`` lists the missing seqs as ranges (at most
-        20), ``unexpected`` counts stored seqs beyond ``sent``, and
+        "lost", "missing", "unexpected" [, "queued", "queued_seqs"]}}}}`` (and a
+        total ``queued`` with ``held``) where ``stored`` counts distinct
+        ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost = sent - stored -
+        queued``, ``missing`` lists the lost seqs as ranges (at most 20),
+        ``unexpected`` counts stored seqs beyond ``sent``, and
         ``conflicts`` counts messages refused because their ``(robot, seq)``
         was already stored with other content (a robot that started over with
         a fresh queue: those messages are lost even when ``lost`` is 0).
@@ -73,24 +89,34 @@ def telemetry_report(
             in_range = [s for s in seqs if 1 <= s <= n_sent]
             have = set(in_range)
             missing = [s for s in range(1, n_sent + 1) if s not in have]
+            kept = set(held.get(robot, ())) if held is not None else set()
+            gone = [s for s in missing if s not in kept]
             row: dict[str, Any] = {
                 "sent": n_sent,
                 "stored": len(in_range),
                 "duplicates": counts.get(robot, {}).get("duplicates", 0),
                 "conflicts": counts.get(robot, {}).get("conflicts", 0),
-                "lost": n_sent - len(in_range),
-                "missing": seq_ranges(missing, limit=20),
+                "lost": len(gone),
+                "missing": seq_ranges(gone, limit=20),
                 "unexpected": len(seqs) - len(in_range),
             }
-            if queued is not None:
+            if held is not None:
+                row["queued"] = len(missing) - len(gone)
+                row["queued_seqs"] = seq_ranges([s for s in missing if s in kept], limit=20)
+            elif queued is not None:
                 row["queued"] = int(queued.get(robot, 0))
+            if robot_lost is not None:
+                row["lost_on_robot"] = int(robot_lost.get(robot, 0))
+            if dropped is not None:
+                row["dropped"] = int(dropped.get(robot, 0))
             if refused is not None:
                 row["refused"] = int(refused.get(robot, 0))
             per_robot[robot] = row
     finally:
         if own:
             ods.close()
-    keys = ("sent", "stored", "duplicates", "lost", "conflicts") + (("refused",) if refused is not None else ())
+    keys = (("sent", "stored", "duplicates", "lost", "conflicts") + (("refused",) if refused is not None else ())
+            + (("queued",) if held is not None else ()) + (("dropped",) if dropped is not None else ()))
     total = {k: sum(r[k] for r in per_robot.values()) for k in keys}
     return {"telemetry": {**total, "per_robot": per_robot}}
 
@@ -102,6 +128,15 @@ def queue_sent(queue_dir: str | Path) -> tuple[int, int]:
     with TelemetryQueue(queue_dir, readonly=True) as q:
         st = q.stats()
     return st.next_seq - 1, st.depth
+
+
+def queue_held(queue_dir: str | Path) -> tuple[int, list[int]]:
+    """``(sent, held seqs)`` of a robot's on-disk telemetry queue: last seq handed out, seqs not acknowledged."""
+    from scmr_mesh.data.queue import TelemetryQueue
+
+    with TelemetryQueue(queue_dir, readonly=True) as q:
+        st = q.stats()
+        return st.next_seq - 1, [s for s, _ in q.pending()]
 
 
 def robot_summary(robot_dir: str | Path) -> dict[str, Any] | None:
@@ -164,25 +199,27 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     if robots is None:
         base = queues if queues.is_dir() else run_dir / "robots"
         robots = sorted(p.name for p in base.iterdir() if p.is_dir()) if base.is_dir() else []
-    sent, queued, refused = {}, {}, {}
+    sent, held, refused, robot_lost, dropped = {}, {}, {}, {}, {}
     for rid in robots:
-        if (queues / rid).is_dir():  # peers with a run dir keep the queue there, across restarts
-            sent[rid], queued[rid] = queue_sent(queues / rid)
-        else:
-            sent[rid], queued[rid] = robot_sent(run_dir / "robots" / rid)
+        qdir = queues / rid if (queues / rid).is_dir() else run_dir / "robots" / rid / "telemetry-queue"
+        # peers with a run dir keep the queue there, across restarts: what it still holds is queued
+        sent[rid], held[rid] = queue_held(qdir) if qdir.is_dir() else (robot_sent(run_dir / "robots" / rid)[0], [])
         # the robot's own count at exit: refusals, and seqs it handed out that never reached
         # its queue's files (a queue on a file system that refused every write)
         d = robot_summary(run_dir / "robots" / rid) or {}
         try:
             refused[rid] = int(d.get("refused", 0))
+            robot_lost[rid] = int(d.get("lost", refused[rid]))
+            dropped[rid] = int(d.get("dropped", 0))
             sent[rid] = max(sent[rid], int(d.get("sent", 0)))
         except (TypeError, ValueError):
-            refused[rid] = 0
+            refused[rid] = robot_lost[rid] = dropped[rid] = 0
+    kw = {"refused": refused, "held": held, "robot_lost": robot_lost, "dropped": dropped}
     if is_dsn(ods_path):  # a PostgreSQL store (several cloud nodes)
         from scmr_mesh.data.ods_pg import redact
 
         try:
-            rep = telemetry_report(ods_path, sent, queued=queued, refused=refused)
+            rep = telemetry_report(ods_path, sent, **kw)
             rep["telemetry"]["ods"] = redact(ods_path)
             return rep
         except StoreError as exc:
@@ -191,24 +228,38 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     else:
         ods = Path(ods_path) if ods_path is not None else run_dir / "ods.sqlite"
         if ods.is_file():
-            rep = telemetry_report(ods, sent, queued=queued, refused=refused)
+            rep = telemetry_report(ods, sent, **kw)
             rep["telemetry"]["ods"] = str(ods)
             return rep
-    per = {r: {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent[r],
-               "missing": seq_ranges(list(range(1, sent[r] + 1)), limit=20), "unexpected": 0, "queued": queued[r],
-               "refused": refused[r]}
-           for r in robots}
-    tot = sum(sent.values())
-    return {"telemetry": {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "conflicts": 0,
-                          "refused": sum(refused.values()), "per_robot": per, "ods": None}}
+    rep = _nothing_stored(sent, held, refused, robot_lost, dropped)
+    rep["ods"] = None
+    return {"telemetry": rep}
+
+
+def _nothing_stored(sent: Mapping[str, int], held: Mapping[str, Iterable[int]], refused: Mapping[str, int],
+                    robot_lost: Mapping[str, int], dropped: Mapping[str, int]) -> dict[str, Any]:
+    """The telemetry block when no store can show a record stored: what robots hold is queued, the rest lost."""
+    per = {}
+    for r in sent:
+        kept = {s for s in held.get(r, ()) if 1 <= s <= sent[r]}
+        gone = [s for s in range(1, sent[r] + 1) if s not in kept]
+        per[r] = {"sent": sent[r], "stored": 0, "duplicates": 0, "conflicts": 0, "lost": len(gone),
+                  "missing": seq_ranges(gone, limit=20), "unexpected": 0, "queued": len(kept),
+                  "queued_seqs": seq_ranges(sorted(kept), limit=20), "refused": refused.get(r, 0),
+                  "lost_on_robot": robot_lost.get(r, 0), "dropped": dropped.get(r, 0)}
+    total = {k: sum(p[k] for p in per.values()) for k in ("sent", "stored", "duplicates", "lost", "conflicts",
+                                                          "refused", "queued", "dropped")}
+    return {**total, "per_robot": per}
 
 
 def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, timeout_s: float = 10.0,
                      ods_path: str | Path | None = None) -> dict[str, Any]:
     """:func:`run_telemetry`, polled until nothing more can arrive or ``timeout_s`` passes.
 
-    Nothing more can arrive when every lost record is one a robot's queue
-    refused (those never reach the store).
+    Nothing more can arrive when every record not stored is one its robot
+    counts as lost itself (refused by its disk and not delivered from memory):
+    a record a robot still holds may yet arrive through the leader it was
+    relayed to.
 
     Call it after the robots stopped and before the cloud and leader stop:
     the leader forwards what it relayed within a fraction of a second once a
@@ -220,8 +271,10 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
     while True:
         rep = run_telemetry(run_dir, robots, ods_path=ods_path)
         t = rep["telemetry"]
-        # records the robots' queues refused can never arrive: do not wait for them
-        if t["lost"] - t.get("refused", 0) <= 0 or time.monotonic() >= end:
+        # records the robots count as lost can never arrive: do not wait for them
+        unstored = t["lost"] + t.get("queued", 0)
+        gone = sum(r.get("lost_on_robot", r.get("refused", 0)) for r in t["per_robot"].values())
+        if unstored - gone <= 0 or time.monotonic() >= end:
             return rep
         time.sleep(0.2)
 
@@ -234,8 +287,8 @@ def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     For ``scmr up`` / scenarios: call it after the robots stopped and, with
     ``wait=True``, while the cloud still runs (it waits up to ``timeout_s``
     for relayed telemetry to land).  When the store cannot be read (a
-    destroyed ODS, say), the block still counts what the robots sent, counts
-    every record as lost (none can be shown stored) and says why in
+    destroyed ODS, say), the block still counts what the robots sent, counts what they still hold as queued and
+    the rest as lost (none can be shown stored) and says why in
     ``"error"``.
     """
     import logging
@@ -257,22 +310,19 @@ def _redact(dsn) -> str:
 
 def unreadable_telemetry(run_dir: str | Path, robots: list[str] | None, why: str, *,
                          ods: str | Path | None = None) -> dict[str, Any]:
-    """A telemetry block for a run whose store could not be read: sent as far as known, all lost."""
+    """A telemetry block for a run whose store could not be read: what the robots still hold is queued, the rest lost."""
     run_dir = Path(run_dir)
-    per: dict[str, dict[str, Any]] = {}
+    sent, held = {}, {}
     for rid in robots or []:
         try:
             qdir = run_dir / "queues" / rid
-            sent, queued = queue_sent(qdir) if qdir.is_dir() else robot_sent(run_dir / "robots" / rid)
+            sent[rid], held[rid] = queue_held(qdir) if qdir.is_dir() else (robot_sent(run_dir / "robots" / rid)[0], [])
         except Exception:  # the robots' own counts are unreadable too: nothing known
-            sent, queued = 0, 0
-        per[rid] = {"sent": sent, "stored": 0, "duplicates": 0, "conflicts": 0, "lost": sent,
-                    "missing": seq_ranges(list(range(1, sent + 1)), limit=20), "unexpected": 0, "queued": queued}
-    tot = sum(r["sent"] for r in per.values())
-    return {"sent": tot, "stored": 0, "duplicates": 0, "lost": tot, "conflicts": 0, "per_robot": per,
-            "ods": _redact(ods) if is_dsn(ods) else str(ods if ods is not None else run_dir / "ods.sqlite"),
+            sent[rid], held[rid] = 0, []
+    rep = _nothing_stored(sent, held, {}, {}, {})
+    return {**rep, "ods": _redact(ods) if is_dsn(ods) else str(ods if ods is not None else run_dir / "ods.sqlite"),
             "error": f"the store could not be read ({why})"}
 
 
-__all__ = ["fleet_telemetry", "queue_sent", "robot_sent", "robot_summary", "run_telemetry", "settle_telemetry", "telemetry_report",
+__all__ = ["fleet_telemetry", "queue_held", "queue_sent", "robot_sent", "robot_summary", "run_telemetry", "settle_telemetry", "telemetry_report",
            "unreadable_telemetry"]

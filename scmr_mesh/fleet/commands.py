@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.data.retention import DEFAULT_KEEP_MASKS
 from scmr_mesh.fleet.output import check_fleet, format_summary, run_with_output
 from scmr_mesh.fleet.plan import ODS_BACKENDS, TABLE_4_3_ROBOTS, FleetConfig, parse_kill, parse_outage
 
@@ -33,6 +34,10 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
                         "--server-arg=scmr_mesh.mesh.testing:stub_process)")
     p.add_argument("--robot-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for every robot (repeatable)")
+    p.add_argument("--keep-all", action="store_true",
+                   help="every robot keeps every mask in RUN/robots/<id>/inbox (by default each keeps the newest "
+                        f"{DEFAULT_KEEP_MASKS}, so a long run's folders stay bounded; scmr robot --keep-masks N sets another "
+                        "bound, e.g. --robot-arg=--keep-masks=100)")
     p.add_argument("--profiles", nargs="?", const=",".join(TABLE_4_3_ROBOTS), default=None, metavar="NAMES",
                    type=ca.parsed(_profile_list, what="comma-separated Table 4.3 profile names (or the flag alone "
                                   "for robot1..robot4)", example="robot1,robot4"),
@@ -85,7 +90,8 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         kill_cloud=parse_kill(args.kill_cloud) if getattr(args, "kill_cloud", None) else None,
         images=args.images, synthetic=kinds, run_dir=run_dir, workers=args.workers,
         lease_ms=args.lease_ms, deadline_ms=args.deadline_ms, ready_timeout_s=args.ready_timeout,
-        server_args=tuple(args.server_arg), robot_args=tuple(args.robot_arg),
+        server_args=tuple(args.server_arg),
+        robot_args=tuple(args.robot_arg) + (("--keep-all",) if getattr(args, "keep_all", False) else ()),
         rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
         leader_crash_s=getattr(args, "leader_crash", None), profiles=getattr(args, "profiles", None) or (),
         insecure=args.insecure, shape=getattr(args, "shape", "auto"),
@@ -104,10 +110,12 @@ UP_EPILOG = """\
 Exit status: 0 when every request was answered (RoR >= --min-ror, default 1.0)
 and nothing else went wrong; 1 when fewer were, when telemetry was lost or
 could not be counted, when a restarted peer never became ready or a peer
-exited with an error, or when a peer failed to start (the error names each
+exited with an error, when the run's PostgreSQL died (it is restarted; the
+report's ods.outages has the gap), or when a peer failed to start (the error names each
 problem; the report is still written); 130 on Ctrl-C (report written,
 "interrupted": true).  The summary always prints the telemetry line (sent,
-stored, duplicates, lost).
+stored, duplicates, lost, and queued: records still on a robot's disk when it
+stopped after its drain phase, sent at its next start, never counted lost).
 
 Example:
   scmr up --robots 4 --duration 20 --cloud-outage 8:14 --json report.json

@@ -123,14 +123,18 @@ def format_energy(energy: Mapping[str, Any] | None) -> list[str]:
 
 
 def format_telemetry(tel: Mapping[str, Any] | None) -> str:
-    """The summary's telemetry line: sent, stored, duplicates, lost (always printed)."""
+    """The summary's telemetry line: sent, stored, duplicates, lost, and queued when any (always printed)."""
     if tel is None:
         return "telemetry: NOT COUNTED (see the log)"
     line = (f"telemetry: {tel.get('sent', 0)} sent, {tel.get('stored', 0)} stored, "
             f"{tel.get('duplicates', 0)} duplicates, {tel.get('lost', 0)} lost")
+    if tel.get("queued"):
+        line += f", {tel['queued']} queued (still on the robots' disks, sent at their next start)"
     extra = []
     if tel.get("refused"):
-        extra.append(f"{tel['refused']} refused by the robots' queues")
+        extra.append(f"{tel['refused']} refused by the robots' disks")
+    if tel.get("dropped"):
+        extra.append(f"{tel['dropped']} dropped: disk and memory buffer both full")
     if tel.get("conflicts"):
         extra.append(f"{tel['conflicts']} conflicts")
     if tel.get("error"):

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import subprocess
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,6 +41,9 @@ __all__ = ["FleetHooks", "Progress", "RecordTail", "default_run_dir", "fleet_pro
            "validate_report"]
 
 log = logging.getLogger(__name__)
+
+#: Seconds between attempts to start the run's PostgreSQL again after a start failed.
+PG_RETRY_S = 1.0
 
 
 @dataclass
@@ -80,6 +84,9 @@ class FleetHooks(Hooks):
         self.progress_every_s = progress_every_s
         self.fviz = None  # scmr_mesh.viz.FleetViz with rerun flags
         self.pg = None  # scmr_mesh.fleet.pgserver.PgServer when the run starts PostgreSQL
+        #: the run's PostgreSQL deaths: {"t_s", "down_unix_ns", "exit", "restarted_unix_ns", "gap_ms", "error"}
+        self.ods_outages: list[dict[str, Any]] = []
+        self._pg_retry_at = 0.0
         self.ods: str | None = config.ods
         self._last_emit = -1e9
         self._n_seen = 0
@@ -102,6 +109,7 @@ class FleetHooks(Hooks):
         self._emit(run, message)
 
     def tick(self, run: ScenarioRun) -> None:
+        self._watch_ods(run)
         if self.fviz is not None:
             alive = {("cloud", run.scenario.node_of(c)): run.up(c) for c in run.scenario.clouds}
             leaders = set(run.leaders())
@@ -166,6 +174,44 @@ class FleetHooks(Hooks):
         log.info("data store: PostgreSQL %s (log %s)", dsn, self.pg.log_path)
         return dsn
 
+    def _watch_ods(self, run: ScenarioRun) -> None:
+        """Supervise the run's PostgreSQL like a peer: when it died, say so and start it again.
+
+        The outage (from when the death was seen to when the server accepts connections again) goes
+        to the report (``ods.outages``) and the console; a start that fails is tried again every
+        :data:`PG_RETRY_S` seconds.  The cloud nodes reconnect by themselves, and the robots keep
+        their telemetry queued meanwhile.
+        """
+        pg = self.pg
+        if pg is None or pg.alive() or time.monotonic() < self._pg_retry_at:
+            return
+        from scmr_mesh.fleet.pgserver import PgServerError
+
+        out = self.ods_outages[-1] if self.ods_outages and self.ods_outages[-1]["restarted_unix_ns"] is None \
+            else None
+        if out is None:
+            rc = pg.proc.returncode if pg.proc is not None else None
+            out = {"t_s": round(run.elapsed_s(), 3), "down_unix_ns": time.time_ns(), "exit": rc,
+                   "restarted_unix_ns": None, "gap_ms": None, "error": None}
+            self.ods_outages.append(out)
+            what = f"killed by signal {-rc}" if rc is not None and rc < 0 else f"exited with status {rc}"
+            log.error("the run's PostgreSQL data store %s at %.2f s; restarting it (log %s)", what, out["t_s"],
+                      pg.log_path)
+            self._emit(run, f"PostgreSQL data store {what}; restarting it")
+        try:
+            pg.stop(timeout=5.0)  # reaps it and kills what is left of its group (backends hold its memory)
+            pg.start(timeout=30.0)
+        except (PgServerError, OSError, subprocess.SubprocessError) as exc:  # the run goes on; tried again
+            out["error"] = str(exc)
+            self._pg_retry_at = time.monotonic() + PG_RETRY_S
+            log.error("restarting the run's PostgreSQL failed (%s); trying again in %g s", exc, PG_RETRY_S)
+            return
+        out["restarted_unix_ns"] = time.time_ns()
+        out["gap_ms"] = round((out["restarted_unix_ns"] - out["down_unix_ns"]) / 1e6, 1)
+        out["error"] = None
+        log.warning("the run's PostgreSQL data store is back after %.0f ms", out["gap_ms"])
+        self._emit(run, f"PostgreSQL data store restarted after {out['gap_ms']:.0f} ms")
+
     def _stop_ods(self) -> None:
         pg, self.pg = self.pg, None
         if pg is None:
@@ -219,8 +265,10 @@ def run_fleet(
                            insecure=config.insecure, keep_interrupted=True, progress=lambda m: log.info("%s", m))
     except ScenarioError as exc:  # a peer that did not start: scmr up's own error
         raise MeshError(str(exc).removeprefix("scenario fleet: ")) from None
-    report = run_report(res, extra={"clouds": config.clouds,
-                                    "ods": {"backend": ods_backend(config), "store": fleet.ods_name(run_dir)}})
+    ods = {"backend": ods_backend(config), "store": fleet.ods_name(run_dir)}
+    if ods["backend"] == "postgresql" and config.ods is None:  # a server of the run's own, supervised
+        ods["outages"] = fleet.ods_outages
+    report = run_report(res, extra={"clouds": config.clouds, "ods": ods})
     import json
 
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")

@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.data.retention import DEFAULT_KEEP_MASKS
+from scmr_mesh.mesh.data_agent import MEMORY_BUFFER_BYTES
 from scmr_mesh.errors import InputError, MeshError
 from scmr_mesh.mesh.resources import appeared
 
@@ -256,6 +258,20 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                         "own within one frame period (from --id and --seed), as independent robots would, and "
                         "send until time 0 + --duration; 'scmr up' and 'scmr demo' pass RUN/ready/fleet.ready, "
                         "'scmr scenario run' OUT/ready/run.start.  With no such file it waits (and says so)")
+    g.add_argument("--drain-s", type=ca.non_negative("seconds", hi=3600, example="5"), default=5.0, metavar="S",
+                   help="drain phase: after the last frame, keep sending queued telemetry for up to S seconds "
+                        "while a tier can take it (default 5); what is left stays queued on disk and is sent at "
+                        "the next start (reported as queued, not lost)")
+    g.add_argument("--telemetry-memory-bytes", type=ca.count("bytes", lo=0, hi=1 << 40, example="4194304"),
+                   default=MEMORY_BUFFER_BYTES, metavar="N",
+                   help="telemetry records the disk queue refuses (full disk, I/O error, queue full) are kept in "
+                        f"memory up to N bytes (default {MEMORY_BUFFER_BYTES}, about 14,000 records) and sent from "
+                        "there while a cloud stores them; beyond it they are dropped and counted; 0: no buffer")
+    g.add_argument("--keep-masks", type=ca.count("masks", lo=1, hi=10**9, example="1000"), default=DEFAULT_KEEP_MASKS,
+                   metavar="N", help=f"keep only the newest N masks in OUT/inbox (default {DEFAULT_KEEP_MASKS}); "
+                                     "older ones are deleted as new ones arrive, so a long run's folder stays bounded")
+    g.add_argument("--keep-all", action="store_true",
+                   help="keep every mask in OUT/inbox (no retention; the folder grows with the run)")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     from scmr_mesh.viz import (
         add_rerun_peer_args,  # light: rerun itself is imported only with a flag
@@ -453,7 +469,8 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
     opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
                         priority=args.priority, mode=args.mode or "best",
                         process=getattr(args, "process", None) or DEFAULT_PROCESS,
-                        hedge=hedge != "off", hedge_ms=hedge if isinstance(hedge, float) else None)
+                        hedge=hedge != "off", hedge_ms=hedge if isinstance(hedge, float) else None,
+                        keep_masks=None if getattr(args, "keep_all", False) else getattr(args, "keep_masks", DEFAULT_KEEP_MASKS))
     profile = _energy_profile(args)
     robot = Robot(args.id, args.out, options=opts)
     fleet = fleet_policy(args)
@@ -506,13 +523,13 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
                           progress=progress)
     finally:
         if agent is not None:  # drain, write OUT/telemetry.json, keep the rest queued on disk
-            telemetry = agent.close(summary_path=Path(args.out) / "telemetry.json")
+            telemetry = agent.close(drain_s=args.drain_s, summary_path=Path(args.out) / "telemetry.json")
         robot.close()
         if rerun_viz is not None:
             rerun_viz.close()
     extra = {"energy": placer.summary()} if placer is not None else {}
     if telemetry is not None:
-        extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
+        extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "dropped", "lost")}
     if robot.telemetry_errors:
         extra["telemetry_errors"] = robot.telemetry_errors
     emit_json_line({"robot": args.id, **stats, **extra})
@@ -588,8 +605,15 @@ def _robot_problem(rid: str, telemetry: dict | None, errors: int) -> str | None:
     problems = []
     if telemetry is not None and telemetry["lost"]:
         refused = ",".join(telemetry["refused_seqs"])
+        mem = telemetry.get("memory") or {}
+        why = []
+        if telemetry.get("dropped"):
+            why.append(f"{telemetry['dropped']} dropped with the memory buffer full")
+        if mem.get("unsent"):
+            why.append(f"{mem['unsent']} still in memory at exit")
         problems.append(f"{telemetry['lost']} of {telemetry['sent']} telemetry records lost"
-                        + (f" (refused seqs {refused}: {telemetry['error']})" if refused else "")
+                        + (f" (refused by the disk: seqs {refused}: {telemetry['error']}"
+                           + (f"; {', '.join(why)}" if why else "") + ")" if refused else "")
                         + "; see OUT/telemetry.json")
     if errors:
         problems.append(f"{errors} telemetry message(s) could not be produced (see the log)")
@@ -673,7 +697,10 @@ def _data_agent(robot, args):
     """Queue the robot's telemetry on disk until a tier stores it (data_service.TelemetryAgent)."""
     from scmr_mesh.mesh.data_service import attach_robot
 
-    return attach_robot(robot, args)
+    agent = attach_robot(robot, args)
+    if agent is not None:  # records the disk refuses wait in memory up to this bound (docs/DATA.md)
+        agent.memory_bytes = int(getattr(args, "telemetry_memory_bytes", agent.memory_bytes))
+    return agent
 
 
 def _cmd_router(args) -> int:

@@ -24,6 +24,12 @@ from scmr_mesh.vocab import Tier
 
 log = logging.getLogger(__name__)
 
+#: Payload bytes of telemetry a robot keeps in memory when its disk queue refuses a record (full
+#: disk, any OSError on write, or the queue's own bound): delivered from there while a store
+#: acknowledges; only beyond this are records dropped (counted in ``dropped``).  4 MiB holds
+#: about 14,000 records (~300 B each), 45 minutes of one robot at 5 Hz.
+MEMORY_BUFFER_BYTES = 4 << 20
+
 
 def failover_order(clouds: Iterable[str], leaders: Iterable[str]) -> list[tuple[str, str]]:
     """Where a data request goes, in order: every live cloud node, then the leader(s).
@@ -72,13 +78,17 @@ class TelemetryAgent:
         Per-attempt deadline of telemetry and data queries.
     autostart : bool
         Start the flusher thread (tests call :meth:`flush_once` themselves).
+    memory_bytes : int
+        Bound on the in-memory buffer of records the disk queue refused
+        (:data:`MEMORY_BUFFER_BYTES`; 0 turns the buffer off).
     """
 
     def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
-                 deadline_ms: float = 1000.0, autostart: bool = True) -> None:
+                 deadline_ms: float = 1000.0, autostart: bool = True,
+                 memory_bytes: int = MEMORY_BUFFER_BYTES) -> None:
         self.robot = robot
-        # a refused record keeps its seq (it is in the record already): the store sees the
-        # gap and every report counts it as lost
+        # a refused record keeps its seq (it is in the record already) and waits in memory
+        # (_mem); one never delivered leaves a gap the store sees, and every report counts it lost
         self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
         self.deadline_s = deadline_ms / 1e3
         self.acked_by = {"cloud": 0, "leader": 0}
@@ -90,6 +100,15 @@ class TelemetryAgent:
         self._busy_streak = 0
         self._not_before = 0.0     # monotonic time before which the flusher does not retry
         self._replay_upto = 0  # records with seq <= this waited through a failed attempt
+        # records the disk queue refused, kept in memory (seq -> payload) until a cloud stores them
+        self.memory_bytes = max(0, int(memory_bytes))
+        self._mem: dict[int, bytes] = {}
+        self._mem_size = 0
+        self._mem_lock = threading.Lock()
+        self.mem_held = 0          # records the disk refused that the memory buffer took
+        self.mem_delivered = 0     # of those, stored by a cloud
+        self.dropped = 0           # refused by the disk and beyond the memory bound: lost
+        self.ack_write_errors = 0  # acks the disk would not record (the records were stored all the same)
         self._queriers: dict[str, Any] = {}
         self._qlock = threading.Lock()
         self._wake = threading.Event()
@@ -114,7 +133,10 @@ class TelemetryAgent:
         Never raises for a refusal: a full queue or a file system that refuses
         the write (full, read-only, immutable) counts the record as refused
         with its seq (``refused``, ``refused_seqs`` in :meth:`summary`), logs
-        it, and returns None, so the robot keeps sending frames.
+        it, and keeps it in the bounded memory buffer (delivered from there
+        while a cloud stores telemetry; counted in ``dropped`` when the buffer
+        is full too), so the robot keeps sending frames.  Returns the seq when
+        the record is kept (on disk or in memory), None when it was dropped.
         """
         try:
             forward(message)
@@ -123,16 +145,66 @@ class TelemetryAgent:
             log.debug("telemetry publish failed: %s", exc)
         seq = self.queue.next_seq
         rec = record_from_message(message, seq)
+        payload = _pack(rec.to_dict())
         try:
-            self.queue.append(_pack(rec.to_dict()), seq=seq)
+            self.queue.append(payload, seq=seq)
         except QueueError as exc:  # QueueFullError, QueueWriteError: refused, counted with its seq
             self.refused_logged += 1
+            kept = self._keep_in_memory(seq, payload)
             if self.refused_logged in (1, 10, 100) or self.refused_logged % 1000 == 0:
-                log.error("robot %s: telemetry record %d refused (%d so far): %s", self.robot.id, seq,
-                          self.refused_logged, exc)
-            return None
+                log.error("robot %s: telemetry record %d not written to disk (%d so far): %s; %s", self.robot.id,
+                          seq, self.refused_logged, exc,
+                          f"kept in memory ({len(self._mem)} records, {self._mem_size} of {self.memory_bytes} "
+                          "bytes) until a cloud stores it" if kept else
+                          f"DROPPED: the memory buffer is full too ({self.dropped} dropped so far)")
+            if not kept:
+                return None
         self._wake.set()
         return seq
+
+    def _keep_in_memory(self, seq: int, payload: bytes) -> bool:
+        """Keep a record the disk refused in the bounded memory buffer; False (dropped) when it is full."""
+        with self._mem_lock:
+            if self._mem_size + len(payload) > self.memory_bytes:
+                self.dropped += 1
+                return False
+            self._mem[seq] = payload
+            self._mem_size += len(payload)
+            self.mem_held += 1
+            return True
+
+    def _backlog(self) -> int:
+        """Records waiting for a cloud: on disk and in memory."""
+        return len(self.queue) + len(self._mem)
+
+    def _pending(self, after: int) -> list[tuple[int, bytes]]:
+        """The oldest waiting records with ``seq > after`` (disk queue and memory buffer merged), at most BATCH."""
+        batch = self.queue.pending(limit=BATCH, after=after)
+        if self._mem:
+            with self._mem_lock:
+                mem = [(s, p) for s, p in self._mem.items() if s > after]
+            batch = sorted(batch + mem)[:BATCH]
+        return batch
+
+    def _stored_upto(self, upto: int) -> None:
+        """A cloud stored every waiting record with ``seq <= upto``: acknowledge the queue, free the memory.
+
+        The queue drops the records from its pending list before it writes its ``ack`` file; when the
+        file system refuses that write (a full disk) the records are still stored, and the file on disk
+        lags behind (a restart replays them; the store de-duplicates).
+        """
+        try:
+            self.queue.ack(upto)
+        except OSError as exc:
+            self.ack_write_errors += 1
+            if self.ack_write_errors in (1, 100) or self.ack_write_errors % 10000 == 0:
+                log.warning("robot %s: cannot record the ack of seq %d on disk (%s; %d so far); the records are "
+                            "stored, a restart would send them again", self.robot.id, upto, exc, self.ack_write_errors)
+        if self._mem:
+            with self._mem_lock:
+                for s in [s for s in self._mem if s <= upto]:
+                    self._mem_size -= len(self._mem.pop(s))
+                    self.mem_delivered += 1
 
     # -- sending
     def _querier(self, key: str):
@@ -181,7 +253,7 @@ class TelemetryAgent:
         for tier_targets, after in ((clouds, 0), (leaders, self._relayed_upto)):
             if not tier_targets:
                 continue
-            batch = self.queue.pending(limit=BATCH, after=after)
+            batch = self._pending(after)
             if not batch:
                 continue
             payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
@@ -198,7 +270,7 @@ class TelemetryAgent:
                     upto = batch[-1][0]
                     if tier == "cloud":
                         replayed = sum(1 for s, _ in batch if s <= self._replay_upto)
-                        self.queue.ack(upto)
+                        self._stored_upto(upto)
                         if replayed:
                             self.queue.note_replayed(replayed)
                     else:
@@ -236,9 +308,9 @@ class TelemetryAgent:
             except Exception as exc:  # session closing at shutdown
                 log.debug("telemetry flush: %s", exc)
                 sent = 0
-            if sent and len(self.queue):
+            if sent and self._backlog():
                 continue
-            self._wake.wait(RETRY_PERIOD_S if len(self.queue) else 1.0)
+            self._wake.wait(RETRY_PERIOD_S if self._backlog() else 1.0)
 
     # -- data requests (fail over like frame requests)
     def fetch(self, selector: str) -> tuple[str, str, dict]:
@@ -257,27 +329,38 @@ class TelemetryAgent:
 
     def _drainable(self) -> bool:
         """Whether a live tier could take some of the queued records now."""
-        if not len(self.queue):
+        if not self._backlog():
             return False
         targets = self._targets()
         if any(t == "cloud" for t, _ in targets):
             return True
-        return bool(targets) and bool(self.queue.pending(limit=1, after=self._relayed_upto))
+        return bool(targets) and bool(self._pending(self._relayed_upto))
 
     # -- end
     def summary(self) -> dict:
         """The robot's telemetry counters (``OUT/telemetry.json``).
 
-        ``sent`` counts every seq handed out (refused ones included), ``lost``
-        the records that can never reach the store: ``refused`` (refused with
-        their seq, listed as ranges in ``refused_seqs``) plus ``lost_seqs``
-        found on disk at start (corruption, records cut off).
+        ``sent`` counts every seq handed out (refused ones included).
+        ``refused`` counts the records the disk queue refused (listed as ranges
+        in ``refused_seqs``); each went to the memory buffer (``memory``:
+        ``held`` in all, ``delivered`` of them stored by a cloud, ``unsent``
+        still there now, which die with the process) unless that was full too
+        (``dropped``).  ``lost`` counts the records that can never reach the
+        store: refused and not delivered from memory, plus ``lost_seqs`` found
+        on disk at start (corruption, records cut off).  ``queued`` counts the
+        records on disk waiting for a cloud (kept across restarts).
         """
         st = self.queue.stats()
-        lost = sorted(set(st.refused_seqs) | set(st.lost_seqs))
+        with self._mem_lock:
+            unsent = len(self._mem)
+            mem = {"held": self.mem_held, "delivered": self.mem_delivered, "unsent": unsent,
+                   "bytes": self._mem_size, "max_bytes": self.memory_bytes}
+        # every refused record was delivered from memory, is still there (dies with the process) or was dropped
+        lost = self.dropped + unsent + len(set(st.lost_seqs))
         relayed = len(self.queue.pending(limit=None)) - len(self.queue.pending(limit=None, after=self._relayed_upto))
         return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
-                "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": len(lost),
+                "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": lost,
+                "dropped": self.dropped, "memory": mem,
                 "relayed_unstored": relayed,
                 "replayed": st.replayed, "acked_by": dict(self.acked_by), "busy_answers": self.busy_answers,
                 "torn_bytes": st.torn_bytes,
@@ -319,9 +402,15 @@ class TelemetryAgent:
                 log.error("robot %s: cannot write %s (%s); telemetry summary: %s", self.robot.id, summary_path,
                           exc, json.dumps(out))
         if out["lost"]:
-            log.error("robot %s: %d telemetry record(s) lost (refused %s; lost on disk %s): %s", self.robot.id,
-                      out["lost"], ",".join(out["refused_seqs"]) or "none",
+            m = out["memory"]
+            log.error("robot %s: %d telemetry record(s) lost (refused by the disk %s, of which %d delivered from "
+                      "memory, %d dropped with the memory buffer full, %d still in memory at exit; lost on disk "
+                      "%s): %s", self.robot.id, out["lost"], ",".join(out["refused_seqs"]) or "none",
+                      m["delivered"], out["dropped"], m["unsent"],
                       ",".join(seq_ranges(out["lost_seqs"], limit=20)) or "none", out["error"] or "see above")
+        elif out["refused"]:
+            log.warning("robot %s: the disk refused %d telemetry record(s) (%s); all were delivered from memory",
+                        self.robot.id, out["refused"], out["error"])
         if out["queued"]:
             log.warning("robot %s: %d telemetry records still queued at exit (kept on disk in %s; "
                         "replayed at the next start)", self.robot.id, out["queued"], self.queue.path)

@@ -10,7 +10,7 @@ from typing import Callable
 
 
 from scmr_mesh.data.buffer import DataBuffer
-from scmr_mesh.data.errors import TelemetryError
+from scmr_mesh.data.errors import StoreError, TelemetryError
 from scmr_mesh.data.ods import OperationalDataStore
 from scmr_mesh.data.record import TelemetryRecord, decode_batch
 from scmr_mesh.mesh.data_common import IngestGate, Verdict, _answer, _busy, _drop, _payload, _reply, _unpack, buffer_key, check_sender, relay_key, serve_buffer, sync_key, telemetry_key
@@ -43,6 +43,7 @@ class CloudData:
         for k, v in (params or {}).items():
             self.buffer.put(k, v)
         self.ingested = 0
+        self._unstored = 0  # batches not stored since the last one that was (one log line per streak)
 
     def queryables(self) -> list[tuple[str, Callable]]:
         return [(telemetry_key("cloud", self.node), self._on_telemetry),
@@ -90,7 +91,7 @@ class CloudData:
             fut = self.ods.insert_async(records, received_from=source)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             gate.release(taken)
-            log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
+            self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
             return
@@ -101,10 +102,13 @@ class CloudData:
         try:
             res = fut.result()
         except Exception as exc:
-            log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
+            self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
             return
+        if self._unstored:
+            log.warning("cloud %s: telemetry stored again after %d batch(es) were not", self.node, self._unstored)
+            self._unstored = 0
         try:
             for r in records:
                 self.buffer.record_telemetry(r.to_dict())
@@ -113,6 +117,21 @@ class CloudData:
             _answer(query, {"acked": len(records), "stored": len(res.stored), "duplicates": len(res.duplicates),
                             "contiguous": res.contiguous}, kind="data_ack")
             _drop(query)
+
+    def _not_stored(self, exc: BaseException) -> None:
+        """Log a batch not stored.  A store failure: the first of a streak (and every 1000th) at WARNING,
+        the rest at DEBUG; anything else (a bad batch) at WARNING each time.
+
+        While the store is down every robot's every retry fails the same way (850 lines per cloud in
+        a run whose database died); the store logs its own loss and return once (scmr_mesh.data.ods_pg).
+        """
+        if not isinstance(exc, StoreError):
+            log.warning("cloud %s: telemetry not stored: %s", self.node, exc)
+            return
+        self._unstored += 1
+        n = self._unstored
+        log.log(logging.WARNING if n == 1 or n % 1000 == 0 else logging.DEBUG,
+                "cloud %s: telemetry not stored%s: %s", self.node, f" ({n} batches in a row)" if n > 1 else "", exc)
 
     def _on_sync(self, query) -> None:
         try:

@@ -82,6 +82,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from scmr_mesh import keys, wire
+from scmr_mesh.data.retention import DEFAULT_KEEP_MASKS, Retention
 from scmr_mesh.errors import InputError
 from scmr_mesh.mesh.attempts import BUSY, Outcome, Reply, error_outcome
 from scmr_mesh.mesh.resources import undeclare_all
@@ -143,6 +144,8 @@ class RobotOptions:
     hedge: bool = True
     #: a fixed hedge delay (ms); None: learnt per tier from its recent answers (scmr_mesh.qos.hedge)
     hedge_ms: float | None = None
+    #: masks kept in OUT/inbox, newest first (older ones are deleted); None keeps every mask
+    keep_masks: int | None = DEFAULT_KEEP_MASKS
 
 
 class Robot:
@@ -177,6 +180,7 @@ class Robot:
             self.outbox.mkdir(parents=True, exist_ok=True)
             self.inbox.mkdir(parents=True, exist_ok=True)
             self._records = open(self.out / "records.jsonl", "a", buffering=1, encoding="utf-8")
+            self.masks = Retention(self.inbox, keep=self.options.keep_masks)
         except OSError as exc:
             raise InputError(f"--out {self.out}: cannot create the robot's folders ({exc})") from None
         self._observers: list[Callable] = []
@@ -763,7 +767,9 @@ class Robot:
         mask_png = winner.body["mask_png"] if winner is not None else None
         if mask_png is not None:
             try:
-                (self.inbox / f"{seq}.mask.png").write_bytes(mask_png)
+                path = self.inbox / f"{seq}.mask.png"
+                path.write_bytes(mask_png)
+                self.masks.add(path)
             except OSError as exc:
                 log.warning("inbox write failed: %s", exc)
         try:

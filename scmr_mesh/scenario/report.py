@@ -483,8 +483,10 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     if tel:
         L += ["## Telemetry (data tier)", "",
               f"{tel.get('sent', 0)} sent, {tel.get('stored', 0)} stored, {tel.get('duplicates', 0)} duplicates, "
-              f"**{tel.get('lost', 0)} lost** (lost = sent - stored over seqs 1..sent; docs/DATA.md).", "",
-              "| robot | sent | stored | duplicates | lost | missing seqs | queued |", "|---|---|---|---|---|---|---|"]
+              f"{tel.get('queued', 0)} queued, **{tel.get('lost', 0)} lost** (over seqs 1..sent: queued = still on "
+              "a robot's disk when it stopped, sent at its next start; lost = neither stored nor queued; "
+              "docs/DATA.md).", "",
+              "| robot | sent | stored | duplicates | lost | lost seqs | queued |", "|---|---|---|---|---|---|---|"]
         for rid, t in (tel.get("per_robot") or {}).items():
             L.append(f"| {rid} | {t.get('sent', 0)} | {t.get('stored', 0)} | {t.get('duplicates', 0)} | "
                      f"{t.get('lost', 0)} | {', '.join(t.get('missing') or []) or '-'} | {_fmt(t.get('queued'))} |")
@@ -565,8 +567,8 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
     """What went wrong in a run besides failed requests, one sentence each (pure).
 
     A restarted peer that never became ready, a peer that exited with a
-    non-zero status (other than one a fault killed), telemetry that was lost or
-    could not be counted.  An interrupted run lists what it saw too.
+    non-zero status (other than one a fault killed), the run's PostgreSQL
+    dying (restarted or not), telemetry that was lost or could not be counted.  An interrupted run lists what it saw too.
     ``scmr up`` and ``scmr demo`` print these and exit 1 when there is any
     (docs/FLEET.md).
     """
@@ -600,6 +602,12 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
         if rc not in (None, 0) and not (rc == -9 and name in killed):
             what = f"killed by signal {-rc}" if rc < 0 else f"exited with status {rc}"
             out.append(f"peer {name} {what}; see {p.get('log')}")
+    for o in (report.get("ods") or {}).get("outages") or []:  # the run's own PostgreSQL (scmr up --clouds N)
+        rc = o.get("exit")
+        what = f"was killed by signal {-rc}" if isinstance(rc, int) and rc < 0 else f"exited with status {rc}"
+        out.append(f"the run's PostgreSQL data store {what} at {o.get('t_s', 0):.2f} s; "
+                   + (f"restarted after {o['gap_ms']:.0f} ms" if o.get("gap_ms") is not None
+                      else f"it could not be restarted ({o.get('error') or 'the run ended first'})"))
     tel = report.get("telemetry")
     if tel is None:
         out.append("telemetry was not counted (see the log of scmr up)")

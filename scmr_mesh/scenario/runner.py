@@ -40,6 +40,11 @@ log = logging.getLogger(__name__)
 Progress = Callable[[str], None]
 
 
+#: Seconds a robot asked to stop (SIGTERM) may take before SIGKILL: its drain phase (``scmr robot
+#: --drain-s``, default 5 s: queued telemetry sent while a tier takes it) plus writing its summary.
+ROBOT_STOP_S = 10.0
+
+
 def default_data_dir() -> Path:
     """``$SCMR_DATA`` or ``<repo>/../shared/data/roads``."""
     env = os.environ.get("SCMR_DATA")
@@ -494,7 +499,7 @@ class ScenarioRun:
         try:
             if sup is not None and sup.procs:
                 self.say("stopping")
-                sup.stop(sorted({self.names[r.id] for r in sc.robots if r.id in self.names}), timeout=5.0)
+                sup.stop(sorted({self.names[r.id] for r in sc.robots if r.id in self.names}), timeout=ROBOT_STOP_S)
                 self.read_records()
                 servers = [p.name for p in sc.peers if p.role != "robot"]
                 self.telemetry = _count_telemetry(self.out_dir, sc, sup, self.names, servers,
