@@ -182,3 +182,6 @@ def test_frames_arriving_faster_than_served_keep_only_the_newest():
                                  payload=SimpleNamespace(to_bytes=lambda: b"")))
     assert (b.stats.received, b.stats.dropped, b.stats.rejected) == (4, 2, {"type_hash": 1})
     assert b._take(threading.Event(), 0).header.sec == 3 and b._take(threading.Event(), 0) is None
+    humble = key.rsplit("/", 1)[0] + "/TypeHashNotSupported"  # what rmw_zenoh on Humble sends
+    b._on_sample(SimpleNamespace(key_expr=humble, payload=SimpleNamespace(to_bytes=lambda: _image(ts, 9, _scene(4, 4)))))
+    assert b._take(threading.Event(), 0).header.sec == 9
