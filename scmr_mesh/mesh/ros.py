@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import logging
 import re
+import statistics
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,11 +46,23 @@ class BridgeStats:
     published: int = 0
     publish_errors: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
+    #: per served frame (the last 10000): ms from the sample's arrival to the frame ready to send
+    #: (CDR decode, RGB, JPEG), and from the robot's answer to the mask published
+    in_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
+    out_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
+    #: and the wall time of Robot.request (its ToR plus its records, inbox and telemetry)
+    request_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
 
     def as_dict(self) -> dict:
         return {"received": self.received, "served": self.served, "failed": self.failed, "dropped": self.dropped,
                 "published": self.published, "publish_errors": self.publish_errors,
-                "rejected": dict(self.rejected), "rejected_total": sum(self.rejected.values())}
+                "rejected": dict(self.rejected), "rejected_total": sum(self.rejected.values()),
+                "in_ms_median": _median(self.in_ms), "request_ms_median": _median(self.request_ms),
+                "out_ms_median": _median(self.out_ms)}
+
+
+def _median(xs) -> float | None:
+    return round(statistics.median(xs), 3) if xs else None
 
 
 @dataclass
@@ -57,11 +71,17 @@ class _Pending:
     frame: Frame
     height: int
     width: int
+    in_ms: float = 0.0
 
 
 def ros_node_name(robot_id: str) -> str:
     """The ROS node name of robot ``robot_id``: ``scmr_ros_<id>`` with characters ROS refuses as ``_``."""
     return "scmr_ros_" + re.sub(r"[^A-Za-z0-9_]", "_", robot_id)
+
+
+def _frame_name(topic: str, header: rw.Header) -> str:
+    """A frame's name in the robot's records (``image``): ``<topic>@<stamp sec>.<nanosec>``."""
+    return f"{topic}@{header.sec}.{header.nanosec:09d}"
 
 
 class _Publisher:
@@ -171,11 +191,13 @@ class RosBridge:
 
     def _on_sample(self, sample) -> None:
         """Zenoh callback: decode (bounded), then put the frame in the slot, replacing one that waits."""
+        t0 = time.perf_counter()
         key = str(sample.key_expr)
         with self._cv:
             self.stats.received += 1
         try:
             pending = self._decode(key, sample.payload.to_bytes())
+            pending.in_ms = (time.perf_counter() - t0) * 1e3
         except rw.RosWireError as exc:
             self._reject(key, exc)
             return
@@ -203,7 +225,7 @@ class RosBridge:
                 rgb = decode_image(msg.data)
             except ImageDecodeError as exc:
                 raise rw.RosWireError("encoding", str(exc)) from None
-            frame = Frame(name=key, data=msg.data, encoding=kind, rgb=rgb)
+            frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind, rgb=rgb)
             return _Pending(msg.header, frame, rgb.shape[0], rgb.shape[1])
         img = rw.decode_image(payload)
         rgb = rw.image_to_rgb(img)
@@ -213,7 +235,8 @@ class RosBridge:
             data, enc = encode_jpeg(rgb, quality=self.jpeg_quality), "jpeg"
         else:
             data, enc = encode_png(rgb), "png"
-        return _Pending(img.header, Frame(name=key, data=data, encoding=enc, rgb=rgb), img.height, img.width)
+        return _Pending(img.header, Frame(name=_frame_name(tk.topic, img.header), data=data, encoding=enc, rgb=rgb),
+                        img.height, img.width)
 
     # ------------------------------------------------------------ serving
     def _observe(self, record: dict, rgb, mask) -> None:
@@ -232,7 +255,9 @@ class RosBridge:
         import numpy as np
 
         self._last_mask = None
+        t_req = time.perf_counter()
         record = self.robot.request(self._seq, pending.frame)
+        request_ms = (time.perf_counter() - t_req) * 1e3
         self._seq += 1
         mask = self._last_mask
         if not record["ok"] or mask is None:
@@ -240,21 +265,24 @@ class RosBridge:
                 self.stats.failed += 1
             log.warning("ros: frame %s got no mask: %s", record["seq"], record.get("error"))
             return record
+        t0 = time.perf_counter()
         with self._cv:
             self.stats.served += 1
         h, w = pending.height, pending.width
         if mask.shape != (h, w):
             mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
-        mask = np.where(mask > 0, 255, 0).astype(np.uint8)
-        rgb = pending.frame.pixels()
-        overlay = rgb.copy()
-        on = mask > 0
-        overlay[on] = (overlay[on] // 2 + np.array([0, 127, 0], np.uint8))
-        try:
+        mask = np.where(mask > 0, np.uint8(255), np.uint8(0))
+        try:  # the mask first: it is what a planner waits for
             self._mask_pub.put(rw.encode_image(rw.mono8(pending.header, mask)))
+            out_ms = (time.perf_counter() - t0) * 1e3
+            overlay = pending.frame.pixels() // 2  # half brightness, drivable pixels tinted green
+            overlay[:, :, 1] += mask // 2
             self._overlay_pub.put(rw.encode_image(rw.rgb8(pending.header, overlay)))
             with self._cv:
                 self.stats.published += 1
+                self.stats.in_ms.append(pending.in_ms)
+                self.stats.out_ms.append(out_ms)
+                self.stats.request_ms.append(request_ms)
         except Exception as exc:
             with self._cv:
                 self.stats.publish_errors += 1

@@ -139,10 +139,6 @@ class _Writer:
         self.u32(len(b))
         self.buf += b
 
-    def octets(self, data: bytes) -> None:
-        self.u32(len(data))
-        self.buf += data
-
     def header(self, h: Header) -> None:
         self.i32(h.sec)
         self.u32(h.nanosec)
@@ -215,8 +211,8 @@ def encode_image(img: Image) -> bytes:
     w.string(img.encoding)
     w.u8(img.is_bigendian)
     w.u32(img.step)
-    w.octets(bytes(img.data))
-    return bytes(w.buf)
+    w.u32(len(img.data))
+    return b"".join((w.buf, img.data))  # the pixels copied once
 
 
 def encode_compressed(img: CompressedImage) -> bytes:
@@ -224,8 +220,8 @@ def encode_compressed(img: CompressedImage) -> bytes:
     w = _Writer()
     w.header(img.header)
     w.string(img.format)
-    w.octets(bytes(img.data))
-    return bytes(w.buf)
+    w.u32(len(img.data))
+    return b"".join((w.buf, img.data))
 
 
 def _check_pixels(height: int, width: int) -> None:
