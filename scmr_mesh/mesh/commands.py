@@ -279,6 +279,12 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     src.add_argument("--images", type=ca.PathArg("in-dir", what="a folder of PNG/JPEG frames"), metavar="DIR", help="folder of PNG/JPEG frames (cycled in name order)")
     src.add_argument("--synthetic", metavar="KIND",
                      help="synthetic scenes of this kind (seeded per frame); 'stub' needs no imaging module")
+    src.add_argument("--bag", type=ca.PathArg("in-path", what="a rosbag2 folder, .db3 or .mcap file"), metavar="FILE",
+                     help="replay a ROS 2 recording (rosbag2 folder, .db3 or .mcap) as the camera, cycled; "
+                          "with --topic (docs/ROS2.md)")
+    g.add_argument("--topic", metavar="TOPIC", default=None,
+                   help="with --bag: the sensor_msgs/msg/Image or CompressedImage topic to replay, e.g. "
+                        "/camera/image_raw")
     g.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=5.0, metavar="HZ", help="frames per second (default 5)")
     g.add_argument("--jpeg-quality", type=ca.count("JPEG quality (0 sends PNG)", lo=0, hi=100, example="90"), default=90, metavar="Q",
                    help="frames are sent as JPEG at this quality, 1..100 (default 90); 0 sends lossless PNG. "
@@ -428,7 +434,7 @@ def _cmd_leader(args) -> int:
     check_grant(args, "leader", args.node, lead=True)
     _setup_logging(args)
     body = None
-    if args.images or args.synthetic:
+    if args.images or args.synthetic or args.bag:
         if not args.out:
             raise InputError("the leader acts as a robot only with --out DIR; add --out")
         args.id = args.node
@@ -502,7 +508,8 @@ def _check_robot_args(args):
         raise InputError(f"--duration must be >= 0, got {args.duration}")
     args._frames = frames_from_args(args.images, args.synthetic,
                                     seed=args.seed if args.seed is not None else pick_seed(args.id),
-                                    jpeg_quality=args.jpeg_quality)
+                                    jpeg_quality=args.jpeg_quality, bag=getattr(args, "bag", None),
+                                    topic=getattr(args, "topic", None))
     return args._frames
 
 

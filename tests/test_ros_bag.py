@@ -1,0 +1,74 @@
+"""``scmr robot --bag``: ROS 2 recordings written by rosbags (SQLite and MCAP storage) replayed as a camera."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from scmr_mesh.errors import InputError
+from scmr_mesh.mesh.frames import frames_from_args
+
+rosbags = pytest.importorskip("rosbags.rosbag2")
+typesys = pytest.importorskip("rosbags.typesys")
+pytest.importorskip("mcap")
+
+
+def _write(path, storage, *, compressed=False):
+    ts = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    T = ts.types
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    rgb[3:] = 200
+    with rosbags.Writer(path, version=9, storage_plugin=storage) as w:
+        if compressed:
+            import cv2
+
+            ros_type = "sensor_msgs/msg/CompressedImage"
+            conn = w.add_connection("/cam", ros_type, typestore=ts)
+            jpg = cv2.imencode(".jpg", rgb)[1].reshape(-1)
+            msgs = [T[ros_type](header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=s, nanosec=0),
+                                                                 frame_id="c"), format="jpeg", data=jpg)
+                    for s in (1, 2)]
+        else:
+            ros_type = "sensor_msgs/msg/Image"
+            conn = w.add_connection("/cam", ros_type, typestore=ts)
+            w.add_connection("/odom", "std_msgs/msg/String", typestore=ts)
+
+            def img(sec, enc, px):
+                return T[ros_type](header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=5),
+                                                                    frame_id="c"),
+                                   height=6, width=8, encoding=enc, is_bigendian=0, step=px.nbytes // 6,
+                                   data=px.reshape(-1).view(np.uint8))
+            msgs = [img(1, "rgb8", rgb), img(2, "bgra16", np.zeros((6, 8, 4), np.uint16)), img(3, "rgb8", rgb)]
+        for i, m in enumerate(msgs):
+            w.write(conn, 1000 + i, ts.serialize_cdr(m, ros_type))
+
+
+@pytest.mark.parametrize("storage", ["SQLITE3", "MCAP"])
+def test_bag_replays_images_skipping_what_is_not_one(tmp_path, storage, caplog):
+    bag = tmp_path / "bag"
+    _write(bag, getattr(rosbags.StoragePlugin, storage))
+    frames = list(itertools.islice(frames_from_args(None, None, bag=str(bag), topic="/cam"), 4))
+    assert [f.name for f in frames] == ["/cam@1.000000005", "/cam@3.000000005"] * 2  # cycled; bgra16 skipped
+    assert frames[0].encoding == "jpeg" and frames[0].rgb.shape == (6, 8, 3)
+    assert sum("skipped (encoding)" in r.message for r in caplog.records) == 1  # logged once, not per pass
+
+
+def test_compressed_mcap_sent_as_recorded(tmp_path):
+    _write(tmp_path / "c", rosbags.StoragePlugin.MCAP, compressed=True)
+    mcap_file = next((tmp_path / "c").glob("*.mcap"))
+    f = next(frames_from_args(None, None, bag=str(mcap_file), topic="/cam"))
+    assert (f.name, f.encoding, f.data[:2]) == ("/cam@1.000000000", "jpeg", b"\xff\xd8")
+
+
+def test_bad_bag_flags_are_one_line(tmp_path):
+    _write(tmp_path / "b", rosbags.StoragePlugin.SQLITE3)
+    with pytest.raises(InputError, match="its image topics: /cam"):
+        frames_from_args(None, None, bag=str(tmp_path / "b"), topic="/camera/image_raw")
+    with pytest.raises(InputError, match="std_msgs/msg/String, not sensor_msgs/msg/Image"):
+        frames_from_args(None, None, bag=str(tmp_path / "b"), topic="/odom")
+    with pytest.raises(InputError, match="--bag needs --topic"):
+        frames_from_args(None, None, bag=str(tmp_path / "b"))
+    with pytest.raises(InputError, match="no .db3 or .mcap"):
+        frames_from_args(None, None, bag=str(tmp_path), topic="/cam")
