@@ -72,3 +72,41 @@ def test_bad_bag_flags_are_one_line(tmp_path):
         frames_from_args(None, None, bag=str(tmp_path / "b"))
     with pytest.raises(InputError, match="no .db3 or .mcap"):
         frames_from_args(None, None, bag=str(tmp_path), topic="/cam")
+
+
+def test_mcap_schemas_equal_rosbags_msgdefs():
+    from scmr_mesh.ros.record import MSGDEFS
+
+    ts = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+    for ros_type, text in MSGDEFS.items():
+        assert ts.generate_msgdef(ros_type, ros_version=2)[0] == text
+
+
+@pytest.mark.timeout(120)
+def test_robot_replays_a_bag_into_an_mcap_that_mcaps_own_reader_decodes(tmp_path):
+    """`scmr robot --bag B --mcap F` (a process, local stub pipeline): F read back by mcap + mcap-ros2-support."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("mcap_ros2")
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    _write(tmp_path / "bag", rosbags.StoragePlugin.SQLITE3)
+    out = tmp_path / "run.mcap"
+    r = subprocess.run([sys.executable, "-m", "scmr_mesh", "robot", "--id", "r1", "--insecure", "--bag",
+                        str(tmp_path / "bag"), "--topic", "/cam", "--count", "3", "--rate", "100", "--wait-ms", "0",
+                        "--out", str(tmp_path / "out"), "--process", "scmr_mesh.mesh.testing:stub_process",
+                        "--mcap", str(out), "--quiet"], capture_output=True, text=True, timeout=100)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with open(out, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == "ros2"
+        got = [(ch.topic, schema.name, msg) for schema, ch, _m, msg in reader.iter_decoded_messages()]
+    assert [(t, s) for t, s, _ in got] == [("/r1/camera/compressed", "sensor_msgs/msg/CompressedImage"),
+                                           ("/r1/drivable/mask", "sensor_msgs/msg/Image")] * 3
+    frame, mask = got[0][2], got[1][2]
+    assert frame.format == "jpeg" and bytes(frame.data[:2]) == b"\xff\xd8"
+    assert (mask.encoding, mask.height, mask.width, mask.header.frame_id) == ("mono8", 6, 8, "r1")
+    stamp = (frame.header.stamp.sec, frame.header.stamp.nanosec)
+    assert set(bytes(mask.data)) == {0, 255} and (mask.header.stamp.sec, mask.header.stamp.nanosec) == stamp

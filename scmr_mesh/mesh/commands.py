@@ -138,6 +138,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="at most HZ frames per second go to the mesh (default: as fast as they are served)")
     g.add_argument("--count", type=ca.count("frames", lo=0, hi=10**9, example="100"), default=None, metavar="N",
                    help="stop after N frames served or failed")
+    g.add_argument("--mcap", type=ca.PathArg("out-file"), metavar="FILE", default=None,
+                   help="also write each frame and mask to FILE.mcap, as `scmr robot --mcap` does")
     g.add_argument("--jpeg-quality", type=ca.count("JPEG quality (0 sends PNG)", lo=0, hi=100, example="90"),
                    default=90, metavar="Q", help="raw Image frames go to the mesh as JPEG at Q (default 90; 0: PNG); "
                                                  "compressed frames go as they are")
@@ -293,6 +295,9 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     lim.add_argument("--count", type=ca.count("frames", lo=0, hi=10**9, example="100"), default=None, metavar="N", help="stop after N frames")
     lim.add_argument("--duration", type=ca.non_negative("seconds", hi=604800, example="10"), default=None, metavar="S", help="stop after S seconds")
     g.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", required=not leader, help="output folder (outbox, inbox, records.jsonl)")
+    g.add_argument("--mcap", type=ca.PathArg("out-file"), metavar="FILE", default=None,
+                   help="also write each frame (CompressedImage jpeg) and mask (Image mono8) to FILE.mcap, which "
+                        "ROS 2 tools and Foxglove open (docs/ROS2.md)")
     g.add_argument("--deadline-ms", type=ca.Number(lo=0, lo_open=True, hi=3600000, what="milliseconds", example="1000"), default=1000.0, metavar="MS",
                    help="per-attempt deadline; past it the request is re-sent to the next tier (default 1000)")
     g.add_argument("--redundant", action="store_true",
@@ -530,7 +535,9 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
     agent = None
     telemetry = None
     rerun_viz = None
+    recorder = None
     try:
+        recorder = _mcap_recorder(args, robot)
         rerun_viz = _robot_viz(args, robot)
         robot.attach(session)
         if r2r is not None:  # the election ranks this candidate by its own battery
@@ -577,7 +584,11 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
         robot.close()
         if rerun_viz is not None:
             rerun_viz.close()
+        if recorder is not None:
+            recorder.close()
     extra = {"energy": placer.summary()} if placer is not None else {}
+    if recorder is not None:
+        extra["mcap"] = {"path": str(recorder.path), "messages": recorder.messages}
     if telemetry is not None:
         extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
     if robot.telemetry_errors:
@@ -630,10 +641,11 @@ def _cmd_ros(args) -> int:
     stop = StopFlag().install()
     clear_ready(args.ready_file)
     session = open_session(_mesh(args))
-    robot = bridge = ros_session = None
+    robot = bridge = ros_session = recorder = None
     stats = None
     try:
         robot = Robot(args.id, args.out, options=_robot_options(args))
+        recorder = _mcap_recorder(args, robot)
         fleet = fleet_policy(args)
         if fleet is not None:
             robot.view.trust = fleet.may_serve
@@ -673,12 +685,16 @@ def _cmd_ros(args) -> int:
             bridge.close()
         if robot is not None:
             robot.close()
+        if recorder is not None:
+            recorder.close()
         if ros_session is not None:
             close_session(ros_session)
         close_session(session)
         clear_ready(args.ready_file)
         stop.restore()
     summary = {"robot": args.id, **robot.stats, "ros": stats.as_dict()}
+    if recorder is not None:
+        summary["mcap"] = {"path": str(recorder.path), "messages": recorder.messages}
     emit_json_line(summary)
     problems = []
     if stats.rejected:
@@ -689,6 +705,17 @@ def _cmd_ros(args) -> int:
     if problems:
         raise MeshError(f"ros {args.id}: " + "; ".join(problems) + " (see the log)")
     return 0
+
+
+def _mcap_recorder(args, robot):
+    """``--mcap FILE``: a :class:`~scmr_mesh.ros.record.McapRecorder` observing ``robot`` (None without the flag)."""
+    if not getattr(args, "mcap", None):
+        return None
+    from scmr_mesh.ros.record import McapRecorder
+
+    rec = McapRecorder(args.mcap, robot.id, jpeg_quality=getattr(args, "jpeg_quality", 90))
+    robot.add_observer(rec.observe)
+    return rec
 
 
 def _wait_for_start(args, stop: threading.Event) -> int | None:
