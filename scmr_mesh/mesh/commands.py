@@ -126,7 +126,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="where masks go (mono8); the overlay goes to TOPIC/overlay (default /drivable/mask)")
     r.add_argument("--ros-connect", action="append", default=[], metavar="EP",
                    help="endpoint of the ROS side's Zenoh router, joined as a client (default "
-                        "tcp/localhost:7447, where rmw_zenohd listens); repeat for several")
+                        "tcp/localhost:7447, where rmw_zenohd listens; waited for up to 30 s, then exit 1); "
+                        "repeat for several")
     r.add_argument("--ros-cfg", action="append", default=[], metavar="KEY:JSON5",
                    help="zenoh config override for the ROS session only, e.g. TLS to the ROS router")
     r.add_argument("--node-name", default=None, metavar="NAME",
@@ -655,10 +656,12 @@ def _cmd_ros(args) -> int:
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
             log.warning("ros %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
         robot.prepare()
-        ros_session = open_session(ros_mc)
-        if not list(ros_session.info.routers_zid()):
-            log.warning("ros %s: no router at %s yet (is rmw_zenohd running?); zenoh keeps trying",
-                        args.id, ", ".join(ros_connect))
+        try:
+            ros_session = open_session(ros_mc)
+        except MeshError:
+            raise MeshError(f"scmr ros: no Zenoh router answers at --ros-connect {' '.join(ros_connect)}; start "
+                            "rmw_zenohd on the ROS host (`ros2 run rmw_zenoh_cpp rmw_zenohd`) or give its "
+                            "endpoint") from None
         bridge = RosBridge(robot, ros_session, domain=args.domain, image_topic=args.image_topic,
                            mask_topic=args.mask_topic, compressed=args.compressed, rate_hz=args.rate,
                            jpeg_quality=args.jpeg_quality, node_name=node)
