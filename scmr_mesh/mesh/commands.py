@@ -113,7 +113,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(`ros2 node list` shows scmr_ros_ID).  Frames arriving faster than they are served are "
                     "dropped oldest-first and counted; samples that are not an 8-bit image are counted by "
                     "reason and logged once per topic.  Prints a JSON summary on stdout at the end; exits 1 "
-                    "when samples were rejected or frames got no mask.",
+                    "when samples were rejected, frames got no mask or telemetry was lost.",
         epilog=_PEER_EPILOG)
     p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
     r = p.add_argument_group("ROS 2 side")
@@ -163,6 +163,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="written once both sessions are open, the ROS entities declared and the robot warmed up")
     p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
+    _data_args(p, "robot")
     p.set_defaults(func=_cmd_ros)
 
     p = sub.add_parser(
@@ -642,8 +643,8 @@ def _cmd_ros(args) -> int:
     stop = StopFlag().install()
     clear_ready(args.ready_file)
     session = open_session(_mesh(args))
-    robot = bridge = ros_session = recorder = None
-    stats = None
+    robot = bridge = ros_session = recorder = agent = None
+    stats = telemetry = None
     try:
         robot = Robot(args.id, args.out, options=_robot_options(args))
         recorder = _mcap_recorder(args, robot)
@@ -651,6 +652,7 @@ def _cmd_ros(args) -> int:
         if fleet is not None:
             robot.view.trust = fleet.may_serve
         robot.attach(session)
+        agent = _data_agent(robot, args)  # telemetry queued on disk until a tier stores it, as scmr robot
         if args.local_fallback:
             robot.warm_local()
         if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
@@ -686,6 +688,8 @@ def _cmd_ros(args) -> int:
     finally:
         if bridge is not None:
             bridge.close()
+        if agent is not None:
+            telemetry = agent.close(summary_path=Path(args.out) / "telemetry.json")
         if robot is not None:
             robot.close()
         if recorder is not None:
@@ -698,8 +702,13 @@ def _cmd_ros(args) -> int:
     summary = {"robot": args.id, **robot.stats, "ros": stats.as_dict()}
     if recorder is not None:
         summary["mcap"] = {"path": str(recorder.path), "messages": recorder.messages}
+    if telemetry is not None:
+        summary["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
     emit_json_line(summary)
     problems = []
+    lost = _robot_problem(args.id, telemetry, robot.telemetry_errors)
+    if lost:
+        problems.append(lost.split(": ", 1)[1])
     if stats.rejected:
         problems.append(f"{sum(stats.rejected.values())} sample(s) rejected "
                         + ", ".join(f"{k}={v}" for k, v in sorted(stats.rejected.items())))
