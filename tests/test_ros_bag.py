@@ -110,3 +110,32 @@ def test_robot_replays_a_bag_into_an_mcap_that_mcaps_own_reader_decodes(tmp_path
     assert (mask.encoding, mask.height, mask.width, mask.header.frame_id) == ("mono8", 6, 8, "r1")
     stamp = (frame.header.stamp.sec, frame.header.stamp.nanosec)
     assert set(bytes(mask.data)) == {0, 255} and (mask.header.stamp.sec, mask.header.stamp.nanosec) == stamp
+
+
+def test_fleet_mcap_robots_record_and_the_run_merges_them(tmp_path):
+    """`scmr up --mcap F`: each robot gets --mcap RUN/mcap/<robot>.mcap; the files merge in log-time order."""
+    from pathlib import Path
+
+    from mcap.reader import make_reader
+
+    from scmr_mesh.ros.record import McapRecorder, merge
+    from scmr_mesh.scenario.plan import RunOptions, peer_command
+    from scmr_mesh.scenario.spec import parse_scenario
+
+    sc = parse_scenario({"name": "t", "seed": 3, "duration_s": 5, "fleet": {"robots": [{"id": "r1", "synthetic": "road"}]}})
+    argv = peer_command(sc, "r1", run_dir=Path("run"), connect=[], options=RunOptions(mcap_dir="run/mcap")).argv
+    assert argv[argv.index("--mcap") + 1] == "run/mcap/r1.mcap"
+    assert "--mcap" not in peer_command(sc, "r1", run_dir=Path("run"), connect=[]).argv
+
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    for rid, times in (("r1", (10, 30)), ("r2", (20, 40))):
+        rec = McapRecorder(tmp_path / f"{rid}.mcap", rid)
+        for t in times:
+            rec.observe({"sent_unix_ns": t - 5, "received_unix_ns": t}, rgb, np.full((2, 3), 255, np.uint8))
+        rec.close()
+    n = merge(sorted(tmp_path.glob("r*.mcap")), tmp_path / "all.mcap")
+    with open(tmp_path / "all.mcap", "rb") as f:
+        got = [(c.topic, m.log_time) for _s, c, m in make_reader(f).iter_messages()]
+    assert n == 8 and [t for _, t in got] == [10, 10, 20, 20, 30, 30, 40, 40]
+    assert {c for c, _ in got} == {"/r1/camera/compressed", "/r1/drivable/mask", "/r2/camera/compressed",
+                                   "/r2/drivable/mask"}

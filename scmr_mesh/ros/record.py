@@ -100,3 +100,41 @@ class McapRecorder:
             finally:
                 self._w = None
                 self._file.close()
+
+
+def merge(parts, out: str | Path) -> int:
+    """Merge MCAP files written by :class:`McapRecorder` into ``out`` in log-time order; return the message count.
+
+    Schemas and channels are written once each (by name and topic).
+    """
+    import heapq
+    from contextlib import ExitStack
+
+    try:
+        from mcap.reader import make_reader
+        from mcap.writer import Writer
+    except ImportError:
+        raise InputError("--mcap needs the mcap package: pip install 'scmr-mesh[ros]'") from None
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    n = 0
+    with ExitStack() as stack, open(out, "wb") as f:
+        streams = []
+        for i, p in enumerate(parts):
+            reader = make_reader(stack.enter_context(open(p, "rb")))
+            streams.append(((m.log_time, i, m.sequence, s, c, m) for s, c, m in reader.iter_messages(log_time_order=True)))
+        w = Writer(f)
+        w.start(profile="ros2", library="scmr-mesh")
+        schemas: dict[str, int] = {}
+        channels: dict[str, int] = {}
+        for _t, _i, _q, schema, channel, msg in heapq.merge(*streams, key=lambda x: x[:3]):
+            if schema.name not in schemas:
+                schemas[schema.name] = w.register_schema(name=schema.name, encoding=schema.encoding, data=schema.data)
+            if channel.topic not in channels:
+                channels[channel.topic] = w.register_channel(topic=channel.topic, schema_id=schemas[schema.name],
+                                                             message_encoding=channel.message_encoding)
+            w.add_message(channels[channel.topic], log_time=msg.log_time, data=msg.data,
+                          publish_time=msg.publish_time, sequence=msg.sequence)
+            n += 1
+        w.finish()
+    return n

@@ -408,6 +408,8 @@ class RunOptions:
     #: A restarted peer runs under a new name (``cloud-2``: its own log, ready file and, for a
     #: robot, records folder) or under its own (``scmr up``: one log per peer).
     restart_renames: bool = True
+    #: Robots also write their frames and masks to ``<mcap_dir>/<name>.mcap`` (``scmr up --mcap``).
+    mcap_dir: str | None = None
 
 
 @dataclass(frozen=True)
@@ -497,6 +499,8 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
             argv += ["--seed", str(scenario.seed)]
         if options.robot_quiet:
             argv += ["--quiet"]
+        if options.mcap_dir is not None:
+            argv += ["--mcap", str(Path(options.mcap_dir) / f"{name}.mcap")]
         argv += ["--start-file", str(run_dir / "ready" / options.start_file)]
     if zmode is not None:
         argv += ["--zmode", zmode]
