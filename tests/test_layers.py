@@ -5,7 +5,7 @@ Layers, lowest first; a module may import its own layer and the ones below:
 =========  ==================================================================
 base       ``errors``, ``_lazy``, ``_schema``, ``wire``, ``keys``, ``cliargs`` (shared argparse types),
            ``vocab`` (the control vocabulary: tiers and other enums)
-core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, and the
+core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, ``ros/``, and the
            pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``, ``scenario/radio.py``
 mesh       ``mesh/``: every Zenoh import of the running system
 viz        ``viz/``: every rerun import
@@ -29,7 +29,7 @@ import pytest
 PKG = Path(__file__).resolve().parents[1] / "scmr_mesh"
 
 RANK = {"base": 0, "core": 1, "mesh": 2, "viz": 2, "procs": 3, "commands": 4, "bench": 5, "cli": 6}
-CORE = ("imaging", "energy", "data", "qos", "security")
+CORE = ("imaging", "energy", "data", "qos", "security", "ros")
 
 
 def layer(rel: Path) -> str:

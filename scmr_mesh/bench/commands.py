@@ -17,6 +17,7 @@ tls          :mod:`scmr_mesh.bench.tls`            the cost of authentication pe
 viz          :mod:`scmr_mesh.bench.viz`            rerun logging per request
 zenoh        :mod:`scmr_mesh.bench.zenoh`          the probes behind docs/ZENOH.md
 r2r          :mod:`scmr_mesh.bench.r2r`            gossip discovery, succession after a crash
+ros          :mod:`scmr_mesh.bench.ros`            what the ROS 2 bridge adds to the time to result
 ===========  ====================================  =================================
 """
 
@@ -123,6 +124,7 @@ def register(bench: argparse._SubParsersAction) -> None:
     add_zenoh(bench)
     add_r2r(bench)
     add_multihop(bench)
+    add_ros(bench)
 
 
 def add_pipeline(bench: argparse._SubParsersAction) -> None:
@@ -481,3 +483,26 @@ def add_r2r(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
     _insecure_arg(b)
     b.set_defaults(func=_handler("r2r", "cmd_bench_r2r"))
+
+
+def add_ros(bench: argparse._SubParsersAction) -> None:
+    """``scmr bench ros``."""
+    b = bench.add_parser(
+        "ros", help="ROS 2 bridge: ms `scmr ros` adds to a frame's time to result (paired per frame)",
+        description="Real processes on loopback: `scmr router` playing rmw_zenohd, a cloud, N `scmr ros` bridges; "
+                    "this process publishes sensor_msgs/Image rgb8 frames as a ROS node would and times each "
+                    "frame from put to its mask (e2e), against the bridge's own record of the same frame (the "
+                    "`scmr robot` request path: tor).  overhead = e2e - tor, median/p95/p99 (docs/ROS2.md).")
+    b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
+                   help="bridges, each with its own camera topic (default 4)")
+    b.add_argument("--rate", type=ca.positive("frames per second", hi=1000, example="5"), default=5.0, metavar="HZ",
+                   help="frames per second per robot (default 5)")
+    b.add_argument("--duration", type=ca.positive("seconds", hi=3600, example="10"), default=10.0, metavar="S",
+                   help="seconds of frames (default 10)")
+    b.add_argument("--size", type=ca.parsed(_frame_size, what="WIDTHxHEIGHT in pixels", example="640x480"),
+                   default="640x480", help="camera frame WxH (default: %(default)s)")
+    b.add_argument("--process", default=None, metavar="MODULE:FUNC",
+                   help="the cloud's process function (default: the stub, scmr_mesh.mesh.testing:stub_process; "
+                        "the overhead is paired per frame, so the pipeline's own time cancels out)")
+    b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
+    b.set_defaults(func=_handler("ros", "cmd_bench_ros"))

@@ -38,6 +38,10 @@ def _add_fleet_args(p: argparse.ArgumentParser, *, robots_default: int = 4) -> N
                    help="every robot keeps every mask in RUN/robots/<id>/inbox (by default each keeps the newest "
                         f"{DEFAULT_KEEP_MASKS}, so a long run's folders stay bounded; scmr robot --keep-masks N sets another "
                         "bound, e.g. --robot-arg=--keep-masks=100)")
+    p.add_argument("--mcap", type=ca.PathArg("out-file"), metavar="FILE", default=None,
+                   help="write every robot's frames (CompressedImage) and masks (Image mono8) to FILE.mcap, which "
+                        "ROS 2 tools and Foxglove open (topics /ROBOT/camera/compressed, /ROBOT/drivable/mask; "
+                        "docs/ROS2.md)")
     p.add_argument("--profiles", nargs="?", const=",".join(TABLE_4_3_ROBOTS), default=None, metavar="NAMES",
                    type=ca.parsed(_profile_list, what="comma-separated Table 4.3 profile names (or the flag alone "
                                   "for robot1..robot4)", example="robot1,robot4"),
@@ -94,7 +98,7 @@ def _config_from_args(args: argparse.Namespace, robots: int, run_dir: Path | Non
         robot_args=tuple(args.robot_arg) + (("--keep-all",) if getattr(args, "keep_all", False) else ()),
         rerun=_rerun_options(args), leader_capable=args.leader_capable, bootstrap=args.bootstrap,
         leader_crash_s=getattr(args, "leader_crash", None), profiles=getattr(args, "profiles", None) or (),
-        insecure=args.insecure, shape=getattr(args, "shape", "auto"),
+        insecure=args.insecure, shape=getattr(args, "shape", "auto"), mcap=getattr(args, "mcap", None),
         robots_per_process=getattr(args, "robots_per_process", None) or 1,
     )
 

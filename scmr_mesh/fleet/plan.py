@@ -132,6 +132,8 @@ class FleetConfig:
     leader_crash_s: float | None = None
     profiles: Sequence[str] = ()
     insecure: bool = False
+    #: ``--mcap FILE``: every robot records its frames and masks, merged into FILE when the run ends.
+    mcap: str | None = None
     #: ``topology.shape`` of the fleet's scenario: ``auto``, ``clique`` or ``routers`` (one router for the host).
     shape: str = "auto"
     #: Robots played by one ``scmr swarm`` process (``--robots-per-process``; 1: a process each).

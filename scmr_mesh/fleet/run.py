@@ -96,6 +96,8 @@ class FleetHooks(Hooks):
         (run.out_dir / RUN_MARKER).write_text("written by scmr up; this folder may be replaced by `scmr demo`\n")
         self.ods = self._start_ods(run)
         run.options = dataclasses.replace(run.options, ods=self.ods)
+        if self.config.mcap:  # each robot writes RUN/mcap/<robot>.mcap; merged into --mcap FILE at the end
+            run.options = dataclasses.replace(run.options, mcap_dir=str(run.out_dir / "mcap"))
         if self.config.rerun is not None:
             from scmr_mesh.viz import FleetViz
 
@@ -124,6 +126,7 @@ class FleetHooks(Hooks):
     def stopped(self, run: ScenarioRun) -> None:
         try:
             self._stop_ods()
+            self._merge_mcap(run)
         finally:
             if self.fviz is not None:  # after the peers: their data is in; --save finalises the file
                 try:
@@ -133,6 +136,22 @@ class FleetHooks(Hooks):
                     log.warning("rerun: closing the recording failed: %s", exc)
 
     # ------------------------------------------------------------ helpers
+    def _merge_mcap(self, run: ScenarioRun) -> None:
+        """``--mcap FILE``: the robots' recordings (RUN/mcap/*.mcap) as one file, in log-time order."""
+        if not self.config.mcap:
+            return
+        from scmr_mesh.ros.record import merge
+
+        parts = sorted((run.out_dir / "mcap").glob("*.mcap"))
+        try:
+            n = merge(parts, self.config.mcap)
+        except Exception as exc:  # a robot killed mid-write leaves a file without its summary
+            log.error("--mcap %s: merging %d robot recordings failed: %s (they are in %s)", self.config.mcap,
+                      len(parts), exc, run.out_dir / "mcap")
+            self._emit(run, f"mcap: merging failed ({exc}); the robots' files are in {run.out_dir / 'mcap'}")
+            return
+        self._emit(run, f"mcap: {n} messages from {len(parts)} robots in {self.config.mcap}")
+
     def _emit(self, run: ScenarioRun, phase: str) -> None:
         if self.progress is None:
             return

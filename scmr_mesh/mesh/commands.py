@@ -1,4 +1,4 @@
-"""``scmr cloud | leader | robot | router``: the mesh peers, one OS process each.
+"""``scmr cloud | leader | robot | ros | router``: the mesh peers, one OS process each.
 
 Contract (other areas start these as processes; ``python -m scmr_mesh <cmd>``
 works too)::
@@ -12,6 +12,8 @@ works too)::
                 [--redundant] [--hedge-ms auto|off|MS] [--local-fallback/--no-local-fallback]
                 [--listen/--connect/--config/--cfg/--lease-ms] [--ready-file PATH]
     scmr router [--listen EP ...] [--connect EP ...] [--config/--cfg]
+    scmr ros    --id ID --image-topic TOPIC [--compressed] [--mask-topic TOPIC] [--domain N]
+                [--ros-connect EP] --out DIR [--rate HZ] [robot and mesh flags] (docs/ROS2.md)
 
 SIGTERM/SIGINT stop a peer cleanly (exit 0).  Logs go to stderr or
 ``--log-file``.  See docs/protocol.md for keys and messages.
@@ -22,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import threading
 import time
@@ -48,7 +51,7 @@ e.g. cloud --listen tcp/127.0.0.1:7447, robots --connect tcp/127.0.0.1:7447.
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``cloud``, ``leader``, ``robot`` and ``router`` to ``scmr``."""
+    """Add ``cloud``, ``leader``, ``robot``, ``ros`` and ``router`` to ``scmr``."""
     from scmr_mesh.mesh import config
 
     fmt = argparse.RawDescriptionHelpFormatter
@@ -98,6 +101,72 @@ def register(sub: argparse._SubParsersAction) -> None:
     config.add_arguments(p)
     _data_args(p, "robot")
     p.set_defaults(func=_cmd_robot)
+
+    p = sub.add_parser(
+        "ros", help="run a robot whose camera is a ROS 2 topic on rmw_zenoh: masks go back as ROS images",
+        formatter_class=fmt,
+        description="A ROS 2 robot gets drivable-region masks with no code (docs/ROS2.md).  As a client of "
+                    "the ROS side's Zenoh router (rmw_zenohd, --ros-connect) it subscribes to --image-topic "
+                    "(sensor_msgs/msg/Image, or CompressedImage JPEG/PNG with --compressed), sends each frame "
+                    "through the scmr tiers like `scmr robot` (cloud, leader, peers, local; same failover, "
+                    "security, records and telemetry) and publishes the mask as sensor_msgs/msg/Image mono8 "
+                    "(255 = drivable, the input's size, stamp and frame_id) on --mask-topic and an rgb8 "
+                    "overlay on MASK_TOPIC/overlay, with rmw_zenoh's attachment and liveliness tokens "
+                    "(`ros2 node list` shows scmr_ros_ID).  Frames arriving faster than they are served are "
+                    "dropped oldest-first and counted; samples that are not an 8-bit image are counted by "
+                    "reason and logged once per topic.  Prints a JSON summary on stdout at the end; exits 1 "
+                    "when samples were rejected, frames got no mask or telemetry was lost.",
+        epilog=_PEER_EPILOG)
+    p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
+    r = p.add_argument_group("ROS 2 side")
+    r.add_argument("--domain", type=ca.count("ROS domain id", lo=0, hi=232, example="0"), default=0, metavar="N",
+                   help="ROS_DOMAIN_ID of the ROS graph (default 0)")
+    r.add_argument("--image-topic", required=True, metavar="TOPIC", help="camera topic, e.g. /camera/image_raw")
+    r.add_argument("--compressed", action="store_true",
+                   help="the topic carries sensor_msgs/msg/CompressedImage (jpeg or png) instead of Image")
+    r.add_argument("--mask-topic", default="/drivable/mask", metavar="TOPIC",
+                   help="where masks go (mono8); the overlay goes to TOPIC/overlay (default /drivable/mask)")
+    r.add_argument("--ros-connect", action="append", default=[], metavar="EP",
+                   help="endpoint of the ROS side's Zenoh router, joined as a client (default "
+                        "tcp/localhost:7447, where rmw_zenohd listens; waited for up to 30 s, then exit 1); "
+                        "repeat for several")
+    r.add_argument("--ros-cfg", action="append", default=[], metavar="KEY:JSON5",
+                   help="zenoh config override for the ROS session only, e.g. TLS to the ROS router")
+    r.add_argument("--node-name", default=None, metavar="NAME",
+                   help="ROS node name (default scmr_ros_ID, characters ROS refuses written _)")
+    g = p.add_argument_group("robot")
+    g.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", required=True,
+                   help="output folder (outbox, inbox, records.jsonl), as for `scmr robot`")
+    g.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=None, metavar="HZ",
+                   help="at most HZ frames per second go to the mesh (default: as fast as they are served)")
+    g.add_argument("--count", type=ca.count("frames", lo=0, hi=10**9, example="100"), default=None, metavar="N",
+                   help="stop after N frames served or failed")
+    g.add_argument("--mcap", type=ca.PathArg("out-file"), metavar="FILE", default=None,
+                   help="also write each frame and mask to FILE.mcap, as `scmr robot --mcap` does")
+    g.add_argument("--jpeg-quality", type=ca.count("JPEG quality (0 sends PNG)", lo=0, hi=100, example="90"),
+                   default=90, metavar="Q", help="raw Image frames go to the mesh as JPEG at Q (default 90; 0: PNG); "
+                                                 "compressed frames go as they are")
+    g.add_argument("--deadline-ms", type=ca.Number(lo=0, lo_open=True, hi=3600000, what="milliseconds", example="1000"),
+                   default=1000.0, metavar="MS", help="per-attempt deadline (default 1000)")
+    g.add_argument("--redundant", action="store_true", help="send each frame to cloud and leader at once")
+    g.add_argument("--hedge-ms", type=ca.parsed(_hedge_ms, what="auto, off or milliseconds", example="40"),
+                   default="auto", metavar="auto|off|MS", help="hedged requests, as for `scmr robot`")
+    g.add_argument("--local-fallback", action=argparse.BooleanOptionalAction, default=True,
+                   help="run the pipeline here when no tier answers (default on)")
+    g.add_argument("--priority", type=ca.count("priority", lo=0, hi=1000000, example="10"), default=0,
+                   help="request priority, default 0")
+    g.add_argument("--mode", choices=("best", "thesis"), default="best", help="pipeline mode (default best)")
+    g.add_argument("--process", default=None, metavar="MODULE:FUNC",
+                   help="process function for local execution (default: the drivable pipeline)")
+    g.add_argument("--wait-ms", type=ca.non_negative("milliseconds", hi=3600000, example="2000"), default=2000.0,
+                   metavar="MS", help="before serving, wait up to MS for a cloud or leader to appear (default 2000)")
+    g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH",
+                   help="written once both sessions are open, the ROS entities declared and the robot warmed up")
+    p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
+    config.add_arguments(p)
+    _data_args(p, "robot")
+    p.set_defaults(func=_cmd_ros)
 
     p = sub.add_parser(
         "router", help="run a zenoh router linking sites (fleets across hosts)", formatter_class=fmt,
@@ -216,6 +285,12 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     src.add_argument("--images", type=ca.PathArg("in-dir", what="a folder of PNG/JPEG frames"), metavar="DIR", help="folder of PNG/JPEG frames (cycled in name order)")
     src.add_argument("--synthetic", metavar="KIND",
                      help="synthetic scenes of this kind (seeded per frame); 'stub' needs no imaging module")
+    src.add_argument("--bag", type=ca.PathArg("in-path", what="a rosbag2 folder, .db3 or .mcap file"), metavar="FILE",
+                     help="replay a ROS 2 recording (rosbag2 folder, .db3 or .mcap) as the camera, cycled; "
+                          "with --topic (docs/ROS2.md)")
+    g.add_argument("--topic", metavar="TOPIC", default=None,
+                   help="with --bag: the sensor_msgs/msg/Image or CompressedImage topic to replay, e.g. "
+                        "/camera/image_raw")
     g.add_argument("--rate", type=ca.positive("frames per second", hi=10000, example="5"), default=5.0, metavar="HZ", help="frames per second (default 5)")
     g.add_argument("--jpeg-quality", type=ca.count("JPEG quality (0 sends PNG)", lo=0, hi=100, example="90"), default=90, metavar="Q",
                    help="frames are sent as JPEG at this quality, 1..100 (default 90); 0 sends lossless PNG. "
@@ -224,6 +299,9 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
     lim.add_argument("--count", type=ca.count("frames", lo=0, hi=10**9, example="100"), default=None, metavar="N", help="stop after N frames")
     lim.add_argument("--duration", type=ca.non_negative("seconds", hi=604800, example="10"), default=None, metavar="S", help="stop after S seconds")
     g.add_argument("--out", type=ca.PathArg("out-dir"), metavar="DIR", required=not leader, help="output folder (outbox, inbox, records.jsonl)")
+    g.add_argument("--mcap", type=ca.PathArg("out-file"), metavar="FILE", default=None,
+                   help="also write each frame (CompressedImage jpeg) and mask (Image mono8) to FILE.mcap, which "
+                        "ROS 2 tools and Foxglove open (docs/ROS2.md)")
     g.add_argument("--deadline-ms", type=ca.Number(lo=0, lo_open=True, hi=3600000, what="milliseconds", example="1000"), default=1000.0, metavar="MS",
                    help="per-attempt deadline; past it the request is re-sent to the next tier (default 1000)")
     g.add_argument("--redundant", action="store_true",
@@ -379,7 +457,7 @@ def _cmd_leader(args) -> int:
     check_grant(args, "leader", args.node, lead=True)
     _setup_logging(args)
     body = None
-    if args.images or args.synthetic:
+    if args.images or args.synthetic or args.bag:
         if not args.out:
             raise InputError("the leader acts as a robot only with --out DIR; add --out")
         args.id = args.node
@@ -453,24 +531,19 @@ def _check_robot_args(args):
         raise InputError(f"--duration must be >= 0, got {args.duration}")
     args._frames = frames_from_args(args.images, args.synthetic,
                                     seed=args.seed if args.seed is not None else pick_seed(args.id),
-                                    jpeg_quality=args.jpeg_quality)
+                                    jpeg_quality=args.jpeg_quality, bag=getattr(args, "bag", None),
+                                    topic=getattr(args, "topic", None))
     return args._frames
 
 
 def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> int:
     from scmr_mesh.mesh.peers import write_ready
-    from scmr_mesh.mesh.robot import Robot, RobotOptions
-    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+    from scmr_mesh.mesh.robot import Robot
 
     entered_ns = time.time_ns()
     duration = args.duration
     frames = getattr(args, "_frames", None) or _check_robot_args(args)
-    hedge = getattr(args, "hedge_ms", "auto")
-    opts = RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
-                        priority=args.priority, mode=args.mode or "best",
-                        process=getattr(args, "process", None) or DEFAULT_PROCESS,
-                        hedge=hedge != "off", hedge_ms=hedge if isinstance(hedge, float) else None,
-                        keep_masks=None if getattr(args, "keep_all", False) else getattr(args, "keep_masks", DEFAULT_KEEP_MASKS))
+    opts = _robot_options(args)
     profile = _energy_profile(args)
     robot = Robot(args.id, args.out, options=opts)
     fleet = fleet_policy(args)
@@ -480,7 +553,9 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
     agent = None
     telemetry = None
     rerun_viz = None
+    recorder = None
     try:
+        recorder = _mcap_recorder(args, robot)
         rerun_viz = _robot_viz(args, robot)
         robot.attach(session)
         if r2r is not None:  # the election ranks this candidate by its own battery
@@ -527,7 +602,11 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
         robot.close()
         if rerun_viz is not None:
             rerun_viz.close()
+        if recorder is not None:
+            recorder.close()
     extra = {"energy": placer.summary()} if placer is not None else {}
+    if recorder is not None:
+        extra["mcap"] = {"path": str(recorder.path), "messages": recorder.messages}
     if telemetry is not None:
         extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "dropped", "lost")}
     if robot.telemetry_errors:
@@ -536,6 +615,137 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
     # raised by the command once the session is closed, so it is the last line on stderr
     args._problem = _robot_problem(args.id, telemetry, robot.telemetry_errors)
     return 0
+
+
+def _robot_options(args):
+    """The :class:`RobotOptions` of the robot flags (``scmr robot``, ``scmr leader``, ``scmr ros``)."""
+    from scmr_mesh.mesh.robot import RobotOptions
+    from scmr_mesh.mesh.work import DEFAULT_PROCESS
+
+    hedge = getattr(args, "hedge_ms", "auto")
+    return RobotOptions(deadline_ms=args.deadline_ms, redundant=args.redundant, local_fallback=args.local_fallback,
+                        priority=args.priority, mode=args.mode or "best",
+                        process=getattr(args, "process", None) or DEFAULT_PROCESS,
+                        hedge=hedge != "off", hedge_ms=hedge if isinstance(hedge, float) else None,
+                        keep_masks=None if getattr(args, "keep_all", False)
+                        else getattr(args, "keep_masks", DEFAULT_KEEP_MASKS))
+
+
+def _cmd_ros(args) -> int:
+    """``scmr ros``: the robot session on the mesh, a client session of the ROS router, the bridge between."""
+    from scmr_mesh.keys import check_name
+    from scmr_mesh.mesh.config import close_session, open_session
+    from scmr_mesh.mesh.peers import StopFlag, clear_ready, write_ready
+    from scmr_mesh.mesh.robot import Robot
+    from scmr_mesh.mesh.ros import RosBridge, ros_node_name, ros_session_config
+    from scmr_mesh.ros import wire as rw
+
+    require_security(args, "ros")
+    check_name(args.id, what="--id")
+    check_grant(args, "ros", args.id)
+    rw.check_topic(args.image_topic, flag="--image-topic")
+    rw.check_topic(args.mask_topic, flag="--mask-topic")
+    if args.mask_topic == args.image_topic:
+        raise InputError(f"--mask-topic {args.mask_topic} is the --image-topic; give another topic for the masks")
+    node = args.node_name or ros_node_name(args.id)
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", node):
+        raise InputError(f"--node-name {node!r} is not a ROS node name: letters, digits and _, not starting with a digit")
+    ros_connect = args.ros_connect or ["tcp/localhost:7447"]
+    for ep in ros_connect:
+        if not re.fullmatch(r"[a-z0-9]+/[^\s/]\S*", ep):
+            raise InputError(f"--ros-connect {ep!r} is not a zenoh endpoint: give PROTO/ADDRESS such as "
+                             "tcp/localhost:7447 (where rmw_zenohd listens)")
+    ros_mc = ros_session_config(ros_connect, args.ros_cfg)
+    ros_mc.build()  # a bad --ros-connect / --ros-cfg is one line before anything starts
+    _setup_logging(args)
+    stop = StopFlag().install()
+    clear_ready(args.ready_file)
+    session = open_session(_mesh(args))
+    robot = bridge = ros_session = recorder = agent = None
+    stats = telemetry = None
+    try:
+        robot = Robot(args.id, args.out, options=_robot_options(args))
+        recorder = _mcap_recorder(args, robot)
+        fleet = fleet_policy(args)
+        if fleet is not None:
+            robot.view.trust = fleet.may_serve
+        robot.attach(session)
+        agent = _data_agent(robot, args)  # telemetry queued on disk until a tier stores it, as scmr robot
+        if args.local_fallback:
+            robot.warm_local()
+        if args.wait_ms > 0 and not robot.view.wait_for_tier(args.wait_ms / 1e3):
+            log.warning("ros %s: no cloud or leader visible after %.0f ms; starting anyway", args.id, args.wait_ms)
+        robot.prepare()
+        try:
+            ros_session = open_session(ros_mc)
+        except MeshError:
+            raise MeshError(f"scmr ros: no Zenoh router answers at --ros-connect {' '.join(ros_connect)}; start "
+                            "rmw_zenohd on the ROS host (`ros2 run rmw_zenoh_cpp rmw_zenohd`) or give its "
+                            "endpoint") from None
+        bridge = RosBridge(robot, ros_session, domain=args.domain, image_topic=args.image_topic,
+                           mask_topic=args.mask_topic, compressed=args.compressed, rate_hz=args.rate,
+                           jpeg_quality=args.jpeg_quality, node_name=node)
+        bridge.start()
+        write_ready(args.ready_file, {"role": "ros", "node": args.id, "zid": str(session.info.zid()),
+                                      "ros_zid": str(ros_session.info.zid()), "ros_node": node, "keys": []})
+        if not args.quiet:
+            print(f"ros {args.id}: serving {args.image_topic} (domain {args.domain}) -> {args.mask_topic}",
+                  file=sys.stderr, flush=True)
+        last = [0.0]
+
+        def progress(rec):
+            now = time.monotonic()
+            if not args.quiet and now - last[0] >= 2.0:
+                last[0] = now
+                st = bridge.stats
+                print(f"ros {args.id}: {st.received} received, {st.served} served, {st.dropped} dropped, "
+                      f"{sum(st.rejected.values())} rejected, last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}",
+                      file=sys.stderr, flush=True)
+
+        stats = bridge.run(stop.event, count=args.count, progress=progress)
+    finally:
+        if bridge is not None:
+            bridge.close()
+        if agent is not None:
+            telemetry = agent.close(summary_path=Path(args.out) / "telemetry.json")
+        if robot is not None:
+            robot.close()
+        if recorder is not None:
+            recorder.close()
+        if ros_session is not None:
+            close_session(ros_session)
+        close_session(session)
+        clear_ready(args.ready_file)
+        stop.restore()
+    summary = {"robot": args.id, **robot.stats, "ros": stats.as_dict()}
+    if recorder is not None:
+        summary["mcap"] = {"path": str(recorder.path), "messages": recorder.messages}
+    if telemetry is not None:
+        summary["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
+    emit_json_line(summary)
+    problems = []
+    lost = _robot_problem(args.id, telemetry, robot.telemetry_errors)
+    if lost:
+        problems.append(lost.split(": ", 1)[1])
+    if stats.rejected:
+        problems.append(f"{sum(stats.rejected.values())} sample(s) rejected "
+                        + ", ".join(f"{k}={v}" for k, v in sorted(stats.rejected.items())))
+    if stats.failed or stats.publish_errors:
+        problems.append(f"{stats.failed} frame(s) got no mask, {stats.publish_errors} mask publish error(s)")
+    if problems:
+        raise MeshError(f"ros {args.id}: " + "; ".join(problems) + " (see the log)")
+    return 0
+
+
+def _mcap_recorder(args, robot):
+    """``--mcap FILE``: a :class:`~scmr_mesh.ros.record.McapRecorder` observing ``robot`` (None without the flag)."""
+    if not getattr(args, "mcap", None):
+        return None
+    from scmr_mesh.ros.record import McapRecorder
+
+    rec = McapRecorder(args.mcap, robot.id, jpeg_quality=getattr(args, "jpeg_quality", 90))
+    robot.add_observer(rec.observe)
+    return rec
 
 
 def _wait_for_start(args, stop: threading.Event) -> int | None:

@@ -169,13 +169,73 @@ def synthetic_frames(kind: str, *, seed: int = 0, distinct: int = SYNTHETIC_SET,
     return itertools.cycle(made)
 
 
+def bag_frames(path: str | Path, topic: str, *, jpeg_quality: int = JPEG_QUALITY) -> Iterator[Frame]:
+    """Cycle forever over the images of ``topic`` in a ROS 2 recording (rosbag2 folder, ``.db3`` or ``.mcap``).
+
+    ``CompressedImage`` JPEG/PNG messages are sent as they are; ``Image`` messages (8-bit
+    encodings) are encoded as JPEG at ``jpeg_quality`` (PNG when 0).  A message that is not
+    an image the mesh can segment (:class:`scmr_mesh.ros.wire.RosWireError`) is skipped,
+    counted and logged once per reason; a pass with none usable is an :class:`InputError`.
+    Frames are named ``<topic>@<stamp sec>.<nanosec>`` in the records.
+
+    Raises
+    ------
+    InputError
+        At once when the recording cannot be read or the topic is missing, empty or not an image.
+    """
+    from scmr_mesh.ros import bag as rosbag
+    from scmr_mesh.ros import wire as rw
+
+    jpeg_quality = check_jpeg_quality(jpeg_quality)
+    bt = rosbag.find_topic(path, topic)
+    skipped: dict[str, int] = {}
+
+    def frame(payload: bytes) -> Frame:
+        if bt.ros_type == rw.COMPRESSED_IMAGE:
+            msg = rw.decode_compressed(payload)
+            return Frame(f"{topic}@{msg.header.sec}.{msg.header.nanosec:09d}", msg.data,
+                         rw.compressed_kind(msg.format, msg.data))
+        img = rw.decode_image(payload)
+        rgb = rw.image_to_rgb(img)
+        data, enc = _encode(rgb, jpeg_quality)
+        return Frame(f"{topic}@{img.header.sec}.{img.header.nanosec:09d}", data, enc, rgb=rgb)
+
+    def gen() -> Iterator[Frame]:
+        while True:
+            good = 0
+            for _ts, payload in rosbag.messages(bt):
+                try:
+                    f = frame(payload)
+                except rw.RosWireError as exc:
+                    skipped[exc.reason] = skipped.get(exc.reason, 0) + 1
+                    if skipped[exc.reason] == 1:
+                        log.error("--bag %s %s: message skipped (%s): %s; further ones are counted", path, topic,
+                                  exc.reason, exc)
+                    continue
+                good += 1
+                yield f
+            if not good:
+                raise InputError(f"--bag {path}: no message of {topic} is an image the mesh can segment "
+                                 f"(skipped: {skipped})")
+
+    gen.skipped = skipped  # type: ignore[attr-defined]
+    return gen()
+
+
 # ----------------------------------------------------------------- robot
 
 def frames_from_args(images: str | None, synthetic: str | None, *, seed: int = 0,
-                     jpeg_quality: int = JPEG_QUALITY) -> Iterator[Frame]:
-    """The frame source of ``--images DIR`` or ``--synthetic KIND`` (``--jpeg-quality``)."""
-    if (images is None) == (synthetic is None):
-        raise InputError("give exactly one of --images DIR or --synthetic KIND")
+                     jpeg_quality: int = JPEG_QUALITY, bag: str | None = None,
+                     topic: str | None = None) -> Iterator[Frame]:
+    """The frame source of ``--images DIR``, ``--synthetic KIND`` or ``--bag FILE --topic T`` (``--jpeg-quality``)."""
+    if sum(x is not None for x in (images, synthetic, bag)) != 1:
+        raise InputError("give exactly one of --images DIR, --synthetic KIND or --bag FILE")
+    if bag is not None:
+        if topic is None:
+            raise InputError("--bag needs --topic TOPIC, e.g. --topic /camera/image_raw")
+        return bag_frames(bag, topic, jpeg_quality=jpeg_quality)
+    if topic is not None:
+        raise InputError("--topic goes with --bag FILE; drop it or add --bag")
     if images is not None:
         return image_frames(images, jpeg_quality=jpeg_quality)
     return synthetic_frames(synthetic, seed=seed, jpeg_quality=jpeg_quality)

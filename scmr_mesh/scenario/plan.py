@@ -411,6 +411,8 @@ class RunOptions:
     #: Robots played by one ``scmr swarm`` process (1: a process per robot).  Only robots that
     #: no fault names, that are not leader-capable and share a host are grouped (:func:`swarm_groups`).
     robots_per_process: int = 1
+    #: Robots also write their frames and masks to ``<mcap_dir>/<name>.mcap`` (``scmr up --mcap``).
+    mcap_dir: str | None = None
 
 
 @dataclass(frozen=True)
@@ -500,6 +502,8 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
             argv += ["--seed", str(scenario.seed)]
         if options.robot_quiet:
             argv += ["--quiet"]
+        if options.mcap_dir is not None:
+            argv += ["--mcap", str(Path(options.mcap_dir) / f"{name}.mcap")]
         argv += ["--start-file", str(run_dir / "ready" / options.start_file)]
     if zmode is not None:
         argv += ["--zmode", zmode]

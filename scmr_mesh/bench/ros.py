@@ -1,0 +1,157 @@
+"""``scmr bench ros``: what the ROS 2 bridge adds to a frame's time to result (issue 26, target 5).
+
+Real processes on loopback: ``scmr router`` playing rmw_zenohd, one cloud, N ``scmr ros``
+bridges.  This process is the ROS side: a Zenoh client of the router that publishes
+``sensor_msgs/msg/Image`` rgb8 frames at ``rate`` Hz per robot (robots' phases spread over
+one period; frame k of robot i due at t0 + k x period + i x period / N, integer ns) and
+subscribes to the masks.  Per frame, paired in one run:
+
+* ``e2e_ms``: from just before ``put`` to the mask sample's arrival here (what a ROS node sees);
+* ``tor_ms``: the bridge's robot record of the same frame (``records.jsonl``, matched by the
+  header stamp in its ``image`` field): the ``scmr robot`` request path for those bytes;
+* ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB to JPEG, the mask
+  back to the frame's size, the overlay, CDR encode, both ROS-side Zenoh hops).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from scmr_mesh.errors import InputError
+
+
+def _stats(xs: list[float]) -> dict[str, Any]:
+    xs = sorted(xs)
+    if not xs:
+        return {"n": 0, "median": None, "p95": None, "p99": None}
+    pick = lambda q: xs[min(len(xs) - 1, int(round(q * (len(xs) - 1))))]  # noqa: E731
+    return {"n": len(xs), "median": round(statistics.median(xs), 2), "p95": round(pick(0.95), 2),
+            "p99": round(pick(0.99), 2)}
+
+
+def _scene(h: int, w: int, seed: int):
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    rgb = rng.integers(0, 80, (h, w, 3), dtype=np.uint8)
+    rgb[h // 2:] += 120  # a bright road in the lower half
+    return rgb
+
+
+def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
+        process: str | None = None, tmp: Path | None = None,
+        progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+    import zenoh
+
+    from scmr_mesh.mesh.config import close_session, open_session
+    from scmr_mesh.mesh.ros import ros_session_config
+    from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
+    from scmr_mesh.bench.r2r import _port
+    from scmr_mesh.ros import wire as rw
+
+    say = progress or (lambda m: None)
+    process = process or STUB
+    w, h = size
+    tmp = Path(tmp or tempfile.mkdtemp(prefix="scmr-bench-ros-"))
+    cport, rport = _port(), _port()
+    ros_ep = f"tcp/127.0.0.1:{rport}"
+    procs: dict[str, Any] = {}
+    sent: dict[str, int] = {}      # frame name -> perf_counter_ns at put
+    got: dict[str, int] = {}       # frame name -> perf_counter_ns at the mask's arrival
+    lock = threading.Lock()
+    session = None
+    try:
+        say("starting the router, the cloud and the bridges")
+        procs["router"] = spawn_peer(["router", "--insecure", "--listen", ros_ep, "--ready-file",
+                                      str(tmp / "router.ready")], log_path=tmp / "router.log")
+        procs["cloud"] = spawn_peer(["cloud", "--insecure", "--node", "cloud0", "--listen", f"tcp/127.0.0.1:{cport}",
+                                     "--process", process, "--ready-file", str(tmp / "cloud.ready")],
+                                    log_path=tmp / "cloud.log")
+        wait_for((tmp / "router.ready").exists, timeout=60, what="the router")
+        wait_for((tmp / "cloud.ready").exists, timeout=120, what="the cloud")
+        for i in range(robots):
+            procs[f"r{i}"] = spawn_peer(
+                ["ros", "--insecure", "--id", f"r{i}", "--connect", f"tcp/127.0.0.1:{cport}", "--ros-connect", ros_ep,
+                 "--image-topic", f"/r{i}/camera/image_raw", "--mask-topic", f"/r{i}/drivable/mask", "--quiet",
+                 "--out", str(tmp / f"r{i}"), "--process", process, "--ready-file", str(tmp / f"r{i}.ready")],
+                log_path=tmp / f"r{i}.log")
+        for i in range(robots):
+            wait_for((tmp / f"r{i}.ready").exists, timeout=120, what=f"bridge r{i}")
+        session = open_session(ros_session_config([ros_ep], []))
+
+        def on_mask(sample):
+            t = time.perf_counter_ns()
+            key = rw.parse_topic_key(str(sample.key_expr))
+            hdr = rw.decode_image(sample.payload.to_bytes()).header
+            name = f"{key.topic.replace('/drivable/mask', '/camera/image_raw')}@{hdr.sec}.{hdr.nanosec:09d}"
+            with lock:
+                got[name] = t
+
+        subs = [session.declare_subscriber(f"0/r{i}/drivable/mask/*/*", on_mask) for i in range(robots)]
+        pubs = [session.declare_publisher(rw.topic_key(0, f"/r{i}/camera/image_raw", rw.IMAGE),
+                                          congestion_control=zenoh.CongestionControl.BLOCK) for i in range(robots)]
+        for p in pubs:
+            wait_for(lambda: p.matching_status.matching, timeout=30, what="a bridge's subscription")
+        scenes = [_scene(h, w, i) for i in range(robots)]
+        gid = bytes(16)
+        period_ns = int(round(1e9 / rate_hz))
+        frames = int(duration_s * rate_hz)
+        say(f"{robots} robots x {frames} frames of {w}x{h} rgb8 at {rate_hz:g} Hz")
+        t0 = time.monotonic_ns() + 100_000_000
+        due = sorted((t0 + k * period_ns + i * period_ns // robots, i, k) for k in range(frames)
+                     for i in range(robots))
+        for t_due, i, k in due:
+            topic = f"/r{i}/camera/image_raw"
+            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            left = t_due - time.monotonic_ns()
+            if left > 0:
+                time.sleep(left / 1e9)
+            name = f"{topic}@{k + 1}.{i:09d}"
+            sent[name] = time.perf_counter_ns()
+            pubs[i].put(payload, attachment=rw.Attachment(k + 1, time.time_ns(), gid).encode())
+        try:
+            wait_for(lambda: len(got) >= len(sent), timeout=10, what="the last masks")
+        except TimeoutError:
+            pass
+        for x in (*subs, *pubs):
+            x.undeclare()
+        summaries = {}
+        for i in range(robots):
+            stop_peer(procs.pop(f"r{i}"))
+            lines = [ln for ln in (tmp / f"r{i}.log").read_text().splitlines() if ln.startswith("{")]
+            summaries[f"r{i}"] = json.loads(lines[-1])["ros"] if lines else None
+        tor = {r["image"]: r["tor_ms"] for i in range(robots) for r in read_records(tmp / f"r{i}" / "records.jsonl")
+               if r["ok"]}
+        e2e = {n: (got[n] - sent[n]) / 1e6 for n in sent if n in got}
+        paired = [n for n in e2e if n in tor]
+        return {
+            "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "rgb8", "process": process,
+            "frames_sent": len(sent), "masks_received": len(e2e), "paired": len(paired),
+            "e2e_ms": _stats([e2e[n] for n in paired]), "tor_ms": _stats([tor[n] for n in paired]),
+            "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]), "bridges": summaries,
+        }
+    finally:
+        if session is not None:
+            close_session(session)
+        for p in procs.values():
+            stop_peer(p)
+
+
+def cmd_bench_ros(args: argparse.Namespace) -> int:
+    if args.robots < 1 or args.duration <= 0:
+        raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
+    res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size,
+              process=args.process, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
+    text = json.dumps(res, indent=1)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+    print(text)
+    return 0

@@ -1,0 +1,329 @@
+"""``scmr ros``: a robot whose camera is a ROS 2 topic on rmw_zenoh (docs/ROS2.md).
+
+A :class:`RosBridge` holds a second Zenoh session, a *client* of the ROS side's router
+(``rmw_zenohd``, tcp/localhost:7447 by default), next to the robot's mesh session.  It
+subscribes to the image topic (``sensor_msgs/msg/Image`` or, with ``compressed``,
+``CompressedImage``; any type hash, so Humble's ``TypeHashNotSupported`` matches), sends
+each frame through :meth:`Robot.request <scmr_mesh.mesh.robot.Robot.request>` (the same
+placement, failover, hedging, security, records and telemetry as ``scmr robot``) and
+publishes the mask as ``mono8`` (255 = drivable, the input's size, header stamp and
+frame_id) on the mask topic and an ``rgb8`` overlay on ``<mask topic>/overlay``, each
+sample with rmw_zenoh's attachment.  Liveliness tokens declare its node, its two
+publishers and its subscription, so ``ros2 node list`` / ``ros2 topic info`` see it.
+
+Frames that arrive while one is being served wait in a one-frame slot: a newer frame
+replaces the waiting one (dropped oldest-first, counted).  A sample that is not an image
+the bridge can segment is decoded in the subscriber callback, counted by reason
+(:class:`scmr_mesh.ros.wire.RosWireError`) and logged once per topic and reason; it never
+reaches the robot.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import statistics
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from scmr_mesh.mesh.frames import Frame
+from scmr_mesh.ros import wire as rw
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class BridgeStats:
+    """What the bridge saw and did; ``rejected`` counts samples by :class:`RosWireError` reason."""
+
+    received: int = 0
+    served: int = 0
+    failed: int = 0
+    dropped: int = 0
+    published: int = 0
+    publish_errors: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    #: per served frame (the last 10000): ms from the sample's arrival to the frame ready to send
+    #: (CDR decode, RGB, JPEG), and from the robot's answer to the mask published
+    in_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
+    out_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
+    #: and the wall time of Robot.request (its ToR plus its records, inbox and telemetry)
+    request_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
+
+    def as_dict(self) -> dict:
+        return {"received": self.received, "served": self.served, "failed": self.failed, "dropped": self.dropped,
+                "published": self.published, "publish_errors": self.publish_errors,
+                "rejected": dict(self.rejected), "rejected_total": sum(self.rejected.values()),
+                "in_ms_median": _median(self.in_ms), "request_ms_median": _median(self.request_ms),
+                "out_ms_median": _median(self.out_ms)}
+
+
+def _median(xs) -> float | None:
+    return round(statistics.median(xs), 3) if xs else None
+
+
+@dataclass
+class _Pending:
+    header: rw.Header
+    frame: Frame
+    height: int
+    width: int
+    in_ms: float = 0.0
+
+
+def ros_node_name(robot_id: str) -> str:
+    """The ROS node name of robot ``robot_id``: ``scmr_ros_<id>`` with characters ROS refuses as ``_``."""
+    return "scmr_ros_" + re.sub(r"[^A-Za-z0-9_]", "_", robot_id)
+
+
+def _frame_name(topic: str, header: rw.Header) -> str:
+    """A frame's name in the robot's records (``image``): ``<topic>@<stamp sec>.<nanosec>``."""
+    return f"{topic}@{header.sec}.{header.nanosec:09d}"
+
+
+class _Publisher:
+    """A Zenoh publisher on an rmw_zenoh data key that attaches (seq, timestamp, gid) to each sample."""
+
+    def __init__(self, session, key: str, token_key: str) -> None:
+        self.pub = session.declare_publisher(key)
+        self.gid = rw.gid_of(token_key)
+        self.seq = 0
+
+    def put(self, payload: bytes) -> None:
+        self.seq += 1
+        self.pub.put(payload, attachment=rw.Attachment(self.seq, time.time_ns(), self.gid).encode())
+
+    def undeclare(self) -> None:
+        self.pub.undeclare()
+
+
+class RosBridge:
+    """Serve a ROS 2 image topic through ``robot``; see the module docstring.
+
+    Parameters
+    ----------
+    robot : Robot
+        Attached to the mesh session; its :meth:`request` serves each frame.
+    ros_session : zenoh.Session
+        A client session of the ROS router.
+    domain : int
+        ROS domain id.
+    image_topic, mask_topic : str
+        Absolute ROS topic names.
+    compressed : bool
+        Subscribe to ``sensor_msgs/msg/CompressedImage`` (JPEG or PNG) instead of ``Image``.
+    rate_hz : float or None
+        At most this many frames per second go to the mesh (None: as fast as they are served).
+    jpeg_quality : int
+        Raw ``Image`` frames are sent to the mesh as JPEG at this quality (0: PNG).
+    """
+
+    def __init__(self, robot, ros_session, *, domain: int, image_topic: str, mask_topic: str,
+                 compressed: bool = False, rate_hz: float | None = None, jpeg_quality: int = 90,
+                 node_name: str | None = None) -> None:
+        self.robot = robot
+        self.session = ros_session
+        self.domain = rw.check_domain(domain)
+        self.image_topic = rw.check_topic(image_topic, flag="--image-topic")
+        self.mask_topic = rw.check_topic(mask_topic, flag="--mask-topic")
+        self.overlay_topic = self.mask_topic + "/overlay"
+        self.in_type = rw.COMPRESSED_IMAGE if compressed else rw.IMAGE
+        self.rate_hz = rate_hz
+        self.jpeg_quality = jpeg_quality
+        self.node = node_name or ros_node_name(robot.id)
+        self.stats = BridgeStats()
+        self._cv = threading.Condition()
+        self._slot: _Pending | None = None
+        self._logged: set[tuple[str, str]] = set()
+        self._tokens: list[Any] = []
+        self._sub = None
+        self._mask_pub: _Publisher | None = None
+        self._overlay_pub: _Publisher | None = None
+        self._seq = 0
+        self._last_mask = None
+        robot.add_observer(self._observe)
+
+    # ------------------------------------------------------------ life cycle
+    def tokens(self, zid: str) -> dict[str, str]:
+        """The liveliness keys of the node, its subscription and its two publishers."""
+        def ent(eid, kind, topic, ros_type):
+            return rw.entity_token(self.domain, zid, 0, eid, kind, self.node, topic, ros_type)
+
+        return {"node": rw.node_token(self.domain, zid, 0, self.node),
+                "sub": ent(1, rw.SUBSCRIPTION, self.image_topic, self.in_type),
+                "mask": ent(2, rw.PUBLISHER, self.mask_topic, rw.IMAGE),
+                "overlay": ent(3, rw.PUBLISHER, self.overlay_topic, rw.IMAGE)}
+
+    def start(self) -> None:
+        """Declare the publishers, the subscription and the liveliness tokens."""
+        tok = self.tokens(str(self.session.info.zid()))
+        self._mask_pub = _Publisher(self.session, rw.topic_key(self.domain, self.mask_topic, rw.IMAGE), tok["mask"])
+        self._overlay_pub = _Publisher(self.session, rw.topic_key(self.domain, self.overlay_topic, rw.IMAGE),
+                                       tok["overlay"])
+        self._sub = self.session.declare_subscriber(rw.subscribe_key(self.domain, self.image_topic, self.in_type),
+                                                    self._on_sample)
+        lv = self.session.liveliness()
+        self._tokens = [lv.declare_token(tok[k]) for k in ("node", "sub", "mask", "overlay")]
+
+    def close(self) -> None:
+        from scmr_mesh.mesh.resources import undeclare_all
+
+        undeclare_all([*self._tokens, self._sub, self._mask_pub, self._overlay_pub])
+        self._tokens, self._sub, self._mask_pub, self._overlay_pub = [], None, None, None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ input
+    def _reject(self, key: str, exc: rw.RosWireError) -> None:
+        with self._cv:
+            self.stats.rejected[exc.reason] = self.stats.rejected.get(exc.reason, 0) + 1
+            first = (key, exc.reason) not in self._logged
+            self._logged.add((key, exc.reason))
+        if first:  # once per topic and reason; the count is in the summary
+            log.error("ros: %s: sample rejected (%s): %s; further ones are counted, not logged", key, exc.reason, exc)
+
+    def _on_sample(self, sample) -> None:
+        """Zenoh callback: decode (bounded), then put the frame in the slot, replacing one that waits."""
+        t0 = time.perf_counter()
+        key = str(sample.key_expr)
+        with self._cv:
+            self.stats.received += 1
+        try:
+            pending = self._decode(key, sample.payload.to_bytes())
+            pending.in_ms = (time.perf_counter() - t0) * 1e3
+        except rw.RosWireError as exc:
+            self._reject(key, exc)
+            return
+        except Exception as exc:  # never let a sample kill the callback thread
+            self._reject(key, rw.RosWireError("decode", f"{type(exc).__name__}: {exc}"))
+            return
+        with self._cv:
+            if self._slot is not None:
+                self.stats.dropped += 1
+            self._slot = pending
+            self._cv.notify()
+
+    def _decode(self, key: str, payload: bytes) -> _Pending:
+        tk = rw.parse_topic_key(key)
+        if tk.type_hash not in (rw.TYPE_HASHES[self.in_type], rw.HUMBLE_HASH):
+            raise rw.RosWireError("type_hash", f"type hash {tk.type_hash} is not the {self.in_type} this bridge "
+                                               f"decodes ({rw.TYPE_HASHES[self.in_type]}, or Humble's)")
+        if self.in_type == rw.COMPRESSED_IMAGE:
+            msg = rw.decode_compressed(payload)
+            kind = rw.compressed_kind(msg.format, msg.data)
+            from scmr_mesh.imaging.codec import decode_image  # bounded: checks the declared size first
+            from scmr_mesh.errors import ImageDecodeError
+
+            try:
+                rgb = decode_image(msg.data)
+            except ImageDecodeError as exc:
+                raise rw.RosWireError("encoding", str(exc)) from None
+            frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind, rgb=rgb)
+            return _Pending(msg.header, frame, rgb.shape[0], rgb.shape[1])
+        img = rw.decode_image(payload)
+        rgb = rw.image_to_rgb(img)
+        from scmr_mesh.imaging import encode_jpeg, encode_png
+
+        if self.jpeg_quality:
+            data, enc = encode_jpeg(rgb, quality=self.jpeg_quality), "jpeg"
+        else:
+            data, enc = encode_png(rgb), "png"
+        return _Pending(img.header, Frame(name=_frame_name(tk.topic, img.header), data=data, encoding=enc, rgb=rgb),
+                        img.height, img.width)
+
+    # ------------------------------------------------------------ serving
+    def _observe(self, record: dict, rgb, mask) -> None:
+        self._last_mask = mask
+
+    def _take(self, stop: threading.Event, timeout: float) -> _Pending | None:
+        with self._cv:
+            if self._slot is None:
+                self._cv.wait(timeout)
+            p, self._slot = self._slot, None
+            return p
+
+    def serve_one(self, pending: _Pending) -> dict:
+        """Send one frame through the robot, publish its mask and overlay; return the robot's record."""
+        import cv2
+        import numpy as np
+
+        self._last_mask = None
+        t_req = time.perf_counter()
+        record = self.robot.request(self._seq, pending.frame)
+        request_ms = (time.perf_counter() - t_req) * 1e3
+        self._seq += 1
+        mask = self._last_mask
+        if not record["ok"] or mask is None:
+            with self._cv:
+                self.stats.failed += 1
+            log.warning("ros: frame %s got no mask: %s", record["seq"], record.get("error"))
+            return record
+        t0 = time.perf_counter()
+        with self._cv:
+            self.stats.served += 1
+        h, w = pending.height, pending.width
+        if mask.shape != (h, w):
+            mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
+        mask = np.where(mask > 0, np.uint8(255), np.uint8(0))
+        try:  # the mask first: it is what a planner waits for
+            self._mask_pub.put(rw.encode_image(rw.mono8(pending.header, mask)))
+            out_ms = (time.perf_counter() - t0) * 1e3
+            overlay = pending.frame.pixels() // 2  # half brightness, drivable pixels tinted green
+            overlay[:, :, 1] += mask // 2
+            self._overlay_pub.put(rw.encode_image(rw.rgb8(pending.header, overlay)))
+            with self._cv:
+                self.stats.published += 1
+                self.stats.in_ms.append(pending.in_ms)
+                self.stats.out_ms.append(out_ms)
+                self.stats.request_ms.append(request_ms)
+        except Exception as exc:
+            with self._cv:
+                self.stats.publish_errors += 1
+            log.error("ros: publishing the mask of frame %s failed: %s", record["seq"], exc)
+        return record
+
+    def run(self, stop: threading.Event, *, count: int | None = None, progress=None) -> BridgeStats:
+        """Serve the newest waiting frame until ``stop`` (or ``count`` frames served or failed).
+
+        With a rate cap, frame k goes out no earlier than t0 + k x period (integer ns); frames
+        arriving meanwhile replace the waiting one.
+        """
+        period_ns = int(round(1e9 / self.rate_hz)) if self.rate_hz else 0
+        t0 = None
+        k = 0
+        while not stop.is_set() and (count is None or self.stats.served + self.stats.failed < count):
+            if period_ns and t0 is not None:
+                due = t0 + k * period_ns
+                wait_ns = due - time.monotonic_ns()
+                if wait_ns > 0 and stop.wait(wait_ns / 1e9):
+                    break
+            pending = self._take(stop, 0.1)
+            if pending is None:
+                continue
+            now = time.monotonic_ns()
+            if t0 is None:
+                t0 = now
+            if period_ns:  # the next slot after this one (late frames do not earn a burst)
+                k = max(k + 1, (now - t0) // period_ns + 1)
+            rec = self.serve_one(pending)
+            if progress is not None:
+                progress(rec)
+        with self._cv:  # a frame still waiting at exit is dropped too
+            if self._slot is not None:
+                self._slot = None
+                self.stats.dropped += 1
+        return self.stats
+
+
+def ros_session_config(connect: list[str], cfg: list[str]):
+    """The :class:`MeshConfig` of the ROS side: a client of the ROS router (rmw_zenoh#929: a peer gets no data)."""
+    from scmr_mesh.mesh.config import MeshConfig
+
+    return MeshConfig(mode="client", connect=list(connect), cfg=list(cfg))

@@ -1,0 +1,209 @@
+"""``scmr ros`` end to end with real processes: a router playing rmw_zenohd, a cloud, two bridges.
+
+The outside ROS 2 publisher here is written from the rmw_zenoh contract, not from
+scmr_mesh.ros.wire: keys, the 33-byte attachment and ``@ros2_lv`` tokens spelt out by hand,
+messages serialized and read back by rosbags.  It is a Zenoh *client* of the router, as
+rmw_zenoh nodes are.  It sends an ``Image`` to one bridge and a ``CompressedImage`` to the
+other and gets ``mono8`` masks of the same size and stamp (and an ``rgb8`` overlay) with the
+attachment; a ``bgra16`` frame and a truncated one are counted and the bridge keeps serving.
+Then zenoh-ros2-sdk (tests/ros_sdk_client.py, offline) sends an Image and gets its mask, when installed.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import threading
+
+import cv2
+import numpy as np
+import pytest
+
+from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, wait_for
+from conftest import free_port
+
+rosbags = pytest.importorskip("rosbags.typesys")
+zenoh = pytest.importorskip("zenoh")
+
+IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
+
+
+def _key(ts, topic: str, ros_type: str) -> str:
+    pkg, _, name = ros_type.split("/")
+    return f"0/{topic.strip('/')}/{pkg}::msg::dds_::{name}_/{ts.hash_rihs01(ros_type)}"
+
+
+def _header(ts, sec: int, frame_id: str):
+    T = ts.types
+    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=123), frame_id=frame_id)
+
+
+def _image(ts, sec: int, rgb: np.ndarray, encoding: str = "rgb8") -> bytes:
+    h, w = rgb.shape[:2]
+    step = rgb.nbytes // h
+    msg = ts.types[IMAGE](header=_header(ts, sec, "cam"), height=h, width=w, encoding=encoding, is_bigendian=0,
+                          step=step, data=rgb.reshape(-1).view(np.uint8))
+    return bytes(ts.serialize_cdr(msg, IMAGE))
+
+
+def _compressed(ts, sec: int, rgb: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".jpg", rgb[:, :, ::-1])
+    msg = ts.types[COMPRESSED](header=_header(ts, sec, "cam"), format="jpeg", data=buf.reshape(-1))
+    return bytes(ts.serialize_cdr(msg, COMPRESSED))
+
+
+def _attachment(seq: int) -> bytes:
+    return struct.pack("<qqB", seq, 1_700_000_000_000_000_000 + seq, 16) + bytes(range(16))
+
+
+def _sdk_client(tmp_path, port: int, image_topic: str, mask_topic: str) -> dict | None:
+    """Run tests/ros_sdk_client.py (zenoh-ros2-sdk as a ROS node); its JSON line, None without the SDK."""
+    import importlib.util
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    if importlib.util.find_spec("zenoh_ros2_sdk") is None:
+        return None
+    script = Path(__file__).with_name("ros_sdk_client.py")
+    r = subprocess.run([sys.executable, str(script), str(port), str(tmp_path / "msg"), image_topic, mask_topic],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-2000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _scene(h: int, w: int) -> np.ndarray:
+    rgb = np.zeros((h, w, 3), np.uint8)
+    rgb[h // 2:] = 200  # bright lower half: the stub marks it drivable
+    return rgb
+
+
+@pytest.mark.timeout(120)
+def test_ros_publisher_gets_mono8_masks_through_the_mesh(tmp_path):
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    cport, rport = free_port(), free_port()
+    ros_ep = f"tcp/127.0.0.1:{rport}"
+    procs = {}
+    bridges = {"img": ("/camera/image_raw", "/drivable/mask", []),
+               "cmp": ("/camera/compressed", "/drivable/cmask", ["--compressed"])}
+    try:
+        procs["router"] = spawn_peer(["router", "--insecure", "--listen", ros_ep, "--ready-file",
+                                      str(tmp_path / "router.ready")], log_path=tmp_path / "router.log")
+        procs["cloud"] = spawn_peer(["cloud", "--insecure", "--node", "cloud0", "--listen", f"tcp/127.0.0.1:{cport}",
+                                     "--workers", "1", "--process", STUB, "--ready-file", str(tmp_path / "cloud.ready")],
+                                    log_path=tmp_path / "cloud.log")
+        for name, (topic, mask, extra) in bridges.items():
+            procs[name] = spawn_peer(["ros", "--insecure", "--id", f"r{name}", "--connect", f"tcp/127.0.0.1:{cport}",
+                                      "--ros-connect", ros_ep, "--image-topic", topic, "--mask-topic", mask, *extra,
+                                      "--out", str(tmp_path / name), "--process", STUB, "--no-local-fallback",
+                                      "--wait-ms", "20000", "--quiet"],
+                                     log_path=tmp_path / f"{name}.log")
+        wait_for((tmp_path / "router.ready").exists, timeout=30, what="the router (rmw_zenohd's stand-in)")
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", json.dumps([ros_ep]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        got: dict[str, list] = {m: [] for _, m, _ in bridges.values()}
+        got.update({m + "/overlay": [] for _, m, _ in bridges.values()})
+        tokens: set[str] = set()
+        lock = threading.Condition()
+
+        def on_mask(sample):
+            topic = "/" + "/".join(str(sample.key_expr).split("/")[1:-2])
+            with lock:
+                got[topic].append((str(sample.key_expr), sample.payload.to_bytes(),
+                                   None if sample.attachment is None else sample.attachment.to_bytes()))
+
+        def on_token(sample):
+            with lock:
+                tokens.add(str(sample.key_expr))
+
+        with zenoh.open(conf) as s:
+            subs = [s.declare_subscriber(f"0/{m.strip('/')}/*/*", on_mask) for m in got]  # <type>/<hash>
+            lv = s.liveliness().declare_subscriber("@ros2_lv/0/**", on_token, history=True)
+
+            def visible(kind, topic):
+                return any(t.split("/")[5] == kind and t.split("/")[9] == topic.replace("/", "%") for t in tokens)
+
+            # the graph as `ros2 topic info` reads it: the bridges' subscriptions and publishers
+            for topic, mask, _ in bridges.values():
+                wait_for(lambda: visible("MS", topic) and visible("MP", mask) and visible("MP", mask + "/overlay"),
+                         timeout=60, what=f"liveliness tokens of the bridge on {topic}")
+            assert any(t.split("/")[5] == "NN" and t.split("/")[8] == "scmr_ros_rimg" for t in tokens)
+            pubs = {n: s.declare_publisher(_key(ts, bridges[n][0], COMPRESSED if n == "cmp" else IMAGE))
+                    for n in bridges}
+            for p in pubs.values():
+                wait_for(lambda: p.matching_status.matching, timeout=10, what="the bridge's subscription")
+
+            def served(mask, n):
+                with lock:
+                    return len(got[mask]) >= n and len(got[mask + "/overlay"]) >= n
+
+            def check_mask(mask, n, sec, h, w):
+                key, payload, att = got[mask][n - 1]
+                assert key == _key(ts, mask, IMAGE)
+                m = ts.deserialize_cdr(payload, IMAGE)
+                assert (m.encoding, m.height, m.width, m.step) == ("mono8", h, w, w)
+                assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == (sec, 123, "cam")
+                px = np.asarray(m.data).reshape(h, w)
+                assert set(np.unique(px)) <= {0, 255} and px[-1].min() == 255 and px[0].max() == 0
+                assert len(att) == 33 and att[16] == 16 and struct.unpack_from("<q", att)[0] == n
+                o = ts.deserialize_cdr(got[mask + "/overlay"][n - 1][1], IMAGE)
+                assert (o.encoding, o.height, o.width, o.header.stamp.sec) == ("rgb8", h, w, sec)
+
+            pubs["img"].put(_image(ts, 41, _scene(48, 64)), attachment=_attachment(1))
+            pubs["cmp"].put(_compressed(ts, 42, _scene(60, 80)), attachment=_attachment(1))
+            wait_for(lambda: served("/drivable/mask", 1), timeout=30, what="the Image frame's mask")
+            wait_for(lambda: served("/drivable/cmask", 1), timeout=30, what="the CompressedImage frame's mask")
+            check_mask("/drivable/mask", 1, 41, 48, 64)
+            check_mask("/drivable/cmask", 1, 42, 60, 80)
+
+            # bad input: bgra16 and a body shorter than its data; then the bridge still serves
+            pubs["img"].put(_image(ts, 43, np.zeros((8, 8, 4), np.uint16), encoding="bgra16"),
+                            attachment=_attachment(2))
+            pubs["img"].put(_image(ts, 44, _scene(48, 64))[:-100], attachment=_attachment(3))
+            pubs["img"].put(_image(ts, 45, _scene(48, 64)), attachment=_attachment(4))
+            wait_for(lambda: served("/drivable/mask", 2), timeout=30, what="a mask after the bad frames")
+            check_mask("/drivable/mask", 2, 45, 48, 64)
+            for x in (*subs, lv, *pubs.values()):
+                x.undeclare()
+        sdk = _sdk_client(tmp_path, rport, "/camera/image_raw", "/drivable/mask")
+        rcs = {n: stop_peer(procs.pop(n)) for n in bridges}
+        summaries = {n: json.loads([ln for ln in (tmp_path / f"{n}.log").read_text().splitlines()
+                                    if ln.startswith("{")][-1]) for n in bridges}
+        assert summaries["img"]["ros"]["rejected"] == {"encoding": 1, "truncated": 1}, summaries
+        most = 2 + (sdk["sent"] if sdk else 0)  # the SDK sends again each second until it has a mask
+        assert 2 + (sdk is not None) <= summaries["img"]["ros"]["served"] <= most and summaries["img"]["by_tier"]["local"] == 0
+        if sdk is not None:  # a second outside client nobody here wrote
+            assert sdk["mask"] == {"encoding": "mono8", "height": 30, "width": 40, "sec": 77, "frame_id": "sdk",
+                                   "values": [0, 255]}
+        assert rcs == {"img": 1, "cmp": 0}, [(tmp_path / f"{n}.log").read_text()[-2000:] for n in bridges]
+        assert "2 sample(s) rejected" in (tmp_path / "img.log").read_text()
+    finally:
+        for p in procs.values():
+            stop_peer(p)
+
+
+def test_frames_arriving_faster_than_served_keep_only_the_newest():
+    """The one-frame slot: a newer frame replaces the waiting one, each replaced frame is a drop."""
+    from types import SimpleNamespace
+
+    from scmr_mesh.mesh.ros import RosBridge
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    robot = SimpleNamespace(id="r1", add_observer=lambda fn: None)
+    b = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask")
+    key = _key(ts, "/cam", IMAGE)
+
+    def sample(sec):
+        return SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: _image(ts, sec, _scene(4, 4))))
+
+    for sec in (1, 2, 3):
+        b._on_sample(sample(sec))
+    b._on_sample(SimpleNamespace(key_expr=key.rsplit("/", 1)[0] + "/RIHS01_" + "0" * 64,
+                                 payload=SimpleNamespace(to_bytes=lambda: b"")))
+    assert (b.stats.received, b.stats.dropped, b.stats.rejected) == (4, 2, {"type_hash": 1})
+    assert b._take(threading.Event(), 0).header.sec == 3 and b._take(threading.Event(), 0) is None
+    humble = key.rsplit("/", 1)[0] + "/TypeHashNotSupported"  # what rmw_zenoh on Humble sends
+    b._on_sample(SimpleNamespace(key_expr=humble, payload=SimpleNamespace(to_bytes=lambda: _image(ts, 9, _scene(4, 4)))))
+    assert b._take(threading.Event(), 0).header.sec == 9
