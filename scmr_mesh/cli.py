@@ -38,7 +38,6 @@ COMMAND_MODULES: tuple[str, ...] = (
     "scmr_mesh.data.commands",
     "scmr_mesh.security.commands",
     "scmr_mesh.viz.commands",
-    "scmr_mesh.mesh.swarm",
 )
 
 #: Command -> the module that registers it, so that ``scmr cloud ...`` imports
@@ -61,7 +60,7 @@ COMMAND_HOME: dict[str, str] = {
     "ods": "scmr_mesh.data.commands",
     "certs": "scmr_mesh.security.commands",
     "view": "scmr_mesh.viz.commands",
-    "swarm": "scmr_mesh.mesh.swarm",
+    "swarm": "scmr_mesh.mesh.commands",
 }
 
 EPILOG = """\

@@ -29,11 +29,12 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any, Sequence
 
 from scmr_mesh import cliargs as ca
 from scmr_mesh.data.retention import DEFAULT_KEEP_MASKS
 from scmr_mesh.mesh.data_agent import MEMORY_BUFFER_BYTES
-from scmr_mesh.errors import InputError, MeshError
+from scmr_mesh.errors import InputError, MeshError, ScmrError
 from scmr_mesh.mesh.resources import appeared
 
 log = logging.getLogger(__name__)
@@ -93,13 +94,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "OUT/records.jsonl (one JSON object per request), and prints a JSON summary "
                     "on stdout at the end.",
         epilog=_PEER_EPILOG)
-    p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
-    _robot_args(p, leader=False)
-    _r2r_args(p, robot=True)
-    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the robot is connected, sees a cloud or leader (or --wait-ms ran out) and is warmed up")
-    p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
-    config.add_arguments(p)
-    _data_args(p, "robot")
+    _robot_command_args(p)
     p.set_defaults(func=_cmd_robot)
 
     p = sub.add_parser(
@@ -181,6 +176,36 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
     p.set_defaults(func=_cmd_router)
+
+    p = sub.add_parser(
+        "swarm", help="play several robots from one process (a load generator for benchmarks)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run the robots of --plan in this one process.  Each member is a whole robot "
+                    "(the arguments of one `scmr robot`): its own zenoh session and identity, frames, "
+                    "records, telemetry and ready file.  Writes --ready-file once every member is "
+                    "ready; exits 1 when a member failed or lost telemetry.  Members cannot be "
+                    "leader-capable.",
+        epilog="PLAN is JSON: {\"robots\": [[\"--id\", \"r1\", \"--synthetic\", \"road\", \"--out\", "
+               "\"run/r1\", ...], ...]}, each entry one robot's `scmr robot` arguments.  "
+               "`scmr up --robots-per-process K` writes these plans itself.")
+    p.add_argument("--plan", required=True, type=ca.PathArg("in-file"), metavar="PLAN",
+                   help="JSON file with each member's `scmr robot` arguments")
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH",
+                   help="written once every member is ready")
+    p.set_defaults(func=_cmd_swarm)
+
+
+def _robot_command_args(p: argparse.ArgumentParser) -> None:
+    """Every flag of ``scmr robot`` (also how ``scmr swarm`` reads each member's arguments)."""
+    from scmr_mesh.mesh import config
+
+    p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
+    _robot_args(p, leader=False)
+    _r2r_args(p, robot=True)
+    p.add_argument("--ready-file", type=ca.PathArg("out-file"), metavar="PATH", help="written once the robot is connected, sees a cloud or leader (or --wait-ms ran out) and is warmed up")
+    p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
+    config.add_arguments(p)
+    _data_args(p, "robot")
 
 
 def _service_args(p: argparse.ArgumentParser) -> None:
@@ -919,3 +944,100 @@ def _cmd_router(args) -> int:
     require_security(args, "router")
     _setup_logging(args)
     return run_router(_mesh(args, mode="router"), ready_file=args.ready_file)
+
+
+def parse_swarm_members(plans: Sequence[Sequence[str]]) -> list[argparse.Namespace]:
+    """Each member's arguments parsed and checked as ``scmr robot`` would, before anything starts."""
+    import contextlib
+    import io
+
+    parser = ca.ScmrArgumentParser(prog="scmr robot")
+    _robot_command_args(parser)
+    members, seen = [], set()
+    for i, argv in enumerate(plans):
+        err = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(err):
+                args = parser.parse_args(list(argv))
+        except SystemExit:
+            last = (err.getvalue().strip().splitlines() or ["invalid arguments"])[-1]
+            for prefix in ("scmr robot: ", "scmr: ", "error: "):
+                last = last.removeprefix(prefix)
+            raise InputError(f"swarm member {i + 1}: {last}") from None
+        if args.id in seen:
+            raise InputError(f"swarm member {i + 1}: robot id {args.id!r} twice; give each member its own --id")
+        seen.add(args.id)
+        if args.leader_capable:
+            raise InputError(f"swarm member {args.id}: --leader-capable robots run as their own process "
+                             "(scmr robot --leader-capable), not in a swarm")
+        if not args.out:
+            raise InputError(f"swarm member {args.id}: --out DIR is required (its records and masks)")
+        try:
+            require_security(args, "robot")
+            check_grant(args, "robot", args.id)
+            _check_robot_args(args)
+        except ScmrError as exc:
+            raise InputError(f"swarm member {args.id}: {exc}") from None
+        members.append(args)
+    return members
+
+
+def _cmd_swarm(args) -> int:
+    from scmr_mesh.mesh.config import close_session, open_session
+    from scmr_mesh.mesh.peers import StopFlag, clear_ready, write_ready
+
+    from scmr_mesh.mesh.swarm import read_plan
+
+    members = parse_swarm_members(read_plan(args.plan))
+    stop = StopFlag().install()
+    clear_ready(args.ready_file)
+    for m in members:
+        clear_ready(m.ready_file)
+    sessions: list[Any] = []
+    results: dict[str, Any] = {}
+    threads: list[threading.Thread] = []
+    try:
+        for m in members:  # every identity opens its own session: its own certificate and links
+            sessions.append(open_session(_mesh(m)))
+
+        def play(m, session) -> None:
+            try:
+                results[m.id] = _robot_body(m, session, stop.event)
+            except Exception as exc:  # one member's failure is reported, the others go on
+                log.exception("swarm member %s failed", m.id)
+                results[m.id] = exc
+                _swarm_member_failed(m, exc)
+
+        for m, s in zip(members, sessions):
+            t = threading.Thread(target=play, args=(m, s), name=f"robot-{m.id}", daemon=True)
+            t.start()
+            threads.append(t)
+        ready_files = [Path(m.ready_file) for m in members if m.ready_file]
+        while not stop.event.is_set() and any(t.is_alive() for t in threads):
+            if ready_files and all(f.exists() for f in ready_files):
+                write_ready(args.ready_file, {"role": "swarm", "robots": [m.id for m in members]})
+                ready_files = []
+            for t in threads:
+                t.join(0.05)
+        # stopped: every member's run loop sees the same stop event and ends its frame
+        for t in threads:
+            while t.is_alive():
+                t.join(0.2)
+    finally:
+        for s in sessions:
+            close_session(s)
+        clear_ready(args.ready_file)
+        for m in members:
+            clear_ready(m.ready_file)
+        stop.restore()
+    problems = [getattr(m, "_problem", None) for m in members]
+    problems = [p for p in problems if p]
+    if problems:
+        raise MeshError(f"{len(problems)} of {len(members)} swarm robots failed: " + "; ".join(problems))
+    return 0
+
+
+def _swarm_member_failed(m: argparse.Namespace, exc: Exception) -> None:
+    """Mark member ``m`` failed with ``exc`` (one line; the swarm exits 1)."""
+    m._problem = f"robot {m.id}: {type(exc).__name__}: {exc}"
+    print(f"scmr: error: {m._problem}", file=sys.stderr, flush=True)
