@@ -32,8 +32,8 @@ def test_a_url_opens_the_postgres_store_with_the_same_schema(pg_dsn):
         assert ods.schema_version() == SCHEMA_VERSION
         cols = [c for (c,) in ods._read("SELECT column_name FROM information_schema.columns "
                                         "WHERE table_name = 'telemetry' ORDER BY ordinal_position")]
-        assert cols == ["id", "robot", "seq", "t_unix_ns", "x", "y", "theta", "battery", "health", "results",
-                        "received_from", "stored_unix_ns"]
+        assert cols == ["id", "robot", "inc", "seq", "t_unix_ns", "x", "y", "theta", "battery", "health",
+                        "results", "received_from", "stored_unix_ns", "digest"]
         # doubles, not PostgreSQL's 4-byte REAL; 64-bit times
         types = dict(ods._read("SELECT column_name, data_type FROM information_schema.columns "
                                "WHERE table_name = 'telemetry'"))
@@ -63,8 +63,9 @@ def test_exactly_once_counts_queries_and_export_match_sqlite(pg_dsn, tmp_path):
             for row in (rows.values() if isinstance(rows, dict) else rows):
                 row.pop("stored_unix_ns")
     assert out["pg"] == out["sqlite"]
-    assert out["pg"]["counts"]["r1"] == {"stored": 4, "duplicates": 4, "conflicts": 1, "min_seq": 1,
-                                         "max_seq": 5, "contiguous": 3}
+    assert out["pg"]["counts"]["r1"] == {"stored": 4, "duplicates": 3, "conflicts": 1, "min_seq": 1,
+                                         "max_seq": 5, "contiguous": 3, "inc": 0, "incarnations": 1,
+                                         "stored_all": 4}
     assert out["pg"]["latest"]["r1"]["pose"] == [1.0, 5.123456789, 0.5]  # float8 round trip
 
 

@@ -135,7 +135,7 @@ class LeaderData:
             _answer(query, {"error": str(exc)}, error=True)
             return
         for r in records:
-            self.buffer.record_telemetry(r.to_dict())
+            self.buffer.record_telemetry(r.to_dict(signed=False))
         self.received += len(records)
         _answer(query, {"acked": len(records), "stored": len(records), "duplicates": 0}, kind="data_ack")
 
