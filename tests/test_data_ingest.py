@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import msgpack
 import pytest
 
-from scmr_mesh.data.record import batch_size, encode_records, make_record
+from scmr_mesh.data.record import batch_size, decode_records, encode_records, make_record
 from scmr_mesh.mesh import data_cloud
 from test_data_protocol import FakeQuery as ProtocolFakeQuery
 from scmr_mesh.mesh.data_service import CloudData, IngestGate, LeaderData, TelemetryAgent, telemetry_key
@@ -123,7 +123,7 @@ def test_a_robot_keeps_its_records_and_backs_off_while_the_tier_is_busy(tmp_path
         answers.append(len(answers))
         if len(answers) <= 3:
             return "err", {"error": "cloud c busy", "busy": True, "retry_after_ms": 50.0}
-        return "ok", {"acked": 1}
+        return "ok", {"acked": 3, "digests": [r.digest().hex() for r in decode_records(payload)]}
 
     robot = SimpleNamespace(id="r1", _session=None, publish_telemetry=lambda m: None, add_telemetry_handler=lambda fn: None,
                            remove_telemetry_handler=lambda fn: None,

@@ -77,8 +77,13 @@ class TelemetryRecord:
         return (self.robot, self.inc, self.seq)
 
     def digest(self) -> bytes:
-        """:func:`record_digest` of this record (its signature left out)."""
-        return record_digest(self.to_dict())
+        """SHA-256 of the record's content (every field but ``sig``; maps in key order): the identity
+        of its content.  The store acks a repeated ``(robot, inc, seq)`` as a duplicate only when
+        the digests match, a robot deletes a queued record only when the store's ack names its
+        digest, and the robot signs it (:mod:`scmr_mesh.data.signing`)."""
+        body = ["scmr-record/1", self.robot, self.inc, self.seq, self.t_unix_ns,
+                None if self.pose is None else list(self.pose), self.battery, self.health, _canon(self.results)]
+        return hashlib.sha256(msgpack.packb(body, use_bin_type=True)).digest()
 
     def to_dict(self, *, signed: bool = True) -> dict[str, Any]:
         """The record as a plain dict (``pose`` as a list or None; ``sig`` only when signed and ``signed``)."""
@@ -144,20 +149,12 @@ def _canon(obj: Any) -> Any:
         return [[k, _canon(obj[k])] for k in sorted(obj, key=repr)]
     if isinstance(obj, (list, tuple)):
         return [_canon(v) for v in obj]
-    return obj
+    return obj  # scalars (and bytes) as they are
 
 
 def record_digest(d: Mapping[str, Any]) -> bytes:
-    """SHA-256 of a record dict's content (every field but ``sig``), independent of key order.
-
-    The store acks a repeated ``(robot, inc, seq)`` as a duplicate only when this
-    digest matches the stored one, and a robot deletes a queued record only when
-    the store's ack names the same digest.
-    """
-    body = {k: v for k, v in d.items() if k != "sig"}
-    if isinstance(body.get("pose"), tuple):
-        body["pose"] = list(body["pose"])
-    return hashlib.sha256(msgpack.packb(_canon(body), use_bin_type=True)).digest()
+    """:meth:`TelemetryRecord.digest` of a record dict (validated first; ``sig`` does not count)."""
+    return TelemetryRecord.from_dict(d).digest()
 
 
 def make_record(
@@ -232,9 +229,36 @@ def decode_batch(payload: bytes) -> tuple[list[TelemetryRecord], str | None]:
     return [TelemetryRecord.from_dict(d) for d in msg["records"]], via
 
 
+def decode_batch_lenient(payload: bytes) -> tuple[list[TelemetryRecord], str | None, list[str]]:
+    """Like :func:`decode_batch`, but one bad record does not refuse the batch: it is left out and its
+    problem listed (``(records, via, problems)``); a relayed batch mixes robots, and one robot's bad
+    record must not hold up the others' (issue #28 item 4).  Raises only when the batch itself is bad."""
+    from scmr_mesh.wire import head_hex
+
+    fix = "send a batch made by scmr_mesh.data.record.encode_records (docs/DATA.md)"
+    try:
+        msg = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    except Exception as exc:
+        raise TelemetryError(f"telemetry payload of {len(payload)} bytes is not msgpack (it starts with "
+                             f"{head_hex(payload)}; {type(exc).__name__}: {exc}); {fix}") from None
+    if not isinstance(msg, dict) or not isinstance(msg.get("records"), list):
+        raise TelemetryError(f"telemetry payload must be a map with a 'records' list; {fix}")
+    via = msg.get("via")
+    if via is not None and via not in TIERS:
+        raise TelemetryError(f"telemetry 'via' must be one of {TIERS}, got {via!r}")
+    records, problems = [], []
+    for i, d in enumerate(msg["records"]):
+        try:
+            records.append(TelemetryRecord.from_dict(d))
+        except TelemetryError as exc:
+            problems.append(f"record {i}: {exc}")
+    return records, via, problems
+
+
 def decode_records(payload: bytes) -> list[TelemetryRecord]:
     """Inverse of :func:`encode_records` (records only); raises :class:`TelemetryError`."""
     return decode_batch(payload)[0]
 
 
-__all__ = ["MAX_SEQ", "TIERS", "TelemetryRecord", "record_digest", "decode_batch", "decode_records", "encode_records", "make_record"]
+__all__ = ["MAX_SEQ", "TIERS", "TelemetryRecord", "record_digest", "decode_batch", "decode_records", "decode_batch_lenient", "encode_records",
+           "make_record"]
