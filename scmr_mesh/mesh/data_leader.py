@@ -61,10 +61,11 @@ class LeaderData:
         self.relay = TelemetryQueue(relay_dir, max_bytes=relay_max_bytes)
         self.deadline_s = float(deadline_s)
         self._lock = threading.Lock()
-        for seq, payload in self.relay.pending():
-            rec = self._readable(seq, payload)
-            if rec is not None:
-                self.buffer.record_telemetry(rec.to_dict(signed=False))
+        for _, payload in self.relay.pending():
+            try:  # an unreadable one is skipped (and counted) when forwarding
+                self.buffer.record_telemetry(TelemetryRecord.from_dict(_unpack(payload)).to_dict(signed=False))
+            except TelemetryError:
+                pass
         if not sync_period_s > 0:
             raise TelemetryError(f"sync period must be > 0 s, got {sync_period_s!r}")
         self.sync_period_s = float(sync_period_s)
