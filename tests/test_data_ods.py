@@ -193,7 +193,8 @@ def test_telemetry_report_counts_lost_duplicates_and_unexpected(tmp_path):
     rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 8, "r2": 2, "r3": 1}, queued={"r1": 1})["telemetry"]
     assert (rep["sent"], rep["stored"], rep["duplicates"], rep["lost"]) == (11, 8, 2, 3)
     assert rep["per_robot"]["r1"] == {"sent": 8, "stored": 6, "duplicates": 1, "conflicts": 0, "lost": 2,
-                                      "missing": ["4", "8"], "unexpected": 0, "queued": 1}
+                                      "missing": ["4", "8"], "unexpected": 0, "queued": 1, "incarnations": 1,
+                                      "stored_earlier_incarnations": 0}
     assert rep["per_robot"]["r3"]["lost"] == 1 and rep["per_robot"]["r3"]["missing"] == ["1"]
     rep2 = telemetry_report(tmp_path / "ods.sqlite", {"r1": 5})["telemetry"]
     assert rep2["per_robot"]["r1"]["unexpected"] == 2
@@ -242,6 +243,8 @@ def test_a_reused_seq_with_other_content_is_a_conflict_not_a_silent_duplicate(tm
     assert "repeat a stored (robot, incarnation, seq)" in caplog.text
     rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 1})["telemetry"]
     assert rep["conflicts"] == 2 and rep["per_robot"]["r1"]["conflicts"] == 2 and rep["lost"] == 0
+    # the wiped queue's 1 record counts against its own incarnation; the 2 earlier ones apart
+    assert rep["per_robot"]["r1"]["incarnations"] == 2 and rep["per_robot"]["r1"]["stored_earlier_incarnations"] == 2
 
 
 def test_run_telemetry_prefers_the_run_dirs_queues(tmp_path):

@@ -44,8 +44,9 @@ def telemetry_report(
     dict
         ``{"telemetry": {"sent", "stored", "duplicates", "lost", "conflicts",
         "per_robot": {robot: {"sent", "stored", "duplicates", "conflicts",
-        "lost", "missing", "unexpected" [, "queued"]}}}}`` where ``stored``
-        counts distinct ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost =
+        "lost", "missing", "unexpected", "incarnations", "stored_earlier_incarnations"
+        [, "queued"]}}}}`` where ``stored`` counts distinct ``(robot, seq)`` of the
+        robot's current incarnation with ``1 <= seq <= sent``, ``lost =
         sent - stored``, ``missing`` lists the missing seqs as ranges (at most
         20), ``unexpected`` counts stored seqs beyond ``sent``, and
         ``conflicts`` counts messages refused because their ``(robot, seq)``
@@ -81,6 +82,11 @@ def telemetry_report(
                 "lost": n_sent - len(in_range),
                 "missing": seq_ranges(missing, limit=20),
                 "unexpected": len(seqs) - len(in_range),
+                # issue 25 item 10: stored and lost count the robot's current incarnation (its queue
+                # folder's); records of earlier ones (a wiped queue) are counted apart, never as its seqs
+                "incarnations": counts.get(robot, {}).get("incarnations", 0),
+                "stored_earlier_incarnations": (counts.get(robot, {}).get("stored_all", 0)
+                                                - counts.get(robot, {}).get("stored", 0)),
             }
             if queued is not None:
                 row["queued"] = int(queued.get(robot, 0))
