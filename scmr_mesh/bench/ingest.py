@@ -24,7 +24,8 @@ from pathlib import Path
 from scmr_mesh.errors import InputError
 from scmr_mesh.qos.schedule import due_ns
 
-UNBOUNDED = ["--ingest-queue", "10000000", "--ingest-batch", "100000"]
+UNBOUNDED = ["--ingest-queue", "10000000", "--ingest-batch", "100000", "--telemetry-quota", "0",
+             "--telemetry-quota-bytes", "0"]
 
 
 def _rss_mb(pid: int) -> dict[str, float]:
