@@ -97,5 +97,6 @@ def test_a_leader_capable_identity_cannot_store_records_as_another_robot(tmp_pat
         assert {r["inc"] for r in rows} == {summary["incarnation"]} != {0}
         assert ods.counts()["r9"]["stored"] == 576
     assert buf["items"]["state/r1"]["seq"] == summary["sent"] and buf["items"]["state/r1"]["health"] == "ok"
-    log = (tmp_path / "c1.log").read_text()
-    assert "'signature': 41," in log and "'quota': " in log
+    ingest = json.loads((tmp_path / "ingest-c1.json").read_text())  # the cloud's counters, written at exit
+    assert ingest["refused"]["signature"] == 41 and ingest["refused"]["quota"] >= 64, ingest
+    assert ingest["quota"]["refused"]["r9"]["batches"] >= 1 and "r1" not in ingest["quota"]["refused"], ingest

@@ -5,7 +5,9 @@
 from __future__ import annotations
 
 import concurrent.futures
+import json
 import logging
+import os
 from pathlib import Path
 from typing import Callable
 
@@ -49,6 +51,8 @@ class CloudData:
         #: records refused one by one: {"malformed", "signature", "quota", "conflict"} -> count
         self.refused = {"malformed": 0, "signature": 0, "quota": 0, "conflict": 0}
         self._checker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"ingest-{node}")
+        #: where :meth:`close` writes :meth:`stats` (JSON), or None
+        self.stats_path: Path | None = None
         self.ods = OperationalDataStore(ods_path)
         self.buffer = DataBuffer(node)
         for rec in self.ods.latest().values():  # a restarted cloud serves the last states at once
@@ -218,6 +222,14 @@ class CloudData:
         if any(self.refused.values()):
             log.warning("cloud %s: telemetry records refused: %s (quota refusals per robot: %s)", self.node,
                         self.refused, self.quota.stats()["refused"])
+        if self.stats_path is not None:  # RUN/ingest-<node>.json: the refusals for reports and operators
+            try:
+                tmp = Path(f"{self.stats_path}.tmp")
+                tmp.write_text(json.dumps(self.stats()) + "\n")
+                os.replace(tmp, self.stats_path)
+            except OSError as exc:
+                log.error("cloud %s: cannot write %s (%s); ingest counters: %s", self.node, self.stats_path, exc,
+                          json.dumps(self.stats()))
         self._checker.shutdown(wait=True)
         self.ods.close()
 

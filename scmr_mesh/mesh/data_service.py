@@ -186,6 +186,8 @@ def service_setup(args, tier: str) -> Callable:
                                      f"got {type(params).__name__}")
             data = CloudData(svc.node, path, params=params, gate=_gate(args), verifier=record_verifier(args),
                              quota=_quota(args))
+            if run_dir is not None:
+                data.stats_path = run_dir / f"ingest-{svc.node}.json"
             log.info("cloud %s: operational data store %s (%s)", svc.node, data.ods.name, data.ods.backend)
         else:
             if not getattr(args, "sync_period", 1.0) > 0:
