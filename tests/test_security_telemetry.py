@@ -6,7 +6,10 @@ One cloud (``--telemetry-quota 20``) and one honest robot r1; r9, from its own s
 * relays r1's "future" records 1..40 to the cloud: unsigned, signed with r9's own key, and one with
   seq 2^62 (before: all 40 stored as received from the cloud, r1's genuine records were then acked as
   duplicates and deleted from its queue, and the huge seq pinned ``state/r1`` in the cloud's buffer);
-* floods its own telemetry key with its own signed records (before: no quota at all).
+* floods its own telemetry key with its own signed records (before: no quota at all);
+
+and a plain robot r8 sends the leader one record of its own with seq 2^63, then good ones (item 4:
+before, the leader never forwarded anything again).
 
 After r1 stops: every record of r1 in the store is r1's own (digest of what r1 sent), none of the
 forgeries, r1 lost nothing and left nothing queued; the relay answer counted the refusals; r9 got busy
@@ -44,18 +47,21 @@ def test_a_leader_capable_identity_cannot_store_records_as_another_robot(tmp_pat
     from test_security_default import _session
 
     creds = tmp_path / "certs"
-    create_credentials(creds, "c1=cloud,r1,r9=robot+leader-capable")
+    create_credentials(creds, "c1=cloud,leader0=leader,r1,r8,r9=robot+leader-capable")
     profile = str(repo_root / "peers" / "secure" / "mtls.toml")
     sec = ["--security", profile, "--credentials", str(creds)]
     ep = f"tcp/127.0.0.1:{free_port()}"
     cloud = spawn_peer(["cloud", "--node", "c1", "--listen", ep, "--workers", "1", "--process", STUB, *sec,
                         "--ready-file", str(tmp_path / "c1.ready"), "--ods", str(tmp_path / "ods.sqlite"),
                         "--telemetry-quota", "20"], log_path=tmp_path / "c1.log")
-    robot = None
-    s = None
+    robot = leader = None
+    s = s8 = None
     try:
         wait_for(lambda: (tmp_path / "c1.ready").exists() or cloud.poll() is not None, timeout=90, what="cloud")
         assert cloud.poll() is None, (tmp_path / "c1.log").read_text()[-2000:]
+        leader = spawn_peer(["leader", "--node", "leader0", "--workers", "1", "--process", STUB, *sec, "--listen",
+                             f"tcp/127.0.0.1:{free_port()}", "--connect", ep, "--relay-dir", str(tmp_path / "relay"),
+                             "--ready-file", str(tmp_path / "leader0.ready")], log_path=tmp_path / "leader0.log")
         robot = spawn_peer(["robot", "--id", "r1", "--synthetic", "stub", "--process", STUB, "--rate", "10",
                             "--duration", "4", "--quiet", "--out", str(tmp_path / "r1"), "--connect", ep,
                             "--telemetry-queue", str(tmp_path / "q-r1"), *sec], log_path=tmp_path / "r1.log")
@@ -80,13 +86,37 @@ def test_a_leader_capable_identity_cannot_store_records_as_another_robot(tmp_pat
         busy = [a for k, a in answers if k == "err" and a.get("quota")]
         assert busy and all(k == "ok" for k, _ in answers[:9]), answers  # 9 x 64 = 576 <= 600 fit
 
+        # issue #28 item 4: plain robot r8 sends the leader one record of its own with seq 2^63, then
+        # good ones: the bad one is refused, the rest relayed to the cloud (before: the leader never
+        # forwarded anything again)
+        wait_for(lambda: (tmp_path / "leader0.ready").exists() or leader.poll() is not None, timeout=90,
+                 what="leader")
+        s8 = _session(creds, profile, "r8", ep)
+        lkey = telemetry_key("leader", "leader0", "r8")
+        wait_for(lambda: _get(s8, buffer_key("leader", "leader0"), msgpack.packb({"sel": "x"}))[0] == "ok",
+                 timeout=30, what="r8 linked to the leader")
+        bad = {"records": [{"robot": "r8", "seq": 2**63, "t_unix_ns": 1, "health": "ok", "results": {}}]}
+        assert _get(s8, lkey, msgpack.packb(bad))[0] == "err"
+        r8 = RecordSigner(creds / "r8" / "key.pem")
+        good = [make_record("r8", n) for n in (1, 2, 3)]
+        kind, ans = _get(s8, lkey, encode_records([dataclasses.replace(r, sig=r8.sign(r.digest())) for r in good]))
+        assert kind == "ok" and ans["acked"] == 3, ans
+
+        def relayed() -> bool:
+            with OperationalDataStore(tmp_path / "ods.sqlite", readonly=True) as o:
+                return o.seqs("r8") == [1, 2, 3]
+
+        wait_for(relayed, timeout=30, what="r8's records relayed by the leader to the cloud")
+
         assert robot.wait(timeout=60) == 0, (tmp_path / "r1.log").read_text()[-2000:]
         _, buf = _get(s, buffer_key("cloud", "c1"), msgpack.packb({"sel": "state/r1"}))
     finally:
-        if s is not None:
-            s.close()
-        if robot is not None:
-            stop_peer(robot, timeout=10)
+        for sess in (s, s8):
+            if sess is not None:
+                sess.close()
+        for p in (robot, leader):
+            if p is not None:
+                stop_peer(p, timeout=10)
         stop_peer(cloud, timeout=20)
     summary = json.loads((tmp_path / "r1" / "telemetry.json").read_text())
     assert summary["lost"] == 0 and summary["queued"] == 0 and summary["sent"] >= 20, summary
