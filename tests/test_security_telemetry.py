@@ -59,8 +59,9 @@ def test_a_leader_capable_identity_cannot_store_records_as_another_robot(tmp_pat
     try:
         wait_for(lambda: (tmp_path / "c1.ready").exists() or cloud.poll() is not None, timeout=90, what="cloud")
         assert cloud.poll() is None, (tmp_path / "c1.log").read_text()[-2000:]
+        lep = f"tcp/127.0.0.1:{free_port()}"
         leader = spawn_peer(["leader", "--node", "leader0", "--workers", "1", "--process", STUB, *sec, "--listen",
-                             f"tcp/127.0.0.1:{free_port()}", "--connect", ep, "--relay-dir", str(tmp_path / "relay"),
+                             lep, "--connect", ep, "--relay-dir", str(tmp_path / "relay"),
                              "--ready-file", str(tmp_path / "leader0.ready")], log_path=tmp_path / "leader0.log")
         robot = spawn_peer(["robot", "--id", "r1", "--synthetic", "stub", "--process", STUB, "--rate", "10",
                             "--duration", "4", "--quiet", "--out", str(tmp_path / "r1"), "--connect", ep,
@@ -91,7 +92,7 @@ def test_a_leader_capable_identity_cannot_store_records_as_another_robot(tmp_pat
         # forwarded anything again)
         wait_for(lambda: (tmp_path / "leader0.ready").exists() or leader.poll() is not None, timeout=90,
                  what="leader")
-        s8 = _session(creds, profile, "r8", ep)
+        s8 = _session(creds, profile, "r8", lep)  # straight to the leader (no wait on gossip under load)
         lkey = telemetry_key("leader", "leader0", "r8")
         wait_for(lambda: _get(s8, buffer_key("leader", "leader0"), msgpack.packb({"sel": "x"}))[0] == "ok",
                  timeout=30, what="r8 linked to the leader")
