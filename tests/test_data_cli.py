@@ -30,8 +30,9 @@ def db(tmp_path):
 def test_counts_latest_range_export(db, tmp_path, capsys):
     assert main(["ods", "--db", str(db), "counts", "--json"]) == 0
     counts = json.loads(capsys.readouterr().out)
-    assert counts["r1"] == {"stored": 3, "duplicates": 1, "conflicts": 1, "min_seq": 1, "max_seq": 3,
-                            "contiguous": 3}  # r1 seq 3 sent again with another time: a conflict
+    assert counts["r1"] == {"stored": 3, "duplicates": 0, "conflicts": 1, "min_seq": 1, "max_seq": 3,
+                            "contiguous": 3, "inc": 0, "incarnations": 1, "stored_all": 3}
+    # r1 seq 3 sent again with another time: a conflict (no longer also counted as a duplicate)
     assert main(["ods", "--db", str(db), "counts"]) == 0
     assert "r2" in capsys.readouterr().out
     assert main(["ods", "--db", str(db), "latest", "--json"]) == 0

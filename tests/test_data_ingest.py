@@ -20,7 +20,7 @@ from types import SimpleNamespace
 import msgpack
 import pytest
 
-from scmr_mesh.data.record import batch_size, encode_records, make_record
+from scmr_mesh.data.record import batch_size, decode_records, encode_records, make_record
 from scmr_mesh.mesh import data_cloud
 from test_data_protocol import FakeQuery as ProtocolFakeQuery
 from scmr_mesh.mesh.data_service import CloudData, IngestGate, LeaderData, TelemetryAgent, telemetry_key
@@ -123,7 +123,7 @@ def test_a_robot_keeps_its_records_and_backs_off_while_the_tier_is_busy(tmp_path
         answers.append(len(answers))
         if len(answers) <= 3:
             return "err", {"error": "cloud c busy", "busy": True, "retry_after_ms": 50.0}
-        return "ok", {"acked": 1}
+        return "ok", {"acked": 3, "digests": [r.digest().hex() for r in decode_records(payload)]}
 
     robot = SimpleNamespace(id="r1", _session=None, publish_telemetry=lambda m: None, add_telemetry_handler=lambda fn: None,
                            remove_telemetry_handler=lambda fn: None,
@@ -198,3 +198,84 @@ def test_data_requests_fail_over_cloud_first_in_one_place():
     assert asked == ["scmr/data/cloud/c1/buffer", "scmr/data/cloud/c2/buffer", "scmr/data/leader/L/buffer"]
     with pytest.raises(MeshError, match=r"cloud/c1=no reply, cloud/c2=err"):
         fetch_buffer(order[:2], ask, "state/r1")
+
+
+# ------------------------------------------------ issue 28 items 3, 4, 6; issue 25 item 10 (no zenoh)
+def test_a_relay_skips_a_bad_record_and_keeps_forwarding_across_a_restart(tmp_path):
+    """Issue #28 item 4: one relayed record the cloud cannot take (seq 2^63, queued before the decode
+    bound) jammed the leader for good, also after a restart; now it is skipped and counted."""
+    from scmr_mesh.data.ods import OperationalDataStore
+
+    ods = OperationalDataStore(tmp_path / "ods.sqlite")
+    got = []
+
+    def cloud(key, payload):  # stands for the cloud's relay key: store what it can, else no answer
+        try:
+            res = ods.insert(decode_records(payload), received_from="leader")
+        except Exception:
+            return None
+        got.extend(res.stored)
+        return msgpack.packb({"acked": len(res.stored), "refused": 0})
+
+    leader = LeaderData("L", tmp_path / "relay")
+    good = make_record("r1", 1).to_dict()
+    for blob in (good, {**good, "seq": 2**63}, {**good, "seq": 2}):
+        leader.relay.append(msgpack.packb(blob))
+    leader.close()
+    leader = LeaderData("L", tmp_path / "relay")  # restarted with the bad record still queued
+    leader._clouds, leader._query = lambda: ["c"], cloud
+    try:
+        assert leader.forward_once() == 3 and len(leader.relay) == 0
+        assert got == [("r1", 1), ("r1", 2)] and leader.skipped == 1
+    finally:
+        leader.close()
+        ods.close()
+
+
+def test_a_robot_deletes_only_what_the_store_acked_with_its_own_digest(tmp_path):
+    """Issue #28 item 3: a cloud that holds other content under (robot, inc, seq) 2 (a forgery) acks
+    1 and 3; before, the robot took any ack for the whole batch and deleted its genuine record 2."""
+    from scmr_mesh.data.queue import folder_incarnation
+
+    def ask(key, payload):
+        recs = decode_records(payload)
+        return "ok", {"acked": 2, "digests": [r.digest().hex() if r.seq != 2 else "00" * 32 for r in recs]}
+
+    robot = SimpleNamespace(id="r1", _session=None, publish_telemetry=lambda m: None,
+                            add_telemetry_handler=lambda fn: None, remove_telemetry_handler=lambda fn: None,
+                            view=SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("c",), leader=())))
+    agent = TelemetryAgent(robot, tmp_path / "q", autostart=False)
+    agent._ask = ask
+    try:
+        for _ in range(3):
+            agent.publish({"robot": "r1", "seq": 0, "t_unix_ns": 1, "health": "ok", "results": {}})
+        assert agent.flush_once() == 1 and [s for s, _ in agent.queue.pending()] == [2, 3]
+        assert agent.summary()["not_acked"] == 1
+        inc = agent.summary()["incarnation"]
+        assert inc != 0 and msgpack.unpackb(agent.queue.pending()[0][1])["inc"] == inc
+    finally:
+        agent.close(drain_s=0)
+    # issue #25 item 10: the folder keeps its incarnation; a wiped folder gets a new one; a folder of an
+    # older version (segments, no incarnation file) keeps 0 so its replays meet their stored copies
+    assert folder_incarnation(tmp_path / "q") == inc
+    (tmp_path / "q" / "incarnation").unlink()
+    for f in (tmp_path / "q").iterdir():
+        f.unlink()
+    assert folder_incarnation(tmp_path / "q") not in (0, inc)
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "seg-000000000001.log").write_bytes(b"")
+    assert folder_incarnation(tmp_path / "old") == 0
+
+
+def test_a_quota_refuses_past_its_burst_and_refills_with_time():
+    from scmr_mesh.data.quota import Quota
+
+    t = [0.0]
+    q = Quota(10, 1000, burst_s=2, clock=lambda: t[0])  # 20 records, 2000 bytes at once
+    assert q.take("r1", 20, 100) and not q.take("r1", 1, 10) and q.take("r2", 20, 100)
+    assert q.refused["r1"] == {"records": 1, "bytes": 10, "batches": 1} and "r2" not in q.refused
+    assert q.retry_after_s("r1", 5, 10) == pytest.approx(0.5)
+    t[0] = 0.5
+    assert q.take("r1", 5, 10) and not q.take("r1", 1, 10)
+    assert not q.take("r2", 0, 2001)  # bytes alone
+    assert Quota(0, 0).take("r1", 10**9, 10**12)  # 0: no limit

@@ -103,8 +103,8 @@ def test_wal_schema_version_and_migration_from_v1(tmp_path):
     con.commit()
     con.close()
     with OperationalDataStore(path) as ods:
-        assert ods.schema_version() == SCHEMA_VERSION == 3
-        assert ods.counts()["r1"]["conflicts"] == 0  # v3 added the column to the existing row
+        assert ods.schema_version() == SCHEMA_VERSION == 4
+        assert ods.counts()["r1"]["conflicts"] == 0 and ods.incarnations("r1") == {0: 1}  # v4 kept the row (incarnation 0)
         assert ods.seqs("r1") == [1]
     con = sqlite3.connect(path)
     assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
@@ -175,7 +175,7 @@ def test_latest_range_and_exports(tmp_path):
 def test_records_round_trip_and_validation():
     recs = [make_record("r1", 3, pose=(1, 2, 3), battery=0.5, results={"k": [1, 2]})]
     assert decode_records(encode_records(recs)) == recs
-    with pytest.raises(WireError, match="'seq' must be an integer >= 1, got 0"):
+    with pytest.raises(WireError, match="'seq' must be an integer 1..2\\^62, got 0"):
         make_record("r1", 0)
     with pytest.raises(WireError, match="'robot'"):
         make_record("a/b", 1)
@@ -193,7 +193,8 @@ def test_telemetry_report_counts_lost_duplicates_and_unexpected(tmp_path):
     rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 8, "r2": 2, "r3": 1}, queued={"r1": 1})["telemetry"]
     assert (rep["sent"], rep["stored"], rep["duplicates"], rep["lost"]) == (11, 8, 2, 3)
     assert rep["per_robot"]["r1"] == {"sent": 8, "stored": 6, "duplicates": 1, "conflicts": 0, "lost": 2,
-                                      "missing": ["4", "8"], "unexpected": 0, "queued": 1}
+                                      "missing": ["4", "8"], "unexpected": 0, "queued": 1, "incarnations": 1,
+                                      "stored_earlier_incarnations": 0}
     assert rep["per_robot"]["r3"]["lost"] == 1 and rep["per_robot"]["r3"]["missing"] == ["1"]
     rep2 = telemetry_report(tmp_path / "ods.sqlite", {"r1": 5})["telemetry"]
     assert rep2["per_robot"]["r1"]["unexpected"] == 2
@@ -227,15 +228,29 @@ def test_run_telemetry_reads_the_fleet_layout(tmp_path):
 
 
 def test_a_reused_seq_with_other_content_is_a_conflict_not_a_silent_duplicate(tmp_path, caplog):
+    """Issue #28 item 3: a duplicate is only the identical record (same digest); a conflict is never
+    counted or acked as one: its digest in the result is the stored record's, not the sender's
+    (before, both were 'duplicates' and the robot deleted its record)."""
     with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
         ods.insert([make_record("r1", s, t_unix_ns=100 + s) for s in (1, 2)], received_from="cloud")
-        res = ods.insert([make_record("r1", 2, t_unix_ns=102), make_record("r1", 1, t_unix_ns=999)],
-                         received_from="cloud")
-        assert res.duplicates == (("r1", 2), ("r1", 1)) and res.conflicts == (("r1", 1),)
-        assert ods.counts()["r1"]["conflicts"] == 1 and ods.counts()["r1"]["duplicates"] == 2
-    assert "fresh telemetry queue" in caplog.text
-    rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 2})["telemetry"]
-    assert rep["conflicts"] == 1 and rep["per_robot"]["r1"]["conflicts"] == 1
+        same, other = make_record("r1", 2, t_unix_ns=102), make_record("r1", 1, t_unix_ns=999)
+        res = ods.insert([same, other], received_from="cloud")
+        assert res.duplicates == (("r1", 2),) and res.conflicts == (("r1", 1),)
+        assert res.digests[0] == same.digest().hex()
+        assert res.digests[1] == make_record("r1", 1, t_unix_ns=101).digest().hex() != other.digest().hex()
+        # same reading time, other content: a conflict too (before: the time alone decided)
+        forged = make_record("r1", 2, t_unix_ns=102, battery=0.1)
+        assert ods.insert([forged], received_from="leader").conflicts == (("r1", 2),)
+        assert ods.counts()["r1"]["conflicts"] == 2 and ods.counts()["r1"]["duplicates"] == 1
+        # another incarnation of the same robot (a wiped queue) is a new history, not a conflict
+        res = ods.insert([make_record("r1", 1, t_unix_ns=5, inc=77)], received_from="cloud")
+        assert res.stored == (("r1", 1),) and ods.incarnations("r1") == {0: 2, 77: 1}
+        assert ods.seqs("r1") == [1] and ods.seqs("r1", 0) == [1, 2]
+    assert "repeat a stored (robot, incarnation, seq)" in caplog.text
+    rep = telemetry_report(tmp_path / "ods.sqlite", {"r1": 1})["telemetry"]
+    assert rep["conflicts"] == 2 and rep["per_robot"]["r1"]["conflicts"] == 2 and rep["lost"] == 0
+    # the wiped queue's 1 record counts against its own incarnation; the 2 earlier ones apart
+    assert rep["per_robot"]["r1"]["incarnations"] == 2 and rep["per_robot"]["r1"]["stored_earlier_incarnations"] == 2
 
 
 def test_run_telemetry_prefers_the_run_dirs_queues(tmp_path):

@@ -32,8 +32,8 @@ def test_a_url_opens_the_postgres_store_with_the_same_schema(pg_dsn):
         assert ods.schema_version() == SCHEMA_VERSION
         cols = [c for (c,) in ods._read("SELECT column_name FROM information_schema.columns "
                                         "WHERE table_name = 'telemetry' ORDER BY ordinal_position")]
-        assert cols == ["id", "robot", "seq", "t_unix_ns", "x", "y", "theta", "battery", "health", "results",
-                        "received_from", "stored_unix_ns"]
+        assert cols == ["id", "robot", "inc", "seq", "t_unix_ns", "x", "y", "theta", "battery", "health",
+                        "results", "received_from", "stored_unix_ns", "digest"]
         # doubles, not PostgreSQL's 4-byte REAL; 64-bit times
         types = dict(ods._read("SELECT column_name, data_type FROM information_schema.columns "
                                "WHERE table_name = 'telemetry'"))
@@ -63,8 +63,9 @@ def test_exactly_once_counts_queries_and_export_match_sqlite(pg_dsn, tmp_path):
             for row in (rows.values() if isinstance(rows, dict) else rows):
                 row.pop("stored_unix_ns")
     assert out["pg"] == out["sqlite"]
-    assert out["pg"]["counts"]["r1"] == {"stored": 4, "duplicates": 4, "conflicts": 1, "min_seq": 1,
-                                         "max_seq": 5, "contiguous": 3}
+    assert out["pg"]["counts"]["r1"] == {"stored": 4, "duplicates": 3, "conflicts": 1, "min_seq": 1,
+                                         "max_seq": 5, "contiguous": 3, "inc": 0, "incarnations": 1,
+                                         "stored_all": 4}
     assert out["pg"]["latest"]["r1"]["pose"] == [1.0, 5.123456789, 0.5]  # float8 round trip
 
 
@@ -254,3 +255,27 @@ def test_scmr_ods_on_a_run_folder_follows_its_report(tmp_path, capsys):
     assert main(["ods", "--db", str(tmp_path), "counts"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "used the sqlite store /data/x.sqlite; pass it with --db" in err[0], err
+
+
+def test_a_version_3_database_migrates_to_incarnations_keeping_its_rows(pg_dsn):
+    """Schema v4 (issue 25 item 10) rebuilds the telemetry table keyed by (robot, inc, seq) on PostgreSQL
+    too: the old rows keep incarnation 0, new ids do not collide with them, and a replay of an old
+    record is still a duplicate."""
+    import psycopg
+
+    from scmr_mesh.data.record import make_record
+
+    with psycopg.connect(pg_dsn, autocommit=True) as con:
+        con.execute("CREATE TABLE ods_version (version INTEGER NOT NULL)")
+        con.execute("INSERT INTO ods_version (version) VALUES (3)")
+        for step in migrations("postgresql")[:3]:
+            for stmt in step:
+                con.execute(stmt)
+        con.execute("INSERT INTO telemetry (robot, seq, t_unix_ns, health, results, received_from, stored_unix_ns) "
+                    "VALUES ('r1', 1, 5, 'ok', '{}', 'cloud', 6)")
+        con.execute("INSERT INTO robot_stats (robot, duplicates, contiguous) VALUES ('r1', 0, 1)")
+    with OperationalDataStore(pg_dsn) as ods:
+        res = ods.insert([make_record("r1", 1, t_unix_ns=5), make_record("r1", 2, t_unix_ns=6)], received_from="cloud")
+        assert res.duplicates == (("r1", 1),) and res.stored == (("r1", 2),) and not res.conflicts
+        assert ods.schema_version() == SCHEMA_VERSION == 4 and ods.incarnations("r1") == {0: 2}
+        assert ods.counts()["r1"]["contiguous"] == 2

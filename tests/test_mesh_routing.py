@@ -105,3 +105,16 @@ def test_public_names_resolve():
     import scmr_mesh.mesh as mesh
 
     assert all(getattr(mesh, name) is not None for name in mesh.__all__)
+
+
+def test_a_leader_beyond_the_term_window_is_not_the_robots_first_choice():
+    """Issue #28: a leader-capable liar claiming wire.MAX_TERM (refused by the candidates) came first
+    in every robot's leader order (highest term), drawing their frames from the elected leader."""
+    v = LiveView()
+    for node, term in (("leader0", 3), ("r9", wire.MAX_TERM)):
+        _up(v, "leader", node)
+        msg = wire.make_candidate(node, term=term, leading=True, clock_hz=1e9, power_w=None, battery=1.0, load=0.0)
+        v.on_candidate(_Sample(keys.candidate(node), zenoh.SampleKind.PUT, _Payload(wire.encode(msg))))
+    assert v.snapshot().leader == ("leader0", "r9")
+    _down(v, "leader", "leader0")
+    assert v.snapshot().leader == ("r9",)  # alone, it is a leader like any other

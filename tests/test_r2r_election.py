@@ -459,3 +459,30 @@ def test_candidate_liveliness_is_read_by_the_sample_kind():
     assert c.leader() == "r2"
     c._on_token(Sample(zenoh.SampleKind.DELETE))
     assert c.leader() is None and c.live_others() == []
+
+
+def test_a_liar_at_the_maximum_term_does_not_freeze_the_election():
+    """Issue #28 item 2: a candidacy far beyond the term window (a liar at wire.MAX_TERM) counts for
+    nothing: the honest best candidate claims the vacancy at its own term + 1 (before, it adopted the
+    liar's term, and its claim at MAX_TERM + 1 was refused by every peer: no leader ever again)."""
+    from scmr_mesh import keys, wire
+    from scmr_mesh.mesh.election import TERM_WINDOW, Candidate, Capability
+
+    liar = Candidacy("r9", term=wire.MAX_TERM, leading=True, clock_hz=1e12, power_w=1.0)
+    d = decide(dataclasses.replace(L, term=7), [liar, dataclasses.replace(R1, term=7)], vacancy_s=0.0)
+    assert (d.action, d.term) == ("claim", 8)
+    near = dataclasses.replace(liar, term=7 + TERM_WINDOW)  # within the window: a leader like any other
+    assert decide(dataclasses.replace(L, term=7), [near], vacancy_s=0.0).action == "stay"
+
+    led = []
+    c = Candidate("leader0", Capability(3.5e9, 177.0, "leader"), on_lead=led.append,
+                  on_step_down=lambda r: None, grace_s=0.0, linked=lambda: True)
+    c._take(liar, key=keys.candidate("r9"))
+    assert c.term == 0 and c.refused_terms == 1 and c.live_others() == []
+    # a ratchet one window at a time: one jump per heartbeat, the next one in the same beat refused
+    c._take(dataclasses.replace(liar, term=TERM_WINDOW, leading=False), key=keys.candidate("r9"))
+    c._take(dataclasses.replace(liar, term=TERM_WINDOW + 5, leading=False), key=keys.candidate("r9"))
+    assert c.term == TERM_WINDOW
+    c._tokens.add("r9")
+    c._take(dataclasses.replace(liar, term=wire.MAX_TERM), key=keys.candidate("r9"))
+    assert c.evaluate() is True and c.leading and led == [TERM_WINDOW + 1]

@@ -36,7 +36,8 @@ def test_an_infinite_clock_candidacy_crashes_no_peer(tmp_path, repo_root):
         hostile = [wire.make_candidate("r9", term=1, leading=True, clock_hz=1e9, power_w=1.0, battery=1.0,
                                        load=0.0) | over
                    for over in ({"clock_hz": math.inf}, {"clock_hz": math.nan}, {"load": math.inf},
-                                {"term": 2**64 - 1}, {"term": 1e300}, {"battery": math.nan})]
+                                {"term": 2**64 - 1}, {"term": 1e300}, {"battery": math.nan},
+                                {"term": wire.MAX_TERM})]  # decodes; refused by the term window
         t_forge = time.time_ns()
 
         def attack_then_served() -> bool:
@@ -58,4 +59,9 @@ def test_an_infinite_clock_candidacy_crashes_no_peer(tmp_path, repo_root):
             stop_peer(p, timeout=10)
     logs = "".join((tmp_path / f"{n}.log").read_text() for n in procs)
     assert "dropped a candidate message" in logs
+    # a leader at MAX_TERM (within the schema) is beyond the term window: leader0 never yields to it
+    # (before: outranked, it stepped down, and the next honest claim, MAX_TERM + 1, was refused by all)
+    assert "with a term more than" in logs
+    events = read_records(tmp_path / "leadership" / "leader0.jsonl")
+    assert [e["cause"] for e in events if e["t_unix_ns"] > t_forge and e["event"] == "step_down"] in ([], ["stopping"]), events
     assert "OverflowError" not in logs and "internal error" not in logs

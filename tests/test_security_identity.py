@@ -18,8 +18,9 @@ that could take them:
 Attack ``k`` uses robot1's seq ``k``, so the ODS tells which attack landed.  A last,
 honest batch of robot2's own record (seq 1) must be stored: the attacker was connected
 and served.  The same run with the ACL off (``mtls-noacl.toml``) is the control: the
-service check still refuses 3 and 4, while 2 and 5 land (without ACL there is no
-identity to check against), so the ACL assertions can fail.  Before the fix, attack 1
+service check still refuses 3 and 4, while 2 and 5 reach the service (without ACL there is
+no identity to check against) and are refused only by the records' signatures (robot2 signs
+robot1's records with its own key), so the ACL assertions can fail.  Before the fix, attack 1
 stored robot1's record with the ACL on.
 
 About 10 s (two cloud starts).  Run alone with ``pytest -m security``.
@@ -61,7 +62,10 @@ def attacker(argv: list[str]) -> int:
     import msgpack
     import zenoh
 
+    import dataclasses
+
     from scmr_mesh.data.record import encode_records, make_record
+    from scmr_mesh.data.signing import RecordSigner
     from scmr_mesh.mesh.security import secure_config
     from scmr_mesh.security.profile import load_profile
 
@@ -78,7 +82,13 @@ def attacker(argv: list[str]) -> int:
             body = r.payload.to_bytes().decode("utf-8", "replace")
         return json.dumps({"ok" if reply.ok is not None else "err": body})
 
-    conf = secure_config(load_profile(a.profile), identity="robot2", connect=[a.connect], lease_ms=1000)
+    profile = load_profile(a.profile)
+    signer = RecordSigner(profile.credentials / "robot2" / "key.pem")  # the attacker's own key
+
+    def signed(r):
+        return dataclasses.replace(r, sig=signer.sign(r.digest()))
+
+    conf = secure_config(profile, identity="robot2", connect=[a.connect], lease_ms=1000)
     with zenoh.open(conf) as s:
         own = s.declare_querier(OWN, timeout=2.0)
         end = time.monotonic() + 20
@@ -87,11 +97,11 @@ def attacker(argv: list[str]) -> int:
         print(json.dumps({"ev": "matching", "own": own.matching_status.matching,
                           "peers": len(list(s.info.peers_zid()))}), flush=True)
         for k, key in enumerate(ATTACKS, start=1):
-            payload = encode_records([make_record("robot1", k, battery=0.1)],
+            payload = encode_records([signed(make_record("robot1", k, battery=0.1))],
                                      via="leader" if key.endswith("/relay") else None)
             replies = [show(r) for r in s.get(key, payload=payload, timeout=2.0)]
             print(json.dumps({"ev": "attack", "k": k, "key": key, "replies": replies}), flush=True)
-        replies = [show(r) for r in own.get(payload=encode_records([make_record("robot2", 1, battery=0.9)]))]
+        replies = [show(r) for r in own.get(payload=encode_records([signed(make_record("robot2", 1, battery=0.9))]))]
         print(json.dumps({"ev": "own", "replies": replies}), flush=True)
     return 0
 
@@ -172,8 +182,9 @@ def test_robot_cannot_store_telemetry_as_another_robot(credentials, repo_root, t
 
 
 def test_without_acl_the_service_still_checks_the_key(credentials, repo_root, tmp_path):
-    """Control: no ACL.  The service refuses records that do not match the key's robot, but
-    a robot using another robot's key (or the relay key) is not stopped: that is the ACL's job."""
+    """Control: no ACL.  The service refuses records that do not match the key's robot; a robot
+    using another robot's key (or the relay key) reaches the service (the ACL's job), whose
+    signature check (issue #28) still refuses robot1's records signed with robot2's key."""
     events, seqs = _run(credentials, repo_root / "peers" / "secure" / "mtls-noacl.toml", tmp_path / "noacl")
     assert _own(events) and _own(events)[0]["ok"]["stored"] == 1, events
     att = _attacks(events)
@@ -181,5 +192,9 @@ def test_without_acl_the_service_still_checks_the_key(credentials, repo_root, tm
     err = att[3][0]["err"]["error"]
     assert "robot1" in err and "scmr/data/cloud/cloud/telemetry/robot2" in err
     assert len(att[4]) == 1 and "err" in att[4][0]
-    # what lands without ACL: the robot1 key (attack 2) and the relay (attack 5) only
-    assert seqs.get("robot1") == [2, 5]
+    # without ACL the robot1 key (attack 2) and the relay (attack 5) reach the service (with the ACL:
+    # no reply), and only the signature check refuses them (before issue #28 both landed)
+    for k in (2, 5):
+        assert len(att[k]) == 1 and att[k][0]["ok"]["refused"] == 1 and att[k][0]["ok"]["stored"] == 0, att[k]
+        assert "not robot1's" in att[k][0]["ok"]["refusals"][0][2]
+    assert "robot1" not in seqs

@@ -136,7 +136,9 @@ def _bench_pair(store: Path, node: str, robot: str):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     ep = f"tcp/127.0.0.1:{port}"
-    cloud = CloudData(node, store)
+    from scmr_mesh.data.quota import Quota
+
+    cloud = CloudData(node, store, quota=Quota(0, 0))  # the store's own throughput: no per-robot quota
     cs = open_session(MeshConfig(listen=[ep]))
     rs = None
     decl = []

@@ -24,7 +24,8 @@ from pathlib import Path
 from scmr_mesh.errors import InputError
 from scmr_mesh.qos.schedule import due_ns
 
-UNBOUNDED = ["--ingest-queue", "10000000", "--ingest-batch", "100000"]
+UNBOUNDED = ["--ingest-queue", "10000000", "--ingest-batch", "100000", "--telemetry-quota", "0",
+             "--telemetry-quota-bytes", "0"]
 
 
 def _rss_mb(pid: int) -> dict[str, float]:
@@ -39,14 +40,21 @@ def _rss_mb(pid: int) -> dict[str, float]:
     return out
 
 
-def _payloads(records: int, k: int = 8) -> list[bytes]:
-    """``k`` junk batches of ``records`` valid records each (distinct seqs; cycled by the sender)."""
-    from scmr_mesh.data.record import encode_records, make_record
+def _payloads(records: int, k: int = 8, *, key: Path | None = None) -> list[bytes]:
+    """``k`` junk batches of ``records`` valid records each (distinct seqs; cycled by the sender), signed
+    with ``key`` (the flood robot's own, as a real robot signs) when given."""
+    import dataclasses
 
+    from scmr_mesh.data.record import encode_records, make_record
+    from scmr_mesh.data.signing import RecordSigner
+
+    signer = RecordSigner(key) if key is not None else None
     out = []
     for i in range(k):
         recs = [make_record("flood", i * records + s + 1, battery=0.5, results={"junk": "x" * 64})
                 for s in range(records)]
+        if signer is not None:
+            recs = [dataclasses.replace(r, sig=signer.sign(r.digest())) for r in recs]
         out.append(encode_records(recs))
     return out
 
@@ -73,7 +81,7 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
     cloud = spawn_peer(["cloud", *sec.args, "--node", "c1", "--workers", "1", "--process", STUB, "--listen",
                         f"tcp/127.0.0.1:{port}", "--ready-file", str(ready), "--ods", str(workdir / f"{tag}.sqlite"),
                         *extra], log_path=workdir / f"{tag}.log")
-    payloads = _payloads(records)
+    payloads = _payloads(records, key=None if sec.creds is None else sec.creds.directory / "flood" / "key.pem")
     counts = {"sent": 0, "ok": 0, "busy": 0, "refused": 0, "timeout": 0}
     lock = threading.Lock()
     samples: list[float] = []

@@ -7,10 +7,13 @@ server) and, when several cloud nodes share it (on one host or several), a
 PostgreSQL database (:mod:`scmr_mesh.data.ods_pg`; the target is then a
 ``postgresql://`` URL).  Both have the same schema, migrations and behaviour:
 
-* a ``telemetry`` table, ``UNIQUE (robot, seq)``: a message is stored with
-  ``INSERT OR IGNORE`` (PostgreSQL: ``ON CONFLICT DO NOTHING``), so replays,
-  relays through the leader and the same batch reaching two cloud nodes are
-  stored exactly once, and every ignored insert is counted as a duplicate;
+* a ``telemetry`` table, ``UNIQUE (robot, inc, seq)`` (``inc``: the robot's
+  queue incarnation): a message is stored with ``INSERT OR IGNORE``
+  (PostgreSQL: ``ON CONFLICT DO NOTHING``), so replays, relays through the
+  leader and the same batch reaching two cloud nodes are stored exactly once;
+  an ignored insert whose content digest (``digest``) equals the stored one is
+  a duplicate, one whose digest differs a *conflict* (not stored, never acked
+  with the sender's digest);
 * a ``robot_stats`` table: per robot the duplicate count and the highest
   contiguous ``seq`` stored (the acknowledgement a robot's queue can rely on);
 * schema versioning through ``PRAGMA user_version`` (PostgreSQL: an
@@ -91,6 +94,34 @@ MIGRATION_TEMPLATES: tuple[tuple[str, ...], ...] = (
         # a repeated (robot, seq) whose content differs: a robot reusing seqs (fresh queue)
         "ALTER TABLE robot_stats ADD COLUMN conflicts {int} NOT NULL DEFAULT 0",
     ),
+    (
+        # issue #25 item 10 / #28 item 3: records keyed by (robot, incarnation, seq), with their
+        # content digest (a duplicate is acked only for the same digest); rows of older versions
+        # keep incarnation 0 and no digest
+        """CREATE TABLE telemetry_v4 (
+            id {pk},
+            robot TEXT NOT NULL,
+            inc {int} NOT NULL DEFAULT 0,
+            seq {int} NOT NULL,
+            t_unix_ns {int} NOT NULL,
+            x {real}, y {real}, theta {real},
+            battery {real},
+            health TEXT NOT NULL,
+            results TEXT NOT NULL,
+            received_from TEXT NOT NULL,
+            stored_unix_ns {int} NOT NULL,
+            digest TEXT,
+            UNIQUE (robot, inc, seq)
+        )""",
+        "INSERT INTO telemetry_v4 (robot, inc, seq, t_unix_ns, x, y, theta, battery, health, results, "
+        "received_from, stored_unix_ns) SELECT robot, 0, seq, t_unix_ns, x, y, theta, battery, health, results, "
+        "received_from, stored_unix_ns FROM telemetry ORDER BY id",
+        "DROP TABLE telemetry",
+        "ALTER TABLE telemetry_v4 RENAME TO telemetry",
+        "CREATE INDEX telemetry_time ON telemetry (t_unix_ns)",
+        # the incarnation robot_stats.contiguous counts in
+        "ALTER TABLE robot_stats ADD COLUMN inc {int} NOT NULL DEFAULT 0",
+    ),
 )
 
 
@@ -124,7 +155,7 @@ def default_db_path() -> Path | str:
 
 
 COLUMNS = (
-    "robot", "seq", "t_unix_ns", "x", "y", "theta", "battery", "health", "results",
+    "robot", "inc", "seq", "t_unix_ns", "x", "y", "theta", "battery", "health", "results",
     "received_from", "stored_unix_ns",
 )
 
@@ -133,17 +164,35 @@ COLUMNS = (
 class InsertResult:
     """What one :meth:`OperationalDataStore.insert` call did.
 
-    ``stored`` and ``duplicates`` are ``(robot, seq)`` pairs; ``contiguous``
-    maps each robot touched to its highest contiguous stored ``seq`` after the call.
-    ``conflicts`` are the duplicates whose content (``t_unix_ns``) differs from
-    the stored row: a robot that reused seqs (it started over with a fresh
-    queue).  They are not stored; they are counted and logged.
+    ``stored``, ``duplicates`` and ``conflicts`` are ``(robot, seq)`` pairs;
+    ``contiguous`` maps each robot touched to its highest contiguous stored
+    ``seq`` (in the incarnation of its last record in the call) after the call.
+    ``duplicates`` repeat a stored ``(robot, inc, seq)`` with the same content
+    digest; ``conflicts`` repeat one with other content (not stored, counted and
+    logged).  ``digests`` holds, per record in call order, the hex digest the
+    store holds for its ``(robot, inc, seq)`` now: the record's own when stored
+    or a duplicate, the stored one's for a conflict (a robot deletes a queued
+    record only when they match).
     """
 
     stored: tuple[tuple[str, int], ...]
     duplicates: tuple[tuple[str, int], ...]
     contiguous: dict[str, int] = field(default_factory=dict)
     conflicts: tuple[tuple[str, int], ...] = ()
+    digests: tuple[str | None, ...] = ()
+
+
+def same_content(d_old: str | None, t_old: int, digest: str, t_new: int) -> bool:
+    """Whether a repeated ``(robot, inc, seq)`` is the stored record (a row of an older version
+    has no digest: its reading time decides)."""
+    return d_old == digest if d_old is not None else t_old == t_new
+
+
+def log_conflicts(conflicts: Sequence[tuple[str, int]]) -> None:
+    if conflicts:
+        log.error("ODS: %d record(s) repeat a stored (robot, incarnation, seq) with different content, e.g. "
+                  "%s; not stored, not acked (a forgery, or a robot that reused an incarnation)",
+                  len(conflicts), conflicts[0])
 
 
 def _row_to_dict(row: Sequence[Any]) -> dict[str, Any]:
@@ -362,33 +411,42 @@ class OperationalDataStore:
         stored: list[tuple[str, int]] = []
         dups: list[tuple[str, int]] = []
         conflicts: list[tuple[str, int]] = []
+        digests: list[str | None] = []
         con.execute("BEGIN IMMEDIATE")
         for r in records:
             pose = r.pose if r.pose is not None else (None, None, None)
+            digest = r.digest().hex()
             cur = con.execute(
-                "INSERT OR IGNORE INTO telemetry (robot, seq, t_unix_ns, x, y, theta, battery, "
-                "health, results, received_from, stored_unix_ns) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
-                (r.robot, r.seq, r.t_unix_ns, *pose, r.battery, r.health,
-                 json.dumps(r.results, sort_keys=True, default=str), received_from, now),
+                "INSERT OR IGNORE INTO telemetry (robot, inc, seq, t_unix_ns, x, y, theta, battery, "
+                "health, results, received_from, stored_unix_ns, digest) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?)",
+                (r.robot, r.inc, r.seq, r.t_unix_ns, *pose, r.battery, r.health,
+                 json.dumps(r.results, sort_keys=True, default=str), received_from, now, digest),
             )
             con.execute("INSERT OR IGNORE INTO robot_stats (robot) VALUES (?)", (r.robot,))
             if cur.rowcount == 1:
                 stored.append((r.robot, r.seq))
-            else:
+                digests.append(digest)
+                continue
+            t_old, d_old = con.execute("SELECT t_unix_ns, digest FROM telemetry WHERE robot = ? AND inc = ? "
+                                       "AND seq = ?", (r.robot, r.inc, r.seq)).fetchone()
+            if same_content(d_old, t_old, digest, r.t_unix_ns):
                 dups.append((r.robot, r.seq))
+                digests.append(digest)
                 con.execute("UPDATE robot_stats SET duplicates = duplicates + 1 WHERE robot = ?", (r.robot,))
-                (t_old,) = con.execute("SELECT t_unix_ns FROM telemetry WHERE robot = ? AND seq = ?",
-                                       (r.robot, r.seq)).fetchone()
-                if t_old != r.t_unix_ns:
-                    conflicts.append((r.robot, r.seq))
-                    con.execute("UPDATE robot_stats SET conflicts = conflicts + 1 WHERE robot = ?", (r.robot,))
+            else:
+                conflicts.append((r.robot, r.seq))
+                digests.append(d_old)
+                con.execute("UPDATE robot_stats SET conflicts = conflicts + 1 WHERE robot = ?", (r.robot,))
         contiguous: dict[str, int] = {}
-        for robot in sorted({r.robot for r in records}):
-            (c,) = con.execute("SELECT contiguous FROM robot_stats WHERE robot = ?", (robot,)).fetchone()
+        last_inc = {r.robot: r.inc for r in records}
+        for robot in sorted(last_inc):
+            inc = last_inc[robot]
+            c, c_inc = con.execute("SELECT contiguous, inc FROM robot_stats WHERE robot = ?", (robot,)).fetchone()
+            c = c if c_inc == inc else 0  # a new incarnation counts from its own seq 1
             while True:
                 seqs = [s for (s,) in con.execute(
-                    "SELECT seq FROM telemetry WHERE robot = ? AND seq > ? ORDER BY seq LIMIT 512",
-                    (robot, c))]
+                    "SELECT seq FROM telemetry WHERE robot = ? AND inc = ? AND seq > ? ORDER BY seq LIMIT 512",
+                    (robot, inc, c))]
                 advanced = False
                 for s in seqs:
                     if s != c + 1:
@@ -396,14 +454,11 @@ class OperationalDataStore:
                     c, advanced = s, True
                 if not advanced or len(seqs) < 512 or seqs[-1] != c:
                     break
-            con.execute("UPDATE robot_stats SET contiguous = ? WHERE robot = ?", (c, robot))
+            con.execute("UPDATE robot_stats SET contiguous = ?, inc = ? WHERE robot = ?", (c, inc, robot))
             contiguous[robot] = c
         con.execute("COMMIT")
-        if conflicts:
-            log.error("ODS: %d record(s) reuse a stored (robot, seq) with different content, e.g. %s; "
-                      "not stored (a robot started over with a fresh telemetry queue: give it its old "
-                      "queue folder)", len(conflicts), conflicts[0])
-        return InsertResult(tuple(stored), tuple(dups), contiguous, tuple(conflicts))
+        log_conflicts(conflicts)
+        return InsertResult(tuple(stored), tuple(dups), contiguous, tuple(conflicts), tuple(digests))
 
     # ------------------------------------------------------------------ reads
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple]:
@@ -419,33 +474,49 @@ class OperationalDataStore:
             raise StoreError(f"cannot read the operational data store {str(self.path)!r}: {exc}") from None
 
     def counts(self) -> dict[str, dict[str, int]]:
-        """Per robot: ``stored``, ``duplicates``, ``conflicts``, ``min_seq``, ``max_seq``, ``contiguous``."""
+        """Per robot: ``stored``, ``duplicates``, ``conflicts``, ``min_seq``, ``max_seq``, ``contiguous``
+        (of its current incarnation ``inc``: the one it stored last), ``incarnations`` (how many) and
+        ``stored_all`` (rows of every incarnation)."""
         rows = self._read(
-            "SELECT s.robot, count(t.seq), s.duplicates, s.conflicts, min(t.seq), max(t.seq), s.contiguous "
-            "FROM robot_stats s LEFT JOIN telemetry t ON t.robot = s.robot "
-            "GROUP BY s.robot ORDER BY s.robot"
+            "SELECT s.robot, count(t.seq), s.duplicates, s.conflicts, min(t.seq), max(t.seq), s.contiguous, s.inc "
+            "FROM robot_stats s LEFT JOIN telemetry t ON t.robot = s.robot AND t.inc = s.inc "
+            "GROUP BY s.robot, s.duplicates, s.conflicts, s.contiguous, s.inc ORDER BY s.robot"
         )
+        per_inc: dict[str, dict[int, int]] = {}
+        for robot, inc, n in self._read("SELECT robot, inc, count(*) FROM telemetry GROUP BY robot, inc"):
+            per_inc.setdefault(robot, {})[int(inc)] = int(n)
         return {
             robot: {"stored": n, "duplicates": d, "conflicts": k, "min_seq": lo or 0, "max_seq": hi or 0,
-                    "contiguous": c}
-            for robot, n, d, k, lo, hi, c in rows
+                    "contiguous": c, "inc": int(inc), "incarnations": len(per_inc.get(robot, {})),
+                    "stored_all": sum(per_inc.get(robot, {}).values())}
+            for robot, n, d, k, lo, hi, c, inc in rows
         }
 
+    def incarnations(self, robot: str) -> dict[int, int]:
+        """``{incarnation: records stored}`` of ``robot``."""
+        return {int(i): int(n) for i, n in self._read(
+            "SELECT inc, count(*) FROM telemetry WHERE robot = ? GROUP BY inc ORDER BY inc", (robot,))}
+
     def contiguous(self, robot: str) -> int:
-        """Highest ``seq`` such that ``1..seq`` of ``robot`` are all stored (0 if none)."""
+        """Highest ``seq`` such that ``1..seq`` of ``robot``'s current incarnation are all stored (0 if none)."""
         rows = self._read("SELECT contiguous FROM robot_stats WHERE robot = ?", (robot,))
         return rows[0][0] if rows else 0
 
-    def seqs(self, robot: str) -> list[int]:
-        """Every stored ``seq`` of ``robot``, ascending."""
-        return [s for (s,) in self._read("SELECT seq FROM telemetry WHERE robot = ? ORDER BY seq", (robot,))]
+    def seqs(self, robot: str, inc: int | None = None) -> list[int]:
+        """Every stored ``seq`` of ``robot`` in incarnation ``inc`` (default: its current one), ascending."""
+        if inc is None:
+            rows = self._read("SELECT inc FROM robot_stats WHERE robot = ?", (robot,))
+            inc = rows[0][0] if rows else 0
+        return [s for (s,) in self._read("SELECT seq FROM telemetry WHERE robot = ? AND inc = ? ORDER BY seq",
+                                         (robot, inc))]
 
     def latest(self) -> dict[str, dict[str, Any]]:
-        """The record with the highest ``seq`` of each robot."""
+        """The record with the highest ``seq`` of each robot's current incarnation."""
         rows = self._read(
             f"SELECT {', '.join('t.' + c for c in COLUMNS)} FROM telemetry t JOIN "
-            "(SELECT robot, max(seq) AS m FROM telemetry GROUP BY robot) l "
-            "ON t.robot = l.robot AND t.seq = l.m ORDER BY t.robot"
+            "(SELECT u.robot, u.inc, max(u.seq) AS m FROM telemetry u JOIN robot_stats s "
+            "ON s.robot = u.robot AND s.inc = u.inc GROUP BY u.robot, u.inc) l "
+            "ON t.robot = l.robot AND t.inc = l.inc AND t.seq = l.m ORDER BY t.robot"
         )
         return {r[0]: _row_to_dict(r) for r in rows}
 
@@ -465,7 +536,7 @@ class OperationalDataStore:
         sql = f"SELECT {', '.join(COLUMNS)} FROM telemetry"
         if where:
             sql += " WHERE " + " AND ".join(where)
-        sql += " ORDER BY t_unix_ns, robot, seq"
+        sql += " ORDER BY t_unix_ns, robot, inc, seq"
         return [_row_to_dict(r) for r in self._read(sql, params)]
 
     def export(self, out: str | Path, *, fmt: str = "csv", since_ns: int | None = None,

@@ -34,7 +34,7 @@ import time
 from typing import Any, Sequence
 
 from scmr_mesh.data.errors import StoreError
-from scmr_mesh.data.ods import SCHEMA_VERSION, InsertResult, OperationalDataStore, migrations, serve_writes
+from scmr_mesh.data.ods import SCHEMA_VERSION, InsertResult, OperationalDataStore, log_conflicts, migrations, same_content, serve_writes
 from scmr_mesh.data.record import TelemetryRecord
 
 log = logging.getLogger(__name__)
@@ -205,56 +205,71 @@ class PostgresStore(OperationalDataStore):
     def _insert(con, records: list[TelemetryRecord], received_from: str) -> InsertResult:
         now = time.time_ns()
         if not records:
-            return InsertResult((), (), {}, ())
+            return InsertResult((), (), {}, (), ())
         robots = sorted({r.robot for r in records})
-        cols: dict[str, list] = {k: [] for k in ("robot", "seq", "t", "x", "y", "theta", "battery", "health",
-                                                 "results")}
-        for r in records:
+        cols: dict[str, list] = {k: [] for k in ("robot", "inc", "seq", "t", "x", "y", "theta", "battery", "health",
+                                                 "results", "digest")}
+        mine = [r.digest().hex() for r in records]
+        for r, digest in zip(records, mine):
             pose = r.pose if r.pose is not None else (None, None, None)
-            for k, v in zip(cols, (r.robot, r.seq, r.t_unix_ns, *pose, r.battery, r.health,
-                                   json.dumps(r.results, sort_keys=True, default=str))):
+            for k, v in zip(cols, (r.robot, r.inc, r.seq, r.t_unix_ns, *pose, r.battery, r.health,
+                                   json.dumps(r.results, sort_keys=True, default=str), digest)):
                 cols[k].append(v)
         with con.transaction():
             con.execute("INSERT INTO robot_stats (robot) SELECT unnest(%s::text[]) ON CONFLICT (robot) DO NOTHING",
                         (robots,))
-            contiguous = dict(con.execute(
-                "SELECT robot, contiguous FROM robot_stats WHERE robot = ANY(%s) ORDER BY robot FOR UPDATE",
-                (robots,)).fetchall())
+            stats = {robot: (int(c), int(inc)) for robot, c, inc in con.execute(
+                "SELECT robot, contiguous, inc FROM robot_stats WHERE robot = ANY(%s) ORDER BY robot FOR UPDATE",
+                (robots,)).fetchall()}
             cur = con.execute(
-                "INSERT INTO telemetry (robot, seq, t_unix_ns, x, y, theta, battery, health, results, "
+                "INSERT INTO telemetry (robot, inc, seq, t_unix_ns, x, y, theta, battery, health, results, digest, "
                 "received_from, stored_unix_ns) "
-                "SELECT r, s, t, x, y, th, b, h, res, %s, %s FROM unnest(%s::text[], %s::bigint[], %s::bigint[], "
-                "%s::float8[], %s::float8[], %s::float8[], %s::float8[], %s::text[], %s::text[]) "
-                "AS u(r, s, t, x, y, th, b, h, res) ON CONFLICT (robot, seq) DO NOTHING RETURNING robot, seq",
+                "SELECT r, i, s, t, x, y, th, b, h, res, dg, %s, %s FROM unnest(%s::text[], %s::bigint[], "
+                "%s::bigint[], %s::bigint[], %s::float8[], %s::float8[], %s::float8[], %s::float8[], %s::text[], "
+                "%s::text[], %s::text[]) AS u(r, i, s, t, x, y, th, b, h, res, dg) "
+                "ON CONFLICT (robot, inc, seq) DO NOTHING RETURNING robot, inc, seq",
                 (received_from, now, *cols.values()))
-            new = collections.Counter((robot, seq) for robot, seq in cur.fetchall())
+            new = collections.Counter(tuple(row) for row in cur.fetchall())
             stored: list[tuple[str, int]] = []
-            dups: list[TelemetryRecord] = []
-            for r in records:
-                if new[(r.robot, r.seq)] > 0:
-                    new[(r.robot, r.seq)] -= 1
+            again: list[int] = []
+            for i, r in enumerate(records):
+                if new[r.key] > 0:
+                    new[r.key] -= 1
                     stored.append((r.robot, r.seq))
                 else:
-                    dups.append(r)
+                    again.append(i)
+            digests: list[str | None] = list(mine)
+            dups: list[tuple[str, int]] = []
             conflicts: list[tuple[str, int]] = []
-            if dups:
-                old = {(robot, seq): t for robot, seq, t in con.execute(
-                    "SELECT robot, seq, t_unix_ns FROM telemetry WHERE (robot, seq) IN "
-                    "(SELECT * FROM unnest(%s::text[], %s::bigint[]))",
-                    ([r.robot for r in dups], [r.seq for r in dups])).fetchall()}
-                n_dup = collections.Counter(r.robot for r in dups)
-                conflicts = [(r.robot, r.seq) for r in dups if old.get((r.robot, r.seq)) != r.t_unix_ns]
+            if again:
+                old = {(robot, int(inc), int(seq)): (t, d) for robot, inc, seq, t, d in con.execute(
+                    "SELECT robot, inc, seq, t_unix_ns, digest FROM telemetry WHERE (robot, inc, seq) IN "
+                    "(SELECT * FROM unnest(%s::text[], %s::bigint[], %s::bigint[]))",
+                    ([records[i].robot for i in again], [records[i].inc for i in again],
+                     [records[i].seq for i in again])).fetchall()}
+                for i in again:
+                    r = records[i]
+                    t_old, d_old = old.get(r.key, (None, None))
+                    if same_content(d_old, t_old, mine[i], r.t_unix_ns):
+                        dups.append((r.robot, r.seq))
+                    else:
+                        conflicts.append((r.robot, r.seq))
+                        digests[i] = d_old
+                n_dup = collections.Counter(robot for robot, _ in dups)
                 n_conf = collections.Counter(robot for robot, _ in conflicts)
-                for robot in sorted(n_dup):
+                for robot in sorted(set(n_dup) | set(n_conf)):
                     con.execute("UPDATE robot_stats SET duplicates = duplicates + %s, conflicts = conflicts + %s "
                                 "WHERE robot = %s", (n_dup[robot], n_conf[robot], robot))
             out: dict[str, int] = {}
+            last_inc = {r.robot: r.inc for r in records}
             for robot in robots:
-                c = int(contiguous[robot])
+                inc = last_inc[robot]
+                c, c_inc = stats[robot]
+                c = c if c_inc == inc else 0  # a new incarnation counts from its own seq 1
                 while True:
                     seqs = [s for (s,) in con.execute(
-                        "SELECT seq FROM telemetry WHERE robot = %s AND seq > %s ORDER BY seq LIMIT 512",
-                        (robot, c)).fetchall()]
+                        "SELECT seq FROM telemetry WHERE robot = %s AND inc = %s AND seq > %s ORDER BY seq LIMIT 512",
+                        (robot, inc, c)).fetchall()]
                     advanced = False
                     for s in seqs:
                         if s != c + 1:
@@ -262,13 +277,10 @@ class PostgresStore(OperationalDataStore):
                         c, advanced = s, True
                     if not advanced or len(seqs) < 512 or seqs[-1] != c:
                         break
-                con.execute("UPDATE robot_stats SET contiguous = %s WHERE robot = %s", (c, robot))
+                con.execute("UPDATE robot_stats SET contiguous = %s, inc = %s WHERE robot = %s", (c, inc, robot))
                 out[robot] = c
-        if conflicts:
-            log.error("ODS: %d record(s) reuse a stored (robot, seq) with different content, e.g. %s; "
-                      "not stored (a robot started over with a fresh telemetry queue: give it its old "
-                      "queue folder)", len(conflicts), conflicts[0])
-        return InsertResult(tuple(stored), tuple((r.robot, r.seq) for r in dups), out, tuple(conflicts))
+        log_conflicts(conflicts)
+        return InsertResult(tuple(stored), tuple(dups), out, tuple(conflicts), tuple(digests))
 
     # ------------------------------------------------------------------ reads
     def _read(self, sql: str, params: Sequence[Any] = ()) -> list[tuple]:

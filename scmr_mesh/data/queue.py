@@ -666,3 +666,51 @@ def seq_ranges(seqs: list[int], *, limit: int | None = None) -> list[str]:
 
 
 __all__ = ["HEAD_FILE", "MAX_RECORD_BYTES", "Corruption", "QueueStats", "TelemetryQueue", "encode_frame", "scan_segment"]
+
+
+#: File of a queue folder holding its incarnation (issue #25 item 10; see :func:`folder_incarnation`).
+INCARNATION_FILE = "incarnation"
+
+
+def folder_incarnation(path: str | Path) -> int:
+    """The incarnation of the queue folder at ``path``: a random 63-bit id chosen when the folder is new.
+
+    Records carry it (``TelemetryRecord.inc``) and the store keys them by ``(robot, inc, seq)``, so a
+    robot whose queue folder was wiped (seqs from 1 again) starts a new history instead of colliding
+    with the stored one.  Written once (temporary file, fsync, rename) and read back afterwards; a
+    folder of an older version (segments, no incarnation file) keeps incarnation 0, so its replays
+    still meet their stored copies.  When the file cannot be written (a full disk) the id is used for
+    this process only and logged.
+    """
+    import secrets
+
+    folder = Path(path)
+    f = folder / INCARNATION_FILE
+    try:
+        text = f.read_text().strip()
+    except FileNotFoundError:
+        text = None
+    except OSError as exc:
+        raise QueueError(f"cannot read {str(f)!r}: {exc}") from None
+    if text is not None:
+        if text.isdigit() and int(text) < 2**63:
+            return int(text)
+        log.error("queue %s: %s file holds %r, not an incarnation; choosing a new one", folder,
+                  INCARNATION_FILE, text[:40])
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        legacy = text is None and any(p.name in ("ack", HEAD_FILE) or _SEG_RE.match(p.name) for p in folder.iterdir())
+    except OSError as exc:
+        raise QueueError(f"cannot create the queue folder {str(folder)!r}: {exc}") from None
+    inc = 0 if legacy else secrets.randbits(63) or 1
+    tmp = folder / f".{INCARNATION_FILE}.tmp"
+    try:
+        with open(tmp, "w") as fh:
+            fh.write(f"{inc}\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, f)
+    except OSError as exc:
+        log.error("queue %s: cannot write its incarnation (%s); incarnation %d holds for this process only",
+                  folder, exc, inc)
+    return inc

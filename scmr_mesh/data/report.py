@@ -59,11 +59,12 @@ def telemetry_report(
     dict
         ``{"telemetry": {"sent", "stored", "duplicates", "lost", "conflicts",
         "per_robot": {robot: {"sent", "stored", "duplicates", "conflicts",
-        "lost", "missing", "unexpected" [, "queued", "queued_seqs"]}}}}`` (and a
-        total ``queued`` with ``held``) where ``stored`` counts distinct
-        ``(robot, seq)`` with ``1 <= seq <= sent``, ``lost = sent - stored -
-        queued``, ``missing`` lists the lost seqs as ranges (at most 20),
-        ``unexpected`` counts stored seqs beyond ``sent``, and
+        "lost", "missing", "unexpected", "incarnations", "stored_earlier_incarnations"
+        [, "queued", "queued_seqs"]}}}}`` (and a total ``queued`` with ``held``) where
+        ``stored`` counts distinct ``(robot, seq)`` of the robot's current incarnation
+        with ``1 <= seq <= sent``, ``lost = sent - stored - queued``, ``missing``
+        lists the lost seqs as ranges (at most 20), ``unexpected`` counts stored
+        seqs beyond ``sent``, and
         ``conflicts`` counts messages refused because their ``(robot, seq)``
         was already stored with other content (a robot that started over with
         a fresh queue: those messages are lost even when ``lost`` is 0).
@@ -99,6 +100,11 @@ def telemetry_report(
                 "lost": len(gone),
                 "missing": seq_ranges(gone, limit=20),
                 "unexpected": len(seqs) - len(in_range),
+                # issue 25 item 10: stored and lost count the robot's current incarnation (its queue
+                # folder's); records of earlier ones (a wiped queue) are counted apart, never as its seqs
+                "incarnations": counts.get(robot, {}).get("incarnations", 0),
+                "stored_earlier_incarnations": (counts.get(robot, {}).get("stored_all", 0)
+                                                - counts.get(robot, {}).get("stored", 0)),
             }
             if held is not None:
                 row["queued"] = len(missing) - len(gone)

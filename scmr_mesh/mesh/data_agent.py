@@ -4,6 +4,7 @@ failover (:class:`TelemetryAgent`, :func:`fetch_once`; see :mod:`scmr_mesh.mesh.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -16,7 +17,7 @@ from typing import Any, Callable, Iterable
 
 from scmr_mesh import keys
 from scmr_mesh.data.errors import QueueError, TelemetryError
-from scmr_mesh.data.queue import TelemetryQueue, seq_ranges
+from scmr_mesh.data.queue import TelemetryQueue, folder_incarnation, seq_ranges
 from scmr_mesh.data.record import TelemetryRecord, encode_records
 from scmr_mesh.errors import MeshError
 from scmr_mesh.mesh.data_common import BATCH, MAX_BACKOFF_S, RETRY_PERIOD_S, _msgpack_encoding, _pack, _unpack, buffer_key, record_from_message, telemetry_key
@@ -81,12 +82,20 @@ class TelemetryAgent:
     memory_bytes : int
         Bound on the in-memory buffer of records the disk queue refused
         (:data:`MEMORY_BUFFER_BYTES`; 0 turns the buffer off).
+    signer : scmr_mesh.data.signing.RecordSigner, optional
+        Signs each record with the robot's own key (a secured mesh: the store
+        refuses unsigned records); None: records go unsigned.
     """
 
     def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
                  deadline_ms: float = 1000.0, autostart: bool = True,
-                 memory_bytes: int = MEMORY_BUFFER_BYTES) -> None:
+                 memory_bytes: int = MEMORY_BUFFER_BYTES, signer=None) -> None:
         self.robot = robot
+        self.signer = signer
+        #: the queue folder's incarnation: every record carries it (a wiped folder starts a new history)
+        self.incarnation = folder_incarnation(queue_dir)
+        #: records a cloud answered for with another digest (a conflict) or refused: kept, never deleted
+        self.not_acked = 0
         # a refused record keeps its seq (it is in the record already) and waits in memory
         # (_mem); one never delivered leaves a gap the store sees, and every report counts it lost
         self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
@@ -144,7 +153,9 @@ class TelemetryAgent:
             self.publish_errors += 1
             log.debug("telemetry publish failed: %s", exc)
         seq = self.queue.next_seq
-        rec = record_from_message(message, seq)
+        rec = dataclasses.replace(record_from_message(message, seq), inc=self.incarnation)
+        if self.signer is not None:
+            rec = dataclasses.replace(rec, sig=self.signer.sign(rec.digest()))
         payload = _pack(rec.to_dict())
         try:
             self.queue.append(payload, seq=seq)
@@ -256,7 +267,8 @@ class TelemetryAgent:
             batch = self._pending(after)
             if not batch:
                 continue
-            payload = encode_records([TelemetryRecord.from_dict(_unpack(p)) for _, p in batch])
+            recs = [TelemetryRecord.from_dict(_unpack(p)) for _, p in batch]
+            payload = encode_records(recs)
             for tier, node in tier_targets:
                 try:
                     ans = self._ask(telemetry_key(tier, node, self.robot.id), payload)
@@ -267,18 +279,21 @@ class TelemetryAgent:
                     continue
                 kind, body = ans
                 if kind == "ok":
-                    upto = batch[-1][0]
+                    n = len(batch) if tier != "cloud" else self._stored_prefix(recs, body, node)
+                    self._busy_streak = 0
+                    self._not_before = 0.0
+                    if not n:
+                        continue
+                    upto = batch[n - 1][0]
                     if tier == "cloud":
-                        replayed = sum(1 for s, _ in batch if s <= self._replay_upto)
+                        replayed = sum(1 for s, _ in batch[:n] if s <= self._replay_upto)
                         self._stored_upto(upto)
                         if replayed:
                             self.queue.note_replayed(replayed)
                     else:
                         self._relayed_upto = upto
-                    self.acked_by[tier] += len(batch)
-                    self._busy_streak = 0
-                    self._not_before = 0.0
-                    return len(batch)
+                    self.acked_by[tier] += n
+                    return n
                 if isinstance(body, dict) and body.get("busy"):
                     self.busy_answers += 1
                     busy_hint_ms = max(busy_hint_ms or 0.0, float(body.get("retry_after_ms") or 0.0))
@@ -291,6 +306,29 @@ class TelemetryAgent:
             wait = min(MAX_BACKOFF_S, max(busy_hint_ms / 1e3, RETRY_PERIOD_S * 2 ** self._busy_streak))
             self._not_before = time.monotonic() + wait * random.uniform(0.75, 1.0)
         return 0
+
+    def _stored_prefix(self, recs: list[TelemetryRecord], body: Any, node: str) -> int:
+        """How many leading records of a batch the cloud's ack shows stored as sent: the ack's
+        ``digests`` must name each record's own digest (a conflict or a refusal stops the prefix; the
+        record stays queued, counted in ``not_acked``, and is never deleted)."""
+        digests = body.get("digests") if isinstance(body, dict) else None
+        if not isinstance(digests, list) or len(digests) != len(recs):
+            self.not_acked += len(recs)
+            log.error("robot %s: cloud %s acked telemetry without per-record digests; nothing deleted",
+                      self.robot.id, node)
+            return 0
+        n = 0
+        for r, d in zip(recs, digests):
+            if d != r.digest().hex():
+                self.not_acked += 1
+                if self.not_acked not in (1, 10, 100) and self.not_acked % 1000:
+                    break
+                why = "refused it" if d is None else "holds other content under its (robot, incarnation, seq)"
+                log.error("robot %s: cloud %s %s for record %d (%s); kept in the queue", self.robot.id, node, why,
+                          r.seq, (body.get("refusals") or ["no reason given"])[0])
+                break
+            n += 1
+        return n
 
     @property
     def backoff_s(self) -> float:
@@ -358,7 +396,8 @@ class TelemetryAgent:
         # every refused record was delivered from memory, is still there (dies with the process) or was dropped
         lost = self.dropped + unsent + len(set(st.lost_seqs))
         relayed = len(self.queue.pending(limit=None)) - len(self.queue.pending(limit=None, after=self._relayed_upto))
-        return {"robot": self.robot.id, "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
+        return {"robot": self.robot.id, "incarnation": self.incarnation, "not_acked": self.not_acked,
+                "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
                 "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": lost,
                 "dropped": self.dropped, "memory": mem,
                 "relayed_unstored": relayed,

@@ -4,7 +4,10 @@
 
 from __future__ import annotations
 
+import concurrent.futures
+import json
 import logging
+import os
 from pathlib import Path
 from typing import Callable
 
@@ -12,7 +15,8 @@ from typing import Callable
 from scmr_mesh.data.buffer import DataBuffer
 from scmr_mesh.data.errors import StoreError, TelemetryError
 from scmr_mesh.data.ods import OperationalDataStore
-from scmr_mesh.data.record import TelemetryRecord, decode_batch
+from scmr_mesh.data.quota import Quota
+from scmr_mesh.data.record import TelemetryRecord, decode_batch, decode_batch_lenient
 from scmr_mesh.mesh.data_common import IngestGate, Verdict, _answer, _busy, _drop, _payload, _reply, _unpack, buffer_key, check_sender, relay_key, serve_buffer, sync_key, telemetry_key
 
 log = logging.getLogger(__name__)
@@ -30,12 +34,25 @@ class CloudData:
         path) or a ``postgresql://`` URL (shared by cloud nodes on any host).
     params : dict, optional
         Initial buffer entries (``maps/...``, ``params/...``).
+    verifier : scmr_mesh.data.signing.RecordVerifier, optional
+        Checks each record's signature against its robot's certificate; records
+        without a valid one are refused on their own (the rest of a batch is
+        stored).  None (an insecure mesh): records are not checked.
+    quota : Quota, optional
+        Per-robot records/bytes per second (default :class:`~scmr_mesh.data.quota.Quota`).
     """
 
     def __init__(self, node: str, ods_path: str | Path, *, params: dict | None = None,
-                 gate: IngestGate | None = None) -> None:
+                 gate: IngestGate | None = None, verifier=None, quota: Quota | None = None) -> None:
         self.node = node
         self.gate = gate or IngestGate()
+        self.verifier = verifier
+        self.quota = quota if quota is not None else Quota()
+        #: records refused one by one: {"malformed", "signature", "quota", "conflict"} -> count
+        self.refused = {"malformed": 0, "signature": 0, "quota": 0, "conflict": 0}
+        self._checker = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix=f"ingest-{node}")
+        #: where :meth:`close` writes :meth:`stats` (JSON), or None
+        self.stats_path: Path | None = None
         self.ods = OperationalDataStore(ods_path)
         self.buffer = DataBuffer(node)
         for rec in self.ods.latest().values():  # a restarted cloud serves the last states at once
@@ -64,6 +81,8 @@ class CloudData:
         # so a slow fsync never holds up the session's other traffic (frame queries).
         # Bounded (IngestGate): an oversized batch is refused unread, and beyond
         # MAX_PENDING_RECORDS records waiting for the store the answer is busy.
+        # Untrusted (issue #28): each record must carry its robot's signature (when a verifier is set);
+        # a relayed batch's bad records are refused one by one, the rest stored; per-robot quotas.
         gate = self.gate
         taken = 0
         try:
@@ -74,30 +93,86 @@ class CloudData:
                 return
             if not ans.admitted:
                 raise TelemetryError(ans.reason)
-            records, via = decode_batch(payload)
-            del payload
+            nbytes = len(payload)
             if relay:
+                records, via, problems = decode_batch_lenient(payload)
                 source = via or "leader"
             else:
+                records, via = decode_batch(payload)
+                problems = []
                 check_sender(query.key_expr, records)
                 source = "cloud"  # a robot's batch came straight to the cloud, whatever it claims
-            ans = gate.take(len(records))
+            del payload
+            refusals: list[list] = [[None, None, p] for p in problems]
+            self._count("malformed", len(problems))
+            if not relay and records and not self.quota.take(records[0].robot, len(records), nbytes):
+                # the sender is this robot (the ACL binds its key): charge it before any costly check
+                self._over_quota(query, records[0].robot, len(records), nbytes)
+                return
+            ans = gate.take(len(records))  # reserved until acked: the checks and the store run off zenoh's thread
             if ans.verdict is Verdict.BUSY:
                 _busy(query, gate, f"cloud {self.node}")
                 return
             if not ans.admitted:
                 raise TelemetryError(ans.reason)
             taken = len(records)
-            fut = self.ods.insert_async(records, received_from=source)
+            self._checker.submit(self._check_and_store, query, records, refusals, relay, source, nbytes)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             gate.release(taken)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
-            return
-        fut.add_done_callback(lambda f: self._ack(query, records, f))
 
-    def _ack(self, query, records: list[TelemetryRecord], fut) -> None:
+    def _check_and_store(self, query, records: list[TelemetryRecord], refusals: list, relay: bool, source: str,
+                         nbytes: int) -> None:
+        """Signatures (ECDSA verify, ~0.13 ms a record) and relayed quotas, then the store; on the
+        checker thread, so zenoh's thread only decodes."""
+        try:
+            good: list[int] = []  # indices into records
+            for i, r in enumerate(records):
+                why = None if self.verifier is None else (
+                    f"record of {r.robot} is not signed" if r.sig is None else  # refused before any hashing
+                    self.verifier.check(r.robot, r.digest(), r.sig))
+                if why is None:
+                    good.append(i)
+                else:
+                    refusals.append([r.robot, r.seq, why])
+                    self._count("signature")
+            per = max(1, nbytes // max(1, len(records)))
+            for robot in sorted({records[i].robot for i in good}) if relay else ():
+                # relayed: charged after the signatures, so forged records cannot spend a robot's quota
+                mine = [i for i in good if records[i].robot == robot]
+                if not self.quota.take(robot, len(mine), per * len(mine)):
+                    self._count("quota", len(mine))
+                    refusals.extend([robot, records[i].seq, "over its telemetry quota"] for i in mine)
+                    good = [i for i in good if records[i].robot != robot]
+            fut = self.ods.insert_async([records[i] for i in good], received_from=source)
+        except Exception as exc:  # not stored: no ack, the sender keeps the records
+            self.gate.release(len(records))
+            self._not_stored(exc)
+            _answer(query, {"error": str(exc)}, error=True)
+            _drop(query)
+            return
+        if refusals:
+            log.warning("cloud %s: refused %d of %d telemetry records (%s), e.g. %s", self.node, len(refusals),
+                        len(records) + sum(r[0] is None for r in refusals), "relayed" if relay else "direct",
+                        refusals[0])
+        fut.add_done_callback(lambda f: self._ack(query, records, good, refusals, f))
+
+    def _over_quota(self, query, robot: str, n: int, nbytes: int) -> None:
+        """A busy answer: the robot keeps its records and retries after the hint."""
+        self._count("quota", n)
+        wait_ms = round(1e3 * max(0.05, self.quota.retry_after_s(robot, n, nbytes)), 1)
+        _answer(query, {"error": f"cloud {self.node}: robot {robot} is over its telemetry quota "
+                                 f"({self.quota.records_per_s:g} records/s, {self.quota.bytes_per_s:g} bytes/s); "
+                                 "keep the records and retry", "busy": True, "quota": True,
+                        "retry_after_ms": wait_ms}, error=True)
+        _drop(query)
+
+    def _count(self, why: str, n: int = 1) -> None:
+        self.refused[why] += n
+
+    def _ack(self, query, records: list[TelemetryRecord], good: list[int], refusals: list, fut) -> None:
         self.gate.release(len(records))
         try:
             res = fut.result()
@@ -109,13 +184,22 @@ class CloudData:
         if self._unstored:
             log.warning("cloud %s: telemetry stored again after %d batch(es) were not", self.node, self._unstored)
             self._unstored = 0
+        digests: list[str | None] = [None] * len(records)
         try:
-            for r in records:
-                self.buffer.record_telemetry(r.to_dict())
-            self.ingested += len(records)
+            for j, i in enumerate(good):
+                digests[i] = res.digests[j]
+                r = records[i]
+                if res.digests[j] == r.digest().hex():  # stored or the identical record: never a conflict
+                    self.buffer.record_telemetry(r.to_dict(signed=False))
+            self._count("conflict", len(res.conflicts))
+            self.ingested += len(good)
         finally:
-            _answer(query, {"acked": len(records), "stored": len(res.stored), "duplicates": len(res.duplicates),
-                            "contiguous": res.contiguous}, kind="data_ack")
+            # "digests": per record of the batch, what the store holds for its (robot, inc, seq): a robot
+            # deletes a queued record only when it is its own digest
+            _answer(query, {"acked": len(good) - len(res.conflicts), "stored": len(res.stored),
+                            "duplicates": len(res.duplicates), "conflicts": len(res.conflicts),
+                            "refused": len(refusals), "refusals": refusals[:8], "contiguous": res.contiguous,
+                            "digests": digests}, kind="data_ack")
             _drop(query)
 
     def _not_stored(self, exc: BaseException) -> None:
@@ -133,6 +217,11 @@ class CloudData:
         log.log(logging.WARNING if n == 1 or n % 1000 == 0 else logging.DEBUG,
                 "cloud %s: telemetry not stored%s: %s", self.node, f" ({n} batches in a row)" if n > 1 else "", exc)
 
+    def stats(self) -> dict:
+        """Ingest counters: records refused one by one (by reason), quota and gate state."""
+        return {"node": self.node, "ingested": self.ingested, "refused": dict(self.refused),
+                "quota": self.quota.stats(), "gate": self.gate.stats()}
+
     def _on_sync(self, query) -> None:
         try:
             req = _unpack(_payload(query)) if _payload(query) else {}
@@ -149,6 +238,18 @@ class CloudData:
         self.close()
 
     def close(self) -> None:
+        if any(self.refused.values()):
+            log.warning("cloud %s: telemetry records refused: %s (quota refusals per robot: %s)", self.node,
+                        self.refused, self.quota.stats()["refused"])
+        if self.stats_path is not None:  # RUN/ingest-<node>.json: the refusals for reports and operators
+            try:
+                tmp = Path(f"{self.stats_path}.tmp")
+                tmp.write_text(json.dumps(self.stats()) + "\n")
+                os.replace(tmp, self.stats_path)
+            except OSError as exc:
+                log.error("cloud %s: cannot write %s (%s); ingest counters: %s", self.node, self.stats_path, exc,
+                          json.dumps(self.stats()))
+        self._checker.shutdown(wait=True)
         self.ods.close()
 
 

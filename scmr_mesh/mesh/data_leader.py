@@ -16,6 +16,7 @@ from scmr_mesh import keys
 from scmr_mesh.data.buffer import BufferSync, DataBuffer
 from scmr_mesh.data.errors import QueueFullError, TelemetryError
 from scmr_mesh.data.queue import TelemetryQueue
+from scmr_mesh.data.quota import Quota
 from scmr_mesh.data.record import TelemetryRecord, decode_batch, encode_records
 from scmr_mesh.mesh.data_common import BATCH, IngestGate, Verdict, RETRY_PERIOD_S, _answer, _busy, _drop, _msgpack_encoding, _pack, _payload, _reply, _unpack, buffer_key, check_sender, relay_key, serve_buffer, sync_key, telemetry_key
 
@@ -44,9 +45,14 @@ class LeaderData:
 
     def __init__(self, node: str, relay_dir: str | Path, *, sync_period_s: float = 1.0,
                  relay_max_bytes: int = 64 << 20, deadline_s: float = 1.0, gate: IngestGate | None = None,
-                 leading: bool = True) -> None:
+                 leading: bool = True, quota: Quota | None = None) -> None:
         self.node = node
         self.gate = gate or IngestGate()
+        #: per-robot records/bytes per second taken into the relay (over: a busy answer, the robot keeps them)
+        self.quota = quota if quota is not None else Quota()
+        #: relayed records dropped one by one: unreadable in the relay queue, or refused by the cloud
+        self.skipped = 0
+        self.cloud_refused = 0
         #: True while this node holds the lead: sync from the clouds; else from ``leader_of()``
         self.leading = leading
         #: ``fn() -> node or None``: the current leader (standby candidates sync from it)
@@ -56,7 +62,10 @@ class LeaderData:
         self.deadline_s = float(deadline_s)
         self._lock = threading.Lock()
         for _, payload in self.relay.pending():
-            self.buffer.record_telemetry(_unpack(payload))
+            try:  # an unreadable one is skipped (and counted) when forwarding
+                self.buffer.record_telemetry(TelemetryRecord.from_dict(_unpack(payload)).to_dict(signed=False))
+            except TelemetryError:
+                pass
         if not sync_period_s > 0:
             raise TelemetryError(f"sync period must be > 0 s, got {sync_period_s!r}")
         self.sync_period_s = float(sync_period_s)
@@ -121,8 +130,14 @@ class LeaderData:
             if len(records) > self.gate.max_batch_records:
                 raise TelemetryError(f"telemetry batch of {len(records)} records exceeds "
                                      f"{self.gate.max_batch_records}; send smaller batches")
-            check_sender(query.key_expr, records)
+            robot = check_sender(query.key_expr, records)
             blobs = [_pack(r.to_dict()) for r in records]
+            if not self.quota.take(robot, len(records), sum(map(len, blobs))):
+                wait_ms = round(1e3 * max(0.05, self.quota.retry_after_s(robot, len(records), sum(map(len, blobs)))), 1)
+                _answer(query, {"error": f"leader {self.node}: robot {robot} is over its telemetry quota; keep "
+                                         "the records and retry", "busy": True, "quota": True,
+                                "retry_after_ms": wait_ms}, error=True)
+                return
             with self._lock:
                 if sum(map(len, blobs)) > self.relay.free_bytes():
                     raise QueueFullError(
@@ -135,7 +150,7 @@ class LeaderData:
             _answer(query, {"error": str(exc)}, error=True)
             return
         for r in records:
-            self.buffer.record_telemetry(r.to_dict())
+            self.buffer.record_telemetry(r.to_dict(signed=False))
         self.received += len(records)
         _answer(query, {"acked": len(records), "stored": len(records), "duplicates": 0}, kind="data_ack")
 
@@ -185,21 +200,50 @@ class LeaderData:
                          self.node, node, res.applied, len(self.buffer.items()), ", ".join(shared[:8]) or "none")
         return out
 
+    def _readable(self, seq: int, payload: bytes) -> TelemetryRecord | None:
+        """The relayed record at ``seq``, or None (counted, logged) when it cannot be read back."""
+        try:
+            return TelemetryRecord.from_dict(_unpack(payload))
+        except TelemetryError as exc:
+            self.skipped += 1
+            if self.skipped in (1, 10, 100) or self.skipped % 1000 == 0:
+                log.error("leader %s: relayed record %d skipped (%d so far): %s", self.node, seq, self.skipped, exc)
+            return None
+
     def forward_once(self) -> int:
-        """Send the oldest relayed records to a cloud node; return how many were acknowledged."""
+        """Send the oldest relayed records to a cloud node; return how many left the relay queue.
+
+        One bad record never stops the relay (issue #28 item 4): a record that cannot be read back
+        is skipped and counted (``skipped``); the cloud refuses bad records one by one (bad
+        signature, quota) and stores the rest, and its answer acknowledges the whole batch
+        (``cloud_refused`` counts its refusals; the robots keep their own records until a cloud
+        stores them, so nothing is lost here).
+        """
         batch = self.relay.pending(limit=BATCH)
         if not batch:
             return 0
+        records = [r for r in (self._readable(s, p) for s, p in batch) if r is not None]
+        if not records:  # nothing readable: past them at once
+            self.relay.ack(batch[-1][0])
+            return len(batch)
         clouds = self._clouds()
         if not clouds:
             return 0
-        records = [TelemetryRecord.from_dict(_unpack(p)) for _, p in batch]
         for node in clouds:
             raw = self._query(relay_key(node), encode_records(records, via="leader"))
             if raw is not None:
                 self.relay.ack(batch[-1][0])
-                self.forwarded += len(batch)
-                log.info("leader %s: forwarded %d relayed records to cloud %s", self.node, len(batch), node)
+                self.forwarded += len(records)
+                try:
+                    body = _unpack(raw)
+                    refused = int(body.get("refused") or 0) if isinstance(body, dict) else 0
+                except (TelemetryError, TypeError, ValueError):
+                    refused = 0
+                if refused:
+                    self.cloud_refused += refused
+                    log.warning("leader %s: cloud %s refused %d of %d relayed records: %s", self.node, node,
+                                refused, len(records), body.get("refusals", [])[:2])
+                log.info("leader %s: forwarded %d relayed records to cloud %s", self.node, len(records), node)
                 return len(batch)
         return 0
 

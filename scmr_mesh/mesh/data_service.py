@@ -135,6 +135,19 @@ def add_arguments(parser, role: str) -> None:
                        default=MAX_BATCH_RECORDS, metavar="N",
                        help=f"largest telemetry batch taken, in records (and N KiB); larger ones are refused "
                             f"(default {MAX_BATCH_RECORDS}; robots send {BATCH})")
+    if role in ("cloud", "leader"):
+        from scmr_mesh.data.quota import BYTES_PER_S, RECORDS_PER_S
+
+        g.add_argument("--telemetry-quota", type=ca.non_negative("records per second", hi=10**7, example="200"),
+                       default=RECORDS_PER_S, metavar="N",
+                       help="telemetry records per second each robot identity may have stored or relayed "
+                            "(a burst of 30 s of it); beyond it a robot's batch gets a busy answer and the "
+                            "robot keeps it, a relayed record is refused and counted; 0: no limit "
+                            f"(default {RECORDS_PER_S:g})")
+        g.add_argument("--telemetry-quota-bytes", type=ca.non_negative("bytes per second", hi=1 << 40, example="131072"),
+                       default=BYTES_PER_S, metavar="N",
+                       help="the same quota in payload bytes per second (0: no limit; default "
+                            f"{BYTES_PER_S})")
     if role in ("robot", "leader"):
         g.add_argument("--telemetry-queue", type=ca.PathArg("out-dir"), metavar="DIR",
                        help="the robot's on-disk telemetry queue, kept across restarts (default "
@@ -171,13 +184,17 @@ def service_setup(args, tier: str) -> Callable:
                 if not isinstance(params, dict):
                     raise InputError(f"--data-params {args.data_params}: must hold a JSON object, "
                                      f"got {type(params).__name__}")
-            data = CloudData(svc.node, path, params=params, gate=_gate(args))
+            data = CloudData(svc.node, path, params=params, gate=_gate(args), verifier=record_verifier(args),
+                             quota=_quota(args))
+            if run_dir is not None:
+                data.stats_path = run_dir / f"ingest-{svc.node}.json"
             log.info("cloud %s: operational data store %s (%s)", svc.node, data.ods.name, data.ods.backend)
         else:
             if not getattr(args, "sync_period", 1.0) > 0:
                 raise InputError(f"--sync-period must be > 0 s, got {args.sync_period}")
             relay = getattr(args, "relay_dir", None) or (run_dir or Path("runs")) / f"relay-{svc.node}"
-            data = LeaderData(svc.node, relay, sync_period_s=getattr(args, "sync_period", 1.0), gate=_gate(args))
+            data = LeaderData(svc.node, relay, sync_period_s=getattr(args, "sync_period", 1.0), gate=_gate(args),
+                              quota=_quota(args))
             data.start(svc)
         for key, cb in data.queryables():
             svc.add_queryable(key, cb)
@@ -192,6 +209,46 @@ def _gate(args) -> IngestGate:
     batch = int(getattr(args, "ingest_batch", None) or MAX_BATCH_RECORDS)
     return IngestGate(max_pending=int(getattr(args, "ingest_queue", None) or MAX_PENDING_RECORDS),
                       max_batch_records=batch, max_batch_bytes=batch << 10)
+
+
+def _quota(args):
+    """The per-robot quota of ``--telemetry-quota`` and ``--telemetry-quota-bytes``."""
+    from scmr_mesh.data.quota import BYTES_PER_S, RECORDS_PER_S, Quota
+
+    return Quota(float(getattr(args, "telemetry_quota", RECORDS_PER_S)),
+                 float(getattr(args, "telemetry_quota_bytes", BYTES_PER_S)))
+
+
+def _tls_credentials(args) -> Path | None:
+    """The credentials directory of the peer's mutual-TLS security profile, or None (insecure, usrpwd)."""
+    if not getattr(args, "security", None):
+        return None
+    from scmr_mesh.security.profile import load_profile
+
+    profile = load_profile(args.security, credentials=getattr(args, "credentials", None))
+    return profile.credentials if profile.kind == "tls" else None
+
+
+def record_verifier(args):
+    """A cloud's :class:`~scmr_mesh.data.signing.RecordVerifier` under mutual TLS (records must be
+    signed by their robot, issue #28 item 3), else None."""
+    creds = _tls_credentials(args)
+    if creds is None:
+        return None
+    from scmr_mesh.data.signing import RecordVerifier
+
+    return RecordVerifier(creds)
+
+
+def record_signer(args, identity: str):
+    """The robot's :class:`~scmr_mesh.data.signing.RecordSigner` (its own TLS key) under mutual TLS, else None."""
+    creds = _tls_credentials(args)
+    if creds is None:
+        return None
+    from scmr_mesh.data.signing import RecordSigner
+    from scmr_mesh.security.credentials import peer_files
+
+    return RecordSigner(peer_files(creds, identity, need=("key",)).key)
 
 
 def data_tier_off() -> bool:
@@ -212,7 +269,7 @@ def attach_robot(robot, args) -> TelemetryAgent | None:
         # in a run dir the queue is per robot id, so a restarted robot (new --out) keeps it
         qdir = run_dir / "queues" / robot.id if run_dir is not None else Path(args.out) / "telemetry-queue"
     return TelemetryAgent(robot, qdir, max_bytes=getattr(args, "telemetry_max_bytes", 16 << 20),
-                          deadline_ms=getattr(args, "deadline_ms", 1000.0))
+                          deadline_ms=getattr(args, "deadline_ms", 1000.0), signer=record_signer(args, robot.id))
 
 
 __all__ = [

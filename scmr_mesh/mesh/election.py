@@ -19,6 +19,13 @@ The rule (pure: :func:`decide`, :func:`rank_key`, :func:`outranks`)
 * **Term**: every claim takes a term one above the highest term its claimant
   has seen.  Between two leaders the higher term wins; at equal terms the
   better rank wins.  The loser steps down at once.
+* **Terms cannot jump without bound** (issue #28): a candidacy whose term is
+  more than :data:`TERM_WINDOW` above this node's term is refused (counted in
+  ``refused_terms``, its sender counts as no candidate here), and this node
+  adopts a term more than one above its own at most once per heartbeat.  A
+  liar publishing ``wire.MAX_TERM`` is ignored; ratcheting the others up by
+  one window per heartbeat would take 2^33 heartbeats (68 years) to exhaust
+  the terms.
 * **No preemption**: a live leader keeps the lead even when a better
   candidate appears.  Only a vacancy (no live candidate claims the lead)
   starts an election: the best-ranked live candidate claims at once; the
@@ -77,6 +84,9 @@ HEARTBEAT_S = 0.25
 CLAIM_WAIT_S = 0.3
 #: After start, watch this long before claiming (let gossip connect the mesh).
 STARTUP_GRACE_S = 0.3
+#: Largest jump above this node's term that another node's candidacy may make (more: refused).
+#: Honest terms rise by one per election: 2^20 is a million elections ahead of this node.
+TERM_WINDOW = 2**20
 
 
 # ------------------------------------------------------------------ pure rule
@@ -108,6 +118,15 @@ class Candidacy:
                                    power_w=self.power_w, battery=self.battery, load=self.load,
                                    since_unix_ns=self.since_unix_ns, capability=self.capability,
                                    follows=self.follows)
+
+
+def term_admissible(mine: int, theirs: int, *, window: int = TERM_WINDOW) -> bool:
+    """Whether a candidacy at term ``theirs`` may count for a node at term ``mine``.
+
+    >>> term_admissible(5, 6), term_admissible(5, 5 + TERM_WINDOW + 1)
+    (True, False)
+    """
+    return theirs <= mine + window
 
 
 def rank_key(c: Candidacy) -> tuple:
@@ -167,7 +186,8 @@ def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | Non
     me : Candidacy
         This node's candidacy (its ``term`` is the highest term it has seen).
     others : iterable of Candidacy
-        Every other live candidate whose candidacy is known.
+        Every other live candidate whose candidacy is known; those more than
+        :data:`TERM_WINDOW` above ``me.term`` are left out (:func:`term_admissible`).
     vacancy_s : float or None
         How long no live leader has been seen (None: there is one).
     claim_wait_s : float
@@ -178,7 +198,9 @@ def decide(me: Candidacy, others: Iterable[Candidacy], *, vacancy_s: float | Non
     Decision
         ``claim`` (with the new term), ``step_down`` or ``stay``.
     """
-    others = [o for o in others if o.node != me.node]
+    # a candidacy beyond the term window is a liar's (or from a fleet a million elections ahead):
+    # it counts for nothing, so a maximal term cannot freeze the election
+    others = [o for o in others if o.node != me.node and term_admissible(me.term, o.term)]
     max_term = max([me.term, *(o.term for o in others)])
     leaders = [o for o in others if o.leading]
     if me.leading:
@@ -301,6 +323,8 @@ class Candidate:
         self._linked_since: float | None = None  # when this node last became linked to another
         self._rejoined = False
         self._said: tuple | None = None  # (leading, term, follows) last published
+        self.refused_terms = 0  # candidacies refused for a term beyond the window
+        self._jumped_at: float | None = None  # when this node last adopted a term more than one above its own
         self._session = None
         self._decl: list = []
         self._token = None
@@ -378,10 +402,21 @@ class Candidate:
         if c.node == self.node:
             return
         with self._lock:
+            if not term_admissible(self.term, c.term):
+                # a term beyond the window: the sender counts as no candidate here (issue #28)
+                self.refused_terms += 1
+                if self.refused_terms in (1, 10, 100) or self.refused_terms % 1000 == 0:
+                    log.warning("candidate %s: refused %d candidacies with a term more than %d above ours "
+                                "(%d), e.g. %s at term %d", self.node, self.refused_terms, TERM_WINDOW,
+                                self.term, c.node, c.term)
+                old = self._states.pop(c.node, None)
+                if old is not None:
+                    self._wake.set()
+                return
             old = self._states.get(c.node)
             self._states[c.node] = c
-            if c.term > self.term and not self.leading:  # a leader keeps its own term until it yields
-                self.term = c.term
+            if not self.leading:  # a leader keeps its own term until it yields
+                self._adopt(c.term)
         # decide again at once when what the rule reads changes: a candidate that stops following a
         # dead leader releases the claim of the best one (waking only on lead/term changes left that
         # to the next half heartbeat: crash -> claim took 138-154 ms in 9 of 10 scenario runs instead of ~20)
@@ -504,9 +539,20 @@ class Candidate:
                 self.term = d.term
                 self._step_down(d.reason, d.why, d.by)
                 return True
-            if d.term > self.term and not self.leading:
-                self.term = d.term
+            if not self.leading:
+                self._adopt(d.term, now)
             return False
+
+    def _adopt(self, term: int, now: float | None = None) -> None:
+        """Take ``term`` if higher: one above ours at any time, a bigger (bounded) jump once per heartbeat."""
+        if term <= self.term:
+            return
+        if term > self.term + 1:
+            now = time.monotonic() if now is None else now
+            if self._jumped_at is not None and now - self._jumped_at < self.heartbeat_s:
+                return
+            self._jumped_at = now
+        self.term = term
 
     def _is_linked(self) -> bool:
         if self._linked is not None:

@@ -164,14 +164,22 @@ class LiveView:
             self._loads[node] = self._loads.get(node, 0.0) + amount
 
     def _leaders(self) -> list[str]:
-        """Alive leaders, the elected one first: highest term, then rank (unknown terms last)."""
-        from scmr_mesh.mesh.election import rank_key
+        """Alive leaders, the elected one first: highest term, then rank (unknown terms last).
+
+        A leader whose term is more than ``election.TERM_WINDOW`` above the lowest term of the
+        alive leaders goes after those within it (issue #28: a liar claiming the largest term,
+        which the candidates refuse, does not draw the robots' frames while an elected leader lives).
+        """
+        from scmr_mesh.mesh.election import TERM_WINDOW, rank_key
+
+        terms = [c.term for n in self._alive["leader"] if (c := self._cands.get(n)) is not None and c.leading]
+        lo = min(terms, default=0)
 
         def key(n: str):
             c = self._cands.get(n)
             if c is None or not c.leading:
-                return (1, 0, (), n)
-            return (0, -c.term, rank_key(c), n)
+                return (1, 0, 0, (), n)
+            return (0, int(c.term > lo + TERM_WINDOW), -c.term, rank_key(c), n)
 
         return sorted(self._alive["leader"], key=key)
 
