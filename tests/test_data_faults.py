@@ -182,8 +182,10 @@ def _cloud_stub(rid: str = "r1"):
     stored: list[int] = []
 
     def ask(key, payload):
-        stored.extend(r.seq for r in decode_records(payload))
-        return "ok", {"stored": True}
+        recs = decode_records(payload)
+        stored.extend(r.seq for r in recs)
+        # a cloud's ack names the digest it holds for each record (the robot deletes only its own)
+        return "ok", {"acked": len(recs), "digests": [r.digest().hex() for r in recs]}
 
     return robot, ask, stored
 
