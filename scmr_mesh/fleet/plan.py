@@ -426,7 +426,7 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     specs = {}
     for p in sc.peers:
         cmd = peer_command(sc, p.name, run_dir=run_dir, listen=[ep(p.name)],
-                           connect=[ep(b) for b in sc.bootstraps.get(p.name, ())], security=security,
+                           connect=[ep(b) for b in sc.dials(p.name)], security=security,
                            options=options)
         specs[p.name] = PeerSpec(p.name, list(cmd.argv), log_path=cmd.log_path, ready_file=cmd.ready_file)
     return specs

@@ -81,10 +81,10 @@ class LoopbackBackend:
         return f"tcp/127.0.0.1:{self.ports['router']}"
 
     def connect(self, peer: str) -> list[str]:
-        return [self.endpoint(b) for b in self.scenario.bootstraps.get(peer, ())]
+        return [self.endpoint(b) for b in self.connect_names(peer)]
 
     def connect_names(self, peer: str) -> list[str]:
-        return list(self.scenario.bootstraps.get(peer, ()))
+        return list(self.scenario.dials(peer))
 
     def extra_cfg(self, peer: str) -> list[str]:
         return []

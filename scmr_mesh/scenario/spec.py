@@ -232,6 +232,31 @@ class Scenario:
         names = self.peer_names
         return names[:names.index(peer)]
 
+    def dials(self, peer: str) -> tuple[str, ...]:
+        """The peers ``peer`` is handed to connect to (``shape = "clique"``): its bootstrap first,
+        then every peer started before it that does not dial ``peer`` itself.
+
+        Zenoh re-dials after a link loss only the configured endpoint that link was opened
+        through, never a peer gossip linked (docs/ZENOH.md section 14): with only its bootstrap,
+        a robot cut off for 2 s after the cloud died never linked to the leader again.  Each pair
+        is dialled from one side (the later peer, or the one whose bootstrap names the other), so
+        a pair keeps one link.  With ``topology.links``, exactly the links (the bootstraps); a robot
+        whose scenario names its own ``bootstrap`` is handed only that one (the scenario shows
+        gossip discovery).
+
+        >>> sc = parse_scenario({"name": "d", "seed": 1, "duration_s": 2, "fleet": {"robots": [
+        ...     {"id": "r1", "synthetic": "road"}, {"id": "r2", "synthetic": "road"}]}})
+        >>> sc.dials("cloud"), sc.dials("leader"), sc.dials("r2")
+        ((), ('cloud',), ('cloud', 'leader', 'r1'))
+        """
+        boots = tuple(self.bootstraps.get(peer, ()))
+        if self.explicit_links or any(r.id == peer and r.bootstrap for r in self.robots):
+            return boots
+        names = self.peer_names
+        earlier = names[:names.index(peer)] if peer in names else ()
+        more = tuple(q for q in earlier if q not in boots and peer not in self.bootstraps.get(q, ()))
+        return boots + more
+
     def node_of(self, peer: str) -> str:
         """The node name peer ``peer`` runs as (its ``--node``/``--id``)."""
         return self.node_names.get(peer, peer)
