@@ -52,6 +52,7 @@ COMMAND_HOME: dict[str, str] = {
     "leader": "scmr_mesh.mesh.commands",
     "robot": "scmr_mesh.mesh.commands",
     "router": "scmr_mesh.mesh.commands",
+    "tap": "scmr_mesh.mesh.commands",
     "up": "scmr_mesh.fleet.commands",
     "scenario": "scmr_mesh.scenario.commands",
     "thesis": "scmr_mesh.thesis.commands",
