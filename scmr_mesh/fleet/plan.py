@@ -411,8 +411,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     -------
     dict
         ``{name: PeerSpec}``, servers first (clouds, then the leader).  Each
-        peer is handed only its connect list of :func:`fleet_topology` (one
-        bootstrap); gossip scouting links it to the others.
+        peer is handed its bootstrap (:func:`fleet_topology`), then the peers
+        started before it (``Scenario.dials``: Zenoh re-dials only those after a
+        cut); gossip scouting links it to the others.
     """
     from scmr_mesh.fleet.procs import PeerSpec
     from scmr_mesh.scenario.plan import peer_command

@@ -22,7 +22,8 @@ Example
 
 Every peer is handed one bootstrap (``bootstraps``) and finds the others by
 gossip scouting, so every pair of peers is a link a fault can name
-(``links``).  A scenario that lists ``topology.links`` gets exactly those
+(``links``); it also dials the peers started before it (``Scenario.dials``), the
+only links Zenoh re-dials after a cut.  A scenario that lists ``topology.links`` gets exactly those
 links and connections instead.
 """
 
