@@ -49,7 +49,7 @@ def test_a_tap_process_prints_a_real_peers_messages_decoded(tmp_path):
 
     qable = session.declare_queryable("scmr/tapq", answer)
     tap = subprocess.Popen([sys.executable, "-m", "scmr_mesh", "tap", "scmr/**", "--get", "--insecure",
-                            "--connect", f"tcp/127.0.0.1:{port}", "--count", "4", "--duration", "6"],
+                            "--connect", f"tcp/127.0.0.1:{port}", "--count", "4", "--duration", "20"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60

@@ -711,7 +711,7 @@ def _cmd_router(args) -> int:
 def _cmd_tap(args) -> int:
     from scmr_mesh.mesh.config import close_session, from_args, open_session
     from scmr_mesh.mesh.peers import StopFlag
-    from scmr_mesh.mesh.tap import run_tap
+    from scmr_mesh.mesh.tap import OPEN_CFG, run_tap
 
     require_security(args, "tap")
     try:
@@ -722,7 +722,9 @@ def _cmd_tap(args) -> int:
         raise InputError(f"scmr tap: {args.keyexpr!r} is not a zenoh key expression ({str(exc).split(' at /')[0]}); "
                          "example: 'scmr/load/**'") from None
     stop = StopFlag().install()
-    session = open_session(from_args(args))
+    mesh = from_args(args)
+    mesh.cfg = [OPEN_CFG, *mesh.cfg]  # a --cfg of the operator's still wins
+    session = open_session(mesh)
     try:
         n = run_tap(session, args.keyexpr, get=args.get, count=args.count, duration_s=args.duration,
                     stop=stop.event)
