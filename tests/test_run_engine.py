@@ -18,7 +18,7 @@ from scmr_mesh.fleet import FleetConfig, plan_fleet
 from scmr_mesh.fleet.plan import fleet_options, fleet_scenario
 from scmr_mesh.qos.faults import FaultRecord
 from scmr_mesh.scenario.loopback import LoopbackBackend, free_ports
-from scmr_mesh.scenario.plan import compile_timeline, peer_command
+from scmr_mesh.scenario.plan import PEER_DIALS_CFG, compile_timeline, peer_command
 from scmr_mesh.scenario.report import request_rows, run_problems
 from scmr_mesh.scenario.runner import fault_tier
 from scmr_mesh.scenario.spec import WHOEVER_LEADS, Fault, parse_scenario
@@ -59,6 +59,12 @@ def test_fleet_peers_keep_their_names_and_run_as_nodes():
     assert all(b == ("cloud",) for n, b in sc.bootstraps.items() if n not in ("cloud",))
     # each also dials every peer started before it (zenoh re-dials only those after a cut)
     assert sc.dials("r2") == ("cloud", "cloud1", "leader", "r1") and sc.dials("cloud1") == ("cloud",)
+    # every pair is dialled by its later peer, so gossip dials no peer (two links per pair otherwise)
+    assert sc.dials_every_pair and PEER_DIALS_CFG in peer_command(sc, "r1", run_dir=Path("run")).argv
+    chain = parse_scenario({"name": "c", "seed": 1, "duration_s": 5, "fleet": {"robots": [
+        {"id": "robot1", "synthetic": "road"}, {"id": "robot2", "synthetic": "road", "bootstrap": "robot1"}]}})
+    assert not chain.dials_every_pair and chain.dials("robot2") == ("robot1",)
+    assert PEER_DIALS_CFG not in peer_command(chain, "robot1", run_dir=Path("run")).argv  # gossip links it
 
 
 def test_scmr_up_and_the_engine_build_the_same_command_lines(tmp_path):

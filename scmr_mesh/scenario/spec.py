@@ -258,6 +258,13 @@ class Scenario:
         more = tuple(q for q in earlier if q not in boots and peer not in self.bootstraps.get(q, ()))
         return boots + more
 
+    @property
+    def dials_every_pair(self) -> bool:
+        """Whether :meth:`dials` links every pair of peers (no explicit links, no robot that names its
+        own bootstrap, the clique shape): then gossip need not dial peers, and must not, or a pair
+        dialled by both sides at once keeps two links (docs/ZENOH.md section 14)."""
+        return self.shape == "clique" and not self.explicit_links and not any(r.bootstrap for r in self.robots)
+
     def node_of(self, peer: str) -> str:
         """The node name peer ``peer`` runs as (its ``--node``/``--id``)."""
         return self.node_names.get(peer, peer)
