@@ -53,6 +53,7 @@ COMMAND_HOME: dict[str, str] = {
     "robot": "scmr_mesh.mesh.commands",
     "router": "scmr_mesh.mesh.commands",
     "ros": "scmr_mesh.mesh.commands",
+    "tap": "scmr_mesh.mesh.commands",
     "up": "scmr_mesh.fleet.commands",
     "scenario": "scmr_mesh.scenario.commands",
     "thesis": "scmr_mesh.thesis.commands",

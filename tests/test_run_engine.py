@@ -18,7 +18,7 @@ from scmr_mesh.fleet import FleetConfig, plan_fleet
 from scmr_mesh.fleet.plan import fleet_options, fleet_scenario
 from scmr_mesh.qos.faults import FaultRecord
 from scmr_mesh.scenario.loopback import LoopbackBackend, free_ports
-from scmr_mesh.scenario.plan import compile_timeline, peer_command
+from scmr_mesh.scenario.plan import PEER_DIALS_CFG, compile_timeline, peer_command
 from scmr_mesh.scenario.report import request_rows, run_problems
 from scmr_mesh.scenario.runner import fault_tier
 from scmr_mesh.scenario.spec import WHOEVER_LEADS, Fault, parse_scenario
@@ -57,6 +57,14 @@ def test_fleet_peers_keep_their_names_and_run_as_nodes():
     assert r1.leader_capable and r1.capability == "robot4" and not r2.leader_capable
     assert r2.profile == "robot2" and r2.energy_placement
     assert all(b == ("cloud",) for n, b in sc.bootstraps.items() if n not in ("cloud",))
+    # each also dials every peer started before it (zenoh re-dials only those after a cut)
+    assert sc.dials("r2") == ("cloud", "cloud1", "leader", "r1") and sc.dials("cloud1") == ("cloud",)
+    # every pair is dialled by its later peer, so gossip dials no peer (two links per pair otherwise)
+    assert sc.dials_every_pair and PEER_DIALS_CFG in peer_command(sc, "r1", run_dir=Path("run")).argv
+    chain = parse_scenario({"name": "c", "seed": 1, "duration_s": 5, "fleet": {"robots": [
+        {"id": "robot1", "synthetic": "road"}, {"id": "robot2", "synthetic": "road", "bootstrap": "robot1"}]}})
+    assert not chain.dials_every_pair and chain.dials("robot2") == ("robot1",)
+    assert PEER_DIALS_CFG not in peer_command(chain, "robot1", run_dir=Path("run")).argv  # gossip links it
 
 
 def test_scmr_up_and_the_engine_build_the_same_command_lines(tmp_path):
@@ -67,7 +75,7 @@ def test_scmr_up_and_the_engine_build_the_same_command_lines(tmp_path):
     sc, opts = fleet_scenario(cfg), fleet_options(cfg)
     for name, spec in specs.items():
         cmd = peer_command(sc, name, run_dir=tmp_path, listen=[f"tcp/127.0.0.1:{ports[name]}"],
-                           connect=[f"tcp/127.0.0.1:{ports[b]}" for b in sc.bootstraps[name]], options=opts)
+                           connect=[f"tcp/127.0.0.1:{ports[b]}" for b in sc.dials(name)], options=opts)
         assert list(cmd.argv) == list(spec.argv) and cmd.log_path == spec.log_path
     r2 = specs["r2"].argv
     assert r2[-1] == "--x" and "--start-file" in r2 and r2[r2.index("--start-file") + 1].endswith("fleet.ready")
@@ -94,7 +102,9 @@ def test_the_loopback_backend_refuses_link_faults_in_one_line():
                             "fleet": {"robots": [{"id": "robot1", "synthetic": "road"}]},
                             "faults": [{"kind": "crash", "at_s": 1, "for_s": 1, "peer": "cloud"}]})
     be = LoopbackBackend(crash)
-    assert be.connect("robot1") == [be.endpoint("cloud")] and be.connect_names("robot1") == ["cloud"]
+    # its bootstrap, then the peers started before it: zenoh re-dials only those after a cut
+    assert be.connect("robot1") == [be.endpoint("cloud"), be.endpoint("leader")]
+    assert be.connect_names("robot1") == ["cloud", "leader"]
 
 
 def test_scenario_run_on_loopback_with_a_link_fault_is_one_error_line(tmp_path):

@@ -199,6 +199,32 @@ def test_real_cloud_link_drop_with_netns(tmp_path):
     assert data["seed"] == 11 and {"summary", "faults", "expectations", "requests"} <= set(data)
 
 
+def test_a_robot_cut_off_after_the_cloud_died_rejoins_the_leader(tmp_path):
+    """Issue 28 item 5: the cloud is killed for good, then robot1 is cut off for 2 s.
+
+    Zenoh re-dials only a configured endpoint whose link closed: a robot handed only its
+    bootstrap (the dead cloud) never linked to the leader again and computed every later frame
+    alone.  Each robot is now handed the peers started before it, so it re-dials the leader.
+    """
+    from scmr_mesh.scenario.runner import run_scenario
+
+    sc = parse_scenario({
+        "name": "blink", "seed": 5, "duration_s": 8, "lease_ms": 200,
+        "process": "scmr_mesh.mesh.testing:stub_process",
+        "fleet": {"robots": [{"id": "robot1", "synthetic": "stub", "rate_hz": 8}]},
+        "faults": [{"kind": "crash", "at_s": 1.5, "peer": "cloud"},
+                   {"kind": "partition", "at_s": 3.0, "for_s": 2.0, "groups": [["robot1"], ["cloud", "leader"]]}],
+        "expectations": [{"metric": "telemetry_lost", "op": ">=", "value": 0}],
+    })
+    res = run_scenario(sc, backend="netns", out_dir=tmp_path, ready_timeout=90)
+    cut = [f for f in res.faults if f.fault.kind == "partition"][0]
+    assert cut.end_unix_ns is not None, "the cut was never lifted"
+    after = [r for r in res.records if r["robot"] == "robot1" and r["sent_unix_ns"] > cut.end_unix_ns + 1e9]
+    assert after, "robot1 sent nothing after the cut"
+    # served by the leader again, not computed alone, within a second of the link coming back
+    assert {r["tier"] for r in after} == {"leader"}, sorted({str(r["tier"]) for r in after})
+
+
 def _run_cli(tmp_path):
     """Start `scmr scenario run` (netns, stub pipeline) and wait until the robots run; return (proc, run id)."""
     import re

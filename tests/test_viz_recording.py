@@ -126,7 +126,8 @@ def test_expected_entities_and_frames_per_robot(fleet_recording):
         assert rows[f"/scmr/telemetry/{r}/energy_j"]["Scalars:scalars"] == N
     assert rows["/scmr/alive/cloud/cloud0"]["Scalars:scalars"] == 3
     assert rows["/scmr/alive/leader/leader0"]["Scalars:scalars"] == 1
-    assert rows["/scmr/faults/cloud0"]["Scalars:scalars"] == 3  # 0 just before, 1 at start, 0 at end
+    # 0 at the run's start, just before, 1 at start, 0 at end, 0 at the run's end (the axis spans the run)
+    assert rows["/scmr/faults/cloud0"]["Scalars:scalars"] == 5
     assert rows["/scmr/faults/log"]["TextLog:text"] == 2
     assert rows["/scmr/fleet/ror"]["Scalars:scalars"] == 2 * N
 
@@ -306,3 +307,40 @@ def test_images_beyond_the_queue_limit_are_dropped_and_counted(isolated_env):
     assert rows["/scmr/robot/r8/camera"]["EncodedImage:blob"] == 2
     assert rows["/scmr/results/r8/tier"]["Scalars:scalars"] == 5
     assert rows["/scmr/results/r8/tor_ms"]["Scalars:scalars"] == 4
+
+
+def test_the_faults_plot_spans_the_whole_run_not_only_the_faults():
+    """The faults series held points only around each fault, so the plot's time axis (fitted to
+    its data) covered ~3 s of a 20 s run; each fault's line now runs from the run's start to its end."""
+    import threading
+    import types
+
+    from scmr_mesh.viz.recording import _Viz
+
+    logged = []
+
+    class Stream:
+        _lock = threading.Lock()
+        rr = types.SimpleNamespace(Scalars=lambda v: ("scalar", v), SeriesLines=lambda **k: ("series",),
+                                   TextLog=lambda *a, **k: ("text",))
+        t = None
+
+        def at(self, t):
+            self.t = t
+
+        rec = None
+
+    stream = Stream()
+    stream.rec = types.SimpleNamespace(log=lambda entity, x, static=False: logged.append((stream.t, entity, x)))
+    v = _Viz()
+    v._stream, v._alive, v._faults, v._last_alive = stream, {}, {}, {}
+    s = 1_000_000_000
+    v._t_first = 100 * s
+    fault = {"kind": "crash", "target": "cloud", "start_unix_ns": 104 * s}
+    v.update(faults=[fault])
+    v.update(faults=[dict(fault, end_unix_ns=107 * s)])
+    v.update(faults=[dict(fault, end_unix_ns=107 * s)])  # repeated ticks log nothing new
+    v._end_faults()
+    pts = [(t, x[1]) for t, e, x in logged if e.endswith("/faults/cloud") and x[0] == "scalar"]
+    assert pts[0] == (100 * s, 0.0) and pts[-1][1] == 0.0 and pts[-1][0] > 107 * s
+    assert (104 * s, 1.0) in pts and (107 * s, 0.0) in pts and len(pts) == len(set(pts)) == 5

@@ -416,8 +416,9 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     -------
     dict
         ``{name: PeerSpec}``, servers first (clouds, then the leader).  Each
-        peer is handed only its connect list of :func:`fleet_topology` (one
-        bootstrap); gossip scouting links it to the others.
+        peer is handed its bootstrap (:func:`fleet_topology`), then the peers
+        started before it (``Scenario.dials``: Zenoh re-dials only those after a
+        cut); gossip scouting links it to the others.
     """
     from scmr_mesh.fleet.procs import PeerSpec
     from scmr_mesh.scenario.plan import peer_command
@@ -431,7 +432,7 @@ def plan_fleet(config: FleetConfig, run_dir: Path, ports: Mapping[str, int], *, 
     specs = {}
     for p in sc.peers:
         cmd = peer_command(sc, p.name, run_dir=run_dir, listen=[ep(p.name)],
-                           connect=[ep(b) for b in sc.bootstraps.get(p.name, ())], security=security,
+                           connect=[ep(b) for b in sc.dials(p.name)], security=security,
                            options=options)
         specs[p.name] = PeerSpec(p.name, list(cmd.argv), log_path=cmd.log_path, ready_file=cmd.ready_file)
     return specs

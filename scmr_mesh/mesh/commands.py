@@ -1,4 +1,4 @@
-"""``scmr cloud | leader | robot | ros | router``: the mesh peers, one OS process each.
+"""``scmr cloud | leader | robot | ros | router | swarm``: the mesh peers, one OS process each; ``scmr tap``.
 
 Contract (other areas start these as processes; ``python -m scmr_mesh <cmd>``
 works too)::
@@ -14,6 +14,8 @@ works too)::
     scmr router [--listen EP ...] [--connect EP ...] [--config/--cfg]
     scmr ros    --id ID --image-topic TOPIC [--compressed] [--mask-topic TOPIC] [--domain N]
                 [--ros-connect EP] --out DIR [--rate HZ] [robot and mesh flags] (docs/ROS2.md)
+    scmr swarm  --plan PLAN [--ready-file PATH]   (several robots in one process: a load generator)
+    scmr tap    KEYEXPR [--get] [--count N] [--duration S] [--id NAME] (--security ... | --insecure)
 
 SIGTERM/SIGINT stop a peer cleanly (exit 0).  Logs go to stderr or
 ``--log-file``.  See docs/protocol.md for keys and messages.
@@ -176,6 +178,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--log-file", type=ca.PathArg("out-file"), metavar="PATH", help="log here instead of stderr")
     config.add_arguments(p)
     p.set_defaults(func=_cmd_router)
+
+    p = sub.add_parser(
+        "tap", help="print every scmr message on a key expression, decoded (an operator's z_sub/z_get)",
+        formatter_class=fmt,
+        description="Subscribe to KEYEXPR (and with --get also query it) and print one JSON line per "
+                    "message: key, kind, size in bytes and the message decoded from msgpack (or JSON); "
+                    "binary fields show as their length, a payload that decodes as neither as its first "
+                    "bytes in hex.  It sees what the peer it connects to publishes (peers do not forward: "
+                    "connect it to that node, or to a router) and what its identity may see under the "
+                    "fleet's access rules.  Exit 0; 1 when --count was given and fewer messages came "
+                    "before --duration ended.",
+        epilog="Example: scmr tap 'scmr/load/**' --security peers/secure/mtls.toml --credentials certs "
+               "--id ops --connect tls/127.0.0.1:7447 --count 5\n\n" + _PEER_EPILOG)
+    p.add_argument("keyexpr", metavar="KEYEXPR", help="zenoh key expression, e.g. 'scmr/load/**'")
+    p.add_argument("--get", action="store_true", help="also query KEYEXPR once and print the replies")
+    p.add_argument("--count", type=ca.count("messages", hi=10**9, example="10"), default=None, metavar="N",
+                   help="stop after N messages (default: no limit)")
+    p.add_argument("--duration", type=ca.positive("seconds", hi=10**7, example="5"), default=None, metavar="S",
+                   help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--id", default=None, metavar="NAME",
+                   help="the operator's identity: the name of its certificate in the credentials (with --security)")
+    config.add_arguments(p)
+    p.set_defaults(func=_cmd_tap)
 
     p = sub.add_parser(
         "swarm", help="play several robots from one process (a load generator for benchmarks)",
@@ -1041,3 +1066,32 @@ def _swarm_member_failed(m: argparse.Namespace, exc: Exception) -> None:
     """Mark member ``m`` failed with ``exc`` (one line; the swarm exits 1)."""
     m._problem = f"robot {m.id}: {type(exc).__name__}: {exc}"
     print(f"scmr: error: {m._problem}", file=sys.stderr, flush=True)
+
+
+def _cmd_tap(args) -> int:
+    from scmr_mesh.mesh.config import close_session, from_args, open_session
+    from scmr_mesh.mesh.peers import StopFlag
+    from scmr_mesh.mesh.tap import OPEN_CFG, run_tap
+
+    require_security(args, "tap")
+    try:
+        import zenoh
+
+        zenoh.KeyExpr(args.keyexpr)
+    except Exception as exc:
+        raise InputError(f"scmr tap: {args.keyexpr!r} is not a zenoh key expression ({str(exc).split(' at /')[0]}); "
+                         "example: 'scmr/load/**'") from None
+    stop = StopFlag().install()
+    mesh = from_args(args)
+    mesh.cfg = [OPEN_CFG, *mesh.cfg]  # a --cfg of the operator's still wins
+    session = open_session(mesh)
+    try:
+        n = run_tap(session, args.keyexpr, get=args.get, count=args.count, duration_s=args.duration,
+                    stop=stop.event)
+    finally:
+        close_session(session)
+    if args.count is not None and n < args.count and stop.signal is None:
+        print(f"scmr tap: {n} of {args.count} messages on {args.keyexpr} in {args.duration:g} s", file=sys.stderr)
+        return 1
+    return 0
+

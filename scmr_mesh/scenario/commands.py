@@ -143,6 +143,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
                            progress=lambda m: _err(f"scenario: {m}"), ready_timeout=args.ready_timeout,
                            insecure=args.insecure)
         if fviz is not None:
+            if res.t0_unix_ns:  # the faults plot spans the run (docs/VIEWER.md)
+                fviz.set_run_span(res.t0_unix_ns, res.t0_unix_ns + int(sc.duration_s * 1e9))
             fviz.update(records=sorted(res.records, key=lambda r: r.get("received_unix_ns") or 0),
                         faults=res.metric_faults())
     if fviz is not None and fviz.saved_path is not None:

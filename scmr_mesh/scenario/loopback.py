@@ -1,8 +1,9 @@
 """The plain backend: every peer on loopback, direct endpoints, no link faults.
 
 What ``scmr up`` and ``scmr demo`` run on: each peer listens on its own
-``tcp/127.0.0.1:<port>`` and is handed its bootstrap's endpoint; gossip
-scouting links the rest, as on real hosts.  Process faults (crashes and
+``tcp/127.0.0.1:<port>`` and is handed its bootstrap's endpoint, then those of the
+peers started before it (:meth:`~scmr_mesh.scenario.spec.Scenario.dials`: Zenoh re-dials
+only these after a cut); gossip scouting links the rest, as on real hosts.  Process faults (crashes and
 restarts) are the runner's and work here; a scenario that cuts or shapes links
 is refused with one line naming the fault and the backends that can.
 """
@@ -81,10 +82,10 @@ class LoopbackBackend:
         return f"tcp/127.0.0.1:{self.ports['router']}"
 
     def connect(self, peer: str) -> list[str]:
-        return [self.endpoint(b) for b in self.scenario.bootstraps.get(peer, ())]
+        return [self.endpoint(b) for b in self.connect_names(peer)]
 
     def connect_names(self, peer: str) -> list[str]:
-        return list(self.scenario.bootstraps.get(peer, ()))
+        return list(self.scenario.dials(peer))
 
     def extra_cfg(self, peer: str) -> list[str]:
         return []

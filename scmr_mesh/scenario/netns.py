@@ -291,12 +291,13 @@ class NetnsBackend:
         return f"tcp/{self.layout.addr(peer)}:{self.layout.port + 1}"
 
     def connect(self, peer: str) -> list[str]:
-        """Endpoints ``peer`` is handed: its bootstrap (gossip finds the rest; paths are real)."""
+        """Endpoints ``peer`` is handed: its bootstrap, then the peers started before it
+        (:meth:`~scmr_mesh.scenario.spec.Scenario.dials`: zenoh re-dials only those after a cut)."""
         return [self.layout.endpoint(b) for b in self.connect_names(peer)]
 
     def connect_names(self, peer: str) -> list[str]:
         """The peers ``peer`` is handed (the report's ``topology``)."""
-        return list(self.scenario.bootstraps.get(peer, ()))
+        return list(self.scenario.dials(peer))
 
     def extra_cfg(self, peer: str) -> list[str]:
         """Extra ``--cfg`` overrides for ``peer`` (none: gossip may run, paths are real)."""

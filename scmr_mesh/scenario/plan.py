@@ -507,6 +507,8 @@ def peer_command(scenario: Scenario, peer: str, *, run_dir: Path, listen: Iterab
         argv += ["--start-file", str(run_dir / "ready" / options.start_file)]
     if zmode is not None:
         argv += ["--zmode", zmode]
+    if zmode is None and scenario.dials_every_pair:
+        extra_cfg = [*extra_cfg, PEER_DIALS_CFG]
     argv += _link_args(scenario, listen, connect, extra_cfg, security, ready)
     argv += list(options.robot_args if role == "robot" else options.server_args)
     return PeerCommand(name, peer, tuple(argv), run_dir / "logs" / f"{name}.log", ready)
@@ -559,6 +561,12 @@ def _link_args(scenario: Scenario, listen: Iterable[str], connect: Iterable[str]
     argv += ["--lease-ms", str(scenario.lease_ms)] + [a for c in cfg for a in ("--cfg", c)]
     return argv + [*security, "--ready-file", str(ready)]
 
+
+#: A peer handed every earlier peer (``Scenario.dials_every_pair``) does not dial the peers gossip
+#: tells it of: the later one of each pair dials it, and both dialling at once left 21 links for
+#: 15 pairs (6 peers, loopback; 15 with this), each extra link one more to tear down when a
+#: link dies silently (docs/ZENOH.md sections 8 and 14).  Routers are still dialled.
+PEER_DIALS_CFG = 'scouting/gossip/autoconnect:{router:[],peer:["router"]}'
 
 #: Routers dial their neighbours only (``Scenario.router_dials``): gossip would link them to
 #: routers the scenario does not link (an explicit topology) or retry the unreachable ones.

@@ -338,13 +338,13 @@ class ProxyBackend:
 
     def connect(self, peer: str) -> list[str]:
         if self.gossip:
-            return [f"tcp/127.0.0.1:{self.ports[b]}" for b in self.scenario.bootstraps.get(peer, ())]
+            return [f"tcp/127.0.0.1:{self.ports[b]}" for b in self.scenario.dials(peer)]
         return [px.endpoint for (a, _b), px in self.proxies.items() if a == peer]
 
     def connect_names(self, peer: str) -> list[str]:
         """The peers ``peer`` is handed (the report's ``topology``)."""
         if self.gossip:
-            return list(self.scenario.bootstraps.get(peer, ()))
+            return list(self.scenario.dials(peer))
         return [b for (a, b) in self.proxies if a == peer]
 
     def extra_cfg(self, peer: str) -> list[str]:

@@ -22,7 +22,8 @@ Example
 
 Every peer is handed one bootstrap (``bootstraps``) and finds the others by
 gossip scouting, so every pair of peers is a link a fault can name
-(``links``).  A scenario that lists ``topology.links`` gets exactly those
+(``links``); it also dials the peers started before it (``Scenario.dials``), the
+only links Zenoh re-dials after a cut.  A scenario that lists ``topology.links`` gets exactly those
 links and connections instead.
 """
 
@@ -231,6 +232,38 @@ class Scenario:
             return tuple(b for a, b in self.links if a == peer)
         names = self.peer_names
         return names[:names.index(peer)]
+
+    def dials(self, peer: str) -> tuple[str, ...]:
+        """The peers ``peer`` is handed to connect to (``shape = "clique"``): its bootstrap first,
+        then every peer started before it that does not dial ``peer`` itself.
+
+        Zenoh re-dials after a link loss only the configured endpoint that link was opened
+        through, never a peer gossip linked (docs/ZENOH.md section 14): with only its bootstrap,
+        a robot cut off for 2 s after the cloud died never linked to the leader again.  Each pair
+        is dialled from one side (the later peer, or the one whose bootstrap names the other), so
+        a pair keeps one link.  With ``topology.links``, exactly the links (the bootstraps); a robot
+        whose scenario names its own ``bootstrap`` is handed only that one (the scenario shows
+        gossip discovery).
+
+        >>> sc = parse_scenario({"name": "d", "seed": 1, "duration_s": 2, "fleet": {"robots": [
+        ...     {"id": "r1", "synthetic": "road"}, {"id": "r2", "synthetic": "road"}]}})
+        >>> sc.dials("cloud"), sc.dials("leader"), sc.dials("r2")
+        ((), ('cloud',), ('cloud', 'leader', 'r1'))
+        """
+        boots = tuple(self.bootstraps.get(peer, ()))
+        if self.explicit_links or any(r.id == peer and r.bootstrap for r in self.robots):
+            return boots
+        names = self.peer_names
+        earlier = names[:names.index(peer)] if peer in names else ()
+        more = tuple(q for q in earlier if q not in boots and peer not in self.bootstraps.get(q, ()))
+        return boots + more
+
+    @property
+    def dials_every_pair(self) -> bool:
+        """Whether :meth:`dials` links every pair of peers (no explicit links, no robot that names its
+        own bootstrap, the clique shape): then gossip need not dial peers, and must not, or a pair
+        dialled by both sides at once keeps two links (docs/ZENOH.md section 14)."""
+        return self.shape == "clique" and not self.explicit_links and not any(r.bootstrap for r in self.robots)
 
     def node_of(self, peer: str) -> str:
         """The node name peer ``peer`` runs as (its ``--node``/``--id``)."""

@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import argparse
+import signal
+import socket
 import subprocess
 import sys
+import threading
+from urllib.parse import quote
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         epilog=(
             "examples:\n"
             "  scmr view runs/demo/demo.rrd                 native viewer (needs a display)\n"
-            "  scmr view runs/demo/demo.rrd --web           web viewer on http://127.0.0.1:9090\n"
+            "  scmr view runs/demo/demo.rrd --web           web viewer on free ports; prints its URL\n"
             "  scmr view runs/demo/demo.rrd --screenshot shot.png   headless PNG (needs mesa-vulkan-drivers)\n"
             "  scmr view runs/demo/demo.rrd --summary       entities and row counts, no viewer"
         ),
@@ -34,7 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     mode.add_argument("--web", action="store_true", help="serve the web viewer instead of opening a window")
     mode.add_argument("--screenshot", type=ca.PathArg("out-file"), metavar="OUT.png", help="render headless and save a PNG, then exit")
     mode.add_argument("--summary", action="store_true", help="print entities with their row counts and exit")
-    p.add_argument("--web-port", type=ca.count("a TCP port", lo=1, hi=65535, example="9090"), default=9090, help="port of the web viewer (default: %(default)s)")
+    p.add_argument("--web-port", type=ca.count("a TCP port", lo=1, hi=65535, example="9090"), default=None, metavar="PORT",
+                   help="HTTP port of the web viewer (default: a free port; an error when the given one is taken)")
+    p.add_argument("--port", type=ca.count("a TCP port", lo=1, hi=65535, example="9876"), default=None, metavar="PORT",
+                   help="gRPC port the web viewer streams the recording from (default: a free port, so two "
+                        "viewers do not clash on rerun's 9876; an error when the given one is taken)")
     p.add_argument("--settle", type=ca.non_negative("seconds", hi=3600), default=6.0, help="seconds to let the viewer load before --screenshot (default: %(default)s)")
     p.add_argument("--max-size", type=ca.count("pixels", lo=16, hi=16384, example="960"), default=None, help="longest side of the --screenshot PNG in pixels")
     p.set_defaults(func=run)
@@ -60,8 +69,14 @@ def run(args: argparse.Namespace) -> int:
         return 0
     exe = viz.rerun_executable()
     if args.web:
-        cmd = [exe, "--web-viewer", "--web-viewer-port", str(args.web_port), "--bind", "127.0.0.1", str(path)]
-        print(f"serving the web viewer on http://127.0.0.1:{args.web_port} (Ctrl-C to stop)", file=sys.stderr)
+        web, grpc = viewer_ports(args.web_port, args.port)
+        cmd = [exe, "--web-viewer", "--web-viewer-port", str(web), "--port", str(grpc), "--bind", "127.0.0.1",
+               str(path)]
+        print(f"serving the web viewer on {viewer_url(web, grpc)} (Ctrl-C to stop)", file=sys.stderr)
+        try:
+            return serve(cmd, env=viz.rerun_env())
+        except OSError as exc:
+            raise viz.ViewerError(f"could not run {cmd[0]}: {exc}") from exc
     else:
         if not viz.has_display():
             raise viz.ViewerError(
@@ -75,3 +90,94 @@ def run(args: argparse.Namespace) -> int:
         return 130
     except OSError as exc:
         raise viz.ViewerError(f"could not run {cmd[0]}: {exc}") from exc
+
+
+def _port_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _any_free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def viewer_ports(web_port: int | None, grpc_port: int | None, *, free=_port_free, pick=_any_free_port) -> tuple[int, int]:
+    """``(web, grpc)`` ports of ``scmr view --web``: the given ones if free, else free ones.
+
+    rerun's gRPC server takes 9876 unless told otherwise, so a second viewer exited with
+    "Address already in use" after printing a URL that showed the first one's recording.
+
+    >>> viewer_ports(None, None, pick=iter([4001, 4002]).__next__)
+    (4001, 4002)
+    >>> viewer_ports(9090, None, free=lambda p: False)
+    Traceback (most recent call last):
+    ...
+    scmr_mesh.errors.InputError: --web-port 9090 is taken (another viewer?); give another port or leave --web-port out for a free one
+    """
+    out = []
+    for flag, port in (("--web-port", web_port), ("--port", grpc_port)):
+        if port is None:
+            port = pick()
+            while port in out:
+                port = pick()
+        elif port in out or not free(port):
+            raise InputError(f"{flag} {port} is taken (another viewer?); give another port or leave {flag} out "
+                             "for a free one")
+        out.append(port)
+    return out[0], out[1]
+
+
+def viewer_url(web_port: int, grpc_port: int) -> str:
+    """The URL that opens the web viewer on its own recording (rerun's ``?url=`` form).
+
+    >>> viewer_url(9090, 9876)
+    'http://127.0.0.1:9090?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A9876%2Fproxy'
+    """
+    return f"http://127.0.0.1:{web_port}?url=" + quote(f"rerun+http://127.0.0.1:{grpc_port}/proxy", safe="")
+
+
+#: After Ctrl-C, how long rerun may take to stop before SIGTERM, then SIGKILL.
+STOP_GRACE_S = 1.0
+
+
+def serve(cmd, *, env=None) -> int:
+    """Run the rerun web viewer until it exits or SIGINT/SIGTERM; return an exit status.
+
+    A Python started with SIGINT ignored (a script or CI job that ran it in the background)
+    keeps ignoring it, and so did the rerun child: Ctrl-C/SIGINT did nothing.  Here the
+    handlers are installed explicitly, rerun runs in its own session with SIGINT at its
+    default, and a signal stops it (SIGINT, then SIGTERM and SIGKILL after a grace).
+    """
+    from scmr_mesh.viz.sink import _stop
+
+    got: list[int] = []
+    stop = threading.Event()
+
+    def handle(signum, _frame) -> None:
+        got.append(signum)
+        stop.set()
+
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            old[sig] = signal.signal(sig, handle)
+    proc = subprocess.Popen(cmd, env=env, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        while proc.poll() is None and not stop.wait(0.1):
+            pass
+    finally:
+        if proc.poll() is None:
+            _stop(proc, grace=STOP_GRACE_S)
+        for sig, h in old.items():
+            signal.signal(sig, h)
+    if got:
+        return 128 + got[0]
+    return proc.returncode
+

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import time
 import uuid
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -64,6 +65,7 @@ class FleetViz(_Viz):
             raise
         self.robots = [keys.check_name(r, what="robot id") for r in robots]
         self._alive, self._faults, self._last_alive = {}, {}, {}
+        self._t_first = time.time_ns()  # the run starts: the fault plot's line starts here too
         self._n = 0
         self._ok = 0
         rr = self._stream.rr
@@ -134,6 +136,7 @@ class FleetViz(_Viz):
         Call it after the peers have exited, so their data is in.
         """
         try:
+            self._end_faults()
             self._stream.close()
         finally:
             own = [self._own_file] if self._own_file is not None and self._own_file.exists() else []

@@ -126,7 +126,9 @@ class _Viz:
 
     _stream: _Stream
     _alive: dict[str, bool]
-    _faults: dict[tuple, set]
+    _faults: dict[tuple, dict]
+    _t_first: int | None = None
+    _t_last: int | None = None
     _last_alive: dict[tuple[str, str], bool]
 
     def _step_series(self, entity: str, name: str) -> None:
@@ -149,36 +151,64 @@ class _Viz:
             s.at(t_unix_ns)
             s.rec.log(key, s.rr.Scalars(1.0 if alive else 0.0))
 
-    def log_fault(self, fault: Mapping[str, Any]) -> None:
+    def log_fault(self, fault: Mapping[str, Any], *, run_end_ns: int | None = None) -> None:
         """Log a scenario fault as a step (1 while on) and start/end markers.
 
         ``fault`` is a :mod:`scmr_mesh.qos.metrics` fault dict: ``kind``,
         ``target``, ``start_unix_ns`` and optionally ``end_unix_ns``.  Calling
         it again for the same fault (same target and start) logs only what is
         new, so a runner can call it when the fault starts and again when it
-        ends.
+        ends; :meth:`close` calls it with ``run_end_ns`` (:func:`fault_points`).
         """
         s, rr = self._stream, self._stream.rr
         target = entity_name(str(fault.get("target") or "fleet"))
         kind = str(fault.get("kind", "fault"))
         entity = f"{FAULTS}/{target}"
         ident = (target, fault.get("start_unix_ns"))
-        done = self._faults.setdefault(ident, set())
+        if ident not in self._faults:
+            start = time.time_ns() if fault.get("start_unix_ns") is None else int(fault["start_unix_ns"])
+            self._faults[ident] = {"logged": set(), "start": start, "entity": entity, "fault": dict(fault)}
+        entry = self._faults[ident]
+        entry["fault"].update({k: v for k, v in fault.items() if v is not None})
+        end = entry["fault"].get("end_unix_ns")
+        first = getattr(self, "_t_first", None)
+        # the run's start only on the first fault of this entity: a later one continues its line
+        fresh = not any(e["entity"] == entity and e is not entry and e["logged"] for e in self._faults.values())
+        pts = fault_points(entry["start"], None if end is None else int(end),
+                           run_start_ns=first if fresh else None, run_end_ns=run_end_ns)
         with s._lock:
             self._step_series(entity, f"fault: {kind} {target}")
-            if "start" not in done:
-                done.add("start")
-                start = time.time_ns() if fault.get("start_unix_ns") is None else int(fault["start_unix_ns"])
-                s.at(start - 1_000_000)  # 0 just before: the step up shows
-                s.rec.log(entity, rr.Scalars(0.0))
-                s.at(start)
-                s.rec.log(entity, rr.Scalars(1.0))
-                s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} starts", level="WARN"))
-            if fault.get("end_unix_ns") is not None and "end" not in done:
-                done.add("end")
-                s.at(fault["end_unix_ns"])
-                s.rec.log(entity, rr.Scalars(0.0))
-                s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} ends", level="INFO"))
+            for t, v in pts:
+                if (t, v) in entry["logged"]:
+                    continue
+                entry["logged"].add((t, v))
+                s.at(t)
+                s.rec.log(entity, rr.Scalars(v))
+                if t == entry["start"] and v == 1.0:
+                    s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} starts", level="WARN"))
+                elif end is not None and t == int(end) and v == 0.0:
+                    s.rec.log(f"{FAULTS}/log", rr.TextLog(f"{kind} {target} ends", level="INFO"))
+
+    def set_run_span(self, start_unix_ns: int | None, end_unix_ns: int | None) -> None:
+        """Where the run starts and ends, when known (the fault lines span it; default: from this
+        object's creation to :meth:`close`)."""
+        if start_unix_ns is not None:
+            self._t_first = int(start_unix_ns)
+        if end_unix_ns is not None:
+            self._t_last = int(end_unix_ns)
+
+    def _end_faults(self) -> None:
+        """At close: carry every fault's line to the end of the run (the plot's axis spans the run)."""
+        now = getattr(self, "_t_last", None) or time.time_ns()
+        last: dict[str, dict] = {}  # each entity's line ends with its latest fault
+        for entry in self._faults.values():
+            if entry["entity"] not in last or entry["start"] > last[entry["entity"]]["start"]:
+                last[entry["entity"]] = entry
+        try:
+            for entry in last.values():
+                self.log_fault(entry["fault"], run_end_ns=now)
+        except Exception as exc:  # the viewer must never stop a run
+            log.warning("rerun: could not close the fault plot: %s: %s", type(exc).__name__, exc)
 
     def update(
         self,
@@ -220,7 +250,36 @@ class _Viz:
             s.rec.log(entity, s.rr.TextLog(text, level=level))
 
     def close(self) -> None:
+        self._end_faults()
         self._stream.close()
+
+
+def fault_points(start_ns: int, end_ns: int | None = None, *, run_start_ns: int | None = None,
+                 run_end_ns: int | None = None) -> list[tuple[int, float]]:
+    """The (time, value) points of one fault's step line (pure).
+
+    0 just before the start (so the step up shows), 1 at the start, 0 at the end.  Each
+    fault's line also runs from the run's start and to the run's end: a time-series plot fits
+    its time axis to the data it holds, and with points only around the faults the faults plot
+    of a 20 s run covered its 3 s of faults.
+
+    >>> fault_points(5_000_000_000, 8_000_000_000, run_start_ns=0, run_end_ns=20_000_000_000)
+    [(0, 0.0), (4999000000, 0.0), (5000000000, 1.0), (8000000000, 0.0), (20000000000, 0.0)]
+    >>> fault_points(5_000_000_000, run_end_ns=20_000_000_000)[-1]  # still on at the end
+    (20000000000, 1.0)
+    """
+    before = start_ns - 1_000_000
+    pts: list[tuple[int, float]] = []
+    if run_start_ns is not None and run_start_ns < before:
+        pts.append((int(run_start_ns), 0.0))
+    pts += [(before, 0.0), (int(start_ns), 1.0)]
+    last = int(start_ns)
+    if end_ns is not None:
+        pts.append((int(end_ns), 0.0))
+        last = max(last, int(end_ns))
+    if run_end_ns is not None and run_end_ns > last:
+        pts.append((int(run_end_ns), 0.0 if end_ns is not None else 1.0))
+    return pts
 
 
 class RobotViz(_Viz):

@@ -1,0 +1,73 @@
+"""``scmr view --web``: two viewers side by side, a taken port, Ctrl-C (real processes, no screen; ~3 s)."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import pytest
+
+from scmr_mesh.mesh.testing import wait_for
+
+pytest.importorskip("rerun")
+
+
+def _rrd(tmp_path):
+    path = tmp_path / "tiny.rrd"
+    subprocess.run([sys.executable, "-c", "import rerun as rr\nrr.init('tiny'); rr.save(%r)\n"
+                    "rr.log('x', rr.Scalars(1.0))" % str(path)], check=True, timeout=60)
+    return path
+
+
+def _view(rrd, env, *extra):
+    # SIGINT ignored, as a script or CI job that starts it in the background leaves it: Python then
+    # kept ignoring it and so did rerun (still serving 20 s after SIGINT, before the fix)
+    return subprocess.Popen([sys.executable, "-m", "scmr_mesh", "view", str(rrd), "--web", *extra],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                            start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+
+
+def _serving(proc, timeout=60.0):
+    """Wait for the URL line and for the web port to accept; return (web port, grpc port)."""
+    line = proc.stderr.readline()
+    m = re.search(r"http://127\.0\.0\.1:(\d+)\?url=rerun%2Bhttp%3A%2F%2F127\.0\.0\.1%3A(\d+)%2Fproxy", line)
+    assert m, line
+    web, grpc = int(m.group(1)), int(m.group(2))
+
+    def listening():
+        assert proc.poll() is None, proc.stderr.read()
+        try:
+            socket.create_connection(("127.0.0.1", web), timeout=0.2).close()
+            return True
+        except OSError:
+            return False
+
+    wait_for(listening, timeout=timeout, what=f"web viewer on {web}")
+    return web, grpc
+
+
+def test_two_web_viewers_run_side_by_side_and_sigint_ends_each(tmp_path):
+    env = dict(os.environ, SCMR_RERUN_HOME=str(tmp_path / "rr"))
+    rrd = _rrd(tmp_path)
+    a = _view(rrd, env)
+    b = None
+    try:
+        ports_a = _serving(a)
+        b = _view(rrd, env)  # before: the second took gRPC 9876 too and exited "Address already in use"
+        ports_b = _serving(b)
+        assert not set(ports_a) & set(ports_b)
+        taken = subprocess.run([sys.executable, "-m", "scmr_mesh", "view", str(rrd), "--web", "--port",
+                                str(ports_a[1])], capture_output=True, text=True, env=env, timeout=60)
+        assert taken.returncode != 0 and f"--port {ports_a[1]} is taken" in taken.stderr
+        assert "Traceback" not in taken.stderr
+        for p in (a, b):
+            os.killpg(p.pid, signal.SIGINT)
+            assert p.wait(timeout=15) == 128 + signal.SIGINT
+    finally:
+        for p in (a, b):
+            if p is not None and p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
