@@ -285,3 +285,19 @@ def test_two_processes_opening_a_new_store_at_once_both_succeed(tmp_path):
     with OperationalDataStore(path, readonly=True) as ods:
         assert ods.schema_version() == SCHEMA_VERSION
         assert {r: c["stored"] for r, c in ods.counts().items()} == {f"r{i}": 50 for i in range(4)}
+
+
+def test_a_late_record_of_an_earlier_incarnation_does_not_roll_the_robot_back(tmp_path):
+    """A wiped queue's old records relayed or replayed after the new ones (review of issue 25 item 10):
+    the current incarnation stays the newest one, so the report and latest() keep counting it."""
+    with OperationalDataStore(tmp_path / "o.sqlite") as ods:
+        old = [make_record("r1", s, inc=111, t_unix_ns=1_000 + s) for s in (1, 2, 3)]
+        ods.insert(old[:2], received_from="cloud")
+        ods.insert([make_record("r1", s, inc=222, t_unix_ns=2_000 + s) for s in range(1, 6)], received_from="cloud")
+        ods.insert([old[0]], received_from="leader")  # a duplicate of the old incarnation
+        ods.insert([old[2]], received_from="leader")  # a never-stored old record, older than the new ones
+        row = telemetry_report(ods, {"r1": 5})["telemetry"]["per_robot"]["r1"]
+        assert row["stored"] == 5 and row["lost"] == 0 and row["stored_earlier_incarnations"] == 3, row
+        assert (ods.latest()["r1"]["inc"], ods.latest()["r1"]["seq"]) == (222, 5)
+        ods.insert([make_record("r1", 1, inc=333, t_unix_ns=3_000)], received_from="cloud")  # wiped again
+        assert ods.latest()["r1"]["inc"] == 333

@@ -182,6 +182,31 @@ class InsertResult:
     digests: tuple[str | None, ...] = ()
 
 
+def current_incarnation(c_inc: int, fresh: tuple[int, int] | None, newest_of_current, *, direct: bool) -> int:
+    """A robot's current incarnation after an insert (what ``seqs``, ``counts`` and reports count).
+
+    ``fresh`` is ``(reading time, inc)`` of the robot's newest record stored by this insert (None:
+    nothing new), ``newest_of_current()`` the newest reading time stored under ``c_inc`` (None: none).
+    A record the robot sent itself (``direct``: received from the cloud tier) moves it to its
+    incarnation; a relayed one only when it is newer than everything of the current incarnation.
+    A duplicate or a conflict never moves it, nor a late relayed record of an older incarnation
+    (one late duplicate of an old incarnation rolled a report back to it).
+
+    >>> current_incarnation(7, (30, 9), lambda: 40, direct=True)
+    9
+    >>> current_incarnation(7, (50, 9), lambda: 40, direct=False), current_incarnation(7, (30, 9), lambda: 40, direct=False)
+    (9, 7)
+    >>> current_incarnation(0, (5, 9), lambda: None, direct=False), current_incarnation(7, None, lambda: 1, direct=True)
+    (9, 7)
+    """
+    if fresh is None or fresh[1] == c_inc:
+        return c_inc
+    if direct:
+        return fresh[1]
+    newest = newest_of_current()
+    return fresh[1] if newest is None or fresh[0] > newest else c_inc
+
+
 def same_content(d_old: str | None, t_old: int, digest: str, t_new: int) -> bool:
     """Whether a repeated ``(robot, inc, seq)`` is the stored record (a row of an older version
     has no digest: its reading time decides)."""
@@ -412,6 +437,7 @@ class OperationalDataStore:
         dups: list[tuple[str, int]] = []
         conflicts: list[tuple[str, int]] = []
         digests: list[str | None] = []
+        fresh: dict[str, tuple[int, int]] = {}  # robot -> (reading time, inc) of its newest newly stored record
         con.execute("BEGIN IMMEDIATE")
         for r in records:
             pose = r.pose if r.pose is not None else (None, None, None)
@@ -426,6 +452,8 @@ class OperationalDataStore:
             if cur.rowcount == 1:
                 stored.append((r.robot, r.seq))
                 digests.append(digest)
+                if r.robot not in fresh or r.t_unix_ns > fresh[r.robot][0]:
+                    fresh[r.robot] = (r.t_unix_ns, r.inc)
                 continue
             t_old, d_old = con.execute("SELECT t_unix_ns, digest FROM telemetry WHERE robot = ? AND inc = ? "
                                        "AND seq = ?", (r.robot, r.inc, r.seq)).fetchone()
@@ -438,10 +466,11 @@ class OperationalDataStore:
                 digests.append(d_old)
                 con.execute("UPDATE robot_stats SET conflicts = conflicts + 1 WHERE robot = ?", (r.robot,))
         contiguous: dict[str, int] = {}
-        last_inc = {r.robot: r.inc for r in records}
-        for robot in sorted(last_inc):
-            inc = last_inc[robot]
+        for robot in sorted({r.robot for r in records}):
             c, c_inc = con.execute("SELECT contiguous, inc FROM robot_stats WHERE robot = ?", (robot,)).fetchone()
+            inc = current_incarnation(c_inc, fresh.get(robot), lambda: con.execute(
+                "SELECT MAX(t_unix_ns) FROM telemetry WHERE robot = ? AND inc = ?", (robot, c_inc)).fetchone()[0],
+                direct=received_from == "cloud")
             c = c if c_inc == inc else 0  # a new incarnation counts from its own seq 1
             while True:
                 seqs = [s for (s,) in con.execute(

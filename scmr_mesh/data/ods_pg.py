@@ -34,7 +34,7 @@ import time
 from typing import Any, Sequence
 
 from scmr_mesh.data.errors import StoreError
-from scmr_mesh.data.ods import SCHEMA_VERSION, InsertResult, OperationalDataStore, log_conflicts, migrations, same_content, serve_writes
+from scmr_mesh.data.ods import SCHEMA_VERSION, InsertResult, OperationalDataStore, current_incarnation, log_conflicts, migrations, same_content, serve_writes
 from scmr_mesh.data.record import TelemetryRecord
 
 log = logging.getLogger(__name__)
@@ -232,10 +232,13 @@ class PostgresStore(OperationalDataStore):
             new = collections.Counter(tuple(row) for row in cur.fetchall())
             stored: list[tuple[str, int]] = []
             again: list[int] = []
+            fresh: dict[str, tuple[int, int]] = {}  # robot -> (reading time, inc) of its newest new record
             for i, r in enumerate(records):
                 if new[r.key] > 0:
                     new[r.key] -= 1
                     stored.append((r.robot, r.seq))
+                    if r.robot not in fresh or r.t_unix_ns > fresh[r.robot][0]:
+                        fresh[r.robot] = (r.t_unix_ns, r.inc)
                 else:
                     again.append(i)
             digests: list[str | None] = list(mine)
@@ -261,10 +264,11 @@ class PostgresStore(OperationalDataStore):
                     con.execute("UPDATE robot_stats SET duplicates = duplicates + %s, conflicts = conflicts + %s "
                                 "WHERE robot = %s", (n_dup[robot], n_conf[robot], robot))
             out: dict[str, int] = {}
-            last_inc = {r.robot: r.inc for r in records}
             for robot in robots:
-                inc = last_inc[robot]
                 c, c_inc = stats[robot]
+                inc = current_incarnation(c_inc, fresh.get(robot), lambda: con.execute(
+                    "SELECT MAX(t_unix_ns) FROM telemetry WHERE robot = %s AND inc = %s", (robot, c_inc)).fetchone()[0],
+                    direct=received_from == "cloud")
                 c = c if c_inc == inc else 0  # a new incarnation counts from its own seq 1
                 while True:
                     seqs = [s for (s,) in con.execute(
