@@ -279,3 +279,41 @@ def test_a_quota_refuses_past_its_burst_and_refills_with_time():
     assert q.take("r1", 5, 10) and not q.take("r1", 1, 10)
     assert not q.take("r2", 0, 2001)  # bytes alone
     assert Quota(0, 0).take("r1", 10**9, 10**12)  # 0: no limit
+
+
+def test_replayed_relayed_records_do_not_spend_a_robots_quota_and_a_busy_gate_refunds_it(tmp_path):
+    """Review of issue 28 item 6: a leader identity relaying a robot's stored records again (duplicates)
+    spent that robot's quota until its own batches were answered busy; and a batch the gate refused
+    (busy) was charged although nothing was stored."""
+    from scmr_mesh.data.quota import Quota
+    from scmr_mesh.mesh.data_common import relay_key
+
+    cloud = CloudData("c", tmp_path / "ods.sqlite", quota=Quota(40, 0, burst_s=1))
+    key = telemetry_key("cloud", "c", "r1")
+    try:
+        def ask(payload, k=key, relay=False):
+            q = FakeQuery(payload, k)
+            (cloud._on_relay if relay else cloud._on_telemetry)(q)
+            assert q.done.wait(10)
+            return q.result
+
+        genuine = [make_record("r1", s) for s in range(1, 11)]
+        assert ask(encode_records(genuine))[1]["stored"] == 10
+        for _ in range(3):  # the same 10 relayed again: duplicates, stored nothing new
+            kind, body = ask(encode_records(genuine, via="leader"), relay_key("c"), relay=True)
+            assert kind == "ok" and body["duplicates"] == 10 and body["stored"] == 0
+        kind, body = ask(_batch("r1", 11, 5))  # r1's own next batch: 10 + 5 of its 40
+        assert kind == "ok" and body["stored"] == 5, body
+        real_take = cloud.gate.take
+
+        def busy_once(n):  # the store's backlog is full for this one batch
+            cloud.gate.take = real_take
+            return SimpleNamespace(verdict=data_cloud.Verdict.BUSY, admitted=False, reason="full")
+
+        cloud.gate.take = busy_once
+        kind, body = ask(_batch("r1", 16, 17))  # within the quota, refused by the gate: busy
+        assert kind == "err" and body["busy"] and not body.get("quota"), body
+        kind, body = ask(_batch("r1", 16, 12))  # 15 + 12 of 40: fits only if the busy batch was refunded
+        assert kind == "ok" and body["stored"] == 12, body
+    finally:
+        cloud.close()

@@ -96,6 +96,27 @@ class Quota:
             r["batches"] += 1
             return False
 
+    def give_back(self, who: str, records: int, nbytes: int) -> None:
+        """Undo a :meth:`take` whose records were not stored (a busy gate, a store error)."""
+        self._adjust(who, records, nbytes)
+
+    def charge(self, who: str, records: int, nbytes: int) -> None:
+        """Debit what was stored already (relayed records: charged once stored, never refused)."""
+        self._adjust(who, -records, -nbytes)
+
+    def _adjust(self, who: str, records: int, nbytes: int) -> None:
+        if not self.limited:
+            return
+        cap_r, cap_b = self.records_per_s * self.burst_s, self.bytes_per_s * self.burst_s
+        with self._lock:
+            b = self._buckets.get(who)
+            if b is None:
+                b = self._buckets[who] = _Bucket(cap_r, cap_b, self.clock())
+            if self.records_per_s > 0:
+                b.records = min(cap_r, b.records + records)
+            if self.bytes_per_s > 0:
+                b.nbytes = min(cap_b, b.nbytes + nbytes)
+
     def retry_after_s(self, who: str, records: int, nbytes: int) -> float:
         """How long until a batch this size would fit (an estimate for the busy answer)."""
         with self._lock:

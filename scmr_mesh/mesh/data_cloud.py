@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import json
 import logging
@@ -109,16 +110,21 @@ class CloudData:
                 # the sender is this robot (the ACL binds its key): charge it before any costly check
                 self._over_quota(query, records[0].robot, len(records), nbytes)
                 return
+            charged = records[0].robot if not relay and records else None
             ans = gate.take(len(records))  # reserved until acked: the checks and the store run off zenoh's thread
-            if ans.verdict is Verdict.BUSY:
-                _busy(query, gate, f"cloud {self.node}")
-                return
-            if not ans.admitted:
+            if ans.verdict is Verdict.BUSY or not ans.admitted:
+                if charged is not None:  # not stored: the robot's quota is not spent on it
+                    self.quota.give_back(charged, len(records), nbytes)
+                if ans.verdict is Verdict.BUSY:
+                    _busy(query, gate, f"cloud {self.node}")
+                    return
                 raise TelemetryError(ans.reason)
             taken = len(records)
             self._checker.submit(self._check_and_store, query, records, refusals, relay, source, nbytes)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             gate.release(taken)
+            if taken and not relay and records:
+                self.quota.give_back(records[0].robot, len(records), nbytes)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
@@ -138,17 +144,11 @@ class CloudData:
                 else:
                     refusals.append([r.robot, r.seq, why])
                     self._count("signature")
-            per = max(1, nbytes // max(1, len(records)))
-            for robot in sorted({records[i].robot for i in good}) if relay else ():
-                # relayed: charged after the signatures, so forged records cannot spend a robot's quota
-                mine = [i for i in good if records[i].robot == robot]
-                if not self.quota.take(robot, len(mine), per * len(mine)):
-                    self._count("quota", len(mine))
-                    refusals.extend([robot, records[i].seq, "over its telemetry quota"] for i in mine)
-                    good = [i for i in good if records[i].robot != robot]
             fut = self.ods.insert_async([records[i] for i in good], received_from=source)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             self.gate.release(len(records))
+            if not relay and records:
+                self.quota.give_back(records[0].robot, len(records), nbytes)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
@@ -157,7 +157,7 @@ class CloudData:
             log.warning("cloud %s: refused %d of %d telemetry records (%s), e.g. %s", self.node, len(refusals),
                         len(records) + sum(r[0] is None for r in refusals), "relayed" if relay else "direct",
                         refusals[0])
-        fut.add_done_callback(lambda f: self._ack(query, records, good, refusals, f))
+        fut.add_done_callback(lambda f: self._ack(query, records, good, refusals, f, relay=relay, nbytes=nbytes))
 
     def _over_quota(self, query, robot: str, n: int, nbytes: int) -> None:
         """A busy answer: the robot keeps its records and retries after the hint."""
@@ -172,11 +172,14 @@ class CloudData:
     def _count(self, why: str, n: int = 1) -> None:
         self.refused[why] += n
 
-    def _ack(self, query, records: list[TelemetryRecord], good: list[int], refusals: list, fut) -> None:
+    def _ack(self, query, records: list[TelemetryRecord], good: list[int], refusals: list, fut, *,
+             relay: bool = False, nbytes: int = 0) -> None:
         self.gate.release(len(records))
         try:
             res = fut.result()
         except Exception as exc:
+            if not relay and records:  # not stored: the robot's quota is not spent on it
+                self.quota.give_back(records[0].robot, len(records), nbytes)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
@@ -184,6 +187,12 @@ class CloudData:
         if self._unstored:
             log.warning("cloud %s: telemetry stored again after %d batch(es) were not", self.node, self._unstored)
             self._unstored = 0
+        if relay and res.stored:
+            # relayed records are charged to their robot once newly stored: forgeries (refused by their
+            # signature) and replays of stored records (duplicates) cannot spend a robot's quota
+            per = max(1, nbytes // max(1, len(records)))
+            for robot, n in collections.Counter(robot for robot, _ in res.stored).items():
+                self.quota.charge(robot, n, per * n)
         digests: list[str | None] = [None] * len(records)
         try:
             for j, i in enumerate(good):
