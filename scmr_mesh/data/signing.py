@@ -17,10 +17,15 @@ Pure: the ``cryptography`` package only; nothing here touches the mesh.
 from __future__ import annotations
 
 import datetime
+import re
 import threading
+import time
 from pathlib import Path
 
 from scmr_mesh.data.errors import TelemetryError
+
+#: A robot name as a key chunk (``keys.check_name``): never a path of its own.
+_NAME = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}")
 
 
 def _crypto():
@@ -79,13 +84,51 @@ class RecordVerifier:
         except (OSError, ValueError) as exc:
             raise TelemetryError(f"cannot load the fleet CA {self.directory / 'ca.pem'} ({exc}); make the "
                                  "credentials with `scmr certs`") from None
-        self._keys: dict[str, object] = {}
+        self._keys: dict[str, tuple[object, datetime.datetime]] = {}
+        self._misses: dict[str, float] = {}  # name -> when its lookup failed (monotonic s), oldest first
         self._lock = threading.Lock()
 
+    #: A name without a valid certificate is looked up again after this long (a robot enrolled
+    #: later, a certificate renewed on disk); at most :attr:`MAX_MISSES` names are remembered.
+    MISS_TTL_S = 5.0
+    MAX_MISSES = 1024
+    #: Longest robot name looked up on disk (names are key chunks: ``keys.check_name``).
+    MAX_NAME = 64
+
     def _public_key(self, robot: str):
+        """The robot's public key, or None (no valid certificate).
+
+        Valid keys are cached with their expiry and checked on each use; misses are cached for
+        :attr:`MISS_TTL_S` in a bounded table, so names a relay makes up cost neither memory
+        without bound nor a file lookup per record, and a robot enrolled later is not refused
+        until the cloud restarts (a review found both).
+        """
+        now_s = time.monotonic()
         with self._lock:
-            if robot in self._keys:
-                return self._keys[robot]
+            hit = self._keys.get(robot)
+            if hit is not None:
+                key, not_after = hit
+                if datetime.datetime.now(datetime.timezone.utc) <= not_after:
+                    return key
+                del self._keys[robot]  # expired: read the (perhaps renewed) certificate again
+            miss = self._misses.get(robot)
+            if miss is not None and now_s - miss < self.MISS_TTL_S:
+                return None
+        if not _NAME.fullmatch(robot or "") or len(robot) > self.MAX_NAME:
+            key, not_after = None, None
+        else:
+            key, not_after = self._load(robot)
+        with self._lock:
+            if key is not None:
+                self._keys[robot] = (key, not_after)
+                self._misses.pop(robot, None)
+            else:
+                self._misses[robot] = now_s
+                while len(self._misses) > self.MAX_MISSES:  # the oldest miss goes first
+                    self._misses.pop(next(iter(self._misses)))
+        return key
+
+    def _load(self, robot: str):
         x509, InvalidSignature, _, _, ec, _, NameOID = _crypto()
         path = self.directory / robot / "cert.pem"
         try:
@@ -94,13 +137,11 @@ class RecordVerifier:
                                          ec.ECDSA(cert.signature_hash_algorithm))
             cn = [a.value for a in cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)]
             now = datetime.datetime.now(datetime.timezone.utc)
-            ok = cn == [robot] and cert.not_valid_before_utc <= now <= cert.not_valid_after_utc
-            key = cert.public_key() if ok else None
+            if cn == [robot] and cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
+                return cert.public_key(), cert.not_valid_after_utc
         except (OSError, ValueError, TypeError, InvalidSignature):
-            key = None
-        with self._lock:
-            self._keys[robot] = key  # a robot without a valid certificate: cached as None
-        return key
+            pass
+        return None, None
 
     def check(self, robot: str, digest: bytes, sig: bytes | None) -> str | None:
         """None when ``sig`` is ``robot``'s signature of ``digest``, else why not (one line)."""

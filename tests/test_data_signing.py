@@ -1,0 +1,46 @@
+"""Record signatures checked against the fleet's certificates (issue 28 item 3; a review's findings)."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+
+from scmr_mesh.data.signing import RecordSigner, RecordVerifier
+
+
+@pytest.fixture(scope="module")
+def creds(tmp_path_factory):
+    from scmr_mesh.security.credentials import create_credentials
+
+    d = tmp_path_factory.mktemp("signcreds") / "fleet"
+    create_credentials(d, "cloud,robot1,robot2")
+    return d
+
+
+def test_made_up_names_cost_bounded_memory_and_are_never_read_as_paths(creds):
+    v = RecordVerifier(creds)
+    digest = hashlib.sha256(b"x").digest()
+    sig = RecordSigner(creds / "robot1" / "key.pem").sign(digest)
+    assert v.check("robot1", digest, sig) is None
+    for i in range(3 * v.MAX_MISSES):  # a relay inventing robot names (before: each cached for good)
+        assert "no valid certificate" in v.check(f"ghost{i}", digest, sig)
+    assert len(v._misses) == v.MAX_MISSES and len(v._keys) == 1
+    for name in ("..", "../robot1", "robot1/../robot1", "", "x" * 65):
+        assert "no valid certificate" in v.check(name, digest, sig)
+    assert "not robot2's" in v.check("robot2", digest, sig)  # robot1's signature claimed for robot2
+
+
+def test_a_robot_enrolled_after_a_refusal_is_accepted_once_its_miss_expires(creds, tmp_path, monkeypatch):
+    moved = tmp_path / "robot2"
+    (creds / "robot2").rename(moved)  # robot2 not enrolled yet
+    try:
+        v = RecordVerifier(creds)
+        digest = hashlib.sha256(b"y").digest()
+        sig = RecordSigner(moved / "key.pem").sign(digest)
+        assert "no valid certificate" in v.check("robot2", digest, sig)
+    finally:
+        moved.rename(creds / "robot2")  # now enrolled
+    assert "no valid certificate" in v.check("robot2", digest, sig)  # the miss is remembered a while
+    monkeypatch.setattr(RecordVerifier, "MISS_TTL_S", 0.0)
+    assert v.check("robot2", digest, sig) is None  # before: refused until the cloud restarted
