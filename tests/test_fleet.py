@@ -323,17 +323,22 @@ def test_the_runs_postgresql_is_restarted_when_it_dies_and_a_failed_start_is_ret
 
     hooks, run = FleetHooks(FleetConfig(clouds=2)), SimpleNamespace(elapsed_s=lambda: 3.5)
     hooks.pg = pg = Server()
-    hooks._watch_ods(run)
+    def watch():  # the restart runs off the run's loop; wait for it here
+        hooks._watch_ods(run)
+        if hooks._pg_future is not None:
+            hooks._pg_future.result(10)
+
+    watch()
     (out,) = hooks.ods_outages  # seen, the first start failed: retried later, not at once
     assert pg.starts == 1 and out["exit"] == -9 and out["gap_ms"] is None and "shared memory" in out["error"]
     assert run_problems({"ods": {"outages": [out]}, "telemetry": {"lost": 0}}) == [
         "the run's PostgreSQL data store was killed by signal 9 at 3.50 s; it could not be restarted "
         "(pre-existing shared memory block is still in use)"]
-    hooks._watch_ods(run)
+    watch()
     assert pg.starts == 1  # within PG_RETRY_S of the failure
     hooks._pg_retry_at = 0.0
-    hooks._watch_ods(run)
-    hooks._watch_ods(run)  # alive again: nothing to do
+    watch()
+    watch()  # alive again: nothing to do
     assert pg.starts == 2 and len(hooks.ods_outages) == 1 and out["gap_ms"] is not None and out["error"] is None
     assert run_problems({"ods": {"outages": [out]}, "telemetry": {"lost": 0}}) == [
         f"the run's PostgreSQL data store was killed by signal 9 at 3.50 s; restarted after {out['gap_ms']:.0f} ms"]
