@@ -43,9 +43,9 @@ def test_a_tap_process_prints_a_real_peers_messages_decoded(tmp_path):
 
     queried = threading.Event()
 
-    def answer(query):
-        queried.set()
+    def answer(query):  # replied before the test publishes: the reply is among the first 4 lines
         query.reply("scmr/tapq", msgpack.packb({"v": 1, "kind": "reply", "mask": b"\1" * 300}))
+        queried.set()
 
     qable = session.declare_queryable("scmr/tapq", answer)
     tap = subprocess.Popen([sys.executable, "-m", "scmr_mesh", "tap", "scmr/**", "--get", "--insecure",
