@@ -95,7 +95,8 @@ class TelemetryAgent:
         #: the queue folder's incarnation: every record carries it (a wiped folder starts a new history)
         self.incarnation = folder_incarnation(queue_dir)
         #: records a cloud answered for with another digest (a conflict) or refused: kept, never deleted
-        self.not_acked = 0
+        self._not_acked: set[int] = set()  # seqs a cloud answered for with another digest or refused
+        self._bad_acks = 0  # answers of a cloud without per-record digests (an older cloud)
         # a refused record keeps its seq (it is in the record already) and waits in memory
         # (_mem); one never delivered leaves a gap the store sees, and every report counts it lost
         self.queue = TelemetryQueue(queue_dir, max_bytes=max_bytes, refusals_use_seqs=True)
@@ -310,22 +311,24 @@ class TelemetryAgent:
     def _stored_prefix(self, recs: list[TelemetryRecord], body: Any, node: str) -> int:
         """How many leading records of a batch the cloud's ack shows stored as sent: the ack's
         ``digests`` must name each record's own digest (a conflict or a refusal stops the prefix; the
-        record stays queued, counted in ``not_acked``, and is never deleted)."""
+        record stays queued, counted once in ``not_acked``, and is never deleted)."""
         digests = body.get("digests") if isinstance(body, dict) else None
         if not isinstance(digests, list) or len(digests) != len(recs):
-            self.not_acked += len(recs)
-            log.error("robot %s: cloud %s acked telemetry without per-record digests; nothing deleted",
-                      self.robot.id, node)
+            self._bad_acks += 1
+            if self._bad_acks in (1, 10, 100) or self._bad_acks % 1000 == 0:  # not a line per flush
+                log.error("robot %s: cloud %s acked telemetry without per-record digests (%d such answers; a "
+                          "cloud older than this robot? upgrade the clouds first); nothing deleted",
+                          self.robot.id, node, self._bad_acks)
             return 0
         n = 0
         for r, d in zip(recs, digests):
             if d != r.digest().hex():
-                self.not_acked += 1
-                if self.not_acked not in (1, 10, 100) and self.not_acked % 1000:
-                    break
-                why = "refused it" if d is None else "holds other content under its (robot, incarnation, seq)"
-                log.error("robot %s: cloud %s %s for record %d (%s); kept in the queue", self.robot.id, node, why,
-                          r.seq, (body.get("refusals") or ["no reason given"])[0])
+                first = r.seq not in self._not_acked
+                self._not_acked.add(r.seq)
+                if first:
+                    why = "refused it" if d is None else "holds other content under its (robot, incarnation, seq)"
+                    log.error("robot %s: cloud %s %s for record %d (%s); kept in the queue", self.robot.id, node,
+                              why, r.seq, (body.get("refusals") or ["no reason given"])[0])
                 break
             n += 1
         return n
@@ -396,7 +399,8 @@ class TelemetryAgent:
         # every refused record was delivered from memory, is still there (dies with the process) or was dropped
         lost = self.dropped + unsent + len(set(st.lost_seqs))
         relayed = len(self.queue.pending(limit=None)) - len(self.queue.pending(limit=None, after=self._relayed_upto))
-        return {"robot": self.robot.id, "incarnation": self.incarnation, "not_acked": self.not_acked,
+        return {"robot": self.robot.id, "incarnation": self.incarnation, "not_acked": len(self._not_acked),
+                "acks_without_digests": self._bad_acks,
                 "sent": st.next_seq - 1, "queued": st.depth, "refused": st.refused,
                 "refused_seqs": seq_ranges(st.refused_seqs, limit=20), "lost": lost,
                 "dropped": self.dropped, "memory": mem,
