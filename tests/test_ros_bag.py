@@ -139,3 +139,21 @@ def test_fleet_mcap_robots_record_and_the_run_merges_them(tmp_path):
     assert n == 8 and [t for _, t in got] == [10, 10, 20, 20, 30, 30, 40, 40]
     assert {c for c, _ in got} == {"/r1/camera/compressed", "/r1/drivable/mask", "/r2/camera/compressed",
                                    "/r2/drivable/mask"}
+
+
+def test_a_robot_killed_mid_recording_is_left_out_of_the_merge_and_named(tmp_path):
+    """A SIGKILLed robot's MCAP has no chunks or summary: before, the whole merge failed (no FILE, exit 0)."""
+    from scmr_mesh.ros.record import McapRecorder, merge, readable
+    from scmr_mesh.scenario.report import run_problems
+
+    rec = McapRecorder(tmp_path / "r1.mcap", "r1")
+    rec.observe({"sent_unix_ns": 5, "received_unix_ns": 10}, np.zeros((4, 6, 3), np.uint8),
+                np.full((2, 3), 255, np.uint8))
+    rec.close()
+    (tmp_path / "r2.mcap").write_bytes((tmp_path / "r1.mcap").read_bytes()[:30])  # killed before its chunk
+    good, bad = readable(sorted(tmp_path.glob("r*.mcap")))
+    assert good == [tmp_path / "r1.mcap"] and list(bad) == [str(tmp_path / "r2.mcap")]
+    assert merge(good, tmp_path / "all.mcap") == 2
+    problems = run_problems({"mcap": {"path": "all.mcap", "parts": 2, "messages": 2, "unreadable": bad,
+                                      "error": None}, "telemetry": {"lost": 0}})
+    assert len(problems) == 1 and "r2.mcap could not be read" in problems[0]

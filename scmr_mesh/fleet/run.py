@@ -86,6 +86,8 @@ class FleetHooks(Hooks):
         self.pg = None  # scmr_mesh.fleet.pgserver.PgServer when the run starts PostgreSQL
         #: the run's PostgreSQL deaths: {"t_s", "down_unix_ns", "exit", "restarted_unix_ns", "gap_ms", "error"}
         self.ods_outages: list[dict[str, Any]] = []
+        #: ``--mcap``: what the merge wrote and which robots' recordings could not be read
+        self.mcap: dict[str, Any] | None = None
         self._pg_retry_at = 0.0
         # restarts run off the run's loop, on one thread that lives as long as the server: the
         # server dies with the thread that started it (PR_SET_PDEATHSIG is per thread), so a thread
@@ -145,17 +147,24 @@ class FleetHooks(Hooks):
         """``--mcap FILE``: the robots' recordings (RUN/mcap/*.mcap) as one file, in log-time order."""
         if not self.config.mcap:
             return
-        from scmr_mesh.ros.record import merge
+        from scmr_mesh.ros.record import merge, readable
 
         parts = sorted((run.out_dir / "mcap").glob("*.mcap"))
+        good, bad = readable(parts)  # a robot killed mid-write leaves a file without its chunks
+        self.mcap = {"path": str(self.config.mcap), "parts": len(parts), "messages": 0, "unreadable": bad,
+                     "error": None}
+        for p, why in bad.items():
+            log.error("--mcap: %s cannot be read (%s); merged without it", p, why)
         try:
-            n = merge(parts, self.config.mcap)
-        except Exception as exc:  # a robot killed mid-write leaves a file without its summary
+            self.mcap["messages"] = merge(good, self.config.mcap)
+        except Exception as exc:
+            self.mcap["error"] = f"{type(exc).__name__}: {exc}"
             log.error("--mcap %s: merging %d robot recordings failed: %s (they are in %s)", self.config.mcap,
-                      len(parts), exc, run.out_dir / "mcap")
+                      len(good), exc, run.out_dir / "mcap")
             self._emit(run, f"mcap: merging failed ({exc}); the robots' files are in {run.out_dir / 'mcap'}")
             return
-        self._emit(run, f"mcap: {n} messages from {len(parts)} robots in {self.config.mcap}")
+        self._emit(run, f"mcap: {self.mcap['messages']} messages from {len(good)} robots in {self.config.mcap}"
+                   + (f"; {len(bad)} recording(s) unreadable (a robot killed mid-write)" if bad else ""))
 
     def _emit(self, run: ScenarioRun, phase: str) -> None:
         if self.progress is None:
@@ -307,7 +316,10 @@ def run_fleet(
     ods = {"backend": ods_backend(config), "store": fleet.ods_name(run_dir)}
     if ods["backend"] == "postgresql" and config.ods is None:  # a server of the run's own, supervised
         ods["outages"] = fleet.ods_outages
-    report = run_report(res, extra={"clouds": config.clouds, "ods": ods})
+    extra: dict[str, Any] = {"clouds": config.clouds, "ods": ods}
+    if fleet.mcap is not None:
+        extra["mcap"] = fleet.mcap
+    report = run_report(res, extra=extra)
     import json
 
     (run_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")

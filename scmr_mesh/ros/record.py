@@ -102,10 +102,30 @@ class McapRecorder:
                 self._file.close()
 
 
+def readable(parts) -> tuple[list[Path], dict[str, str]]:
+    """The MCAP files of ``parts`` that read to their end, and why each other one does not.
+
+    A robot killed mid-run (SIGKILL) leaves a file without its chunks and summary.
+    """
+    from mcap.reader import make_reader
+
+    good, bad = [], {}
+    for p in parts:
+        try:
+            with open(p, "rb") as f:
+                for _ in make_reader(f).iter_messages():
+                    pass
+            good.append(Path(p))
+        except Exception as exc:  # truncated, empty, not MCAP at all
+            bad[str(p)] = f"{type(exc).__name__}: {exc}"[:200]
+    return good, bad
+
+
 def merge(parts, out: str | Path) -> int:
     """Merge MCAP files written by :class:`McapRecorder` into ``out`` in log-time order; return the message count.
 
-    Schemas and channels are written once each (by name and topic).
+    Schemas and channels are written once each (by name and topic).  Every part must read to its
+    end (:func:`readable` picks those).
     """
     import heapq
     from contextlib import ExitStack

@@ -608,6 +608,12 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
         out.append(f"the run's PostgreSQL data store {what} at {o.get('t_s', 0):.2f} s; "
                    + (f"restarted after {o['gap_ms']:.0f} ms" if o.get("gap_ms") is not None
                       else f"it could not be restarted ({o.get('error') or 'the run ended first'})"))
+    mcap = report.get("mcap")
+    if mcap:  # scmr up --mcap FILE
+        if mcap.get("error"):
+            out.append(f"--mcap {mcap.get('path')}: the recordings could not be merged ({mcap['error']})")
+        for part, why in (mcap.get("unreadable") or {}).items():
+            out.append(f"--mcap {mcap.get('path')}: {part} could not be read and is not in it ({why})")
     tel = report.get("telemetry")
     if tel is None:
         out.append("telemetry was not counted (see the log of scmr up)")
