@@ -146,7 +146,7 @@ def test_the_agent_counts_an_unwritable_record_as_refused_with_its_seq(tmp_path)
 
 def test_a_robot_on_a_full_disk_keeps_sending_and_reports_the_loss(tmp_path):
     """The issue's reproduction: the queue on a nearly full tmpfs, no tier storing anything."""
-    with full_tmpfs(tmp_path / "mnt", free_pages=2):
+    with full_tmpfs(tmp_path / "mnt", free_pages=3):
         qdir = tmp_path / "mnt" / "q"
         out_dir = tmp_path / "r1"
         dead = f"tcp/127.0.0.1:{free_port()}"
@@ -219,3 +219,28 @@ def test_a_full_disk_with_a_live_store_delivers_from_memory_and_drops_only_beyon
         assert stored == list(range(1, 11)) + held
         out = agent.close(drain_s=0, summary_path=None)
         assert out["sent"] == 40 and out["lost"] == out["dropped"] == 30 - len(held) and out["memory"]["unsent"] == 0
+
+
+def test_records_a_store_took_from_memory_on_a_full_disk_are_not_lost_after_a_restart(tmp_path):
+    """A review of issue 25 item 2: the ack file was written as a new file and renamed, which a full disk
+    refused; a restart then counted every record delivered from memory as lost (and the robot exited 1)."""
+    with full_tmpfs(tmp_path / "mnt", free_pages=8) as filler:
+        robot, ask, stored = _cloud_stub()
+        agent = TelemetryAgent(robot, tmp_path / "mnt" / "q", autostart=False)
+        agent._ask = ask
+        fd = os.open(filler, os.O_WRONLY | os.O_APPEND)  # now the disk fills up
+        try:
+            while True:
+                os.write(fd, b"\0" * PAGE)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+        for i in range(1, 31):
+            assert agent.publish(_message(i)) == i
+            assert agent.flush_once() == 1
+        assert stored == list(range(1, 31)) and agent.summary()["refused"] > 0
+        agent.close(drain_s=0, summary_path=None)
+        with TelemetryQueue(tmp_path / "mnt" / "q", readonly=True) as q:  # the robot restarts
+            st = q.stats()
+        assert st.lost_seqs == [] and st.acked_seq == 30 and st.depth == 0 and st.next_seq == 31  # no seq reused

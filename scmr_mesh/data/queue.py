@@ -380,6 +380,11 @@ class TelemetryQueue:
         st.depth = len(self._pending)
         if self.readonly:
             return
+        if not (self.path / "ack").exists():
+            try:  # made now, while there is room: a full disk later can still overwrite it in place
+                self._write_ack(acked)
+            except OSError as exc:
+                log.warning("queue %s: cannot write its ack file (%s)", self.path, exc)
         try:
             self._head_fd = os.open(self.path / HEAD_FILE, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         except OSError as exc:
@@ -587,14 +592,32 @@ class TelemetryQueue:
             return n
 
     def _write_ack(self, seq: int) -> None:
+        """Record ``seq`` as acknowledged: a new file renamed into place, or, when that cannot be
+        written (a full disk), the existing ``ack`` file overwritten in place (fixed width, no new
+        blocks).  Before, a full disk kept the old ack, and a restart counted the records a store
+        had taken from memory as lost (a review of issue 25 item 2)."""
         tmp = self.path / "ack.tmp"
-        with tmp.open("w") as fh:
-            fh.write(f"{seq}\n")
-            fh.flush()
+        try:
+            with tmp.open("w") as fh:
+                fh.write(_HEAD_FMT.format(seq))
+                fh.flush()
+                if self.fsync != "never":
+                    os.fsync(fh.fileno())
+            os.replace(tmp, self.path / "ack")
+            self._fsync_dir()
+            return
+        except OSError:
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+        fd = os.open(self.path / "ack", os.O_WRONLY | os.O_CLOEXEC)  # raises when it does not exist either
+        try:
+            os.pwrite(fd, _HEAD_FMT.format(seq).encode(), 0)
             if self.fsync != "never":
-                os.fsync(fh.fileno())
-        os.replace(tmp, self.path / "ack")
-        self._fsync_dir()
+                os.fsync(fd)
+        finally:
+            os.close(fd)
 
     def note_replayed(self, n: int) -> None:
         """Count records sent again after a failed attempt (for reports)."""
