@@ -106,7 +106,7 @@ def test_scmr_up_with_a_full_disk_delivers_telemetry_from_memory(tmp_path):
     memory buffer and stored, and the console still says the disk refused them.
     """
     run_dir = tmp_path / "run"
-    with full_tmpfs(tmp_path / "mnt", free_pages=2):
+    with full_tmpfs(tmp_path / "mnt", free_pages=3):
         try:
             r = subprocess.run(
                 scmr("up", "--robots", "1", "--duration", "5", "--rate", "20", "--run-dir", str(run_dir),

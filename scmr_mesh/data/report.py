@@ -205,21 +205,7 @@ def run_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,
     if robots is None:
         base = queues if queues.is_dir() else run_dir / "robots"
         robots = sorted(p.name for p in base.iterdir() if p.is_dir()) if base.is_dir() else []
-    sent, held, refused, robot_lost, dropped = {}, {}, {}, {}, {}
-    for rid in robots:
-        qdir = queues / rid if (queues / rid).is_dir() else run_dir / "robots" / rid / "telemetry-queue"
-        # peers with a run dir keep the queue there, across restarts: what it still holds is queued
-        sent[rid], held[rid] = queue_held(qdir) if qdir.is_dir() else (robot_sent(run_dir / "robots" / rid)[0], [])
-        # the robot's own count at exit: refusals, and seqs it handed out that never reached
-        # its queue's files (a queue on a file system that refused every write)
-        d = robot_summary(run_dir / "robots" / rid) or {}
-        try:
-            refused[rid] = int(d.get("refused", 0))
-            robot_lost[rid] = int(d.get("lost", refused[rid]))
-            dropped[rid] = int(d.get("dropped", 0))
-            sent[rid] = max(sent[rid], int(d.get("sent", 0)))
-        except (TypeError, ValueError):
-            refused[rid] = robot_lost[rid] = dropped[rid] = 0
+    sent, held, refused, robot_lost, dropped = _robot_counts(run_dir, robots)
     kw = {"refused": refused, "held": held, "robot_lost": robot_lost, "dropped": dropped}
     if is_dsn(ods_path):  # a PostgreSQL store (several cloud nodes)
         from scmr_mesh.data.ods_pg import redact
@@ -314,18 +300,36 @@ def _redact(dsn) -> str:
     return redact(dsn)
 
 
+def _robot_counts(run_dir: Path, robots: Iterable[str]):
+    """What each robot sent and still holds (its queue), and its own refused/lost/dropped counts at exit."""
+    queues = run_dir / "queues"
+    sent, held, refused, robot_lost, dropped = {}, {}, {}, {}, {}
+    for rid in robots:
+        qdir = queues / rid if (queues / rid).is_dir() else run_dir / "robots" / rid / "telemetry-queue"
+        # peers with a run dir keep the queue there, across restarts: what it still holds is queued
+        try:
+            sent[rid], held[rid] = (queue_held(qdir) if qdir.is_dir()
+                                    else (robot_sent(run_dir / "robots" / rid)[0], []))
+        except Exception:  # the robot's own counts are unreadable too: nothing known
+            sent[rid], held[rid] = 0, []
+        # the robot's own count at exit: refusals, and seqs it handed out that never reached
+        # its queue's files (a queue on a file system that refused every write)
+        d = robot_summary(run_dir / "robots" / rid) or {}
+        try:
+            refused[rid] = int(d.get("refused", 0))
+            robot_lost[rid] = int(d.get("lost", refused[rid]))
+            dropped[rid] = int(d.get("dropped", 0))
+            sent[rid] = max(sent[rid], int(d.get("sent", 0)))
+        except (TypeError, ValueError):
+            refused[rid] = robot_lost[rid] = dropped[rid] = 0
+    return sent, held, refused, robot_lost, dropped
+
+
 def unreadable_telemetry(run_dir: str | Path, robots: list[str] | None, why: str, *,
                          ods: str | Path | None = None) -> dict[str, Any]:
     """A telemetry block for a run whose store could not be read: what the robots still hold is queued, the rest lost."""
-    run_dir = Path(run_dir)
-    sent, held = {}, {}
-    for rid in robots or []:
-        try:
-            qdir = run_dir / "queues" / rid
-            sent[rid], held[rid] = queue_held(qdir) if qdir.is_dir() else (robot_sent(run_dir / "robots" / rid)[0], [])
-        except Exception:  # the robots' own counts are unreadable too: nothing known
-            sent[rid], held[rid] = 0, []
-    rep = _nothing_stored(sent, held, {}, {}, {})
+    # the same counts as run_telemetry (a queue under robots/<id>/telemetry-queue, dropped records)
+    rep = _nothing_stored(*_robot_counts(Path(run_dir), robots or []))
     return {**rep, "ods": _redact(ods) if is_dsn(ods) else str(ods if ods is not None else run_dir / "ods.sqlite"),
             "error": f"the store could not be read ({why})"}
 
