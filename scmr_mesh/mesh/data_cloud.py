@@ -110,11 +110,9 @@ class CloudData:
                 # the sender is this robot (the ACL binds its key): charge it before any costly check
                 self._over_quota(query, records[0].robot, len(records), nbytes)
                 return
-            charged = records[0].robot if not relay and records else None
             ans = gate.take(len(records))  # reserved until acked: the checks and the store run off zenoh's thread
             if ans.verdict is Verdict.BUSY or not ans.admitted:
-                if charged is not None:  # not stored: the robot's quota is not spent on it
-                    self.quota.give_back(charged, len(records), nbytes)
+                self._unspend(records, relay, nbytes)
                 if ans.verdict is Verdict.BUSY:
                     _busy(query, gate, f"cloud {self.node}")
                     return
@@ -123,8 +121,8 @@ class CloudData:
             self._checker.submit(self._check_and_store, query, records, refusals, relay, source, nbytes)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             gate.release(taken)
-            if taken and not relay and records:
-                self.quota.give_back(records[0].robot, len(records), nbytes)
+            if taken:  # a refusal before the gate was given back there
+                self._unspend(records, relay, nbytes)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
@@ -147,8 +145,7 @@ class CloudData:
             fut = self.ods.insert_async([records[i] for i in good], received_from=source)
         except Exception as exc:  # not stored: no ack, the sender keeps the records
             self.gate.release(len(records))
-            if not relay and records:
-                self.quota.give_back(records[0].robot, len(records), nbytes)
+            self._unspend(records, relay, nbytes)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
@@ -169,6 +166,12 @@ class CloudData:
                         "retry_after_ms": wait_ms}, error=True)
         _drop(query)
 
+    def _unspend(self, records: list[TelemetryRecord], relay: bool, nbytes: int) -> None:
+        """A robot's own batch that was not stored (busy gate, store error): its quota is given back.
+        Relayed batches are charged only once stored (:meth:`_ack`), so there is nothing to undo."""
+        if not relay and records:
+            self.quota.give_back(records[0].robot, len(records), nbytes)
+
     def _count(self, why: str, n: int = 1) -> None:
         self.refused[why] += n
 
@@ -178,8 +181,7 @@ class CloudData:
         try:
             res = fut.result()
         except Exception as exc:
-            if not relay and records:  # not stored: the robot's quota is not spent on it
-                self.quota.give_back(records[0].robot, len(records), nbytes)
+            self._unspend(records, relay, nbytes)
             self._not_stored(exc)
             _answer(query, {"error": str(exc)}, error=True)
             _drop(query)
