@@ -342,3 +342,21 @@ def test_the_runs_postgresql_is_restarted_when_it_dies_and_a_failed_start_is_ret
     assert pg.starts == 2 and len(hooks.ods_outages) == 1 and out["gap_ms"] is not None and out["error"] is None
     assert run_problems({"ods": {"outages": [out]}, "telemetry": {"lost": 0}}) == [
         f"the run's PostgreSQL data store was killed by signal 9 at 3.50 s; restarted after {out['gap_ms']:.0f} ms"]
+
+
+def test_cpu_per_request_counts_a_shared_process_once_and_clips_to_the_window():
+    from scmr_mesh.bench.mesh import cpu_per_request
+
+    S = 10**9  # the sampler's times are unix ns
+    cpu = {"pgids": {"cloud0": 10, "leader0": 11, "router0": 12, "r1": 20, "r2": 20, "r3": 30},
+           "series": {"cloud0": [[0, 0.0], [10 * S, 2.0], [20 * S, 4.0]],
+                      "leader0": [[0, 0.0], [20 * S, 1.0]],
+                      "router0": [[5 * S, 0.0], [10 * S, 0.5]],  # stopped before the window
+                      "r1": [[0, 0.0], [20 * S, 8.0]], "r2": [[0, 0.0], [20 * S, 8.0]],  # one swarm process
+                      "r3": [[0, 0.0], [15 * S, 1.5], [30 * S, 3.0]],  # covers the window: clipped to it
+                      "r4": []}}
+    out = cpu_per_request(cpu, 10 * S, 20 * S, 500, cores=2)
+    assert out["cpu_s"]["robots"] == 5.0  # the swarm's 4 s once (not 8), r3's 1 s of the window
+    assert out["ms_per_request"] == {"cloud": 4.0, "leader": 1.0, "router": 0.0, "robots": 10.0, "total": 15.0}
+    assert out["window_s"] == 10.0 and out["host_share"] == 0.375
+    assert cpu_per_request(cpu, 10 * S, 20 * S, 0)["ms_per_request"]["total"] is None

@@ -24,6 +24,7 @@ from scmr_mesh.fleet.commands import _config_from_args
 from scmr_mesh.fleet.output import _ms, run_with_output
 from scmr_mesh.fleet.plan import parse_outage
 from scmr_mesh.fleet.run import default_run_dir
+from scmr_mesh.thesis.cpu import CpuSampler
 
 #: Issue 14's targets: failover median and failback max over the crash runs, and
 #: both (max) under two CPU hogs; the ToR targets of the 4-robot fleet.
@@ -119,6 +120,66 @@ def _run_entry(report: Mapping[str, Any]) -> dict[str, Any]:
             # the network's shape and what it costs per robot (peak RSS, CPU, open sockets)
             "shape": (report.get("hosts") or {}).get("shape"), "hosts": report.get("hosts"),
             "telemetry_lost": (report.get("telemetry") or {}).get("lost")}
+
+
+# ------------------------------------------------------------------ CPU per request
+#: Roles of a fleet's peers, by the name of their ready file (``RUN/ready/<peer>.ready``).
+CPU_ROLES = ("cloud", "leader", "router", "robots")
+
+
+def _role(peer: str) -> str:
+    for role in CPU_ROLES[:-1]:
+        if peer.startswith(role):
+            return role
+    return "robots"  # robot processes and swarms (a swarm's members share its process group)
+
+
+def cpu_per_request(cpu: Mapping[str, Any], t0_ns: int, t1_ns: int, requests: int,
+                    cores: int | None = None) -> dict[str, Any]:
+    """Where a fleet's CPU went, by role, per request sent in ``[t0_ns, t1_ns]`` (pure; issue 23 item 2).
+
+    ``cpu`` is :meth:`scmr_mesh.thesis.cpu.CpuSampler.to_json`: one CPU series per
+    peer, each the CPU seconds of the peer's process group (the peer and its
+    worker processes).  Peers that share a process group (the members of a
+    ``scmr swarm``) are counted once.  A series that does not cover the whole
+    window is counted over the part it covers (a peer started late or stopped
+    early).
+
+    Examples
+    --------
+    >>> cpu = {"pgids": {"cloud0": 10, "r1": 20, "r2": 20},
+    ...        "series": {"cloud0": [[0, 0.0], [10, 2.0]], "r1": [[0, 0.0], [10, 4.0]],
+    ...                   "r2": [[0, 0.0], [10, 4.0]]}}
+    >>> out = cpu_per_request(cpu, 0, 10, 1000, cores=2)
+    >>> out["cpu_s"], out["ms_per_request"]
+    ({'cloud': 2.0, 'leader': 0.0, 'router': 0.0, 'robots': 4.0, 'total': 6.0}, {'cloud': 2.0, 'leader': 0.0, 'router': 0.0, 'robots': 4.0, 'total': 6.0})
+    """
+    from scmr_mesh.thesis.cpu import cpu_between
+
+    seen: set = set()
+    cpu_s = dict.fromkeys(CPU_ROLES, 0.0)
+    series = cpu.get("series", {})
+    pgids = cpu.get("pgids", {})
+    for peer in sorted(series):
+        g = pgids.get(peer, peer)
+        if g in seen:
+            continue
+        seen.add(g)
+        s = series[peer]
+        if not s:
+            continue
+        a, b = max(t0_ns, s[0][0]), min(t1_ns, s[-1][0])
+        used = cpu_between(s, a, b) if b > a else None
+        cpu_s[_role(peer)] += used or 0.0
+    cpu_s["total"] = sum(cpu_s.values())
+    window_s = max(0.0, (t1_ns - t0_ns) / 1e9)
+    return {
+        "window_s": round(window_s, 3), "requests": requests,
+        "cpu_s": {k: round(v, 3) for k, v in cpu_s.items()},
+        "ms_per_request": {k: (round(v * 1e3 / requests, 3) if requests else None) for k, v in cpu_s.items()},
+        # the share of the host's cores the fleet used: near 1.0 the cores, not the mesh, are the limit
+        "host_share": (round(cpu_s["total"] / (window_s * cores), 3) if cores and window_s > 0 else None),
+    }
 
 
 # ------------------------------------------------------------------ capacity
@@ -328,12 +389,19 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         if getattr(args, "robots_per_process", None) is None and n > SWARM_ABOVE:
             # the load generator: a process per robot left a 2-core box's cloud no CPU (issue 23)
             cfg = dataclasses.replace(cfg, robots_per_process=SWARM_ABOVE)
-        rep = run_with_output(cfg)
-        runs.append(dict(_run_entry(rep), robots_per_process=cfg.robots_per_process))
+        with CpuSampler(cfg.run_dir / "ready") as sampler:
+            rep = run_with_output(cfg)
+        t0 = int(rep["t0_unix_ns"])
+        cpu = cpu_per_request(sampler.to_json(), t0, t0 + int(rep["duration_s"] * 1e9), rep["requests"],
+                              os.cpu_count())
+        runs.append(dict(_run_entry(rep), robots_per_process=cfg.robots_per_process, cpu=cpu))
         t, a = rep["tor_ms"], runs[-1]["tor_admitted_ms"]
         say(f"  {n} robots: {rep['requests']} requests, RoR {rep['ror']}, ToR p50 {_ms(t['p50'])} "
             f"p99 {_ms(t['p99'])} max {_ms(t['max'])} ms; admitted by cloud/leader p99 {_ms(a['p99'])} ms, "
             f"{a['busy_answers']} busy answers; hedged {runs[-1]['hedged']} ({runs[-1]['hedge_rate']})")
+        m = cpu["ms_per_request"]
+        say("  CPU ms per request: " + ", ".join(f"{k} {m[k]}" for k in (*CPU_ROLES, "total"))
+            + f"; the fleet used {cpu['host_share']} of the host's {os.cpu_count()} cores")
     crash = hogs = None
     if args.crash_robots > 0 and args.crash_runs > 0:
         say(f"bench mesh: {args.crash_runs} crash runs, {args.crash_robots} robots, cloud down "
@@ -392,6 +460,6 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
     return 0
 
 
-__all__ = ["CpuHogs", "MESH_TARGETS", "admitted_tor", "bench_targets", "cmd_bench_mesh", "crash_series",
+__all__ = ["CpuHogs", "MESH_TARGETS", "cpu_per_request", "admitted_tor", "bench_targets", "cmd_bench_mesh", "crash_series",
            "measure_capacity"]
 
