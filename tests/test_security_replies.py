@@ -45,7 +45,6 @@ def robot(tmp_path):
     ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r2", _reply(), "z1", "expected"),
     ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r1", _reply(served_by="aaa"), "z1", "served_by 'aaa'"),
     ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r1", _reply(tier="leader"), "z1", "tier 'leader'"),
-    ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r1", _reply(robot="r2"), "z1", "answers robot 'r2'"),
     ("cloud", "aaa", "scmr/drivable/cloud/aaa/r1", _reply(served_by="aaa"), "z3", "does not let 'aaa' serve"),
     ("cloud", "r2", "scmr/drivable/cloud/r2/r1", _reply(served_by="r2"), "z2", "does not let 'r2' serve the cloud"),
     ("peer", "leader0", "scmr/drivable/peer/leader0/r1", _reply(served_by="leader0", tier="peer"), "z2",
