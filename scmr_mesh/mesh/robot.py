@@ -419,7 +419,7 @@ class Robot:
         return None
 
     def _count_mismatch(self, att: dict, asked: dict, why: str) -> None:
-        """Count a reply of ``att``'s node that does not answer ``asked``; log the first of each node, then every 100th."""
+        """Count a reply of ``att``'s node that does not answer ``asked``; log its first, then every 100th."""
         where = f"{att['tier']}/{att['node']}"
         with self._mismatch_lock:
             n = self.mismatched[where] = self.mismatched.get(where, 0) + 1
