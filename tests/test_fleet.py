@@ -342,3 +342,25 @@ def test_the_runs_postgresql_is_restarted_when_it_dies_and_a_failed_start_is_ret
     assert pg.starts == 2 and len(hooks.ods_outages) == 1 and out["gap_ms"] is not None and out["error"] is None
     assert run_problems({"ods": {"outages": [out]}, "telemetry": {"lost": 0}}) == [
         f"the run's PostgreSQL data store was killed by signal 9 at 3.50 s; restarted after {out['gap_ms']:.0f} ms"]
+
+
+def test_mismatched_replies_are_in_the_report_the_console_and_fail_the_run():
+    """Issue 25 item 8: replies refused as not answering their request are counted by node; any fails the run."""
+    from scmr_mesh.fleet import check_fleet, fleet_problems
+
+    rep = _report()
+    rep["request_log"] = []
+    liar = {"tier": "cloud", "node": "cloud0", "outcome": "mismatched", "mismatched": 2, "message": "frame 1005"}
+    recs = [{"robot": "r1", "ok": True, "tier": "leader", "sent_unix_ns": T0, "received_unix_ns": T0 + 5_000_000,
+             "attempts": [liar, {"tier": "leader", "node": "L", "outcome": "ok"}]}]
+    rep.update({k: v for k, v in metrics.summarize(recs, robots=1).items() if k.startswith("mismatched")})
+    rep["per_robot"]["r1"]["mismatched"] = 2
+    rep["telemetry"] = _telemetry()
+    assert rep["mismatched"] == 2 and rep["mismatched_by_node"] == {"cloud/cloud0": 2}
+    validate_report(rep)
+    rep["problems"] = fleet_problems(rep)
+    assert rep["problems"] == ["2 replies did not answer the request they came for (robot, seq or frame digest "
+                               "not the request's: a replayed or wrong answer, never used): cloud/cloud0 2"]
+    assert "PROBLEM: 2 replies did not answer" in format_summary(rep)
+    with pytest.raises(MeshError, match="did not answer the request"):
+        check_fleet(rep, 0.0)
