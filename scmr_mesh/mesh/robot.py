@@ -924,7 +924,7 @@ class Robot:
         Returns
         -------
         dict
-            The robot's stats: requests, succeeded, by_tier, last_tor_ms, last_tier.
+            The robot's stats: requests, succeeded, by_tier, last_tor_ms, last_tier, mismatched.
         """
         stop = stop or threading.Event()
         # frame k due at t0 + k x period, from integers (a float-accumulated schedule sent a frame past the end)
