@@ -127,7 +127,8 @@ def test_a_lying_cloud_with_a_real_certificate_is_counted_and_never_used(tmp_pat
             [sys.executable, "-m", "scmr_mesh", "robot", "--id", "robot1", "--security",
              str(root / "peers" / "secure" / "mtls.toml"), "--credentials", str(creds),
              "--connect", f"tls/127.0.0.1:{port}", "--synthetic", "stub", "--count", "24", "--rate", "100",
-             "--no-local-fallback", "--deadline-ms", "2000", "--drain-s", "0", "--out", str(out), "--quiet"],
+             "--no-local-fallback", "--deadline-ms", "2000", "--wait-ms", "30000", "--drain-s", "0", "--out", str(out),
+             "--quiet"],
             capture_output=True, text=True, timeout=100, env={**os.environ, "PYTHONPATH": str(root)})
         del keep
     recs = [_json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
