@@ -645,7 +645,8 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
                 last[0] = now
                 s = robot.stats
                 print(f"robot {args.id}: {s['requests']} requests, {s['succeeded']} ok, by tier {s['by_tier']}, "
-                      f"last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}", file=sys.stderr, flush=True)
+                      + (f"{s['mismatched']} MISMATCHED replies (not used), " if s["mismatched"] else "")
+                      + f"last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}", file=sys.stderr, flush=True)
 
         stats = robot.run(frames, rate_hz=args.rate, count=args.count, duration_s=duration, stop=stop,
                           progress=progress)
