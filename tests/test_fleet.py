@@ -360,3 +360,25 @@ def test_cpu_per_request_counts_a_shared_process_once_and_clips_to_the_window():
     assert out["ms_per_request"] == {"cloud": 4.0, "leader": 1.0, "router": 0.0, "robots": 10.0, "total": 15.0}
     assert out["window_s"] == 10.0 and out["host_share"] == 0.375
     assert cpu_per_request(cpu, 10 * S, 20 * S, 0)["ms_per_request"]["total"] is None
+
+
+def test_mismatched_replies_are_in_the_report_the_console_and_fail_the_run():
+    """Issue 25 item 8: replies refused as not answering their request are counted by node; any fails the run."""
+    from scmr_mesh.fleet import check_fleet, fleet_problems
+
+    rep = _report()
+    rep["request_log"] = []
+    liar = {"tier": "cloud", "node": "cloud0", "outcome": "mismatched", "mismatched": 2, "message": "frame 1005"}
+    recs = [{"robot": "r1", "ok": True, "tier": "leader", "sent_unix_ns": T0, "received_unix_ns": T0 + 5_000_000,
+             "attempts": [liar, {"tier": "leader", "node": "L", "outcome": "ok"}]}]
+    rep.update({k: v for k, v in metrics.summarize(recs, robots=1).items() if k.startswith("mismatched")})
+    rep["per_robot"]["r1"]["mismatched"] = 2
+    rep["telemetry"] = _telemetry()
+    assert rep["mismatched"] == 2 and rep["mismatched_by_node"] == {"cloud/cloud0": 2}
+    validate_report(rep)
+    rep["problems"] = fleet_problems(rep)
+    assert rep["problems"] == ["2 replies did not answer the request they came for (robot, seq or frame digest "
+                               "not the request's: a replayed or wrong answer, never used): cloud/cloud0 2"]
+    assert "PROBLEM: 2 replies did not answer" in format_summary(rep)
+    with pytest.raises(MeshError, match="did not answer the request"):
+        check_fleet(rep, 0.0)

@@ -11,8 +11,8 @@ from scmr_mesh.vocab import Tier
 
 
 def test_outcomes_keep_the_strings_records_hold():
-    assert [o.value for o in Outcome] == ["pending", "ok", "bad_reply", "timeout", "no_reply", "unreachable",
-                                          "superseded", "error"]
+    assert [o.value for o in Outcome] == ["pending", "ok", "bad_reply", "mismatched", "timeout", "no_reply",
+                                          "unreachable", "superseded", "error"]
     rec = {"attempts": [{"tier": Tier.CLOUD, "outcome": Outcome.OK}, {"tier": Tier.LEADER, "outcome": BUSY}]}
     assert json.loads(json.dumps(rec)) == {"attempts": [{"tier": "cloud", "outcome": "ok"},
                                                         {"tier": "leader", "outcome": "error:busy"}]}

@@ -167,7 +167,8 @@ def test_a_reply_to_another_frame_is_refused(tmp_path):
     try:
         rec = robot.request(5, FRAME)
         assert rec["tier"] == "leader"
-        assert rec["attempts"][0]["outcome"] == "bad_reply" and "frame 4" in rec["attempts"][0]["message"]
+        assert rec["attempts"][0]["outcome"] == "mismatched" and "frame 4" in rec["attempts"][0]["message"]
+        assert rec["mismatched"] == 1 and robot.mismatched == {"cloud/c1": 1}
     finally:
         robot.close()
 

@@ -45,7 +45,6 @@ def robot(tmp_path):
     ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r2", _reply(), "z1", "expected"),
     ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r1", _reply(served_by="aaa"), "z1", "served_by 'aaa'"),
     ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r1", _reply(tier="leader"), "z1", "tier 'leader'"),
-    ("cloud", "cloud0", "scmr/drivable/cloud/cloud0/r1", _reply(robot="r2"), "z1", "answers robot 'r2'"),
     ("cloud", "aaa", "scmr/drivable/cloud/aaa/r1", _reply(served_by="aaa"), "z3", "does not let 'aaa' serve"),
     ("cloud", "r2", "scmr/drivable/cloud/r2/r1", _reply(served_by="r2"), "z2", "does not let 'r2' serve the cloud"),
     ("peer", "leader0", "scmr/drivable/peer/leader0/r1", _reply(served_by="leader0", tier="peer"), "z2",
@@ -78,3 +77,66 @@ def test_a_candidacy_counts_only_on_its_own_key(robot):
     assert "leader0" not in robot.view._cands
     robot.view.on_candidate(NS(key_expr="scmr/r2r/candidate/leader0", payload=NS(to_bytes=lambda: wire.encode(forged))))
     assert robot.view._cands["leader0"].term == 99
+
+
+@pytest.mark.timeout(120)
+def test_a_lying_cloud_with_a_real_certificate_is_counted_and_never_used(tmp_path):
+    """Issue 25 item 8, with real processes: ``cloud0`` (its own certificate, the fleet's rules) answers
+    a real ``scmr robot``'s frames with an earlier reply for the same robot and seq but another frame
+    (a replay from the robot's last run) and with replies whose seq is off by 1,000.  The robot takes
+    none of them as a mask, counts all 24 against cloud0 and exits 1.  On the old code the 12 replays
+    were taken (the reply was matched on robot and seq only) and the seq+1000 replies were plain
+    ``bad_reply`` attempts, counted nowhere."""
+    import json as _json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import free_port
+
+    from scmr_mesh import keys
+    from scmr_mesh.mesh.security import secure_config
+    from scmr_mesh.security.credentials import create_credentials
+    from scmr_mesh.security.profile import SecurityProfile
+
+    root = Path(__file__).resolve().parents[1]
+    creds = tmp_path / "certs"
+    create_credentials(creds, "cloud0,robot1")
+    port = free_port()
+    conf = secure_config(SecurityProfile(kind="tls", credentials=creds, acl=True), identity="cloud0",
+                         listen=[f"tcp/127.0.0.1:{port}"])
+    asked: list[int] = []
+
+    def lie(q) -> None:
+        req = wire.decode(q.payload.to_bytes(), kind="request")
+        asked.append(req["seq"])
+        if req["seq"] % 2 == 0:  # the reply this robot got for its frame `seq` in an earlier run
+            old = wire.make_request(req["robot"], req["seq"], b"last run's frame " + bytes([req["seq"]]))
+        else:
+            old = dict(req, seq=req["seq"] + 1000)
+        rep = wire.make_reply(old, mask_png=b"\x89PNG\r\n\x1a\n-stale-", shape=(225, 300), threshold=1, timings_ms={},
+                              served_by="cloud0", tier="cloud", server_ms=0.1)
+        q.reply(str(q.key_expr), wire.encode(rep))
+
+    with zenoh.open(conf) as s:
+        keep = [s.liveliness().declare_token(keys.alive("cloud", "cloud0")),
+                s.declare_queryable(keys.drivable_request("cloud", "cloud0", "robot1"), lie, complete=True)]
+        out = tmp_path / "robot1"
+        proc = subprocess.run(
+            [sys.executable, "-m", "scmr_mesh", "robot", "--id", "robot1", "--security",
+             str(root / "peers" / "secure" / "mtls.toml"), "--credentials", str(creds),
+             "--connect", f"tls/127.0.0.1:{port}", "--synthetic", "stub", "--count", "24", "--rate", "100",
+             "--no-local-fallback", "--deadline-ms", "2000", "--wait-ms", "30000", "--drain-s", "0", "--out", str(out),
+             "--quiet"],
+            capture_output=True, text=True, timeout=100, env={**os.environ, "PYTHONPATH": str(root)})
+        del keep
+    recs = [_json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
+    assert sorted(asked) == list(range(24)), (asked, proc.stderr[-2000:])
+    assert [r["ok"] for r in recs] == [False] * 24, proc.stderr[-2000:]
+    assert not list((out / "inbox").glob("*.mask.png"))  # no stale map was driven on
+    assert all([a["outcome"] for a in r["attempts"]] == ["mismatched"] and r["mismatched"] == 1 for r in recs)
+    assert "another frame" in recs[0]["attempts"][0]["message"] and "frame 1001" in recs[1]["attempts"][0]["message"]
+    summary = _json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["mismatched"] == 24 and summary["mismatched_by_node"] == {"cloud/cloud0": 24}
+    assert proc.returncode == 1 and "24 replies did not answer the request they came for" in proc.stderr

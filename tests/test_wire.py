@@ -215,3 +215,43 @@ def test_reply_with_confidence_out_of_range_is_refused():
         wire.decode(wire.encode({**rep, "confidence": 1.5}), kind="reply")
     with pytest.raises(wire.WireProblem):
         wire.decode(wire.encode({**rep, "abstained": 3}), kind="reply")
+
+
+# ----------------------------------------------- a reply answers its request (issue 25 item 8)
+def _answer(req, **over):
+    rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n", shape=(225, 300), threshold=7, timings_ms={},
+                          served_by="c1", tier="cloud", server_ms=1.0)
+    rep.update(over)
+    return wire.decode(wire.encode(rep), kind="reply")
+
+
+def test_a_reply_echoes_the_requests_robot_seq_and_frame_digest():
+    req = wire.make_request("r1", 5, b"frame five", encoding="jpeg")
+    assert req["digest"] == wire.frame_digest(b"frame five") and len(req["digest"]) == wire.DIGEST_BYTES
+    wire.decode(wire.encode(req), kind="request")
+    rep = _answer(req)
+    assert (rep["robot"], rep["seq"], rep["digest"]) == ("r1", 5, req["digest"])
+    assert wire.reply_mismatch(req, rep) is None
+    err = wire.make_error("busy", "later", served_by="c1", tier="cloud", request=req)
+    assert wire.decode(wire.encode(err), kind="error")["digest"] == req["digest"]
+
+
+@pytest.mark.parametrize("why,make", [
+    ("frame 1005", lambda req: _answer(wire.make_request("r1", 1005, b"frame five"))),  # seq off by 1,000
+    ("another frame", lambda req: _answer(wire.make_request("r1", 5, b"last run's frame five"))),  # a replay
+    ("robot 'r2'", lambda req: _answer(wire.make_request("r2", 5, b"frame five"))),
+    ("no frame digest", lambda req: _answer({k: v for k, v in req.items() if k != "digest"})),  # an old server
+    ("another frame", lambda req: _answer(req, digest=b"\0" * wire.DIGEST_BYTES)),
+])
+def test_a_reply_to_anything_else_does_not_match(why, make):
+    req = wire.make_request("r1", 5, b"frame five", encoding="jpeg")
+    got = wire.reply_mismatch(req, make(req))
+    assert got is not None and why in got, got
+
+
+def test_a_digest_of_the_wrong_size_is_refused():
+    req = wire.make_request("r1", 5, b"x")
+    with pytest.raises(wire.WireProblem, match="digest"):
+        wire.decode(wire.encode({**req, "digest": b"\1" * 15}), kind="request")
+    with pytest.raises(wire.WireProblem, match="digest"):
+        wire.decode(wire.encode({**_answer(req), "digest": b"\1" * 17}), kind="reply")

@@ -28,6 +28,7 @@ class Outcome(str, Enum):
     PENDING = "pending"          # sent, nothing yet
     OK = "ok"                    # a good reply: the winner
     BAD_REPLY = "bad_reply"      # a reply that did not decode or could not be trusted
+    MISMATCHED = "mismatched"    # the node's reply is not for this request (robot, seq, frame digest): a replay
     TIMEOUT = "timeout"          # no reply within the deadline
     NO_REPLY = "no_reply"        # the query ended without a reply
     UNREACHABLE = "unreachable"  # no queryable matched: not sent

@@ -94,7 +94,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "falling back to the leader and then to local execution, by the live view of "
                     "liveliness tokens.  Writes OUT/outbox, OUT/inbox/<seq>.mask.png and "
                     "OUT/records.jsonl (one JSON object per request), and prints a JSON summary "
-                    "on stdout at the end.",
+                    "on stdout at the end.  A reply is used only when it echoes the request's robot, "
+                    "seq and frame digest; any other is counted (mismatched) and never used.  Exits 1 "
+                    "when telemetry was lost or a reply was mismatched.",
         epilog=_PEER_EPILOG)
     _robot_command_args(p)
     p.set_defaults(func=_cmd_robot)
@@ -112,7 +114,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "(`ros2 node list` shows scmr_ros_ID).  Frames arriving faster than they are served are "
                     "dropped oldest-first and counted; samples that are not an 8-bit image are counted by "
                     "reason and logged once per topic.  Prints a JSON summary on stdout at the end; exits 1 "
-                    "when samples were rejected, frames got no mask or telemetry was lost.",
+                    "when samples were rejected, frames got no mask, telemetry was lost or a reply did not "
+                    "answer its request (mismatched).",
         epilog=_PEER_EPILOG)
     p.add_argument("--id", required=True, help="robot id (A-Z a-z 0-9 _ . -)")
     r = p.add_argument_group("ROS 2 side")
@@ -208,7 +211,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Run the robots of --plan in this one process.  Each member is a whole robot "
                     "(the arguments of one `scmr robot`): its own zenoh session and identity, frames, "
                     "records, telemetry and ready file.  Writes --ready-file once every member is "
-                    "ready; exits 1 when a member failed or lost telemetry.  Members cannot be "
+                    "ready; exits 1 when a member failed, lost telemetry or got a mismatched reply.  Members cannot be "
                     "leader-capable.",
         epilog="PLAN is JSON: {\"robots\": [[\"--id\", \"r1\", \"--synthetic\", \"road\", \"--out\", "
                "\"run/r1\", ...], ...]}, each entry one robot's `scmr robot` arguments.  "
@@ -642,7 +645,8 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
                 last[0] = now
                 s = robot.stats
                 print(f"robot {args.id}: {s['requests']} requests, {s['succeeded']} ok, by tier {s['by_tier']}, "
-                      f"last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}", file=sys.stderr, flush=True)
+                      + (f"{s['mismatched']} MISMATCHED replies (not used), " if s["mismatched"] else "")
+                      + f"last ToR {rec['tor_ms']:.1f} ms via {rec['tier']}", file=sys.stderr, flush=True)
 
         stats = robot.run(frames, rate_hz=args.rate, count=args.count, duration_s=duration, stop=stop,
                           progress=progress)
@@ -661,9 +665,11 @@ def _robot_body(args, session, stop: threading.Event, r2r=None, ready=None) -> i
         extra["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "dropped", "lost")}
     if robot.telemetry_errors:
         extra["telemetry_errors"] = robot.telemetry_errors
+    if robot.mismatched:
+        extra["mismatched_by_node"] = dict(robot.mismatched)
     emit_json_line({"robot": args.id, **stats, **extra})
     # raised by the command once the session is closed, so it is the last line on stderr
-    args._problem = _robot_problem(args.id, telemetry, robot.telemetry_errors)
+    args._problem = _robot_problem(args.id, telemetry, robot.telemetry_errors, robot.mismatched)
     return 0
 
 
@@ -768,13 +774,15 @@ def _cmd_ros(args) -> int:
         clear_ready(args.ready_file)
         stop.restore()
     summary = {"robot": args.id, **robot.stats, "ros": stats.as_dict()}
+    if robot.mismatched:
+        summary["mismatched_by_node"] = dict(robot.mismatched)
     if recorder is not None:
         summary["mcap"] = {"path": str(recorder.path), "messages": recorder.messages}
     if telemetry is not None:
         summary["telemetry"] = {k: telemetry[k] for k in ("sent", "queued", "refused", "lost")}
     emit_json_line(summary)
     problems = []
-    lost = _robot_problem(args.id, telemetry, robot.telemetry_errors)
+    lost = _robot_problem(args.id, telemetry, robot.telemetry_errors, robot.mismatched)
     if lost:
         problems.append(lost.split(": ", 1)[1])
     if stats.rejected:
@@ -854,15 +862,22 @@ def emit_json_line(obj, stream=None) -> None:
 
 
 def _raise_problem(args) -> None:
-    """Exit 1 with one line when the robot's telemetry was lost (see :func:`_robot_problem`)."""
+    """Exit 1 with one line when the robot's telemetry was lost or a reply was mismatched (:func:`_robot_problem`)."""
     problem = getattr(args, "_problem", None)
     if problem:
         raise MeshError(problem)
 
 
-def _robot_problem(rid: str, telemetry: dict | None, errors: int) -> str | None:
-    """What makes a robot exit 1: telemetry lost or not produced (None when nothing was)."""
+def _robot_problem(rid: str, telemetry: dict | None, errors: int,
+                   mismatched: dict[str, int] | None = None) -> str | None:
+    """What makes a robot exit 1: telemetry lost or not produced, replies that did not answer
+    the request they came for (``Robot.mismatched``: a lying or broken server); None when none."""
     problems = []
+    if mismatched:
+        n = sum(mismatched.values())
+        problems.append(f"{n} repl{'y' if n == 1 else 'ies'} did not answer the request they came for (robot, seq "
+                        "or frame digest not the request's; never used): "
+                        + ", ".join(f"{k} {v}" for k, v in sorted(mismatched.items())))
     if telemetry is not None and telemetry["lost"]:
         refused = ",".join(telemetry["refused_seqs"])
         mem = telemetry.get("memory") or {}

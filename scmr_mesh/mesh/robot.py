@@ -50,7 +50,9 @@ Output (``--out DIR``)
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
   (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode, or a hedged copy answered first),
-  ``bad_reply``.
+  ``bad_reply``, ``mismatched`` (the node's reply did not echo this request's robot, seq and frame digest:
+  a replayed or wrong answer, never used; the attempt's ``mismatched`` counts such replies, and the record's
+  ``mismatched`` sums them).
 
 Hooks
 -----
@@ -112,6 +114,8 @@ class _Trip:
     winner: Reply | None = None
     hedged: bool = False     # a second copy went to another tier (at most one per request)
     hedge_won: bool = False  # and it answered first
+    #: what a reply must echo to answer this request: robot, seq, frame digest (wire.asked_of)
+    asked: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -196,7 +200,11 @@ class Robot:
         self._local_fn = None
         self._local_ok: bool | None = None
         self.stats = {"requests": 0, "succeeded": 0, "by_tier": {"cloud": 0, "leader": 0, "peer": 0, "local": 0},
-                      "last_tor_ms": None, "last_tier": None}
+                      "last_tor_ms": None, "last_tier": None, "mismatched": 0}
+        #: replies refused because they did not answer the request they came for (robot, seq, frame
+        #: digest: wire.reply_mismatch), by "tier/node" of the node that sent them
+        self.mismatched: dict[str, int] = {}
+        self._mismatch_lock = threading.Lock()
         self._t0 = time.monotonic()
         self._last_seq = 0
         self._health = "ok"
@@ -366,13 +374,16 @@ class Robot:
                 log.warning("local warm-up failed: %s", exc)
                 self._local_ok = False
 
-    def _judge(self, att: dict, reply, seq: int | None = None) -> Reply | None:
+    def _judge(self, att: dict, reply, asked: dict) -> Reply | None:
         """Set ``att["outcome"]`` from one zenoh reply; return the :class:`Reply` if it is good.
 
         A good reply came on this robot's own request key of the node it was sent to,
-        names that node in ``served_by`` and that tier, answers this robot, comes from a
-        node the fleet's policy lets serve the tier and, on a direct TLS link, from the
-        identity (certificate CN) of that node.
+        names that node in ``served_by`` and that tier, comes from a node the fleet's
+        policy lets serve the tier and, on a direct TLS link, from the identity
+        (certificate CN) of that node (else ``bad_reply``); and it answers the request
+        ``asked``: its robot, seq and frame digest are the request's
+        (:func:`scmr_mesh.wire.reply_mismatch`; else ``mismatched``, counted per node in
+        :attr:`mismatched` and in the attempt, and never used).
         """
         if reply.ok is not None:
             data = reply.ok.payload.to_bytes()
@@ -382,11 +393,18 @@ class Robot:
                 att["outcome"] = Outcome.BAD_REPLY
                 log.warning("bad reply from %s: %s", att["node"], exc)
                 return None
-            problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply, seq)
+            problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply)
             if problem:
                 att["outcome"] = Outcome.BAD_REPLY
                 att["message"] = problem[:200]
                 log.warning("robot %s: refused a reply from %s/%s: %s", self.id, att["tier"], att["node"], problem)
+                return None
+            why = wire.reply_mismatch(asked, msg)
+            if why:
+                att["outcome"] = Outcome.MISMATCHED
+                att["mismatched"] = att.get("mismatched", 0) + 1
+                att["message"] = why[:200]
+                self._count_mismatch(att, asked, why)
                 return None
             att["outcome"] = Outcome.OK
             return Reply(att["tier"], att["node"], msg, len(data))
@@ -400,22 +418,28 @@ class Robot:
             att["outcome"] = Outcome.TIMEOUT if text == "Timeout" else error_outcome(text)
         return None
 
-    def _reply_problem(self, att: dict, key: str, msg: dict, reply, seq: int | None = None) -> str | None:
-        """Why a decoded reply cannot be trusted (None: it can); see :meth:`_judge`.
+    def _count_mismatch(self, att: dict, asked: dict, why: str) -> None:
+        """Count a reply of ``att``'s node that does not answer ``asked``; log its first, then every 100th."""
+        where = f"{att['tier']}/{att['node']}"
+        with self._mismatch_lock:
+            n = self.mismatched[where] = self.mismatched.get(where, 0) + 1
+        if n == 1 or n % 100 == 0:
+            log.error("robot %s: %s answered request %s with a reply to another request (%s); not used, "
+                      "%d such repl%s from it so far", self.id, where, asked.get("seq"), why, n,
+                      "y" if n == 1 else "ies")
 
-        With ``seq``, a reply to another frame (a late duplicate of an earlier,
-        hedged request) is refused: it is never taken for this frame's mask.
+    def _reply_problem(self, att: dict, key: str, msg: dict, reply) -> str | None:
+        """Why a decoded reply cannot be trusted as the answer of ``att``'s node (None: it can); see :meth:`_judge`.
+
+        Whether it answers this request (robot, seq, frame digest) is
+        :func:`scmr_mesh.wire.reply_mismatch`'s question, asked after this one.
         """
         tier, node = att["tier"], att["node"]
-        if seq is not None and msg["seq"] != seq:
-            return f"reply answers frame {msg['seq']}, this request is frame {seq}"
         expected = keys.drivable_request(tier, node, self.id)
         if key != expected:
             return f"reply came on {key!r}, expected {expected!r}"
         if msg["served_by"] != node or msg["tier"] != tier:
             return f"reply on {expected!r} says served_by {msg['served_by']!r} tier {msg['tier']!r}"
-        if msg["robot"] != self.id:
-            return f"reply answers robot {msg['robot']!r}"
         if self.view.trust is not None and not self.view.trust(tier, node):
             return f"the fleet's policy does not let {node!r} serve the {tier} tier"
         who = self._link_identity(reply)
@@ -435,7 +459,7 @@ class Robot:
         return None
 
     def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list,
-              seq: int | None = None) -> Reply | None:
+              asked: dict | None = None) -> Reply | None:
         """Send ``payload`` to every target at once; return the first good reply.
 
         Returns the winning :class:`Reply` or None.  Appends one
@@ -456,7 +480,8 @@ class Robot:
             sendable.append((att, q))
         if len(sendable) == 1:
             att, q = sendable[0]
-            return self._tier_send(att, q, payload, seq)
+            return self._tier_send(att, q, payload, asked)
+        asked = asked or _asked_of(payload)
         results: queue.Queue = queue.Queue()
         live = []
         for att, q in sendable:
@@ -491,7 +516,7 @@ class Robot:
                 if att["outcome"] == Outcome.PENDING:
                     att["outcome"] = Outcome.NO_REPLY
                 continue
-            winner = self._judge(att, reply, seq)
+            winner = self._judge(att, reply, asked)
         for att, token in live:
             if att["outcome"] == Outcome.PENDING:
                 att["outcome"] = Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT
@@ -511,7 +536,7 @@ class Robot:
             ex = self._tier_threads[tier] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}")
         return ex
 
-    def _start(self, att: dict, q, payload: bytes, seq: int | None) -> _Sent:
+    def _start(self, att: dict, q, payload: bytes, asked: dict | None) -> _Sent:
         """Send one query on its tier's own thread (:meth:`_collect`); the outcome is read later.
 
         Cloud and leader queries never share a thread: a send held up by one
@@ -522,7 +547,8 @@ class Robot:
         import zenoh
 
         token = zenoh.CancellationToken()
-        fut = self._tier_executor(att["tier"]).submit(self._collect, dict(att), q, payload, token, seq)
+        asked = asked or _asked_of(payload)
+        fut = self._tier_executor(att["tier"]).submit(self._collect, dict(att), q, payload, token, asked)
         return _Sent(att, fut, token)
 
     def _finish_sent(self, sent: _Sent, *, wait_s: float) -> Reply | None:
@@ -544,12 +570,13 @@ class Robot:
             self._answer_times[str(att["tier"])].add(answer_ms)
         return winner
 
-    def _tier_send(self, att: dict, q, payload: bytes, seq: int | None = None) -> Reply | None:
+    def _tier_send(self, att: dict, q, payload: bytes, asked: dict | None = None) -> Reply | None:
         """Send one query on its tier's thread and wait (deadline + 0.25 s) for its outcome."""
-        return self._finish_sent(self._start(att, q, payload, seq), wait_s=self.options.deadline_ms / 1e3 + 0.25)
+        return self._finish_sent(self._start(att, q, payload, asked), wait_s=self.options.deadline_ms / 1e3 + 0.25)
 
     def _collect(self, att: dict, q, payload: bytes, token=None,
-                 seq: int | None = None) -> tuple[dict, Reply | None, float | None]:
+                 asked: dict | None = None) -> tuple[dict, Reply | None, float | None]:
+        asked = asked or _asked_of(payload)
         winner = None
         answer_ms = None
         t0 = time.perf_counter()
@@ -557,7 +584,9 @@ class Robot:
             kw = {} if token is None else {"cancellation_token": token}
             # ends at the querier timeout = deadline, or when the token is cancelled (a hedge won)
             for reply in q.get(payload=payload, encoding=_msgpack(), **kw):
-                w = self._judge(att, reply, seq)
+                if winner is not None:
+                    continue  # the answer is in; later replies change nothing
+                w = self._judge(att, reply, asked)
                 if w is not None and winner is None:
                     winner, answer_ms = w, (time.perf_counter() - t0) * 1e3
         except Exception as exc:
@@ -618,7 +647,7 @@ class Robot:
             att["outcome"] = Outcome.UNREACHABLE
             return None
         trip.bytes_up += len(payload)
-        primary = self._start(att, q, payload, seq)
+        primary = self._start(att, q, payload, trip.asked)
         t_sent = time.monotonic()
         limit = t_sent + self.options.deadline_ms / 1e3 + 0.25
         delay = None if trip.hedged else self.hedge_delay_ms(tier, (time.perf_counter() - t_start) * 1e3)
@@ -641,7 +670,7 @@ class Robot:
         trip.hedged = True
         log.info("robot %s: %s/%s silent for %.0f ms on request %s: hedged to %s/%s", self.id, tier, node,
                  delay, seq, htier, hnode)
-        hedge = self._start(hatt, hq, payload, seq)
+        hedge = self._start(hatt, hq, payload, trip.asked)
         live = {primary.fut: primary, hedge.fut: hedge}
         winner = None
         while live and winner is None:
@@ -673,7 +702,8 @@ class Robot:
         outbox_file = self._to_outbox(seq, frame)
         sent_ns = time.time_ns()
         t_start = time.perf_counter()
-        trip = self._route(seq, frame, self._request_payload(seq, frame, sent_ns), t_start)
+        req = self._request_message(seq, frame, sent_ns)
+        trip = self._route(seq, frame, wire.encode(req), t_start, asked=wire.asked_of(req))
         tor_ms = (time.perf_counter() - t_start) * 1e3
         record = self._make_record(seq, frame, trip, sent_ns, time.time_ns(), tor_ms)
         self._deliver(seq, frame, record, trip.winner, outbox_file)
@@ -688,16 +718,25 @@ class Robot:
             log.warning("outbox write failed: %s", exc)
         return outbox_file
 
-    def _request_payload(self, seq: int, frame: Frame, sent_ns: int) -> bytes:
+    def _request_message(self, seq: int, frame: Frame, sent_ns: int) -> dict:
+        """The request of frame ``seq`` (with its frame digest, :func:`scmr_mesh.wire.frame_digest`)."""
         opts = self.options
-        return wire.encode(wire.make_request(self.id, seq, frame.data, encoding=frame.encoding, shape=frame.shape,
-                                             priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns,
-                                             deadline_ms=opts.deadline_ms))
+        return wire.make_request(self.id, seq, frame.data, encoding=frame.encoding, shape=frame.shape,
+                                 priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns,
+                                 deadline_ms=opts.deadline_ms)
 
-    def _route(self, seq: int, frame: Frame, payload: bytes, t_start: float | None = None) -> _Trip:
-        """Try the placement's tiers in order (all at once with ``redundant``) until one answers."""
+    def _request_payload(self, seq: int, frame: Frame, sent_ns: int) -> bytes:
+        return wire.encode(self._request_message(seq, frame, sent_ns))
+
+    def _route(self, seq: int, frame: Frame, payload: bytes, t_start: float | None = None,
+               asked: dict | None = None) -> _Trip:
+        """Try the placement's tiers in order (all at once with ``redundant``) until one answers.
+
+        Only a reply that echoes ``asked`` (robot, seq, frame digest; read from ``payload``
+        when not given) is taken; any other goes on as a failed attempt would.
+        """
         opts = self.options
-        trip = _Trip()
+        trip = _Trip(asked=asked or _asked_of(payload))
         view = self.view.snapshot(local=self._local_available())
         info = FrameInfo(self.id, seq, len(frame.data), frame.encoding)
         plan = [t for t in self.placement(view, info) if t in keys.PLACEMENTS]
@@ -705,7 +744,7 @@ class Robot:
             targets = [(t, view.nodes(t)[0]) for t in (Tier.CLOUD, Tier.LEADER) if t in plan and view.nodes(t)]
             if targets:
                 trip.bytes_up += len(payload) * len(targets)
-                trip.winner = self._send(targets, payload, trip.attempts, seq)
+                trip.winner = self._send(targets, payload, trip.attempts, trip.asked)
             plan = [t for t in plan if t == Tier.LOCAL] if trip.winner is None else []
         t_end = time.monotonic() + opts.deadline_ms / 1e3
         t_start = time.perf_counter() if t_start is None else t_start
@@ -714,7 +753,7 @@ class Robot:
         def attempt(tier: str, node: str) -> Reply | None:
             trip.tried.add((tier, node))
             before = len(trip.attempts)
-            w = self._send([(tier, node)], payload, trip.attempts, seq)
+            w = self._send([(tier, node)], payload, trip.attempts, trip.asked)
             if trip.attempts[before]["outcome"] != Outcome.UNREACHABLE:
                 trip.bytes_up += len(payload)
             if w is None and trip.attempts[before]["outcome"] == BUSY:
@@ -760,6 +799,7 @@ class Robot:
             else None,
             "confidence": None if w is None else w.body.get("confidence"),
             "abstained": None if w is None else w.body.get("abstained"),
+            "mismatched": sum(int(a.get("mismatched", 0)) for a in trip.attempts),
         }
 
     def _deliver(self, seq: int, frame: Frame, record: dict, winner: Reply | None, outbox_file: Path) -> None:
@@ -835,7 +875,8 @@ class Robot:
                     return w
             # wait only while a lead is passing on: no leader alive, or the leader just failed to answer
             lead_lost = not fresh.leader or any(
-                a["tier"] == Tier.LEADER and a["outcome"] in (Outcome.NO_REPLY, Outcome.UNREACHABLE, Outcome.TIMEOUT)
+                a["tier"] == Tier.LEADER and a["outcome"] in (Outcome.NO_REPLY, Outcome.UNREACHABLE, Outcome.TIMEOUT,
+                                                              Outcome.MISMATCHED)
                 for a in attempts)
             # a node tried just now that answered busy: run locally at once; one that vanished
             # (a peer turning leader drops its peer queryable: no_reply) does not end the wait
@@ -867,6 +908,7 @@ class Robot:
         self._last_seq = record["seq"]
         s = self.stats
         s["requests"] += 1
+        s["mismatched"] += record["mismatched"]
         if record["ok"]:
             s["succeeded"] += 1
             s["by_tier"][record["tier"]] += 1
@@ -882,7 +924,7 @@ class Robot:
         Returns
         -------
         dict
-            The robot's stats: requests, succeeded, by_tier, last_tor_ms, last_tier.
+            The robot's stats: requests, succeeded, by_tier, last_tor_ms, last_tier, mismatched.
         """
         stop = stop or threading.Event()
         # frame k due at t0 + k x period, from integers (a float-accumulated schedule sent a frame past the end)
@@ -904,6 +946,17 @@ class Robot:
             if progress is not None:
                 progress(rec)
         return dict(self.stats)
+
+
+def _asked_of(payload: bytes) -> dict:
+    """What a reply must echo of the encoded request ``payload`` (:func:`scmr_mesh.wire.asked_of`)."""
+    import msgpack
+
+    try:
+        req = msgpack.unpackb(payload, raw=False)
+    except Exception:
+        req = None
+    return wire.asked_of(req if isinstance(req, dict) else {})
 
 
 def _msgpack():

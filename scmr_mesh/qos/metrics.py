@@ -53,6 +53,11 @@ Hedges (issue 24)
     delay); ``hedge_won`` when that copy's answer was the one used.  The
     *duplicate* of a hedged request is the copy whose answer was not used (the
     hedge's when neither answered), counted on the tier it was sent to.
+Mismatched replies (issue 25 item 8)
+    Replies a robot refused because they did not echo the robot, seq and frame
+    digest of the request they came for (a replayed or wrong answer): the
+    ``mismatched`` count of each attempt, summed, and by ``tier/node`` of the
+    node that sent them.  Any is a lying or broken server: the run's problems.
 Failback gap (per fault with an end)
     From the restore time (``end_unix_ns``) to the first answer the restored
     tier gives again (the earliest ``received`` of a request it served);
@@ -70,6 +75,7 @@ __all__ = [
     "failback_gap_ms",
     "failover_gaps_ms",
     "hedge_counts",
+    "mismatch_counts",
     "largest_gap",
     "percentile",
     "ror",
@@ -326,8 +332,26 @@ def hedge_counts(records: Iterable[Record]) -> dict[str, Any]:
             "duplicates_by_tier": dict(sorted(dup.items()))}
 
 
+def mismatch_counts(records: Iterable[Record]) -> dict[str, int]:
+    """Mismatched replies of ``records`` by ``tier/node`` of the node that sent them (module docstring).
+
+    >>> mismatch_counts([{"attempts": [{"tier": "cloud", "node": "c0", "outcome": "mismatched", "mismatched": 2},
+    ...                                {"tier": "leader", "node": "L", "outcome": "ok"}]}])
+    {'cloud/c0': 2}
+    """
+    out: dict[str, int] = {}
+    for r in records:
+        for a in r.get("attempts") or []:
+            n = int(a.get("mismatched") or 0)
+            if n:
+                k = f"{a.get('tier')}/{a.get('node')}"
+                out[k] = out.get(k, 0) + n
+    return dict(sorted(out.items()))
+
+
 def _group_summary(recs: list[Record]) -> dict[str, Any]:
     h = hedge_counts(recs)
+    m = mismatch_counts(recs)
     return {
         "requests": len(recs),
         "succeeded": sum(_ok(r) for r in recs),
@@ -336,6 +360,7 @@ def _group_summary(recs: list[Record]) -> dict[str, Any]:
         "by_tier": tier_counts(recs),
         "hedged": h["hedged"],
         "hedge_won": h["hedge_won"],
+        "mismatched": sum(m.values()),
     }
 
 
@@ -359,7 +384,7 @@ def summarize(
     -------
     dict
         ``robots, requests, succeeded, ror, tor_ms{p50,p90,p99,max,mean},
-        by_tier{cloud,leader,local,failed}, hedged, hedge_won,
+        by_tier{cloud,leader,local,failed}, hedged, hedge_won, mismatched, mismatched_by_node,
         hedges{hedged,hedge_won,hedge_rate,duplicates_by_tier}, per_robot{id: {...}},
         per_tier{tier: tor_ms}, failover_gaps_ms[...], failback_gaps_ms[...],
         faults[...]`` where each fault gains ``failover_gap_ms``,
@@ -377,6 +402,7 @@ def summarize(
         **_group_summary(recs),
     }
     out["hedges"] = hedge_counts(recs)
+    out["mismatched_by_node"] = mismatch_counts(recs)
     out["per_robot"] = {k: _group_summary(v) for k, v in sorted(by_robot.items())}
     out["per_tier"] = {k: tor_summary(v) for k, v in sorted(by_tier.items())}
     fault_out = []

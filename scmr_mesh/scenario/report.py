@@ -567,7 +567,8 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
     """What went wrong in a run besides failed requests, one sentence each (pure).
 
     A restarted peer that never became ready, a peer that exited with a
-    non-zero status (other than one a fault killed), the run's PostgreSQL
+    non-zero status (other than one a fault killed), replies that did not
+    answer the request they came for (``mismatched``), the run's PostgreSQL
     dying (restarted or not), telemetry that was lost or could not be counted.  An interrupted run lists what it saw too.
     ``scmr up`` and ``scmr demo`` print these and exit 1 when there is any
     (docs/FLEET.md).
@@ -614,6 +615,11 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
             out.append(f"--mcap {mcap.get('path')}: the recordings could not be merged ({mcap['error']})")
         for part, why in (mcap.get("unreadable") or {}).items():
             out.append(f"--mcap {mcap.get('path')}: {part} could not be read and is not in it ({why})")
+    if report.get("mismatched"):  # a server answered with a reply to another request (issue 25 item 8)
+        who = ", ".join(f"{k} {v}" for k, v in (report.get("mismatched_by_node") or {}).items())
+        out.append(f"{report['mismatched']} repl{'y' if report['mismatched'] == 1 else 'ies'} did not answer the "
+                   f"request they came for (robot, seq or frame digest not the request's: a replayed or wrong "
+                   f"answer, never used): {who or '?'}")
     tel = report.get("telemetry")
     if tel is None:
         out.append("telemetry was not counted (see the log of scmr up)")
