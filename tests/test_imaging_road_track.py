@@ -142,3 +142,5 @@ def test_eval_sequences_leave_one_sequence_out(tmp_path, capsys):
     assert "carried (CV)" in capsys.readouterr().out
     assert main(["eval", str(tmp_path / "d"), "--sequences", "--mode", "thesis"]) == 1
     assert "thesis has none" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "d"), "--occlude", "3"]) == 1
+    assert "add --sequences" in capsys.readouterr().err
