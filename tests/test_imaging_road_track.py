@@ -98,6 +98,8 @@ def test_track_state_round_trips_and_bad_state_is_refused():
         segment_drivable(img, mode="thesis", track=RoadTrack())
     with pytest.raises(InputError, match="forget must be"):
         TrackParams(forget=1.0).check()
+    with pytest.raises(InputError, match="t must be a finite time"):
+        segment_drivable(img, track=RoadTrack(), t=float("nan"))
 
 
 def _sequence_folder(folder):
@@ -144,3 +146,5 @@ def test_eval_sequences_leave_one_sequence_out(tmp_path, capsys):
     assert "thesis has none" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "d"), "--occlude", "3"]) == 1
     assert "add --sequences" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "d"), "--min-precision", "0.9"]) == 1
+    assert "add one of them" in capsys.readouterr().err

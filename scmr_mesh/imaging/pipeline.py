@@ -174,6 +174,8 @@ def segment_drivable(
         if track is not None:
             from scmr_mesh.imaging.road_track import TrackParams
 
+            if t is not None and not np.isfinite(t):
+                raise InputError(f"t must be a finite time in seconds, got {t!r}")
             carry = (track, (track_params or TrackParams()).check(), t)
         return _segment_best(frame, q, stages, params, timings, t1, carry)
     blurred = gaussian_blur_3x3(frame)
