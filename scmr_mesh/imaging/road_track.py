@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
+import cv2
 import numpy as np
 
 from scmr_mesh.errors import InputError
@@ -237,6 +238,9 @@ def tracked_candidate(small: np.ndarray, seg, params: RoadParams, track: RoadTra
                 road = (t_share >= params.frac) | is_seed
                 candidate = connected_to_seeds(road, labels, is_seed, params, anywhere=True)
                 info = {**info, "seeds": np.flatnonzero(is_seed), "grounded": True}
+                if params.dim > 0:  # the dim test judges the new seeds' grey level
+                    grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)[is_seed[labels]]
+                    info["seed_grey"] = float(grey.mean())
             else:
                 carried = "disagree"
     candidate = opening(candidate)
