@@ -442,3 +442,246 @@ def format_cv_table(result: dict) -> str:
                  f"{result.get('min_precision', 0):.2f} on the training images")
     lines.append(f"in-sample constants (chosen on all images, {result['combinations']} combinations): {chosen}")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ sequences (issue 27 item 2)
+#: Frame rate of a sequence whose manifest items carry no ``fps`` (CamVid: 30 fps, and its file
+#: names are frame indices, e.g. ``camvid_0016E5_01410`` is frame 1410 of drive 0016E5).
+SEQUENCE_FPS = 30.0
+
+#: The values :func:`cross_validate_sequences` chooses the carried model's constants from.
+TRACK_GRID: dict[str, tuple] = {
+    "forget": (0.5, 0.8),
+    "agree": (0.3, 0.5),
+    "patience": (2, 4),
+    "max_gap_s": (0.0, 10.0),
+    "extend": (False, True),
+    "learn_shrunk": (False, True),
+}
+
+_SEQ_NAME = r"^(?P<seq>.+)_f?(?P<frame>\d+)$"
+
+
+def sequences(items: list[Item], raw: list[dict] | None = None) -> dict[str, list[tuple[float, Item]]]:
+    """Group manifest items into drives: ``{sequence: [(t seconds, item), ...]}`` in time order.
+
+    An item belongs to a sequence through its manifest fields ``sequence`` and ``frame`` (and
+    ``fps``, default :data:`SEQUENCE_FPS`) when ``raw`` (the manifest's item objects) gives them,
+    else through its image name ``<dataset>_<sequence>_[f]<frame>`` (CamVid's naming:
+    ``camvid_0016E5_01410``).  Only sequences of at least two frames are returned.
+    """
+    import re
+
+    groups: dict[str, list[tuple[float, Item]]] = {}
+    for i, item in enumerate(items):
+        extra = raw[i] if raw is not None and i < len(raw) and isinstance(raw[i], dict) else {}
+        stem = item.image.stem
+        if "sequence" in extra and "frame" in extra:
+            seq, frame = str(extra["sequence"]), extra["frame"]
+        else:
+            prefix = item.dataset + "_"
+            m = re.match(_SEQ_NAME, stem[len(prefix):]) if stem.startswith(prefix) else None
+            if m is None or "_" in m.group("seq"):
+                continue
+            seq, frame = m.group("seq"), m.group("frame")
+        try:
+            fps = float(extra.get("fps", SEQUENCE_FPS))
+            t = float(frame) / fps
+        except (TypeError, ValueError, ZeroDivisionError):
+            raise ConfigError(f"{item.image.name}: bad frame/fps ({frame!r}, {extra.get('fps')!r})") from None
+        groups.setdefault(f"{item.dataset}/{seq}", []).append((t, item))
+    return {k: sorted(v, key=lambda r: r[0]) for k, v in sorted(groups.items()) if len(v) >= 2}
+
+
+#: The box :func:`occluder` pastes over a 300x225 frame: rows 150-224, columns 95-204 (it covers the
+#: bottom-centre cell, rows 188-224 and columns 100-199, and reaches the frame's bottom edge, as a
+#: vehicle or a trunk close ahead does), in a flat dark red.
+OCCLUDER = (slice(150, 225), slice(95, 205), (150, 40, 40))
+
+
+def occluder(rgb: np.ndarray, road: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A 300x225 frame and its truth with :data:`OCCLUDER` pasted over the bottom-centre cell (copies)."""
+    rows, cols, colour = OCCLUDER
+    rgb, road = rgb.copy(), road.copy()
+    rgb[rows, cols] = colour
+    road[rows, cols] = False
+    return rgb, road
+
+
+def cross_validate_sequences(
+    folder: str | Path,
+    *,
+    grid: dict[str, tuple] | None = None,
+    min_precision: float = MIN_PRECISION,
+    occlude: int = 0,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> dict:
+    """Leave-one-sequence-out cross-validation of the carried road model against the per-frame one.
+
+    Each drive (:func:`sequences`) is run in time order from a cold track, once per combination of
+    ``grid`` (default :data:`TRACK_GRID`); the per-frame model (``best``'s shipped constants) is
+    scored on the same frames.  With ``occlude`` = k > 0, every k-th frame of a drive (the k-th,
+    2k-th, ...) gets :func:`occluder` pasted over its bottom-centre cell, in the image and
+    (as not road) in its truth: a stress test of the "seed is not road" failure (a vehicle
+    close ahead).  For each sequence the combination with the highest mean IoU
+    over the frames of the *other* sequences, among those with mean precision >= ``min_precision``
+    there (all, when none is), is scored on it.  The model sees images only: labels are read
+    for scoring and for choosing the constants on the other sequences.
+
+    Returns
+    -------
+    dict
+        ``{"grid", "combinations", "min_precision", "fps", "sequences": {name: {"n", "frames",
+        "gaps_s", "per_frame": {iou, precision, recall}, "carried": {...}, "params",
+        "carried_status": {status: count}, "images": [...]}}, "mean": {"per_frame", "carried"},
+        "mean_of_sequences": {...}, "in_sample": {"params", "mean_iou"}, "skipped"}``.
+    """
+    import itertools
+
+    from scmr_mesh.imaging.codec import load_frame as _load
+    from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS, best_mask_from, working_frame
+    from scmr_mesh.imaging.road_track import RoadTrack, TrackParams
+
+    grid = dict(grid or TRACK_GRID)
+    if not 0 <= min_precision <= 1:
+        raise InputError(f"min_precision must be in [0, 1], got {min_precision}")
+    fields = set(TrackParams.__dataclass_fields__)
+    for k, vals in grid.items():
+        if k not in fields:
+            raise InputError(f"sequence grid: unknown constant {k!r}; choose from {', '.join(sorted(fields))}")
+        if not vals:
+            raise InputError(f"sequence grid: no values for {k!r}")
+    items = load_manifest(folder)
+    try:
+        raw = json.loads((Path(folder) / "manifest.json").read_text())["items"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raw = None
+    seqs = sequences(items, raw)
+    if len(seqs) < 2:
+        raise InputError(f"{folder}: leave-one-sequence-out needs at least two sequences of two or more frames "
+                         f"(named <dataset>_<sequence>_<frame>, or 'sequence' and 'frame' in the manifest); "
+                         f"found {len(seqs)}")
+    keys = list(grid)
+    combos = [dict(zip(keys, vals)) for vals in itertools.product(*grid.values())]
+    tparams = [TrackParams(**c).check() for c in combos]
+    params = DEFAULT_PARAMS
+    metrics = ("iou", "precision", "recall")
+    runs, skipped = {}, []
+    total = sum(len(v) for v in seqs.values())
+    done = 0
+    for name, frames in seqs.items():
+        work, names, times = [], [], []
+        for t, item in frames:
+            if progress:
+                progress(done, total, item.image.name)
+            done += 1
+            try:
+                rgb = _load(item.image)
+                road, valid = truth_at_frame(item)
+            except ScmrError as exc:
+                skipped.append({"image": item.image.name, "error": str(exc)})
+                continue
+            if occlude and (len(work) + 1) % occlude == 0:
+                rgb, road = occluder(rgb, road)
+            work.append((*working_frame(rgb, params), road, valid))
+            names.append(item.image.name)
+            times.append(t)
+        if len(work) < 2:
+            continue
+        per_frame = np.array([[score(best_mask_from(s, g, params)[0], r, v)[m] for m in metrics]
+                              for s, g, r, v in work])
+        carried = np.zeros((len(combos), len(work), len(metrics)))
+        status = []
+        for ci, tp in enumerate(tparams):
+            track = RoadTrack()
+            st = []
+            for fi, ((s, g, r, v), t) in enumerate(zip(work, times)):
+                mask, _c, _a, how = best_mask_from(s, g, params, track=track, track_params=tp, t=t)
+                sc = score(mask, r, v)
+                carried[ci, fi] = [sc[m] for m in metrics]
+                st.append(how)
+            status.append(st)
+        runs[name] = {"names": names, "times": times, "per_frame": per_frame, "carried": carried, "status": status}
+    if progress:
+        progress(total, total, "")
+    if len(runs) < 2:
+        raise InputError(f"{folder}: fewer than two sequences could be read")
+
+    def choose(train: list[str]) -> int:
+        iou = np.concatenate([runs[n]["carried"][:, :, 0] for n in train], axis=1).mean(axis=1)
+        prec = np.concatenate([runs[n]["carried"][:, :, 1] for n in train], axis=1).mean(axis=1)
+        ok = prec >= min_precision
+        if ok.any():
+            iou = np.where(ok, iou, -1.0)
+        return int(np.argmax(iou))
+
+    def means(a: np.ndarray) -> dict:
+        return {m: float(a[:, i].mean()) for i, m in enumerate(metrics)}
+
+    out_seq, all_pf, all_cv = {}, [], []
+    for name, run in runs.items():
+        ci = choose([n for n in runs if n != name])
+        counts: dict[str, int] = {}
+        for how in run["status"][ci]:
+            counts[how] = counts.get(how, 0) + 1
+        gaps = np.diff(run["times"])
+        out_seq[name] = {
+            "n": len(run["names"]),
+            "frames": run["names"],
+            "gaps_s": {"min": float(gaps.min()), "median": float(np.median(gaps)), "max": float(gaps.max())},
+            "per_frame": means(run["per_frame"]),
+            "carried": means(run["carried"][ci]),
+            "params": combos[ci],
+            "carried_status": counts,
+            "images": [{"image": n, "t_s": run["times"][fi], "carried_status": run["status"][ci][fi],
+                        **{f"per_frame_{m}": float(run["per_frame"][fi, i]) for i, m in enumerate(metrics)},
+                        **{f"carried_{m}": float(run["carried"][ci, fi, i]) for i, m in enumerate(metrics)}}
+                       for fi, n in enumerate(run["names"])],
+        }
+        all_pf.append(run["per_frame"])
+        all_cv.append(run["carried"][ci])
+    best_all = choose(list(runs))
+    return {
+        "grid": {k: list(v) for k, v in grid.items()},
+        "combinations": len(combos),
+        "min_precision": float(min_precision),
+        "occlude": int(occlude),
+        "fps": SEQUENCE_FPS,
+        "per_frame_params": params.as_dict(),
+        "sequences": out_seq,
+        "mean": {"per_frame": means(np.concatenate(all_pf)), "carried": means(np.concatenate(all_cv))},
+        "mean_of_sequences": {k: {m: float(np.mean([out_seq[n][k][m] for n in out_seq])) for m in metrics}
+                              for k in ("per_frame", "carried")},
+        "in_sample": {"params": combos[best_all],
+                      "mean_iou": float(np.concatenate([runs[n]["carried"][best_all, :, 0] for n in runs]).mean())},
+        "skipped": skipped,
+    }
+
+
+def format_sequences_table(result: dict) -> str:
+    """A plain-text table of a :func:`cross_validate_sequences` result."""
+    lines = [f"{'sequence':18s} {'frames':>6s} {'gap s (min/med/max)':>20s} {'per-frame IoU/prec/rec':>23s} "
+             f"{'carried (CV) IoU/prec/rec':>26s}  what the track did; constants chosen on the other sequences"]
+
+    def trio(r: dict) -> str:
+        return f"{r['iou']:.3f}/{r['precision']:.3f}/{r['recall']:.3f}"
+
+    for name, r in result["sequences"].items():
+        g = r["gaps_s"]
+        how = ", ".join(f"{k} {v}" for k, v in sorted(r["carried_status"].items()))
+        chosen = ", ".join(f"{k}={v}" for k, v in r["params"].items())
+        lines.append(f"{name[:18]:18s} {r['n']:6d} {g['min']:6.0f}/{g['median']:5.0f}/{g['max']:6.0f} "
+                     f"{trio(r['per_frame']):>23s} {trio(r['carried']):>26s}  {how}; {chosen}")
+    n = sum(r["n"] for r in result["sequences"].values())
+    lines.append(f"{'all (frames)':18s} {n:6d} {'':20s} {trio(result['mean']['per_frame']):>23s} "
+                 f"{trio(result['mean']['carried']):>26s}")
+    lines.append(f"{'all (sequences)':18s} {'':6s} {'':20s} {trio(result['mean_of_sequences']['per_frame']):>23s} "
+                 f"{trio(result['mean_of_sequences']['carried']):>26s}")
+    chosen = ", ".join(f"{k}={v}" for k, v in result["in_sample"]["params"].items())
+    if result.get("occlude"):
+        lines.append(f"--occlude {result['occlude']}: every frame k * {result['occlude']} of each drive has a box pasted "
+                     f"over its bottom-centre cell (a stress test, evaluate.OCCLUDER)")
+    lines.append(f"operating point: the highest IoU among combinations with mean precision >= "
+                 f"{result['min_precision']:.2f} on the training sequences; in-sample choice "
+                 f"({result['combinations']} combinations): {chosen}")
+    return "\n".join(lines)

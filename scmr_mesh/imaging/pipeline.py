@@ -75,6 +75,9 @@ class DrivableResult:
     abstained : str or None
         Why the mask was shrunk to what the model is sure of (one of
         :data:`scmr_mesh.imaging.road_model.ABSTAIN_REASONS`), or None.
+    carried : str or None
+        With a ``track``: what the carried road model did (one of
+        :data:`scmr_mesh.imaging.road_track.CARRIED`); None without one.
     """
 
     mask: np.ndarray
@@ -83,6 +86,7 @@ class DrivableResult:
     stages: dict | None = None
     confidence: float | None = None
     abstained: str | None = None
+    carried: str | None = None
 
 
 def _clock() -> float:
@@ -110,7 +114,7 @@ def srm_q(mode: str, q: float = 32, params: RoadParams | None = None) -> float:
 
 def segment_drivable(
     rgb: np.ndarray, *, mode: str = "best", q: float = 32, stages: bool = False,
-    params: RoadParams | None = None,
+    params: RoadParams | None = None, track=None, track_params=None, t: float | None = None,
 ) -> DrivableResult:
     """Find the drivable region of a camera frame.
 
@@ -128,6 +132,14 @@ def segment_drivable(
         Also return the intermediate images.
     params : RoadParams, optional, keyword-only
         Constants of ``best`` (default :data:`DEFAULT_PARAMS`); ignored by ``thesis``.
+    track : RoadTrack, optional, keyword-only
+        ``best`` only: a road model carried across one robot's frames
+        (:mod:`scmr_mesh.imaging.road_track`), updated in place; pass the frames in order.
+        A new (cold) track gives exactly the mask without one.
+    track_params : TrackParams, optional, keyword-only
+        The carried model's constants (default ``TrackParams()``).
+    t : float, optional, keyword-only
+        The frame's time in seconds (for the track's ``max_gap_s``).
 
     Returns
     -------
@@ -147,45 +159,54 @@ def segment_drivable(
     """
     if mode not in MODES:
         raise InputError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
-    t = {}
+    timings = {}
     t0 = _clock()
     rgb = as_rgb(rgb, name="rgb")
     frame = resize_frame(rgb)
     t1 = _clock()
-    t["resize"] = t1 - t0
+    timings["resize"] = t1 - t0
 
     params = (params or DEFAULT_PARAMS).check() if mode == "best" else None
+    if track is not None and params is None:
+        raise InputError("a carried road model (track) needs mode 'best'; thesis has no road model to carry")
     if params is not None:
-        return _segment_best(frame, q, stages, params, t, t1)
+        carry = None
+        if track is not None:
+            from scmr_mesh.imaging.road_track import TrackParams
+
+            if t is not None and not np.isfinite(t):
+                raise InputError(f"t must be a finite time in seconds, got {t!r}")
+            carry = (track, (track_params or TrackParams()).check(), t)
+        return _segment_best(frame, q, stages, params, timings, t1, carry)
     blurred = gaussian_blur_3x3(frame)
     t2 = _clock()
-    t["blur"] = t2 - t1
+    timings["blur"] = t2 - t1
 
     seg = srm(blurred, q=srm_q(mode, q))
     palette = np.rint(seg.means).clip(0, 255).astype(np.uint8)
     srm_img = palette[seg.labels]
     t3 = _clock()
-    t["srm"] = t3 - t2
+    timings["srm"] = t3 - t2
 
     window = palette[bottom_centre(roi(seg.labels))]
     channel = dominant_channel(window)
     hist = histogram(np.ascontiguousarray(window[:, :, channel]))
     threshold = otsu_threshold(hist)
     t4 = _clock()
-    t["otsu"] = t4 - t3
+    timings["otsu"] = t4 - t3
 
     grey = srm_img.sum(axis=2, dtype=np.int32) // 3
     edges = sobel_magnitude(grey)
     t5 = _clock()
-    t["edges"] = t5 - t4
+    timings["edges"] = t5 - t4
 
     otsu_bw = np.where(grey >= threshold, 255, 0).astype(np.uint8)
     t6 = _clock()
-    t["classify"] = t6 - t5
+    timings["classify"] = t6 - t5
     mask = remove_sparse_pixels(otsu_bw, _inner_edges(edges), edge_threshold=THESIS_EDGE_THRESHOLD)
     t7 = _clock()
-    t["sparse"] = t7 - t6
-    t["total"] = t7 - t1
+    timings["sparse"] = t7 - t6
+    timings["total"] = t7 - t1
 
     out_stages = None
     if stages:
@@ -198,10 +219,11 @@ def segment_drivable(
             "edges": edges,
             "channel": np.array(channel),
         }
-    return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages)
+    return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=timings, stages=out_stages)
 
 
-def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams, t: dict, t1: float) -> DrivableResult:
+def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams, t: dict, t1: float,
+                  carry=None) -> DrivableResult:
     """``best`` on a 300x225 frame: half-size working frame, SRM, the road model, column fill, upsampled mask.
 
     Stage names as in ``thesis``: ``blur`` is the area downsampling (a box low-pass that
@@ -228,7 +250,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     t["otsu"] = t4 - t3
     t["edges"] = 0.0
 
-    mask, confidence, abstained, t6 = _best_mask(small, seg, params)
+    mask, confidence, abstained, t6, carried = _best_mask(small, seg, params, carry)
     t["classify"] = t6 - t4
     t7 = _clock()
     t["sparse"] = t7 - t6
@@ -251,20 +273,34 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
             "channel": np.array(channel),
         }
     return DrivableResult(mask=mask, threshold=int(threshold), timings_ms=t, stages=out_stages,
-                          confidence=confidence, abstained=abstained)
+                          confidence=confidence, abstained=abstained, carried=carried)
 
 
-def _best_mask(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, float, str | None, float]:
-    """The road model on SRM regions of the working frame: mask (225, 300), confidence, abstained, clock after classify."""
-    candidate, info = classify(small, seg, params)
-    if params.opening > 1:
-        candidate = cv2.morphologyEx(candidate, cv2.MORPH_OPEN, np.ones((1, int(params.opening)), np.uint8))
-    candidate, confidence, abstained = abstain(candidate, info, params)
+def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None):
+    """The road model on SRM regions of the working frame.
+
+    Returns mask (225, 300), confidence, abstained, the clock after classify, and ``carried``
+    (None without ``carry = (track, track_params, t)``).
+    """
+    def opening(candidate: np.ndarray) -> np.ndarray:
+        if params.opening > 1:
+            return cv2.morphologyEx(candidate, cv2.MORPH_OPEN, np.ones((1, int(params.opening)), np.uint8))
+        return candidate
+
+    carried = None
+    if carry is None:
+        candidate, info = classify(small, seg, params)
+        candidate, confidence, abstained = abstain(opening(candidate), info, params)
+    else:
+        from scmr_mesh.imaging.road_track import tracked_candidate
+
+        track, tparams, t = carry
+        candidate, confidence, abstained, carried = tracked_candidate(small, seg, params, track, tparams, t, opening)
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = fill_columns(candidate, max_gap=gap)
     up = cv2.resize(small_mask, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_LINEAR)
-    return np.where(up >= 128, 255, 0).astype(np.uint8), confidence, abstained, t6
+    return np.where(up >= 128, 255, 0).astype(np.uint8), confidence, abstained, t6, carried
 
 
 def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
@@ -282,8 +318,35 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
         key = (srm_q("best", q, params), params.gamma)
         if key not in segs:
             segs[key] = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=key[0])
-        mask, confidence, abstained, _t = _best_mask(small, segs[key], params)
+        mask, confidence, abstained, _t, _c = _best_mask(small, segs[key], params)
         yield mask, confidence, abstained
+
+
+def working_frame(rgb: np.ndarray, params: RoadParams | None = None, *, q: float = 32):
+    """``(small, seg)``: ``best``'s working frame of ``rgb`` and its SRM regions, for :func:`best_mask_from`."""
+    params = (params or DEFAULT_PARAMS).check()
+    frame = resize_frame(as_rgb(rgb, name="rgb"))
+    wh, ww = WORK_SHAPE
+    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    seg = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=srm_q("best", q, params))
+    return small, seg
+
+
+def best_mask_from(small: np.ndarray, seg, params: RoadParams | None = None, *, track=None, track_params=None,
+                   t: float | None = None):
+    """``best``'s ``(mask, confidence, abstained, carried)`` from :func:`working_frame`'s output.
+
+    Equals what :func:`segment_drivable` returns for the same frame, params and track (used by
+    the sequence cross-validation, which runs SRM once per frame and the road model many times).
+    """
+    params = (params or DEFAULT_PARAMS).check()
+    carry = None
+    if track is not None:
+        from scmr_mesh.imaging.road_track import TrackParams
+
+        carry = (track, (track_params or TrackParams()).check(), t)
+    mask, confidence, abstained, _t, carried = _best_mask(small, seg, params, carry)
+    return mask, confidence, abstained, carried
 
 
 _CELL_INDEX: list = []

@@ -288,23 +288,59 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     share = inside / np.maximum(seg.sizes, 1)
     road = share >= params.frac
     road[seeds] = True
-    cand = road.astype(np.uint8)[labels]
-    if params.horizon > 0:
-        cand[: int(params.horizon * h)] = 0
-    n_comp, comp = cv2.connectedComponents(cand, connectivity=4)
-    # SRM regions are 4-connected, so a seed lies in one component: any of its cell pixels names it
-    cell_lab = bottom_centre(roi(labels))
-    cell_comp = bottom_centre(roi(comp))
-    keep = np.zeros(n_comp, np.uint8)
-    keep[cell_comp[slot[cell_lab] >= 0]] = 1
-    keep[0] = 0
+    cand = connected_to_seeds(road, labels, slot >= 0, params)
     seed_grey = float("nan")
     if params.dim > 0:
         seed_px = slot[labels] >= 0
         seed_grey = float(grey[seed_px].mean()) if seed_px.any() else 0.0
-    return keep[comp], {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
-                        "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
-                        "sizes": seg.sizes}
+    return cand, {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
+                  "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
+                  "sizes": seg.sizes}
+
+
+def connected_to_seeds(road: np.ndarray, labels: np.ndarray, is_seed: np.ndarray, params: RoadParams,
+                       *, anywhere: bool = False) -> np.ndarray:
+    """The road-like regions 4-connected to a seed region: (h, w) uint8, 1 = candidate road.
+
+    ``road`` and ``is_seed`` are per-region booleans (``is_seed`` implies ``road``).  A seed is
+    found through its pixels in the bottom-centre cell (:func:`seed_regions` takes seeds from
+    there), or, with ``anywhere``, through any of its pixels (the carried model's seeds,
+    :mod:`scmr_mesh.imaging.road_track`, may lie beside the cell).
+    """
+    h = labels.shape[0]
+    cand = road.astype(np.uint8)[labels]
+    if params.horizon > 0:
+        cand[: int(params.horizon * h)] = 0
+    n_comp, comp = cv2.connectedComponents(cand, connectivity=4)
+    keep = np.zeros(n_comp, np.uint8)
+    if anywhere:
+        keep[comp[is_seed[labels] & (cand > 0)]] = 1
+    else:
+        # SRM regions are 4-connected, so a seed lies in one component: any of its cell pixels names it
+        cell_lab = bottom_centre(roi(labels))
+        cell_comp = bottom_centre(roi(comp))
+        keep[cell_comp[is_seed[cell_lab]]] = 1
+    keep[0] = 0
+    return keep[comp]
+
+
+def pixel_features(small: np.ndarray, grad: np.ndarray | None = None) -> np.ndarray:
+    """The road model's four features of every pixel, (h * w, 4) float64, as the kernel computes them.
+
+    ``log(fR/fG)``, ``log(fB/fG)``, ``log((fR+fG+fB)/3)`` (f = channel + :data:`FEATURE_OFFSET`) and
+    ``log1p(round(grad)/8)`` with ``grad`` the Sobel magnitude of the grey image (computed when
+    not given), clipped to 0..2047.  Plain numpy (the carried model's path; the per-frame model
+    computes the same values inside ``road_share_kernel``).
+    """
+    lut, lsum, tex = _tables()
+    if grad is None:
+        grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
+        grad = cv2.magnitude(cv2.Sobel(grey, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(grey, cv2.CV_32F, 0, 1, ksize=3))
+    r, g, b = (small[..., c].astype(np.intp) for c in range(3))
+    gi = np.floor(np.clip(grad.astype(np.float64), 0.0, 2047.0) + 0.5).astype(np.intp)
+    gi[~(grad < 2047.0)] = 2047
+    feats = np.stack([lut[r] - lut[g], lut[b] - lut[g], lsum[r + g + b], tex[gi]], axis=-1)
+    return feats.reshape(-1, N_FEATURES)
 
 
 def _grounded(labels: np.ndarray, n_regions: int, share: float) -> bool:

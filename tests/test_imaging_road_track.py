@@ -1,0 +1,150 @@
+"""The road model carried across a robot's frames (imaging/road_track.py) and its sequence evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from scmr_mesh.cli import main
+from scmr_mesh.errors import InputError
+from scmr_mesh.imaging import encode_png, segment_drivable
+from scmr_mesh.imaging.evaluate import cross_validate_sequences, load_manifest, score, sequences
+from scmr_mesh.imaging.road_track import RoadTrack, TrackParams
+from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
+
+
+def _obstacle(img: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A red box standing on the road over the whole bottom-centre cell, down to the frame's edge."""
+    box = np.zeros(truth.shape, bool)
+    box[150:, 95:205] = True
+    img, truth = img.copy(), truth.copy()
+    img[box] = (150, 40, 40)
+    truth[box] = 0
+    return img, truth, box
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(kind=st.sampled_from(SCENE_KINDS), seed=st.integers(0, 50), t=st.sampled_from([None, 0.0, 12.5]))
+def test_a_cold_track_is_the_per_frame_model(kind, seed, t):
+    rgb, _ = make_scene(kind, seed=seed)
+    plain = segment_drivable(rgb)
+    track = RoadTrack()
+    carried = segment_drivable(rgb, track=track, t=t)
+    np.testing.assert_array_equal(carried.mask, plain.mask)
+    assert (carried.confidence, carried.abstained, carried.carried) == (plain.confidence, plain.abstained, "cold")
+    assert plain.carried is None
+    # it learnt only if the frame was confident
+    assert track.warm == (plain.abstained is None and plain.confidence == 1.0)
+
+
+def test_the_carried_model_recovers_when_the_seed_is_an_obstacle():
+    """Two clean frames of a dirt road, then a box covers the bottom-centre cell.  The per-frame
+    seed is the box: it paints the box green and loses the road.  The carried model sees that
+    the seed is not the road it has been driving on and seeds from the road beside the box."""
+    img, truth = make_scene("dirt_road", seed=0)
+    track = RoadTrack()
+    for _ in range(2):
+        assert segment_drivable(img, track=track).carried in ("cold", "agree")
+    assert track.warm and track.frames == 2
+    ob, ob_truth, box = _obstacle(img, truth)
+    plain = segment_drivable(ob)
+    assert np.mean(plain.mask[box] > 0) > 0.9 and score(plain.mask, ob_truth)["iou"] < 0.1  # the defect
+    res = segment_drivable(ob, track=track)
+    s = score(res.mask, ob_truth)
+    assert res.carried == "replaced"
+    assert np.mean(res.mask[box] > 0) < 0.02          # the box stays red
+    assert s["precision"] > 0.95 and s["iou"] > 0.35   # the road beside it is green
+    assert track.frames == 2                            # a replaced frame is not learnt from
+
+
+def test_the_track_resets_after_patience_frames_that_disagree():
+    img, truth = make_scene("dirt_road", seed=0)
+    ob, _t, _b = _obstacle(img, truth)
+    track = RoadTrack()
+    params = TrackParams(patience=2)
+    segment_drivable(img, track=track, track_params=params)
+    hows = [segment_drivable(ob, track=track, track_params=params).carried for _ in range(3)]
+    assert hows == ["replaced", "reset", "cold"]  # the third frame is the per-frame model again
+    np.testing.assert_array_equal(segment_drivable(ob, track=RoadTrack()).mask, segment_drivable(ob).mask)
+
+
+def test_a_long_gap_starts_cold():
+    img, truth = make_scene("dirt_road", seed=0)
+    ob, _t, _b = _obstacle(img, truth)
+    track = RoadTrack()
+    params = TrackParams(max_gap_s=10.0)
+    segment_drivable(img, track=track, track_params=params, t=0.0)
+    assert segment_drivable(ob, track=track, track_params=params, t=5.0).carried == "replaced"
+    assert segment_drivable(ob, track=track, track_params=params, t=20.0).carried == "cold"
+
+
+def test_track_state_round_trips_and_bad_state_is_refused():
+    img, _ = make_scene("dirt_road", seed=0)
+    track = RoadTrack()
+    segment_drivable(img, track=track, t=3.0)
+    doc = json.loads(json.dumps(track.to_dict()))
+    back = RoadTrack.from_dict(doc)
+    np.testing.assert_array_equal(back.mean, track.mean)
+    np.testing.assert_array_equal(back.cov, track.cov)
+    assert (back.frames, back.misses, back.last_t) == (1, 0, 3.0)
+    assert len(json.dumps(doc)) < 1000  # bounded: a Gaussian and three counters
+    with pytest.raises(InputError, match="road track state is malformed"):
+        RoadTrack.from_dict({"mean": [1, 2], "cov": [[0]]})
+    with pytest.raises(InputError, match="needs mode 'best'"):
+        segment_drivable(img, mode="thesis", track=RoadTrack())
+    with pytest.raises(InputError, match="forget must be"):
+        TrackParams(forget=1.0).check()
+    with pytest.raises(InputError, match="t must be a finite time"):
+        segment_drivable(img, track=RoadTrack(), t=float("nan"))
+
+
+def _sequence_folder(folder):
+    """Two drives of three synthetic frames (``synth_A_00030`` ...), the last frame of each with the box."""
+    (folder / "images").mkdir(parents=True)
+    items = []
+    for seq, seed in (("A", 0), ("B", 2)):
+        img, truth = make_scene("dirt_road", seed=seed)
+        for i, frame in enumerate((30, 60, 90)):
+            im, tr = (img, truth) if i < 2 else _obstacle(img, truth)[:2]
+            name = f"synth_{seq}_{frame:05d}.png"
+            (folder / "images" / name).write_bytes(encode_png(im))
+            (folder / "images" / ("m" + name)).write_bytes(encode_png(tr))
+            items.append({"image": f"images/{name}", "mask": f"images/m{name}", "dataset": "synth", "road": [255]})
+    items.append({"image": "images/synth_A_00030.png", "mask": "images/msynth_A_00030.png", "dataset": "single",
+                  "road": [255]})  # another dataset's single frame: in no sequence
+    (folder / "manifest.json").write_text(json.dumps({"format": "scmr-roads-manifest/1", "items": items}))
+
+
+def test_sequences_are_grouped_from_names_in_time_order(tmp_path):
+    _sequence_folder(tmp_path)
+    groups = sequences(list(reversed(load_manifest(tmp_path))))
+    assert list(groups) == ["synth/A", "synth/B"]
+    assert [(t, it.image.name) for t, it in groups["synth/A"]] == [
+        (1.0, "synth_A_00030.png"), (2.0, "synth_A_00060.png"), (3.0, "synth_A_00090.png")]
+
+
+def test_eval_sequences_leave_one_sequence_out(tmp_path, capsys):
+    _sequence_folder(tmp_path / "d")
+    grid = {"agree": (0.3,), "extend": (False,)}
+    res = cross_validate_sequences(tmp_path / "d", grid=grid)
+    for name in ("synth/A", "synth/B"):
+        r = res["sequences"][name]
+        assert r["n"] == 3 and r["gaps_s"] == {"min": 1.0, "median": 1.0, "max": 1.0}
+        assert r["carried_status"] == {"cold": 1, "agree": 1, "replaced": 1}
+        assert r["images"][2]["carried_iou"] > r["images"][2]["per_frame_iou"] + 0.3
+        assert r["carried"]["precision"] > r["per_frame"]["precision"]
+    out = tmp_path / "seq.json"
+    assert main(["eval", str(tmp_path / "d"), "--sequences", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["sequences"]) == {"synth/A", "synth/B"} and "per_frame" in doc["mean"]
+    assert "carried (CV)" in capsys.readouterr().out
+    assert main(["eval", str(tmp_path / "d"), "--sequences", "--mode", "thesis"]) == 1
+    assert "thesis has none" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "d"), "--occlude", "3"]) == 1
+    assert "add --sequences" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "d"), "--min-precision", "0.9"]) == 1
+    assert "add one of them" in capsys.readouterr().err
