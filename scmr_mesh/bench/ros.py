@@ -10,7 +10,16 @@ subscribes to the masks.  Per frame, paired in one run:
 * ``tor_ms``: the bridge's robot record of the same frame (``records.jsonl``, matched by the
   header stamp in its ``image`` field): the ``scmr robot`` request path for those bytes;
 * ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB to JPEG, the mask
-  back to the frame's size, the overlay, CDR encode, both ROS-side Zenoh hops).
+  back to the frame's size, CDR encode, both ROS-side Zenoh hops);
+* ``ros_out_ms``: from the mask's put in the bridge (its attachment's timestamp) to its arrival
+  here: the ROS-side hop back through the router, which any rmw_zenoh node pays;
+* ``bridges[*].bridge_ms_median``: the bridge's own time outside the robot's ToR (arrival to
+  frame ready, Robot.request's work before its answer, answer to mask put): what its code adds.
+
+Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
+N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
+same rate, phases within one period) and their ``tor_ms`` (``robot_tor_ms``);
+``added_vs_robot_ms`` is the median e2e minus the median of those ToRs.
 """
 
 from __future__ import annotations
@@ -47,7 +56,7 @@ def _scene(h: int, w: int, seed: int):
 
 
 def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
-        process: str | None = None, tmp: Path | None = None,
+        process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True,
         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     import zenoh
 
@@ -66,6 +75,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
     procs: dict[str, Any] = {}
     sent: dict[str, int] = {}      # frame name -> perf_counter_ns at put
     got: dict[str, int] = {}       # frame name -> perf_counter_ns at the mask's arrival
+    back: dict[str, float] = {}    # frame name -> ms from the mask's put (its attachment) to its arrival
     lock = threading.Lock()
     session = None
     try:
@@ -89,11 +99,15 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
 
         def on_mask(sample):
             t = time.perf_counter_ns()
+            wall = time.time_ns()
             key = rw.parse_topic_key(str(sample.key_expr))
             hdr = rw.decode_image(sample.payload.to_bytes()).header
             name = f"{key.topic.replace('/drivable/mask', '/camera/image_raw')}@{hdr.sec}.{hdr.nanosec:09d}"
+            att = rw.decode_attachment(sample.attachment.to_bytes()) if sample.attachment is not None else None
             with lock:
                 got[name] = t
+                if att is not None:
+                    back[name] = (wall - att.timestamp_ns) / 1e6
 
         subs = [session.declare_subscriber(f"0/r{i}/drivable/mask/*/*", on_mask) for i in range(robots)]
         pubs = [session.declare_publisher(rw.topic_key(0, f"/r{i}/camera/image_raw", rw.IMAGE),
@@ -132,12 +146,25 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                if r["ok"]}
         e2e = {n: (got[n] - sent[n]) / 1e6 for n in sent if n in got}
         paired = [n for n in e2e if n in tor]
-        return {
+        res = {
             "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "rgb8", "process": process,
             "frames_sent": len(sent), "masks_received": len(e2e), "paired": len(paired),
             "e2e_ms": _stats([e2e[n] for n in paired]), "tor_ms": _stats([tor[n] for n in paired]),
-            "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]), "bridges": summaries,
+            "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]),
+            "ros_out_ms": _stats([back[n] for n in paired if n in back]),
+            "bridge_ms": _stats([b["bridge_ms_median"] for b in summaries.values()
+                                 if b and b.get("bridge_ms_median") is not None]),
+            "bridges": summaries,
         }
+        if robot_baseline:
+            say(f"the same frames from {robots} scmr robot processes")
+            rtor = _robot_baseline(tmp, scenes, robots=robots, rate_hz=rate_hz, frames=frames, process=process,
+                                   cloud_ep=f"tcp/127.0.0.1:{cport}", procs=procs)
+            res["robot_frames"] = len(rtor)
+            res["robot_tor_ms"] = _stats(rtor)
+            med = res["robot_tor_ms"]["median"]
+            res["added_vs_robot_ms"] = None if med is None or not paired else round(res["e2e_ms"]["median"] - med, 2)
+        return res
     finally:
         if session is not None:
             close_session(session)
@@ -145,11 +172,38 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             stop_peer(p)
 
 
+def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: int, process: str, cloud_ep: str,
+                    procs: dict) -> list[float]:
+    """ToRs of ``scmr robot`` sending ``scenes`` (one PNG per robot, sent as JPEG 90) to the same cloud."""
+    import cv2
+
+    from scmr_mesh.mesh.testing import read_records, stop_peer, spawn_peer, wait_for
+
+    start = tmp / "robots.start"
+    for i, rgb in enumerate(scenes):
+        (tmp / f"img{i}").mkdir(exist_ok=True)
+        cv2.imwrite(str(tmp / f"img{i}" / "scene.png"), rgb[:, :, ::-1])
+        procs[f"b{i}"] = spawn_peer(
+            ["robot", "--insecure", "--id", f"b{i}", "--connect", cloud_ep, "--images", str(tmp / f"img{i}"),
+             "--rate", f"{rate_hz:g}", "--count", str(frames), "--process", process, "--quiet", "--drain-s", "0",
+             "--out", str(tmp / f"b{i}"), "--start-file", str(start), "--ready-file", str(tmp / f"b{i}.ready")],
+            log_path=tmp / f"b{i}.log")
+    for i in range(robots):
+        wait_for((tmp / f"b{i}.ready").exists, timeout=120, what=f"robot b{i}")
+    start.write_text(f"{time.time_ns()}\n")
+    deadline = time.monotonic() + frames / rate_hz + 30
+    for i in range(robots):
+        wait_for(lambda: procs[f"b{i}"].poll() is not None or time.monotonic() > deadline, timeout=frames / rate_hz + 60,
+                 what=f"robot b{i} to finish")
+        stop_peer(procs.pop(f"b{i}"))
+    return [r["tor_ms"] for i in range(robots) for r in read_records(tmp / f"b{i}" / "records.jsonl") if r["ok"]]
+
+
 def cmd_bench_ros(args: argparse.Namespace) -> int:
     if args.robots < 1 or args.duration <= 0:
         raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
     res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size,
-              process=args.process, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
+              process=args.process, robot_baseline=args.robot_baseline, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
     text = json.dumps(res, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")
