@@ -7,7 +7,8 @@ subscribes to the image topic (``sensor_msgs/msg/Image`` or, with ``compressed``
 each frame through :meth:`Robot.request <scmr_mesh.mesh.robot.Robot.request>` (the same
 placement, failover, hedging, security, records and telemetry as ``scmr robot``) and
 publishes the mask as ``mono8`` (255 = drivable, the input's size, header stamp and
-frame_id) on the mask topic and an ``rgb8`` overlay on ``<mask topic>/overlay``, each
+frame_id) on the mask topic and an ``rgb8`` overlay on ``<mask topic>/overlay`` (made
+only while that topic has a subscriber), each
 sample with rmw_zenoh's attachment.  Liveliness tokens declare its node, its two
 publishers and its subscription, so ``ros2 node list`` / ``ros2 topic info`` see it.
 
@@ -44,6 +45,8 @@ class BridgeStats:
     failed: int = 0
     dropped: int = 0
     published: int = 0
+    #: overlays published (one per published mask while the overlay topic has a subscriber)
+    overlays: int = 0
     publish_errors: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
     #: per served frame (the last 10000): ms from the sample's arrival to the frame ready to send
@@ -58,7 +61,7 @@ class BridgeStats:
 
     def as_dict(self) -> dict:
         return {"received": self.received, "served": self.served, "failed": self.failed, "dropped": self.dropped,
-                "published": self.published, "publish_errors": self.publish_errors,
+                "published": self.published, "overlays": self.overlays, "publish_errors": self.publish_errors,
                 "rejected": dict(self.rejected), "rejected_total": sum(self.rejected.values()),
                 "in_ms_median": _median(self.in_ms), "request_ms_median": _median(self.request_ms),
                 "out_ms_median": _median(self.out_ms),
@@ -143,6 +146,13 @@ class _Publisher:
     def put(self, payload: bytes) -> None:
         self.seq += 1
         self.pub.put(payload, attachment=rw.Attachment(self.seq, time.time_ns(), self.gid).encode())
+
+    def matching(self) -> bool:
+        """Whether a subscriber (a ROS node, ``ros2 bag record``) matches this publisher now."""
+        try:
+            return bool(self.pub.matching_status.matching)
+        except Exception:  # unknown: publish
+            return True
 
     def undeclare(self) -> None:
         self.pub.undeclare()
@@ -319,7 +329,8 @@ class RosBridge:
         """Send one frame through the robot, publish its mask and overlay; return the robot's record.
 
         The mask is published from :meth:`_on_answer`, inside :meth:`Robot.request` right after
-        the answer; the overlay after the request returns.
+        the answer; the overlay after the request returns, and only while something subscribes
+        to it (a 640x480 overlay is 0.9 MB through the router and about 1.5 ms of CPU).
         """
         self._current = pending
         t_req = time.perf_counter()
@@ -340,11 +351,14 @@ class RosBridge:
             if isinstance(pending.mask, Exception):
                 raise pending.mask
             mask = pending.mask
-            overlay = pending.frame.pixels() // 2  # half brightness, drivable pixels tinted green
-            overlay[:, :, 1] += mask // 2
-            self._overlay_pub.put(rw.encode_image(rw.rgb8(pending.header, overlay)))
+            overlay_on = self._overlay_pub.matching()  # made only when subscribed, as image_transport does
+            if overlay_on:
+                overlay = pending.frame.pixels() // 2  # half brightness, drivable pixels tinted green
+                overlay[:, :, 1] += mask // 2
+                self._overlay_pub.put(rw.encode_image(rw.rgb8(pending.header, overlay)))
             with self._cv:
                 self.stats.published += 1
+                self.stats.overlays += overlay_on
                 self.stats.in_ms.append(pending.in_ms)
                 self.stats.out_ms.append(pending.out_ms)
                 self.stats.request_ms.append(request_ms)
