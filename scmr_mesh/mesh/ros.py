@@ -53,21 +53,17 @@ class BridgeStats:
     #: (CDR decode, RGB, JPEG), and from the robot's answer to the mask published
     in_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
     out_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
-    #: and the wall time of Robot.request (its ToR plus its records, inbox and telemetry), the
-    #: robot's ToR, and ms from the call of Robot.request to its answer (the mask published then)
+    #: and the wall time of Robot.request (its ToR plus its records, inbox and telemetry)
     request_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
-    tor_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
-    answer_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
+    #: the bridge's own time: from the sample's arrival to the mask published, less the robot's ToR
+    bridge_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
 
     def as_dict(self) -> dict:
         return {"received": self.received, "served": self.served, "failed": self.failed, "dropped": self.dropped,
                 "published": self.published, "overlays": self.overlays, "publish_errors": self.publish_errors,
                 "rejected": dict(self.rejected), "rejected_total": sum(self.rejected.values()),
                 "in_ms_median": _median(self.in_ms), "request_ms_median": _median(self.request_ms),
-                "out_ms_median": _median(self.out_ms),
-                # the bridge's own time outside the robot's ToR: in + (call to answer - ToR) + out
-                "bridge_ms_median": _median([i + a - t + o for i, a, t, o in
-                                             zip(self.in_ms, self.answer_ms, self.tor_ms, self.out_ms)])}
+                "out_ms_median": _median(self.out_ms), "bridge_ms_median": _median(self.bridge_ms)}
 
 
 def _median(xs) -> float | None:
@@ -81,6 +77,8 @@ class _Pending:
     height: int
     width: int
     in_ms: float = 0.0
+    #: perf_counter at the sample's arrival
+    t_arrival: float = 0.0
     #: set by the annotator once the mask is published: perf_counter at the answer, ms to publish it
     t_answer: float | None = None
     out_ms: float | None = None
@@ -260,6 +258,7 @@ class RosBridge:
         try:
             pending = self._decode(key, sample.payload.to_bytes())
             pending.in_ms = (time.perf_counter() - t0) * 1e3
+            pending.t_arrival = t0
         except rw.RosWireError as exc:
             self._reject(key, exc)
             return
@@ -362,9 +361,8 @@ class RosBridge:
                 self.stats.in_ms.append(pending.in_ms)
                 self.stats.out_ms.append(pending.out_ms)
                 self.stats.request_ms.append(request_ms)
-                # the robot's ToR, from t_req: request_ms minus this is Robot.request's own work
-                self.stats.tor_ms.append(record["tor_ms"])
-                self.stats.answer_ms.append((pending.t_answer - t_req) * 1e3)
+                self.stats.bridge_ms.append((pending.t_answer - pending.t_arrival) * 1e3 - record["tor_ms"]
+                                            + pending.out_ms)
         except Exception as exc:
             with self._cv:
                 self.stats.publish_errors += 1
