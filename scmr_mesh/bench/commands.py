@@ -494,7 +494,8 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
                     "frame from put to its mask (e2e), against the bridge's own record of the same frame (the "
                     "`scmr robot` request path: tor).  overhead = e2e - tor, median/p95/p99; ros_out (the mask's "
                     "hop back, which any rmw_zenoh node pays) and the bridges' own time outside their ToR "
-                    "(bridge_ms).  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
+                    "(bridge_ms); floor: the same frames through the router to an echo node that answers at "
+                    "once (the ROS-side transport alone).  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
                     "the same cloud: robot_tor, and added_vs_robot = median e2e - median robot ToR, the "
                     "issue's target (docs/BENCHMARKS.md).")
     b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",

@@ -16,6 +16,10 @@ subscribes to the masks.  Per frame, paired in one run:
 * ``bridges[*].bridge_ms_median``: the bridge's own time outside the robot's ToR (arrival to
   frame ready, Robot.request's work before its answer, answer to mask put): what its code adds.
 
+``floor_ms``: the ROS-side transport alone, what any rmw_zenoh node that answers a frame
+pays: the same frames on the same schedule to an echo process (a client of the same router)
+that answers each with a mask-sized sample at once; e2e of that round trip.
+
 Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
 N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
 same rate, phases within one period) and their ``tor_ms`` (``robot_tor_ms``);
@@ -156,6 +160,8 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                                  if b and b.get("bridge_ms_median") is not None]),
             "bridges": summaries,
         }
+        say("the same frames to an echo node: the ROS-side transport alone")
+        res["floor_ms"] = _stats(_transport_floor(session, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs))
         if robot_baseline:
             say(f"the same frames from {robots} scmr robot processes")
             rtor = _robot_baseline(tmp, scenes, robots=robots, rate_hz=rate_hz, frames=frames, process=process,
@@ -170,6 +176,86 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             close_session(session)
         for p in procs.values():
             stop_peer(p)
+
+
+_ECHO_IN, _ECHO_OUT = "scmr_bench/echo/in", "scmr_bench/echo/out"
+
+
+def echo_node(ros_ep: str, ready: str, mask_bytes: int) -> None:
+    """The floor's echo process: answer each frame on ``_ECHO_IN/<i>`` with ``mask_bytes`` on ``_ECHO_OUT/<i>``.
+
+    The answer starts with the frame's first 16 bytes (its CDR header: the stamp), as a
+    bridge's mask carries the frame's stamp; the payload is copied out once, as the bridge does.
+    """
+    from scmr_mesh.mesh.config import open_session
+    from scmr_mesh.mesh.ros import ros_session_config
+
+    session = open_session(ros_session_config([ros_ep], []))
+    pubs: dict[str, Any] = {}
+    fill = bytes(mask_bytes)
+
+    def on_frame(sample):
+        i = str(sample.key_expr).rsplit("/", 1)[1]
+        pub = pubs.get(i)
+        if pub is None:
+            pub = pubs[i] = session.declare_publisher(f"{_ECHO_OUT}/{i}")
+        pub.put(sample.payload.to_bytes()[:16] + fill)
+
+    session.declare_subscriber(f"{_ECHO_IN}/*", on_frame)
+    Path(ready).write_text("ready\n")
+    threading.Event().wait()  # until SIGTERM
+
+
+def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes: int, procs: dict) -> list[float]:
+    """Round trips of the bench's frames through the router to :func:`echo_node` and back (ms)."""
+    import subprocess
+
+    import zenoh
+
+    from scmr_mesh.mesh.testing import stop_peer, wait_for
+    from scmr_mesh.ros import wire as rw
+
+    ready = tmp / "echo.ready"
+    with open(tmp / "echo.log", "ab") as logf:
+        procs["echo"] = subprocess.Popen(
+            [sys.executable, "-c", f"from scmr_mesh.bench.ros import echo_node; echo_node({ros_ep!r}, "
+                                   f"{str(ready)!r}, {mask_bytes})"],
+            stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+    lock = threading.Lock()
+    sent: dict[tuple, int] = {}
+    got: dict[tuple, int] = {}
+
+    def on_echo(sample):
+        t = time.perf_counter_ns()
+        b = sample.payload.to_bytes()
+        with lock:
+            got[(str(sample.key_expr).rsplit("/", 1)[1], b[4:12])] = t
+
+    wait_for(ready.exists, timeout=60, what="the echo node")
+    sub = session.declare_subscriber(f"{_ECHO_OUT}/*", on_echo)
+    pubs = [session.declare_publisher(f"{_ECHO_IN}/{i}", congestion_control=zenoh.CongestionControl.BLOCK)
+            for i in range(len(scenes))]
+    try:
+        for p in pubs:
+            wait_for(lambda: p.matching_status.matching, timeout=30, what="the echo node's subscription")
+        shift = time.monotonic_ns() + 100_000_000 - due[0][0]
+        for t_due, i, k in due:
+            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            left = t_due + shift - time.monotonic_ns()
+            if left > 0:
+                time.sleep(left / 1e9)
+            ident = (str(i), payload[4:12])
+            sent[ident] = time.perf_counter_ns()
+            pubs[i].put(payload)
+        try:
+            wait_for(lambda: len(got) >= len(sent), timeout=10, what="the last echoes")
+        except TimeoutError:
+            pass
+    finally:
+        for x in (sub, *pubs):
+            x.undeclare()
+        stop_peer(procs.pop("echo"))
+    return [(got[n] - sent[n]) / 1e6 for n in sent if n in got]
 
 
 def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: int, process: str, cloud_ep: str,
