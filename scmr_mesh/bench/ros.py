@@ -8,13 +8,15 @@ subscribes to the masks.  Per frame, paired in one run:
 
 * ``e2e_ms``: from just before ``put`` to the mask sample's arrival here (what a ROS node sees);
 * ``tor_ms``: the bridge's robot record of the same frame (``records.jsonl``, matched by the
-  header stamp in its ``image`` field): the ``scmr robot`` request path for those bytes;
-* ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB to JPEG, the mask
-  back to the frame's size, CDR encode, both ROS-side Zenoh hops);
+  header stamp in its ``image`` field): the ``scmr robot`` request path for the bytes the bridge
+  sends (the frame reduced to the service's scale, :func:`scmr_mesh.mesh.ros.reduced_for_service`);
+* ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB, reduction and JPEG,
+  the mask back to the frame's size, CDR encode, both ROS-side Zenoh hops);
 * ``ros_out_ms``: from the mask's put in the bridge (its attachment's timestamp) to its arrival
   here: the ROS-side hop back through the router, which any rmw_zenoh node pays;
 * ``bridges[*].bridge_ms_median``: the bridge's own time outside the robot's ToR (arrival to
-  frame ready, Robot.request's work before its answer, answer to mask put): what its code adds.
+  frame ready, Robot.request's work before its answer, answer to mask put): what its code adds;
+  ``bridge_ms`` is their median/p95/p99 over the bridges.
 
 ``floor_ms``: the ROS-side transport alone, what any rmw_zenoh node that answers a frame
 pays: the same frames on the same schedule to an echo process (a client of the same router)

@@ -50,7 +50,7 @@ class BridgeStats:
     publish_errors: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
     #: per served frame (the last 10000): ms from the sample's arrival to the frame ready to send
-    #: (CDR decode, RGB, JPEG), and from the robot's answer to the mask published
+    #: (CDR decode, RGB, reduction, JPEG), and from the robot's answer to the mask published
     in_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
     out_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
     #: and the wall time of Robot.request (its ToR plus its records, inbox and telemetry)
