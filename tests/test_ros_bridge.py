@@ -191,7 +191,7 @@ def test_frames_arriving_faster_than_served_keep_only_the_newest():
     from scmr_mesh.mesh.ros import RosBridge
 
     ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
-    robot = SimpleNamespace(id="r1", add_observer=lambda fn: None)
+    robot = SimpleNamespace(id="r1", annotators=[])
     b = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask")
     key = _key(ts, "/cam", IMAGE)
 
@@ -207,3 +207,41 @@ def test_frames_arriving_faster_than_served_keep_only_the_newest():
     humble = key.rsplit("/", 1)[0] + "/TypeHashNotSupported"  # what rmw_zenoh on Humble sends
     b._on_sample(SimpleNamespace(key_expr=humble, payload=SimpleNamespace(to_bytes=lambda: _image(ts, 9, _scene(4, 4)))))
     assert b._take(threading.Event(), 0).header.sec == 9
+
+
+def test_a_reduced_frame_still_gets_a_mask_of_the_input_size_published_before_the_record(tmp_path):
+    """A 640x480 rgb8 frame goes to the mesh as the 320x240 JPEG the service would decode it at;
+    the mask comes back mono8 640x480 with the input's header, published before the robot writes
+    its record; the overlay is made only while subscribed (old code: a 640x480 JPEG, the mask
+    published after records.jsonl was written, an overlay for every frame)."""
+    from types import SimpleNamespace
+
+    from scmr_mesh.mesh.robot import Robot, RobotOptions
+    from scmr_mesh.mesh.ros import RosBridge
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    robot = Robot("r1", tmp_path / "r1", options=RobotOptions(process=STUB))  # no session: computed locally
+    b = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask")
+    records = tmp_path / "r1" / "records.jsonl"
+    puts = []
+    b._mask_pub = SimpleNamespace(put=lambda payload: puts.append((payload, records.read_text())))
+    overlays, subscribed = [], [False]
+    b._overlay_pub = SimpleNamespace(put=overlays.append, matching=lambda: subscribed[0])
+    pending = b._decode(_key(ts, "/cam", IMAGE), _image(ts, 41, _scene(480, 640)))
+    sent = cv2.imdecode(np.frombuffer(pending.frame.data, np.uint8), cv2.IMREAD_COLOR)
+    assert (pending.frame.encoding, sent.shape) == ("jpeg", (240, 320, 3))
+    rec = b.serve_one(pending)
+    assert rec["ok"] and rec["tier"] == "local" and b.stats.served == b.stats.published == 1
+    assert overlays == [] and b.stats.overlays == 0  # nobody subscribes to the overlay: none made
+    subscribed[0] = True
+    b.serve_one(b._decode(_key(ts, "/cam", IMAGE), _image(ts, 42, _scene(480, 640))))
+    robot.close()
+    assert len(overlays) == b.stats.overlays == 1 and ts.deserialize_cdr(overlays[0], IMAGE).header.stamp.sec == 42
+    assert len(puts) == 2
+    payload, records_then = puts[0]
+    assert records_then == "" and json.loads(records.read_text().splitlines()[0])["image"] == "/cam@41.000000123"
+    m = ts.deserialize_cdr(payload, IMAGE)
+    assert (m.encoding, m.height, m.width, m.step) == ("mono8", 480, 640, 640)
+    assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == (41, 123, "cam")
+    px = np.asarray(m.data).reshape(480, 640)
+    assert set(np.unique(px)) == {0, 255} and px[-1].min() == 255 and px[0].max() == 0

@@ -492,7 +492,12 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
         description="Real processes on loopback: `scmr router` playing rmw_zenohd, a cloud, N `scmr ros` bridges; "
                     "this process publishes sensor_msgs/Image rgb8 frames as a ROS node would and times each "
                     "frame from put to its mask (e2e), against the bridge's own record of the same frame (the "
-                    "`scmr robot` request path: tor).  overhead = e2e - tor, median/p95/p99 (docs/ROS2.md).")
+                    "`scmr robot` request path: tor).  overhead = e2e - tor, median/p95/p99; ros_out (the mask's "
+                    "hop back, which any rmw_zenoh node pays) and the bridges' own time outside their ToR "
+                    "(bridge_ms); floor: the same frames through the router to an echo node that answers at "
+                    "once (the ROS-side transport alone).  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
+                    "the same cloud: robot_tor, and added_vs_robot = median e2e - median robot ToR, the "
+                    "issue's target (docs/BENCHMARKS.md).")
     b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
                    help="bridges, each with its own camera topic (default 4)")
     b.add_argument("--rate", type=ca.positive("frames per second", hi=1000, example="5"), default=5.0, metavar="HZ",
@@ -504,5 +509,7 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--process", default=None, metavar="MODULE:FUNC",
                    help="the cloud's process function (default: the stub, scmr_mesh.mesh.testing:stub_process; "
                         "the overhead is paired per frame, so the pipeline's own time cancels out)")
+    b.add_argument("--robot-baseline", action=argparse.BooleanOptionalAction, default=True,
+                   help="after the bridges, time the same frames from `scmr robot` processes (default on)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
     b.set_defaults(func=_handler("ros", "cmd_bench_ros"))

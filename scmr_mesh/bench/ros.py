@@ -8,9 +8,24 @@ subscribes to the masks.  Per frame, paired in one run:
 
 * ``e2e_ms``: from just before ``put`` to the mask sample's arrival here (what a ROS node sees);
 * ``tor_ms``: the bridge's robot record of the same frame (``records.jsonl``, matched by the
-  header stamp in its ``image`` field): the ``scmr robot`` request path for those bytes;
-* ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB to JPEG, the mask
-  back to the frame's size, the overlay, CDR encode, both ROS-side Zenoh hops).
+  header stamp in its ``image`` field): the ``scmr robot`` request path for the bytes the bridge
+  sends (the frame reduced to the service's scale, :func:`scmr_mesh.mesh.ros.reduced_for_service`);
+* ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB, reduction and JPEG,
+  the mask back to the frame's size, CDR encode, both ROS-side Zenoh hops);
+* ``ros_out_ms``: from the mask's put in the bridge (its attachment's timestamp) to its arrival
+  here: the ROS-side hop back through the router, which any rmw_zenoh node pays;
+* ``bridges[*].bridge_ms_median``: the bridge's own time outside the robot's ToR (arrival to
+  frame ready, Robot.request's work before its answer, answer to mask put): what its code adds;
+  ``bridge_ms`` is their median/p95/p99 over the bridges.
+
+``floor_ms``: the ROS-side transport alone, what any rmw_zenoh node that answers a frame
+pays: the same frames on the same schedule to an echo process (a client of the same router)
+that answers each with a mask-sized sample at once; e2e of that round trip.
+
+Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
+N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
+same rate, phases within one period) and their ``tor_ms`` (``robot_tor_ms``);
+``added_vs_robot_ms`` is the median e2e minus the median of those ToRs.
 """
 
 from __future__ import annotations
@@ -47,7 +62,7 @@ def _scene(h: int, w: int, seed: int):
 
 
 def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
-        process: str | None = None, tmp: Path | None = None,
+        process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True,
         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     import zenoh
 
@@ -66,6 +81,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
     procs: dict[str, Any] = {}
     sent: dict[str, int] = {}      # frame name -> perf_counter_ns at put
     got: dict[str, int] = {}       # frame name -> perf_counter_ns at the mask's arrival
+    back: dict[str, float] = {}    # frame name -> ms from the mask's put (its attachment) to its arrival
     lock = threading.Lock()
     session = None
     try:
@@ -89,11 +105,15 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
 
         def on_mask(sample):
             t = time.perf_counter_ns()
+            wall = time.time_ns()
             key = rw.parse_topic_key(str(sample.key_expr))
             hdr = rw.decode_image(sample.payload.to_bytes()).header
             name = f"{key.topic.replace('/drivable/mask', '/camera/image_raw')}@{hdr.sec}.{hdr.nanosec:09d}"
+            att = rw.decode_attachment(sample.attachment.to_bytes()) if sample.attachment is not None else None
             with lock:
                 got[name] = t
+                if att is not None:
+                    back[name] = (wall - att.timestamp_ns) / 1e6
 
         subs = [session.declare_subscriber(f"0/r{i}/drivable/mask/*/*", on_mask) for i in range(robots)]
         pubs = [session.declare_publisher(rw.topic_key(0, f"/r{i}/camera/image_raw", rw.IMAGE),
@@ -132,12 +152,27 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                if r["ok"]}
         e2e = {n: (got[n] - sent[n]) / 1e6 for n in sent if n in got}
         paired = [n for n in e2e if n in tor]
-        return {
+        res = {
             "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "rgb8", "process": process,
             "frames_sent": len(sent), "masks_received": len(e2e), "paired": len(paired),
             "e2e_ms": _stats([e2e[n] for n in paired]), "tor_ms": _stats([tor[n] for n in paired]),
-            "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]), "bridges": summaries,
+            "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]),
+            "ros_out_ms": _stats([back[n] for n in paired if n in back]),
+            "bridge_ms": _stats([b["bridge_ms_median"] for b in summaries.values()
+                                 if b and b.get("bridge_ms_median") is not None]),
+            "bridges": summaries,
         }
+        say("the same frames to an echo node: the ROS-side transport alone")
+        res["floor_ms"] = _stats(_transport_floor(session, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs))
+        if robot_baseline:
+            say(f"the same frames from {robots} scmr robot processes")
+            rtor = _robot_baseline(tmp, scenes, robots=robots, rate_hz=rate_hz, frames=frames, process=process,
+                                   cloud_ep=f"tcp/127.0.0.1:{cport}", procs=procs)
+            res["robot_frames"] = len(rtor)
+            res["robot_tor_ms"] = _stats(rtor)
+            med = res["robot_tor_ms"]["median"]
+            res["added_vs_robot_ms"] = None if med is None or not paired else round(res["e2e_ms"]["median"] - med, 2)
+        return res
     finally:
         if session is not None:
             close_session(session)
@@ -145,11 +180,118 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             stop_peer(p)
 
 
+_ECHO_IN, _ECHO_OUT = "scmr_bench/echo/in", "scmr_bench/echo/out"
+
+
+def echo_node(ros_ep: str, ready: str, mask_bytes: int) -> None:
+    """The floor's echo process: answer each frame on ``_ECHO_IN/<i>`` with ``mask_bytes`` on ``_ECHO_OUT/<i>``.
+
+    The answer starts with the frame's first 16 bytes (its CDR header: the stamp), as a
+    bridge's mask carries the frame's stamp; the payload is copied out once, as the bridge does.
+    """
+    from scmr_mesh.mesh.config import open_session
+    from scmr_mesh.mesh.ros import ros_session_config
+
+    session = open_session(ros_session_config([ros_ep], []))
+    pubs: dict[str, Any] = {}
+    fill = bytes(mask_bytes)
+
+    def on_frame(sample):
+        i = str(sample.key_expr).rsplit("/", 1)[1]
+        pub = pubs.get(i)
+        if pub is None:
+            pub = pubs[i] = session.declare_publisher(f"{_ECHO_OUT}/{i}")
+        pub.put(sample.payload.to_bytes()[:16] + fill)
+
+    session.declare_subscriber(f"{_ECHO_IN}/*", on_frame)
+    Path(ready).write_text("ready\n")
+    threading.Event().wait()  # until SIGTERM
+
+
+def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes: int, procs: dict) -> list[float]:
+    """Round trips of the bench's frames through the router to :func:`echo_node` and back (ms)."""
+    import subprocess
+
+    import zenoh
+
+    from scmr_mesh.mesh.testing import stop_peer, wait_for
+    from scmr_mesh.ros import wire as rw
+
+    ready = tmp / "echo.ready"
+    with open(tmp / "echo.log", "ab") as logf:
+        procs["echo"] = subprocess.Popen(
+            [sys.executable, "-c", f"from scmr_mesh.bench.ros import echo_node; echo_node({ros_ep!r}, "
+                                   f"{str(ready)!r}, {mask_bytes})"],
+            stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
+    lock = threading.Lock()
+    sent: dict[tuple, int] = {}
+    got: dict[tuple, int] = {}
+
+    def on_echo(sample):
+        t = time.perf_counter_ns()
+        b = sample.payload.to_bytes()
+        with lock:
+            got[(str(sample.key_expr).rsplit("/", 1)[1], b[4:12])] = t
+
+    wait_for(ready.exists, timeout=60, what="the echo node")
+    sub = session.declare_subscriber(f"{_ECHO_OUT}/*", on_echo)
+    pubs = [session.declare_publisher(f"{_ECHO_IN}/{i}", congestion_control=zenoh.CongestionControl.BLOCK)
+            for i in range(len(scenes))]
+    try:
+        for p in pubs:
+            wait_for(lambda: p.matching_status.matching, timeout=30, what="the echo node's subscription")
+        shift = time.monotonic_ns() + 100_000_000 - due[0][0]
+        for t_due, i, k in due:
+            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            left = t_due + shift - time.monotonic_ns()
+            if left > 0:
+                time.sleep(left / 1e9)
+            ident = (str(i), payload[4:12])
+            sent[ident] = time.perf_counter_ns()
+            pubs[i].put(payload)
+        try:
+            wait_for(lambda: len(got) >= len(sent), timeout=10, what="the last echoes")
+        except TimeoutError:
+            pass
+    finally:
+        for x in (sub, *pubs):
+            x.undeclare()
+        stop_peer(procs.pop("echo"))
+    return [(got[n] - sent[n]) / 1e6 for n in sent if n in got]
+
+
+def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: int, process: str, cloud_ep: str,
+                    procs: dict) -> list[float]:
+    """ToRs of ``scmr robot`` sending ``scenes`` (one PNG per robot, sent as JPEG 90) to the same cloud."""
+    import cv2
+
+    from scmr_mesh.mesh.testing import read_records, stop_peer, spawn_peer, wait_for
+
+    start = tmp / "robots.start"
+    for i, rgb in enumerate(scenes):
+        (tmp / f"img{i}").mkdir(exist_ok=True)
+        cv2.imwrite(str(tmp / f"img{i}" / "scene.png"), rgb[:, :, ::-1])
+        procs[f"b{i}"] = spawn_peer(
+            ["robot", "--insecure", "--id", f"b{i}", "--connect", cloud_ep, "--images", str(tmp / f"img{i}"),
+             "--rate", f"{rate_hz:g}", "--count", str(frames), "--process", process, "--quiet", "--drain-s", "0",
+             "--out", str(tmp / f"b{i}"), "--start-file", str(start), "--ready-file", str(tmp / f"b{i}.ready")],
+            log_path=tmp / f"b{i}.log")
+    for i in range(robots):
+        wait_for((tmp / f"b{i}.ready").exists, timeout=120, what=f"robot b{i}")
+    start.write_text(f"{time.time_ns()}\n")
+    deadline = time.monotonic() + frames / rate_hz + 30
+    for i in range(robots):
+        wait_for(lambda: procs[f"b{i}"].poll() is not None or time.monotonic() > deadline, timeout=frames / rate_hz + 60,
+                 what=f"robot b{i} to finish")
+        stop_peer(procs.pop(f"b{i}"))
+    return [r["tor_ms"] for i in range(robots) for r in read_records(tmp / f"b{i}" / "records.jsonl") if r["ok"]]
+
+
 def cmd_bench_ros(args: argparse.Namespace) -> int:
     if args.robots < 1 or args.duration <= 0:
         raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
     res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size,
-              process=args.process, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
+              process=args.process, robot_baseline=args.robot_baseline, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
     text = json.dumps(res, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")

@@ -146,6 +146,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--jpeg-quality", type=ca.count("JPEG quality (0 sends PNG)", lo=0, hi=100, example="90"),
                    default=90, metavar="Q", help="raw Image frames go to the mesh as JPEG at Q (default 90; 0: PNG); "
                                                  "compressed frames go as they are")
+    g.add_argument("--full-frames", action="store_true",
+                   help="send raw Image frames at full size; by default they are first area-averaged by the "
+                        "factor the service decodes them at (640x480 goes as 320x240; the service works on "
+                        "300x225 either way, the mask comes back at the input's size)")
     g.add_argument("--deadline-ms", type=ca.Number(lo=0, lo_open=True, hi=3600000, what="milliseconds", example="1000"),
                    default=1000.0, metavar="MS", help="per-attempt deadline (default 1000)")
     g.add_argument("--redundant", action="store_true", help="send each frame to cloud and leader at once")
@@ -740,7 +744,7 @@ def _cmd_ros(args) -> int:
                             "endpoint") from None
         bridge = RosBridge(robot, ros_session, domain=args.domain, image_topic=args.image_topic,
                            mask_topic=args.mask_topic, compressed=args.compressed, rate_hz=args.rate,
-                           jpeg_quality=args.jpeg_quality, node_name=node)
+                           jpeg_quality=args.jpeg_quality, node_name=node, full_frames=args.full_frames)
         bridge.start()
         write_ready(args.ready_file, {"role": "ros", "node": args.id, "zid": str(session.info.zid()),
                                       "ros_zid": str(ros_session.info.zid()), "ros_node": node, "keys": []})
