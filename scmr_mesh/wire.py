@@ -375,7 +375,7 @@ def reply_mismatch(asked: Mapping[str, Any], reply: Mapping[str, Any]) -> str | 
 
     A reply answers a request only when its ``robot``, ``seq`` and ``digest`` are
     the request's: a replayed earlier reply, one for another frame or robot, or
-    one without a digest (a server older than the digest echo) is not.  Pure.
+    one without a digest (a server outside the project) is not.  Pure.
 
     >>> req = make_request("r1", 7, b"frame")
     >>> rep = {"robot": "r1", "seq": 7, "digest": frame_digest(b"frame")}
@@ -388,7 +388,7 @@ def reply_mismatch(asked: Mapping[str, Any], reply: Mapping[str, Any]) -> str | 
         return f"reply answers frame {reply.get('seq')}, this request is frame {asked.get('seq')}"
     got, want = reply.get("digest"), asked.get("digest")
     if not isinstance(got, (bytes, bytearray)):
-        return "reply echoes no frame digest (a server older than the digest echo): not taken as this frame's"
+        return "reply echoes no frame digest (not a server of this version): not taken as this frame's"
     if not isinstance(want, (bytes, bytearray)) or bytes(got) != bytes(want):
         return (f"reply echoes frame digest {bytes(got).hex()[:16]}, this frame's is "
                 f"{bytes(want).hex()[:16] if isinstance(want, (bytes, bytearray)) else 'unknown'}: "

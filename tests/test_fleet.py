@@ -378,7 +378,8 @@ def test_mismatched_replies_are_in_the_report_the_console_and_fail_the_run():
     validate_report(rep)
     rep["problems"] = fleet_problems(rep)
     assert rep["problems"] == ["2 replies did not answer the request they came for (robot, seq or frame digest "
-                               "not the request's: a replayed or wrong answer, never used): cloud/cloud0 2"]
+                               "not the request's, or not a trusted reply of the node asked: a replayed, forged or wrong answer, "
+                               "never used): cloud/cloud0 2"]
     assert "PROBLEM: 2 replies did not answer" in format_summary(rep)
     with pytest.raises(MeshError, match="did not answer the request"):
         check_fleet(rep, 0.0)

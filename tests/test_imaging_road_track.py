@@ -148,3 +148,18 @@ def test_eval_sequences_leave_one_sequence_out(tmp_path, capsys):
     assert "add --sequences" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "d"), "--min-precision", "0.9"]) == 1
     assert "add one of them" in capsys.readouterr().err
+
+
+def test_a_track_state_whose_covariance_is_not_a_covariance_is_refused():
+    """A covariance that is not positive definite is a malformed state (InputError), not a
+    LinAlgError at the next frame; so are a non-numeric time and a fractional patience."""
+    from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS
+
+    bad = {"mean": [0, 0, 0, 0], "cov": (-DEFAULT_PARAMS.noise ** 2 * np.eye(4)).tolist()}
+    with pytest.raises(InputError):
+        RoadTrack.from_dict(bad)
+    with pytest.raises(InputError, match="patience"):
+        TrackParams(patience=2.5).check()
+    frame = np.zeros((225, 300, 3), np.uint8)
+    with pytest.raises(InputError, match="finite time"):
+        segment_drivable(frame, track=RoadTrack(), t="1")

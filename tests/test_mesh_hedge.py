@@ -8,7 +8,6 @@ request is answered at most once in the records.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import pytest
@@ -224,3 +223,78 @@ def test_a_service_remembers_recent_requests_boundedly():
     for seq in range(2, 6):
         r.add(("r1", seq, 10))
     assert len(r._seen) == 3 and r.add(("r1", 1, 11))  # bounded: the oldest are forgotten
+
+
+class LieAndHold(FakeTier):
+    """A lying cloud: answers at once with a reply to another frame, then keeps its query open
+    (never finalises it) until the robot cancels it."""
+
+    def get(self, payload, *, encoding=None, cancellation_token=None):
+        self.calls += 1
+        key = keys.drivable_request(self.tier, self.node, self.robot)
+        req = wire.decode(payload, kind="request")
+        stale = wire.make_request(req["robot"], req["seq"], b"last run's frame")
+        rep = wire.make_reply(stale, mask_png=b"\x89PNG\r\n\x1a\n..", shape=(225, 300), threshold=1,
+                              timings_ms={}, served_by=self.node, tier=self.tier, server_ms=1.0)
+
+        def gen():
+            yield _Reply(wire.encode(rep), key)
+            self._wait_cancel(cancellation_token, self.hold_s)
+
+        return gen()
+
+
+def test_a_mismatched_reply_of_a_hedged_loser_is_in_the_record(tmp_path):
+    """A lying primary that holds its query open after a replayed reply, beaten by the hedge: its
+    mismatched reply is in the record and the robot's stats, not only in Robot.mismatched (review
+    of issue 25 item 8: the loser's attempt was marked superseded without what its query saw)."""
+    robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=3000, hedge_ms=50)
+    liar = LieAndHold("r1", "cloud", "c1", hold_s=3.0)
+    robot._queriers[keys.drivable_request("cloud", "c1", "r1")] = liar
+    try:
+        rec = robot.request(0, FRAME)
+        deadline = time.monotonic() + 5
+        while not robot.mismatched and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert rec["ok"] and rec["tier"] == "leader" and rec["hedged"]
+        assert robot.mismatched == {"cloud/c1": 1}
+        assert rec["mismatched"] == robot.stats["mismatched"] == 1, rec["attempts"]
+    finally:
+        robot.close()
+
+
+class ForgedServedBy(FakeTier):
+    """A lying cloud c1: answers this very frame (robot, seq, digest right) but names another
+    server in served_by, or sends bytes that are no reply at all."""
+
+    garbage = False
+
+    def get(self, payload, *, encoding=None, cancellation_token=None):
+        self.calls += 1
+        key = keys.drivable_request(self.tier, self.node, self.robot)
+        req = wire.decode(payload, kind="request")
+        rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n..", shape=(225, 300), threshold=1,
+                              timings_ms={}, served_by="c9", tier=self.tier, server_ms=1.0)
+        return iter([_Reply(b"\xc1not msgpack" if self.garbage else wire.encode(rep), key)])
+
+
+@pytest.mark.parametrize("garbage", [False, True])
+def test_a_lying_servers_refused_replies_are_counted_somewhere(tmp_path, garbage):
+    """A reply refused as bad_reply (another server's name in served_by, bytes that are no reply)
+    is never used and counted like a mismatched one: record, Robot.mismatched, the report (before:
+    counted nowhere, the run looked like an ordinary failover to the leader)."""
+    from scmr_mesh.qos import metrics
+
+    robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=2000, hedge=False)
+    liar = ForgedServedBy("r1", "cloud", "c1")
+    liar.garbage = garbage
+    robot._queriers[keys.drivable_request("cloud", "c1", "r1")] = liar
+    try:
+        recs = [robot.request(i, FRAME) for i in range(3)]
+    finally:
+        robot.close()
+    assert [r["tier"] for r in recs] == ["leader"] * 3
+    assert [r["attempts"][0]["outcome"] for r in recs] == ["bad_reply"] * 3
+    summary = metrics.summarize(recs, robots=1)
+    assert robot.mismatched == {"cloud/c1": 3} and summary["mismatched"] == 3
+    assert summary["mismatched_by_node"] == {"cloud/c1": 3}

@@ -245,3 +245,35 @@ def test_a_reduced_frame_still_gets_a_mask_of_the_input_size_published_before_th
     assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == (41, 123, "cam")
     px = np.asarray(m.data).reshape(480, 640)
     assert set(np.unique(px)) == {0, 255} and px[-1].min() == 255 and px[0].max() == 0
+
+
+def test_the_ros_mask_is_published_before_the_inbox_file_as_documented(tmp_path):
+    """The mask goes out before the robot's inbox file, records and telemetry (Robot._deliver runs
+    its annotators first; before, the inbox write and mask pruning came first)."""
+    from types import SimpleNamespace
+
+    from scmr_mesh.mesh.robot import Robot, RobotOptions
+    from scmr_mesh.mesh.ros import RosBridge
+    from scmr_mesh.mesh.testing import STUB
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    robot = Robot("r1", tmp_path / "r1", options=RobotOptions(process=STUB))
+    b = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask")
+    inbox_then = []
+    b._mask_pub = SimpleNamespace(put=lambda payload: inbox_then.append(sorted(p.name for p in robot.inbox.iterdir())))
+    b._overlay_pub = SimpleNamespace(put=lambda payload: None, matching=lambda: False)
+    try:
+        rec = b.serve_one(b._decode(_key(ts, "/cam", IMAGE), _image(ts, 41, _scene(480, 640))))
+    finally:
+        robot.close()
+    assert rec["ok"] and inbox_then == [[]], inbox_then
+
+
+def test_a_reduced_ros_frame_is_never_smaller_than_the_services_working_frame():
+    """Reduced sizes round up as the service's own 1/r DCT decode does (a 599x449 frame went as
+    299x224 with floor division, below the service's 300x225 working frame)."""
+    from scmr_mesh.mesh.ros import reduced_for_service
+
+    for w, h in ((599, 449), (1199, 899)):
+        r = reduced_for_service(np.zeros((h, w, 3), np.uint8))
+        assert r.shape[1] >= 300 and r.shape[0] >= 225, (w, h, r.shape)

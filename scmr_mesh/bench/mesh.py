@@ -392,8 +392,8 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         with CpuSampler(cfg.run_dir / "ready") as sampler:
             rep = run_with_output(cfg)
         t0 = int(rep["t0_unix_ns"])
-        cpu = cpu_per_request(sampler.to_json(), t0, t0 + int(rep["duration_s"] * 1e9), rep["requests"],
-                              os.cpu_count())
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        cpu = cpu_per_request(sampler.to_json(), t0, t0 + int(rep["duration_s"] * 1e9), rep["requests"], cores)
         runs.append(dict(_run_entry(rep), robots_per_process=cfg.robots_per_process, cpu=cpu))
         t, a = rep["tor_ms"], runs[-1]["tor_admitted_ms"]
         say(f"  {n} robots: {rep['requests']} requests, RoR {rep['ror']}, ToR p50 {_ms(t['p50'])} "
@@ -401,7 +401,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
             f"{a['busy_answers']} busy answers; hedged {runs[-1]['hedged']} ({runs[-1]['hedge_rate']})")
         m = cpu["ms_per_request"]
         say("  CPU ms per request: " + ", ".join(f"{k} {m[k]}" for k in (*CPU_ROLES, "total"))
-            + f"; the fleet used {cpu['host_share']} of the host's {os.cpu_count()} cores")
+            + f"; the fleet used {cpu['host_share']} of the {cores} cores it may run on")
     crash = hogs = None
     if args.crash_robots > 0 and args.crash_runs > 0:
         say(f"bench mesh: {args.crash_runs} crash runs, {args.crash_robots} robots, cloud down "

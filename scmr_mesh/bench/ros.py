@@ -20,7 +20,8 @@ subscribes to the masks.  Per frame, paired in one run:
 
 ``floor_ms``: the ROS-side transport alone, what any rmw_zenoh node that answers a frame
 pays: the same frames on the same schedule to an echo process (a client of the same router)
-that answers each with a mask-sized sample at once; e2e of that round trip.
+that answers each with a mask-sized sample at once; e2e of that round trip (``floor_lost``: echoes that
+never came back, left out of it).
 
 Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
 N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
@@ -163,7 +164,10 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             "bridges": summaries,
         }
         say("the same frames to an echo node: the ROS-side transport alone")
-        res["floor_ms"] = _stats(_transport_floor(session, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs))
+        floor, floor_lost = _transport_floor(session, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs)
+        res["floor_ms"], res["floor_lost"] = _stats(floor), floor_lost  # echoes that never came back
+        if floor_lost:
+            say(f"  {floor_lost} of {len(due)} frames sent to the echo node never came back (not in floor_ms)")
         if robot_baseline:
             say(f"the same frames from {robots} scmr robot processes")
             rtor = _robot_baseline(tmp, scenes, robots=robots, rate_hz=rate_hz, frames=frames, process=process,
@@ -208,8 +212,10 @@ def echo_node(ros_ep: str, ready: str, mask_bytes: int) -> None:
     threading.Event().wait()  # until SIGTERM
 
 
-def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes: int, procs: dict) -> list[float]:
-    """Round trips of the bench's frames through the router to :func:`echo_node` and back (ms)."""
+def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes: int,
+                     procs: dict) -> tuple[list[float], int]:
+    """Round trips of the bench's frames through the router to :func:`echo_node` and back (ms), and how many
+    never came back."""
     import subprocess
 
     import zenoh
@@ -257,7 +263,7 @@ def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes
         for x in (sub, *pubs):
             x.undeclare()
         stop_peer(procs.pop("echo"))
-    return [(got[n] - sent[n]) / 1e6 for n in sent if n in got]
+    return [(got[n] - sent[n]) / 1e6 for n in sent if n in got], sum(1 for n in sent if n not in got)
 
 
 def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: int, process: str, cloud_ep: str,

@@ -21,6 +21,7 @@ Two modes:
 
 from __future__ import annotations
 
+import numbers
 import time
 from dataclasses import dataclass, field
 
@@ -174,7 +175,7 @@ def segment_drivable(
         if track is not None:
             from scmr_mesh.imaging.road_track import TrackParams
 
-            if t is not None and not np.isfinite(t):
+            if t is not None and (isinstance(t, bool) or not isinstance(t, numbers.Real) or not np.isfinite(t)):
                 raise InputError(f"t must be a finite time in seconds, got {t!r}")
             carry = (track, (track_params or TrackParams()).check(), t)
         return _segment_best(frame, q, stages, params, timings, t1, carry)

@@ -34,6 +34,7 @@ chosen by leave-one-sequence-out cross-validation on CamVid's drives
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -108,7 +109,8 @@ class TrackParams:
             raise InputError(f"p must be in (0, 1), got {self.p}")
         if not 0 < self.agree <= 1:
             raise InputError(f"agree must be in (0, 1], got {self.agree}")
-        if not 1 <= int(self.patience) <= 1000:
+        if (isinstance(self.patience, bool) or not isinstance(self.patience, numbers.Integral)
+                or not 1 <= self.patience <= 1000):
             raise InputError(f"patience must be an integer in [1, 1000], got {self.patience}")
         if not (0 <= self.max_gap_s and math.isfinite(self.max_gap_s)):
             raise InputError(f"max_gap_s must be a finite number >= 0, got {self.max_gap_s}")
@@ -183,6 +185,8 @@ class RoadTrack:
                 cov = np.asarray(doc["cov"], np.float64).reshape(N_FEATURES, N_FEATURES)
                 if not (np.isfinite(mean).all() and np.isfinite(cov).all()):
                     raise ValueError("not finite")
+                if not np.allclose(cov, cov.T) or np.linalg.eigvalsh(cov).min() <= 0:
+                    raise ValueError("cov is not a positive definite covariance")
                 t.mean, t.cov = mean, cov
             t.frames, t.misses = int(doc.get("frames", 0)), int(doc.get("misses", 0))
             t.last_t = None if doc.get("last_t") is None else float(doc["last_t"])

@@ -793,7 +793,7 @@ def _cmd_ros(args) -> int:
         problems.append(f"{sum(stats.rejected.values())} sample(s) rejected "
                         + ", ".join(f"{k}={v}" for k, v in sorted(stats.rejected.items())))
     if stats.failed or stats.publish_errors:
-        problems.append(f"{stats.failed} frame(s) got no mask, {stats.publish_errors} mask publish error(s)")
+        problems.append(f"{stats.failed} frame(s) got no mask, {stats.publish_errors} mask or overlay publish error(s)")
     if problems:
         raise MeshError(f"ros {args.id}: " + "; ".join(problems) + " (see the log)")
     return 0

@@ -125,12 +125,27 @@ class _Sent:
     att: dict
     fut: Any
     token: Any
+    #: the copy of ``att`` the tier's thread writes; read back when the query is given up on
+    scratch: dict = field(default_factory=dict)
 
     def cancel(self) -> None:
         try:
             self.token.cancel()
         except Exception:  # already finished
             pass
+
+    def give_up(self, outcome: str) -> None:
+        """Cancel the query and set its attempt's ``outcome``, keeping the replies it refused so far.
+
+        A node that sent a mismatched or untrusted reply and then held its query open
+        (e.g. a hedge answered first) is still counted in the record.
+        """
+        self.cancel()
+        self.att["outcome"] = outcome
+        n = self.scratch.get("mismatched")
+        if n:
+            self.att["mismatched"] = n
+            self.att.setdefault("message", self.scratch.get("message"))
 
 
 @dataclass
@@ -391,13 +406,16 @@ class Robot:
                 msg = wire.decode(data, kind="reply")
             except wire.WireProblem as exc:
                 att["outcome"] = Outcome.BAD_REPLY
-                log.warning("bad reply from %s: %s", att["node"], exc)
+                att["mismatched"] = att.get("mismatched", 0) + 1
+                att["message"] = f"not a reply: {exc}"[:200]
+                self._count_mismatch(att, asked, att["message"])
                 return None
             problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply)
             if problem:
                 att["outcome"] = Outcome.BAD_REPLY
+                att["mismatched"] = att.get("mismatched", 0) + 1
                 att["message"] = problem[:200]
-                log.warning("robot %s: refused a reply from %s/%s: %s", self.id, att["tier"], att["node"], problem)
+                self._count_mismatch(att, asked, problem)
                 return None
             why = wire.reply_mismatch(asked, msg)
             if why:
@@ -424,7 +442,7 @@ class Robot:
         with self._mismatch_lock:
             n = self.mismatched[where] = self.mismatched.get(where, 0) + 1
         if n == 1 or n % 100 == 0:
-            log.error("robot %s: %s answered request %s with a reply to another request (%s); not used, "
+            log.error("robot %s: %s sent a reply that does not answer request %s (%s); not used, "
                       "%d such repl%s from it so far", self.id, where, asked.get("seq"), why, n,
                       "y" if n == 1 else "ies")
 
@@ -548,8 +566,9 @@ class Robot:
 
         token = zenoh.CancellationToken()
         asked = asked or _asked_of(payload)
-        fut = self._tier_executor(att["tier"]).submit(self._collect, dict(att), q, payload, token, asked)
-        return _Sent(att, fut, token)
+        scratch = dict(att)
+        fut = self._tier_executor(att["tier"]).submit(self._collect, scratch, q, payload, token, asked)
+        return _Sent(att, fut, token, scratch)
 
     def _finish_sent(self, sent: _Sent, *, wait_s: float) -> Reply | None:
         """Wait up to ``wait_s`` for one sent query; write its outcome to its attempt; learn its answer time."""
@@ -559,8 +578,7 @@ class Robot:
         try:
             scratch, winner, answer_ms = sent.fut.result(timeout=max(0.0, wait_s))
         except FutureTimeout:
-            att["outcome"] = Outcome.TIMEOUT  # the tier's thread is still held by zenoh
-            sent.cancel()
+            sent.give_up(Outcome.TIMEOUT)  # the tier's thread is still held by zenoh
             return None
         except RuntimeError as exc:  # closed while sending
             att["outcome"] = error_outcome(f"send ({exc})")
@@ -685,8 +703,7 @@ class Robot:
                     winner = w
                     trip.hedge_won = sent is hedge
         for sent in live.values():  # the loser (or both, past the deadline)
-            sent.cancel()
-            sent.att["outcome"] = Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT
+            sent.give_up(Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT)
         for a in (att, hatt):
             if winner is None and a["outcome"] == BUSY:
                 self.view.mark_busy(a["node"])
@@ -803,8 +820,14 @@ class Robot:
         }
 
     def _deliver(self, seq: int, frame: Frame, record: dict, winner: Reply | None, outbox_file: Path) -> None:
-        """The mask to the inbox, the record to its file and topic, telemetry, then the observers."""
+        """The annotators (the ROS bridge publishes its mask there), the mask to the inbox, the record to its
+        file and topic, telemetry, then the observers."""
         mask_png = winner.body["mask_png"] if winner is not None else None
+        for fn in list(self.annotators):  # first: the ROS bridge publishes the mask from here
+            try:
+                fn(record, winner.body if winner is not None else None)
+            except Exception:
+                log.exception("annotator %r failed", fn)
         if mask_png is not None:
             try:
                 path = self.inbox / f"{seq}.mask.png"
@@ -816,11 +839,6 @@ class Robot:
             outbox_file.unlink()
         except OSError:
             pass
-        for fn in list(self.annotators):
-            try:
-                fn(record, winner.body if winner is not None else None)
-            except Exception:
-                log.exception("annotator %r failed", fn)
         self._records.write(json.dumps(record, separators=(",", ":")) + "\n")
         self._records.flush()
         self._account(record)
@@ -875,8 +893,8 @@ class Robot:
                     return w
             # wait only while a lead is passing on: no leader alive, or the leader just failed to answer
             lead_lost = not fresh.leader or any(
-                a["tier"] == Tier.LEADER and a["outcome"] in (Outcome.NO_REPLY, Outcome.UNREACHABLE, Outcome.TIMEOUT,
-                                                              Outcome.MISMATCHED)
+                # (a leader that answered with a wrong reply is alive: no new lead will come to wait for)
+                a["tier"] == Tier.LEADER and a["outcome"] in (Outcome.NO_REPLY, Outcome.UNREACHABLE, Outcome.TIMEOUT)
                 for a in attempts)
             # a node tried just now that answered busy: run locally at once; one that vanished
             # (a peer turning leader drops its peer queryable: no_reply) does not end the wait

@@ -102,7 +102,8 @@ def reduced_for_service(rgb):
     r = reduction_factor(w, h)
     if r == 1:
         return rgb
-    return cv2.resize(rgb, (w // r, h // r), interpolation=cv2.INTER_AREA)
+    # rounded up, as the service's own 1/r DCT decode would be: never below its working size
+    return cv2.resize(rgb, (-(-w // r), -(-h // r)), interpolation=cv2.INTER_AREA)
 
 
 def mask_for(mask_png: bytes, height: int, width: int):
@@ -346,9 +347,14 @@ class RosBridge:
             return record
         with self._cv:
             self.stats.served += 1
+        if isinstance(pending.mask, Exception):
+            with self._cv:
+                self.stats.publish_errors += 1
+            log.error("ros: publishing the mask of frame %s failed: %s", record["seq"], pending.mask)
+            return record
+        with self._cv:  # the mask is out (published from the robot's annotator): counted even if the overlay fails
+            self.stats.published += 1
         try:
-            if isinstance(pending.mask, Exception):
-                raise pending.mask
             mask = pending.mask
             overlay_on = self._overlay_pub.matching()  # made only when subscribed, as image_transport does
             if overlay_on:
@@ -356,7 +362,6 @@ class RosBridge:
                 overlay[:, :, 1] += mask // 2
                 self._overlay_pub.put(rw.encode_image(rw.rgb8(pending.header, overlay)))
             with self._cv:
-                self.stats.published += 1
                 self.stats.overlays += overlay_on
                 self.stats.in_ms.append(pending.in_ms)
                 self.stats.out_ms.append(pending.out_ms)
@@ -366,7 +371,7 @@ class RosBridge:
         except Exception as exc:
             with self._cv:
                 self.stats.publish_errors += 1
-            log.error("ros: publishing the mask of frame %s failed: %s", record["seq"], exc)
+            log.error("ros: publishing the overlay of frame %s failed: %s", record["seq"], exc)
         return record
 
     def run(self, stop: threading.Event, *, count: int | None = None, progress=None) -> BridgeStats:

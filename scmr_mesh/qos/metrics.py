@@ -55,7 +55,8 @@ Hedges (issue 24)
     hedge's when neither answered), counted on the tier it was sent to.
 Mismatched replies (issue 25 item 8)
     Replies a robot refused because they did not echo the robot, seq and frame
-    digest of the request they came for (a replayed or wrong answer): the
+    digest of the request they came for (a replayed or wrong answer), or were
+    not a trusted reply of the node asked (``bad_reply``: forged): the
     ``mismatched`` count of each attempt, summed, and by ``tier/node`` of the
     node that sent them.  Any is a lying or broken server: the run's problems.
 Failback gap (per fault with an end)

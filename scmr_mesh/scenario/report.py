@@ -618,8 +618,8 @@ def run_problems(report: Mapping[str, Any]) -> list[str]:
     if report.get("mismatched"):  # a server answered with a reply to another request (issue 25 item 8)
         who = ", ".join(f"{k} {v}" for k, v in (report.get("mismatched_by_node") or {}).items())
         out.append(f"{report['mismatched']} repl{'y' if report['mismatched'] == 1 else 'ies'} did not answer the "
-                   f"request they came for (robot, seq or frame digest not the request's: a replayed or wrong "
-                   f"answer, never used): {who or '?'}")
+                   f"request they came for (robot, seq or frame digest not the request's, or not a trusted reply "
+                   f"of the node asked: a replayed, forged or wrong answer, never used): {who or '?'}")
     tel = report.get("telemetry")
     if tel is None:
         out.append("telemetry was not counted (see the log of scmr up)")
