@@ -440,6 +440,10 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     ground) and keeps only what still touches a seed.  On a textured floor (leaf litter) no single region may cover enough of the cell, so a
     seed without ground contact shrinks the same way rather than emptying the mask.
 
+    When the candidate reaches above ``reach`` but :func:`open_ground` says its upper edge is a
+    horizon, nothing is shrunk and ``info["open_ground"]`` is set (the caller's column fill then
+    starts at each column's lowest candidate pixel).
+
     Returns
     -------
     mask : (h, w) uint8
@@ -458,6 +462,7 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     reach_conf = 1.0 if params.reach <= 0 else float(min(1.0, top / params.reach))
     if reach_conf < 1.0 and open_ground(candidate, params.front, info.get("grad")):
         reach_conf = 1.0   # it reaches the horizon because the ground is open, not up a wall
+        info["open_ground"] = True
     dim_conf = 1.0 if params.dim <= 0 else float(min(1.0, info["seed_grey"] / params.dim))
     confidence = min(reach_conf, dim_conf)
     if info["grounded"] and confidence >= 1.0:
