@@ -24,6 +24,7 @@ from scmr_mesh.imaging.road_model import (
     chi2_quantile,
     classify,
     feature_tables,
+    below_the_horizon,
     open_ground,
     seed_regions,
     tone_curve,
@@ -251,6 +252,16 @@ def test_open_ground_is_a_flat_front_under_a_smooth_sky():
     assert reason is None and conf == 1.0 and (mask == flat).all() and info["open_ground"]
     mask, conf, reason = abstain(flat, {**info, "grad": canopy}, RoadParams())
     assert reason == "seed reaches the horizon" and not mask[: int(RoadParams().cap * h)].any()
+    # hills above the horizon (a band of their own that ends within it) go; the ground stays
+    labels = np.zeros(WORK_SHAPE, np.int32)
+    labels[40:] = 1                                       # the ground: the seed
+    labels[30:40] = 2                                     # the hills: end 10 rows below the front's top
+    labels[60:, :20] = 3                                  # a patch of ground beside the seed
+    hills = flat.copy()
+    hills[30:40] = 1
+    kept = below_the_horizon(hills, {"labels": labels, "sizes": np.bincount(labels.ravel()),
+                                     "seeds": np.array([1])})
+    assert not kept[:40].any() and kept[40:].all()
 
 
 @pytest.mark.parametrize("bad", [dict(gamma=0), dict(p=1.0), dict(noise=0), dict(horizon=1.0), dict(gap=-1),

@@ -11,8 +11,9 @@ one is fixed and when one gets worse):
   seed's ellipsoid), and the far road beyond a cast shadow is lost (seed 0);
 * ``desert``: since the open-ground test (sand reaching the horizon under a smooth sky is not a
   leak, :func:`scmr_mesh.imaging.road_model.open_ground`) it is no longer shrunk to the rows
-  below ``cap`` (0.639 before); left: the far hills above the horizon are taken for sand, the
-  column fill bridges rocks shorter than its gap, and the lens's dark corners are lost.
+  below ``cap`` (0.639 before), and the bands standing above the horizon go; left: hills that
+  SRM merges with the sand stay green, the column fill bridges rocks shorter than its gap, and
+  the sand in the lens's dark corners and in cast shadows at the sides is lost.
 """
 
 from __future__ import annotations
@@ -28,9 +29,9 @@ SEEDS = range(8)
 IOU_TARGET = 0.85
 PRECISION_FLOOR = 0.85
 #: Kinds whose mean IoU is below the target today (issue 27 item 3, open), with the floor each
-#: holds: measured 2026-11-27, seeds 0-7, structured_road 0.722, desert 0.804 (dirt_road 0.899,
+#: holds: measured 2026-11-27, seeds 0-7, structured_road 0.723, desert 0.831 (dirt_road 0.899,
 #: tunnel 0.865, hallway 0.943).  Before the open-ground test: 0.746 and 0.639.
-KNOWN_BELOW = {"structured_road": 0.70, "desert": 0.79}
+KNOWN_BELOW = {"structured_road": 0.70, "desert": 0.82}
 
 
 def _scores(kind: str) -> list[dict]:

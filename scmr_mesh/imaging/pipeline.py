@@ -296,8 +296,10 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None):
         from scmr_mesh.imaging.road_track import tracked_candidate
 
         track, tparams, t = carry
-        candidate, confidence, abstained, carried = tracked_candidate(small, seg, params, track, tparams, t, opening)
-        lowest = False
+        flags: dict = {}
+        candidate, confidence, abstained, carried = tracked_candidate(small, seg, params, track, tparams, t, opening,
+                                                                      flags)
+        lowest = flags["open_ground"]
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = column_fill(candidate, gap, lowest)

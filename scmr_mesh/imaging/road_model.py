@@ -406,7 +406,7 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
     if front <= 0 or not has.any():
         return False
     tops = np.where(has, candidate.argmax(axis=0), h)
-    hi = int(np.sort(tops)[int(FRONT_SPIKE * w)])
+    hi = _front_top(tops)
     room = int(SKY_ROOM * h)
     if hi < room or float(np.mean(has & (tops <= hi + FRONT_BAND * h))) < front:
         return False
@@ -414,6 +414,39 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
         return True
     texture = np.log1p(np.rint(np.clip(grad, 0, 2047)) / 8.0)
     return float(texture[:room].mean()) < float(texture[candidate > 0].mean())
+
+
+def _front_top(tops: np.ndarray) -> int:
+    """The candidate's highest row as :func:`open_ground` takes it, from each column's top row."""
+    return int(np.sort(tops)[int(FRONT_SPIKE * tops.size)])
+
+
+def below_the_horizon(candidate: np.ndarray, info: dict) -> np.ndarray:
+    """On open ground, drop the non-seed regions that end within the horizon band.
+
+    The horizon band is the :data:`FRONT_BAND` of the height below the front's top row
+    (:func:`open_ground`).  A region whose lowest pixel lies in it or above does not come down
+    to the ground ahead: it is distant terrain standing above the horizon (hills, a treeline, a
+    skyline of the ground's colour), not ground the robot can reach.  Then only what still
+    touches a seed stays.  Without ``labels`` in ``info`` the candidate is returned as it is.
+    """
+    labels = info.get("labels")
+    if labels is None:
+        return candidate
+    h, w = candidate.shape
+    has = candidate.any(axis=0)
+    band = _front_top(np.where(has, candidate.argmax(axis=0), h)) + FRONT_BAND * h
+    lowest = np.full(info["sizes"].size, -1, np.int64)
+    np.maximum.at(lowest, labels.ravel(), np.repeat(np.arange(h), w))
+    drop = lowest < band
+    drop[info["seeds"]] = False
+    kept = candidate.copy()
+    kept[drop[labels]] = 0
+    n, comp = cv2.connectedComponents(kept, connectivity=4)
+    keep = np.zeros(n, np.uint8)
+    keep[comp[np.isin(labels, info["seeds"]) & (kept > 0)]] = 1
+    keep[0] = 0
+    return keep[comp]
 
 
 #: Reasons :func:`abstain` gives for shrinking the mask (the reply's ``abstained``).
@@ -441,8 +474,9 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     seed without ground contact shrinks the same way rather than emptying the mask.
 
     When the candidate reaches above ``reach`` but :func:`open_ground` says its upper edge is a
-    horizon, nothing is shrunk and ``info["open_ground"]`` is set (the caller's column fill then
-    starts at each column's lowest candidate pixel).
+    horizon, it is not shrunk to ``cap``: only the regions standing above the horizon go
+    (:func:`below_the_horizon`), and ``info["open_ground"]`` is set (the caller's column fill
+    then starts at each column's lowest candidate pixel).
 
     Returns
     -------
@@ -466,6 +500,8 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     dim_conf = 1.0 if params.dim <= 0 else float(min(1.0, info["seed_grey"] / params.dim))
     confidence = min(reach_conf, dim_conf)
     if info["grounded"] and confidence >= 1.0:
+        if info.get("open_ground"):
+            candidate = below_the_horizon(candidate, info)
         return candidate, 1.0, None
     if not info["grounded"]:
         confidence, reason = 0.0, ABSTAIN_REASONS[0]
