@@ -436,15 +436,16 @@ def below_the_horizon(candidate: np.ndarray, info: dict) -> np.ndarray:
     h, w = candidate.shape
     has = candidate.any(axis=0)
     band = _front_top(np.where(has, candidate.argmax(axis=0), h)) + FRONT_BAND * h
-    lowest = np.full(info["sizes"].size, -1, np.int64)
-    np.maximum.at(lowest, labels.ravel(), np.repeat(np.arange(h), w))
-    drop = lowest < band
-    drop[info["seeds"]] = False
+    k = info["sizes"].size
+    drop = np.bincount(labels[int(math.ceil(band)):].ravel(), minlength=k) == 0   # no pixel below the band
+    is_seed = np.zeros(k, bool)
+    is_seed[info["seeds"]] = True
+    drop &= ~is_seed
     kept = candidate.copy()
     kept[drop[labels]] = 0
     n, comp = cv2.connectedComponents(kept, connectivity=4)
     keep = np.zeros(n, np.uint8)
-    keep[comp[np.isin(labels, info["seeds"]) & (kept > 0)]] = 1
+    keep[comp[is_seed[labels] & (kept > 0)]] = 1
     keep[0] = 0
     return keep[comp]
 
