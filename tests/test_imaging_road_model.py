@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from scmr_mesh.errors import InputError
-from scmr_mesh.imaging import gaussian_blur_3x3, segment_drivable, srm
+from scmr_mesh.imaging import segment_drivable, srm
 from scmr_mesh.imaging._srm_kernels import road_share_kernel
 from scmr_mesh.imaging.evaluate import cross_validate, format_cv_table
 from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS
@@ -24,6 +24,8 @@ from scmr_mesh.imaging.road_model import (
     chi2_quantile,
     classify,
     feature_tables,
+    below_the_horizon,
+    open_ground,
     seed_regions,
     tone_curve,
 )
@@ -219,10 +221,53 @@ def test_confidence_falls_as_the_candidate_reaches_higher():
     assert conf == 0.0 and reason == "seed not ground" and mask[-1].all()
 
 
+def test_open_ground_is_a_flat_front_under_a_smooth_sky():
+    """Issue 27 item 3: a candidate reaching the horizon across the frame, under a sky smoother than
+    it, is open ground (not shrunk); a trunk climbing to the top, a narrow front or a textured top
+    (a forest's canopy) is not."""
+    h, w = WORK_SHAPE
+    rng = np.random.default_rng(0)
+    grad = np.zeros(WORK_SHAPE, np.float32)
+    grad[40:] = rng.uniform(0, 60, (h - 40, w))           # textured ground, smooth sky
+    flat = np.zeros(WORK_SHAPE, np.uint8)
+    flat[40:] = 1
+    flat[30:40, 20:30] = 1                                # a rock's top above the horizon: a spike, not the front
+    assert open_ground(flat, 0.7, grad)
+    assert not open_ground(flat, 0.0, grad)               # front = 0: the test is off
+    canopy = grad.copy()
+    canopy[:40] = rng.uniform(0, 120, (40, w))            # the top is more textured than the ground
+    assert not open_ground(flat, 0.7, canopy)
+    trunk = np.zeros(WORK_SHAPE, np.uint8)
+    trunk[60:] = 1
+    trunk[0:60, 40:60] = 1                                # climbs to the top edge: no room for a sky
+    trunk[0:60, 100:110] = 1
+    assert not open_ground(trunk, 0.7, grad)
+    narrow = np.zeros(WORK_SHAPE, np.uint8)
+    narrow[60:] = 1
+    narrow[30:60, 30:120] = 1                             # a front over 0.6 of the width
+    assert not open_ground(narrow, 0.7, grad) and open_ground(narrow, 0.5, grad)
+    # abstain: the flat front is not shrunk (and says so to the column fill); without the sky it is
+    info = {"seed_grey": 100.0, "grounded": True, "grad": grad}
+    mask, conf, reason = abstain(flat, info, RoadParams())
+    assert reason is None and conf == 1.0 and (mask == flat).all() and info["open_ground"]
+    mask, conf, reason = abstain(flat, {**info, "grad": canopy}, RoadParams())
+    assert reason == "seed reaches the horizon" and not mask[: int(RoadParams().cap * h)].any()
+    # hills above the horizon (a band of their own that ends within it) go; the ground stays
+    labels = np.zeros(WORK_SHAPE, np.int32)
+    labels[40:] = 1                                       # the ground: the seed
+    labels[30:40] = 2                                     # the hills: end 10 rows below the front's top
+    labels[60:, :20] = 3                                  # a patch of ground beside the seed
+    hills = flat.copy()
+    hills[30:40] = 1
+    kept = below_the_horizon(hills, {"labels": labels, "sizes": np.bincount(labels.ravel()),
+                                     "seeds": np.array([1])})
+    assert not kept[:40].any() and kept[40:].all()
+
+
 @pytest.mark.parametrize("bad", [dict(gamma=0), dict(p=1.0), dict(noise=0), dict(horizon=1.0), dict(gap=-1),
                                  dict(reach=1.0), dict(cap=1.0), dict(opening=-1), dict(dim=300),
                                  dict(seed_share=0), dict(frac=0), dict(frac=1.5), dict(q=0), dict(q=float("inf")),
-                                 dict(shade=-0.1), dict(sunlit=300)])
+                                 dict(shade=-0.1), dict(sunlit=300), dict(front=1.5)])
 def test_bad_params_are_refused(bad):
     with pytest.raises(InputError):
         segment_drivable(np.zeros((225, 300, 3), np.uint8), params=RoadParams(**bad))

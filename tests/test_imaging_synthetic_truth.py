@@ -3,13 +3,17 @@
 The demo's overlays are these scenes: road green, verges, walls, rocks and sky red.  A robot
 drives where the mask is green, so precision (no green where it cannot drive) is held on every
 kind; IoU >= 0.85 is the target of every kind.  Two kinds are below it today and are asserted
-as such (``KNOWN_BELOW``), so the test says when one is fixed:
+as such (``KNOWN_BELOW``: the floor each holds now, and below the target, so the test says when
+one is fixed and when one gets worse):
 
-* ``structured_road``: a grey gravel verge of the asphalt's brightness is taken for road (seeds
-  1, 2, 4), and the far road in a cast shadow is lost (seed 0);
-* ``desert``: the sand reaches the horizon at 28-42 % of the height, so the road model's
-  "seed reaches the horizon" abstention fires on every frame and keeps only the rows below
-  ``cap``; the column fill bridges the rocks.
+* ``structured_road``: a grey gravel verge of the asphalt's colour is taken for road (seeds 1,
+  2, 4; the chromaticity differs by about 2 standard deviations of the road's, inside the
+  seed's ellipsoid), and the far road beyond a cast shadow is lost (seed 0);
+* ``desert``: since the open-ground test (sand reaching the horizon under a smooth sky is not a
+  leak, :func:`scmr_mesh.imaging.road_model.open_ground`) it is no longer shrunk to the rows
+  below ``cap`` (0.639 before), and the bands standing above the horizon go; left: hills that
+  SRM merges with the sand stay green, the column fill bridges rocks shorter than its gap, and
+  the sand in the lens's dark corners and in cast shadows at the sides is lost.
 """
 
 from __future__ import annotations
@@ -24,9 +28,10 @@ from scmr_mesh.imaging.synthetic import SCENE_KINDS, make_scene
 SEEDS = range(8)
 IOU_TARGET = 0.85
 PRECISION_FLOOR = 0.85
-#: Kinds whose mean IoU is below the target today (issue 27 item 3, open): measured 2026-11-26,
-#: seeds 0-7, structured_road 0.746, desert 0.639 (dirt_road 0.899, tunnel 0.865, hallway 0.943).
-KNOWN_BELOW = {"structured_road", "desert"}
+#: Kinds whose mean IoU is below the target today (issue 27 item 3, open), with the floor each
+#: holds: measured 2026-11-27, seeds 0-7, structured_road 0.723, desert 0.831 (dirt_road 0.899,
+#: tunnel 0.865, hallway 0.943).  Before the open-ground test: 0.746 and 0.639.
+KNOWN_BELOW = {"structured_road": 0.70, "desert": 0.82}
 
 
 def _scores(kind: str) -> list[dict]:
@@ -45,6 +50,7 @@ def test_best_against_the_exact_truth_of_each_kind(kind):
     assert precision >= PRECISION_FLOOR, f"{kind}: mean precision {precision:.3f} (green where it cannot drive)"
     if kind in KNOWN_BELOW:
         assert iou < IOU_TARGET, f"{kind} now reaches {iou:.3f}: drop it from KNOWN_BELOW"
+        assert iou >= KNOWN_BELOW[kind], f"{kind}: mean IoU {iou:.3f} fell below its floor {KNOWN_BELOW[kind]}"
     else:
         assert iou >= IOU_TARGET, f"{kind}: mean IoU {iou:.3f} < {IOU_TARGET}"
 

@@ -292,16 +292,43 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None):
     if carry is None:
         candidate, info = classify(small, seg, params)
         candidate, confidence, abstained = abstain(opening(candidate), info, params)
+        lowest = info.get("open_ground", False)
     else:
         from scmr_mesh.imaging.road_track import tracked_candidate
 
         track, tparams, t = carry
-        candidate, confidence, abstained, carried = tracked_candidate(small, seg, params, track, tparams, t, opening)
+        flags: dict = {}
+        candidate, confidence, abstained, carried = tracked_candidate(small, seg, params, track, tparams, t, opening,
+                                                                      flags)
+        lowest = flags["open_ground"]
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
-    small_mask = fill_columns(candidate, max_gap=gap)
+    small_mask = column_fill(candidate, gap, lowest)
     up = cv2.resize(small_mask, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_LINEAR)
     return np.where(up >= 128, 255, 0).astype(np.uint8), confidence, abstained, t6, carried
+
+
+def column_fill(candidate: np.ndarray, gap: int, lowest: bool) -> np.ndarray:
+    """``best``'s column fill of the candidate (working frame): :func:`~scmr_mesh.imaging.steps.fill_columns`.
+
+    With ``lowest`` (the frame is open ground, :func:`~scmr_mesh.imaging.road_model.open_ground`),
+    a column whose bottom ``gap + 1`` rows hold no candidate (a rock or the lens's dark corner at
+    the bottom of the frame) is not dropped: it is filled from its lowest candidate pixel up, by
+    the same rule, and stays empty below that pixel.  The candidate is 4-connected to the seed
+    and the ground runs on to the horizon across the frame, so such a column is ground beyond
+    an obstacle, not an island.  (As a cross-validated constant for every frame it was neutral
+    on the 60 labelled images: mean IoU 0.7968 either way, precision 0.8905 -> 0.8886.)
+    """
+    if not lowest:
+        return fill_columns(candidate, max_gap=gap)
+    c = candidate != 0
+    h = c.shape[0]
+    has = c.any(axis=0)
+    low = h - 1 - np.argmax(c[::-1], axis=0)
+    below = (np.arange(h)[:, None] > low[None, :]) & (has & (h - 1 - low > gap))[None, :]
+    filled = fill_columns(c | below, max_gap=gap)
+    filled[below] = 0
+    return filled
 
 
 def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):

@@ -95,6 +95,10 @@ class RoadParams:
     standing : bool
         When the seed is weak, also drop the non-seed regions with most of their pixels above
         ``cap`` (they stand on the ground: walls, trunks, building bases).
+    front : float
+        A candidate that reaches above ``reach`` is *open ground*, not a leak, when its upper
+        edge is a horizon: a flat front over at least this share of the frame's width, with sky
+        room above it (see :func:`open_ground`; 0 = never, the abstention as before).
     """
 
     gamma: float = 1.0
@@ -112,6 +116,7 @@ class RoadParams:
     dim: float = 0.0
     cap: float = 0.5
     standing: bool = True
+    front: float = 0.7
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -142,6 +147,8 @@ class RoadParams:
             raise InputError(f"dim must be a grey level in [0, 255], got {self.dim}")
         if not 0 <= self.cap < 1:
             raise InputError(f"cap must be in [0, 1), got {self.cap}")
+        if not 0 <= self.front <= 1:
+            raise InputError(f"front must be a share of the width in [0, 1], got {self.front}")
         return self
 
     def as_dict(self) -> dict:
@@ -265,7 +272,8 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
         the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
         had ground contact and the largest region of the cell was taken instead), and for
-        :func:`abstain` ``labels`` and ``sizes`` (pixels per region).
+        :func:`abstain` ``labels``, ``sizes`` (pixels per region) and ``grad`` (Sobel magnitude
+        of the grey working frame, for :func:`open_ground`'s sky test).
     """
     from scmr_mesh.imaging._aot import road_share_kernel
 
@@ -295,7 +303,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         seed_grey = float(grey[seed_px].mean()) if seed_px.any() else 0.0
     return cand, {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
                   "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
-                  "sizes": seg.sizes}
+                  "sizes": seg.sizes, "grad": grad}
 
 
 def connected_to_seeds(road: np.ndarray, labels: np.ndarray, is_seed: np.ndarray, params: RoadParams,
@@ -351,6 +359,97 @@ def _grounded(labels: np.ndarray, n_regions: int, share: float) -> bool:
     return bool(np.any((counts >= share * cell.size) & (low > 0)))
 
 
+#: :func:`open_ground`'s fixed geometry, as fractions of the working frame: the highest row of the
+#: candidate is the one reached by this share of the columns (a spike of a few columns, a pole or
+#: a rock's top, does not set it) ...
+FRONT_SPIKE = 0.05
+#: ... the front is the columns whose top lies within this share of the height below that row
+#: (the far edge of open ground is flat, the horizon) ...
+FRONT_BAND = 0.1
+#: ... and above that row at least this share of the height holds no candidate (room for the sky:
+#: a candidate that climbed walls, an arch or a trunk reaches the top edge).
+SKY_ROOM = 0.1
+
+
+def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = None) -> bool:
+    """Whether a candidate that reaches high does so because the ground is open (desert, a field).
+
+    Ground seen from a robot ends at the horizon, a straight line across the whole frame with the
+    sky above it; what stands on the ground (a wall, a trunk, a building base) ends at its own
+    top, which is not flat across the frame, and a forest's canopy is no sky.  So the candidate's
+    upper edge is a horizon when
+
+    * at least ``front`` of the columns have their highest candidate pixel within
+      :data:`FRONT_BAND` of the height below the candidate's highest row (that row taken as the
+      one :data:`FRONT_SPIKE` of the columns reach), and that row leaves :data:`SKY_ROOM` of the
+      height above it empty of candidate (room for the sky);
+    * and (with ``grad``, the Sobel magnitude of the grey frame) the top :data:`SKY_ROOM` of the
+      frame is smoother than the candidate (mean ``log1p(grad / 8)``, the road model's texture
+      feature): a clear or overcast sky is the smoothest thing in an outdoor frame, while
+      foliage, buildings and rock faces are at least as textured as the ground seen near.
+
+    On the 60 labelled images no frame whose seed reaches above ``reach`` passes both tests
+    (docs/ACCURACY.md), so cross-validation cannot choose ``front``; the synthetic desert is
+    the case it is for.
+
+    Examples
+    --------
+    >>> flat = np.zeros((112, 150), np.uint8); flat[40:] = 1
+    >>> open_ground(flat, 0.7)
+    True
+    >>> trunk = np.zeros((112, 150), np.uint8); trunk[60:] = 1; trunk[5:60, 70:80] = 1
+    >>> open_ground(trunk, 0.7)
+    False
+    """
+    h, w = candidate.shape
+    has = candidate.any(axis=0)
+    if front <= 0 or not has.any():
+        return False
+    tops = np.where(has, candidate.argmax(axis=0), h)
+    hi = _front_top(tops)
+    room = int(SKY_ROOM * h)
+    if hi < room or float(np.mean(has & (tops <= hi + FRONT_BAND * h))) < front:
+        return False
+    if grad is None:
+        return True
+    texture = np.log1p(np.rint(np.clip(grad, 0, 2047)) / 8.0)
+    return float(texture[:room].mean()) < float(texture[candidate > 0].mean())
+
+
+def _front_top(tops: np.ndarray) -> int:
+    """The candidate's highest row as :func:`open_ground` takes it, from each column's top row."""
+    return int(np.sort(tops)[int(FRONT_SPIKE * tops.size)])
+
+
+def below_the_horizon(candidate: np.ndarray, info: dict) -> np.ndarray:
+    """On open ground, drop the non-seed regions that end within the horizon band.
+
+    The horizon band is the :data:`FRONT_BAND` of the height below the front's top row
+    (:func:`open_ground`).  A region whose lowest pixel lies in it or above does not come down
+    to the ground ahead: it is distant terrain standing above the horizon (hills, a treeline, a
+    skyline of the ground's colour), not ground the robot can reach.  Then only what still
+    touches a seed stays.  Without ``labels`` in ``info`` the candidate is returned as it is.
+    """
+    labels = info.get("labels")
+    if labels is None:
+        return candidate
+    h, w = candidate.shape
+    has = candidate.any(axis=0)
+    band = _front_top(np.where(has, candidate.argmax(axis=0), h)) + FRONT_BAND * h
+    k = info["sizes"].size
+    drop = np.bincount(labels[int(math.ceil(band)):].ravel(), minlength=k) == 0   # no pixel below the band
+    is_seed = np.zeros(k, bool)
+    is_seed[info["seeds"]] = True
+    drop &= ~is_seed
+    kept = candidate.copy()
+    kept[drop[labels]] = 0
+    n, comp = cv2.connectedComponents(kept, connectivity=4)
+    keep = np.zeros(n, np.uint8)
+    keep[comp[is_seed[labels] & (kept > 0)]] = 1
+    keep[0] = 0
+    return keep[comp]
+
+
 #: Reasons :func:`abstain` gives for shrinking the mask (the reply's ``abstained``).
 ABSTAIN_REASONS = ("seed not ground", "seed reaches the horizon", "dim seed")
 
@@ -366,6 +465,7 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     * **seed reaches the horizon**: the road-like regions connected to the seed reach above
       ``reach`` of the height, so the seed's appearance also matches what stands on the
       ground (trunks, building bases, leaf litter against a hillside), a low-contrast seed;
+      unless the candidate's upper edge is a horizon (:func:`open_ground`: open ground);
     * **dim seed**: the seed's mean grey level is below ``dim`` (dusk, night).
 
     Then the mask keeps only its rows below ``cap`` of the height (the ground just ahead);
@@ -373,6 +473,11 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     with most of their pixels above that row (walls, trunks, building bases standing on the
     ground) and keeps only what still touches a seed.  On a textured floor (leaf litter) no single region may cover enough of the cell, so a
     seed without ground contact shrinks the same way rather than emptying the mask.
+
+    When the candidate reaches above ``reach`` but :func:`open_ground` says its upper edge is a
+    horizon, it is not shrunk to ``cap``: only the regions standing above the horizon go
+    (:func:`below_the_horizon`), and ``info["open_ground"]`` is set (the caller's column fill
+    then starts at each column's lowest candidate pixel).
 
     Returns
     -------
@@ -390,9 +495,14 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     rows = np.flatnonzero(candidate.any(axis=1))
     top = rows[0] / h if rows.size else 1.0
     reach_conf = 1.0 if params.reach <= 0 else float(min(1.0, top / params.reach))
+    if reach_conf < 1.0 and open_ground(candidate, params.front, info.get("grad")):
+        reach_conf = 1.0   # it reaches the horizon because the ground is open, not up a wall
+        info["open_ground"] = True
     dim_conf = 1.0 if params.dim <= 0 else float(min(1.0, info["seed_grey"] / params.dim))
     confidence = min(reach_conf, dim_conf)
     if info["grounded"] and confidence >= 1.0:
+        if info.get("open_ground"):
+            candidate = below_the_horizon(candidate, info)
         return candidate, 1.0, None
     if not info["grounded"]:
         confidence, reason = 0.0, ABSTAIN_REASONS[0]

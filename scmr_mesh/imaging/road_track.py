@@ -196,13 +196,14 @@ class RoadTrack:
 
 
 def tracked_candidate(small: np.ndarray, seg, params: RoadParams, track: RoadTrack, tparams: TrackParams,
-                      t: float | None = None, opening=None):
+                      t: float | None = None, opening=None, flags: dict | None = None):
     """The candidate mask of a working frame with a carried model; the track is updated in place.
 
     ``opening(candidate)`` is the caller's horizontal opening (applied before abstention, as in
     the per-frame path).  Returns ``(candidate, confidence, abstained, carried)`` with
     ``carried`` one of :data:`CARRIED`.  With a cold track the first three equal the per-frame
-    model's exactly.
+    model's exactly.  ``flags``, when given, receives ``open_ground`` (the per-frame abstention's
+    open-ground verdict, which the caller's column fill follows).
     """
     if t is not None and track.last_t is not None and tparams.max_gap_s > 0 and t - track.last_t > tparams.max_gap_s:
         track.reset()
@@ -249,6 +250,8 @@ def tracked_candidate(small: np.ndarray, seg, params: RoadParams, track: RoadTra
                 carried = "disagree"
     candidate = opening(candidate)
     candidate, confidence, abstained = abstain(candidate, info, params)
+    if flags is not None:
+        flags["open_ground"] = bool(info.get("open_ground", False))
     confident = abstained is None and confidence >= 1.0
     shrunk_ok = tparams.learn_shrunk and abstained is not None and abstained != ABSTAIN_REASONS[0]
     trusted = carried in ("cold", "agree") and (confident or shrunk_ok)
