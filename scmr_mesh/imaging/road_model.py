@@ -116,7 +116,7 @@ class RoadParams:
     dim: float = 0.0
     cap: float = 0.5
     standing: bool = True
-    front: float = 0.7
+    front: float = 0.97
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
