@@ -313,3 +313,29 @@ def test_cross_validation_on_the_shared_images(roads_dir):
             assert r["cv_iou"] > r["bottom_half_iou"], d
     table = format_cv_table(res)
     assert "CV IoU" in table and "rellis3d" in table and "prec" in table and "recall" in table
+
+
+def test_the_feature_tables_are_built_once_when_threads_race(monkeypatch):
+    """The 16 robots of a `scmr swarm` warm the pipeline at once: each thread that found the
+    table cache empty appended the three tables, the kernel got 16 arguments instead of 13
+    ("too many arguments: expected 13, got 16") and those robots lost their local fallback."""
+    import threading
+    import time
+
+    from scmr_mesh.imaging import road_model
+
+    real = road_model.feature_tables
+
+    def slow(off):  # widen the window between the emptiness check and the append
+        time.sleep(0.05)
+        return real(off)
+
+    monkeypatch.setattr(road_model, "feature_tables", slow)
+    monkeypatch.setattr(road_model, "_TABLES", [])
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(len(road_model._tables()))) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert got == [3] * 8 and len(road_model._TABLES) == 3

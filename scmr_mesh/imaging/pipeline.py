@@ -387,7 +387,7 @@ def _cell_index() -> tuple[np.ndarray, np.ndarray]:
         cr = bottom_centre(roi(np.broadcast_to(np.arange(h)[:, None], (h, w))))[:, 0]
         cc = bottom_centre(roi(np.broadcast_to(np.arange(w)[None, :], (h, w))))[0]
         wh, ww = WORK_SHAPE
-        _CELL_INDEX.extend(np.ix_(cr * wh // FRAME_SHAPE[0], cc * ww // FRAME_SHAPE[1]))
+        _CELL_INDEX[:] = np.ix_(cr * wh // FRAME_SHAPE[0], cc * ww // FRAME_SHAPE[1])  # one store: thread-safe
     return _CELL_INDEX[0], _CELL_INDEX[1]
 
 

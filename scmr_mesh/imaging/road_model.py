@@ -35,6 +35,7 @@ R. Nock, F. Nielsen, "Statistical region merging", IEEE TPAMI 26(11), 2004.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -225,12 +226,20 @@ def feature_tables(off: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 _CHI2: dict = {}
 _TABLES: list = []
+_TABLES_LOCK = threading.Lock()
 
 
 def _tables() -> tuple:
-    """The pixel-feature lookup tables (built once)."""
-    if not _TABLES:
-        _TABLES.extend(feature_tables(FEATURE_OFFSET))
+    """The pixel-feature lookup tables (built once, under a lock).
+
+    Without the lock, threads warming the pipeline at once (the 16 robots of a
+    ``scmr swarm``) each appended the three tables: the kernel got 16 arguments
+    instead of 13 and those robots lost their local fallback.
+    """
+    if len(_TABLES) != 3:
+        with _TABLES_LOCK:
+            if not _TABLES:
+                _TABLES.extend(feature_tables(FEATURE_OFFSET))
     return tuple(_TABLES)
 
 
