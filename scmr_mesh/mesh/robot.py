@@ -926,7 +926,7 @@ class Robot:
         self._last_seq = record["seq"]
         s = self.stats
         s["requests"] += 1
-        s["mismatched"] += record["mismatched"]
+        s["mismatched"] += record.get("mismatched", 0)
         if record["ok"]:
             s["succeeded"] += 1
             s["by_tier"][record["tier"]] += 1
