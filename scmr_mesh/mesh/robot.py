@@ -268,12 +268,8 @@ class Robot:
         """Subscribe to liveliness and load, declare publishers and the robot's token."""
         self._session = session
         self._subs.append(session.liveliness().declare_subscriber(keys.ALIVE_ALL, self.view.on_liveliness, history=True))
-        # load (every serving node at 10 Hz while busy) and candidacies: short non-blocking callbacks (decode,
-        # a dict update under the view's lock; no zenoh call), run on the zenoh thread that received them
-        # (indirect=False) instead of a Python thread per subscriber that each sample wakes (issue 23,
-        # docs/BENCHMARKS.md "CPU per request": the hop was about a fifth of a swarm's CPU)
-        self._subs.append(session.declare_subscriber(keys.LOAD_ALL, _direct(self.view.on_load)))
-        self._subs.append(session.declare_subscriber(keys.CANDIDATES_ALL, _direct(self.view.on_candidate)))
+        self._subs.append(session.declare_subscriber(keys.LOAD_ALL, self.view.on_load))
+        self._subs.append(session.declare_subscriber(keys.CANDIDATES_ALL, self.view.on_candidate))
         self._tele_pub = session.declare_publisher(keys.telemetry(self.id))
         self._res_pub = session.declare_publisher(keys.results(self.id))
         self._token = session.liveliness().declare_token(keys.alive("robot", self.id))
@@ -961,13 +957,6 @@ def _asked_of(payload: bytes) -> dict:
     except Exception:
         req = None
     return wire.asked_of(req if isinstance(req, dict) else {})
-
-
-def _direct(fn: Callable) -> Any:
-    """``fn`` as a zenoh callback run on the receiving zenoh thread (no Python thread hop per sample)."""
-    import zenoh
-
-    return zenoh.handlers.Callback(fn, indirect=False)
 
 
 def _msgpack():
