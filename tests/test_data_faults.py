@@ -244,3 +244,34 @@ def test_records_a_store_took_from_memory_on_a_full_disk_are_not_lost_after_a_re
         with TelemetryQueue(tmp_path / "mnt" / "q", readonly=True) as q:  # the robot restarts
             st = q.stats()
         assert st.lost_seqs == [] and st.acked_seq == 30 and st.depth == 0 and st.next_seq == 31  # no seq reused
+
+
+def test_the_flusher_sends_a_period_of_records_in_one_batch_and_close_drains_at_once(tmp_path):
+    """Issue 23 (CPU per request): after a batch, the records made during the next flush period wait
+    (queued on disk) and go in one query and one ack, not one each; close() sends them without waiting for
+    the period.  Fails on the old code (no flush_period_s: one query per record)."""
+    import threading
+
+    from scmr_mesh.data.record import decode_batch
+
+    robot = _robot_stub()
+    robot.view = SimpleNamespace(snapshot=lambda local=False: SimpleNamespace(cloud=("c0",), leader=()))
+    batches: list[list[int]] = []
+    sent = threading.Event()
+
+    def ask(key, payload):
+        recs, _ = decode_batch(payload)
+        batches.append([r.seq for r in recs])
+        sent.set()
+        return "ok", {"digests": [r.digest().hex() for r in recs]}
+
+    agent = TelemetryAgent(robot, tmp_path / "q", autostart=False, flush_period_s=3600)
+    agent._ask = ask
+    agent._thread.start()
+    agent.publish(_message(1))
+    assert sent.wait(30)  # the first record goes at once
+    for i in (2, 3, 4):
+        agent.publish(_message(i))  # queued (on disk) and waiting for the period
+    assert batches == [[1]] and [s for s, _ in agent.queue.pending()] == [2, 3, 4]
+    out = agent.close(drain_s=30)
+    assert batches == [[1], [2, 3, 4]] and out["queued"] == 0 and out["lost"] == 0 and out["acked_by"]["cloud"] == 4

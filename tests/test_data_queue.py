@@ -266,3 +266,34 @@ def test_seq_ranges_compresses_runs_and_limits():
     assert seq_ranges([9, 1, 2, 3, 5, 6]) == ["1-3", "5-6", "9"]
     assert seq_ranges([]) == []
     assert seq_ranges([1, 3, 5, 7], limit=2) == ["1", "3"]
+
+
+def test_acks_overwrite_the_ack_file_in_place(tmp_path, monkeypatch):
+    """Issue 23 (CPU per request): an ack rewrites the fixed-width ``ack`` file in place and syncs it
+    (one fdatasync; no ack.tmp, rename or folder fsync per ack), and what it wrote is what a restart reads,
+    also after a damaged file of another width was replaced.  Fails on the old code, which renamed a new
+    file over ``ack`` on every ack (its inode changed)."""
+    import os
+
+    import scmr_mesh.data.queue as qmod
+
+    q = TelemetryQueue(tmp_path)
+    for _ in range(4):
+        q.append(b"x")
+    q.ack(1)
+    inode = (tmp_path / "ack").stat().st_ino
+    synced = []
+    monkeypatch.setattr(qmod.os, "fdatasync", lambda fd: synced.append(fd) or os.fsync(fd))
+    for upto in (2, 3):
+        q.ack(upto)
+        assert (tmp_path / "ack").stat().st_ino == inode and not (tmp_path / "ack.tmp").exists()
+        with TelemetryQueue(tmp_path, readonly=True) as ro:
+            assert [s for s, _ in ro.pending()] == list(range(upto + 1, 5))
+    assert len(synced) == 2  # every in-place ack is synced before ack() returns
+    q.close()
+    (tmp_path / "ack").write_text("3\n" + "#" * 40)  # damaged and wider than the format
+    with TelemetryQueue(tmp_path) as q:
+        assert [s for s, _ in q.pending()] == [1, 2, 3, 4]  # unreadable: replay everything
+        q.ack(4)
+    with TelemetryQueue(tmp_path) as q:
+        assert q.pending() == [] and q.next_seq == 5

@@ -31,6 +31,14 @@ log = logging.getLogger(__name__)
 #: about 14,000 records (~300 B each), 45 minutes of one robot at 5 Hz.
 MEMORY_BUFFER_BYTES = 4 << 20
 
+#: Least time between two telemetry batches the flusher sends while the backlog is short (s): the
+#: records of that period go in one query and one ack (one query, one reply, one ack write per
+#: period instead of per record: about 2.5 records per batch at 5 Hz).  Records are queued on disk
+#: as soon as they are made; only their trip to the store waits (at most this long).  A full batch
+#: (a replay after an outage) and the drain at close never wait.  Issue 23, docs/BENCHMARKS.md
+#: "CPU per request".
+FLUSH_PERIOD_S = 0.5
+
 
 def failover_order(clouds: Iterable[str], leaders: Iterable[str]) -> list[tuple[str, str]]:
     """Where a data request goes, in order: every live cloud node, then the leader(s).
@@ -85,12 +93,19 @@ class TelemetryAgent:
     signer : scmr_mesh.data.signing.RecordSigner, optional
         Signs each record with the robot's own key (a secured mesh: the store
         refuses unsigned records); None: records go unsigned.
+    flush_period_s : float
+        Least time between two batches while the backlog is short
+        (:data:`FLUSH_PERIOD_S`; 0 sends each record as soon as it is queued).
     """
 
     def __init__(self, robot, queue_dir: str | Path, *, max_bytes: int = 16 << 20,
                  deadline_ms: float = 1000.0, autostart: bool = True,
-                 memory_bytes: int = MEMORY_BUFFER_BYTES, signer=None) -> None:
+                 memory_bytes: int = MEMORY_BUFFER_BYTES, signer=None,
+                 flush_period_s: float = FLUSH_PERIOD_S) -> None:
         self.robot = robot
+        self.flush_period_s = max(0.0, float(flush_period_s))
+        self._next_flush = 0.0     # monotonic time before which a short backlog waits (flush_period_s)
+        self._draining = threading.Event()  # close(): send what is queued now, no waiting
         self.signer = signer
         #: the queue folder's incarnation: every record carries it (a wiped folder starts a new history)
         self.incarnation = folder_incarnation(queue_dir)
@@ -344,11 +359,17 @@ class TelemetryAgent:
             if self.backoff_s > 0:  # a tier said busy: new records wait too
                 self._stop.wait(self.backoff_s)
                 continue
+            linger = self._next_flush - time.monotonic()
+            if linger > 0 and not self._draining.is_set():  # gather this period's records into one batch
+                self._draining.wait(linger)
+                continue
             try:
                 sent = self.flush_once()
             except Exception as exc:  # session closing at shutdown
                 log.debug("telemetry flush: %s", exc)
                 sent = 0
+            if sent:
+                self._next_flush = time.monotonic() + (0.0 if sent >= BATCH else self.flush_period_s)
             if sent and self._backlog():
                 continue
             self._wake.wait(RETRY_PERIOD_S if self._backlog() else 1.0)
@@ -420,6 +441,7 @@ class TelemetryAgent:
     def close(self, *, drain_s: float = 2.0, summary_path: str | Path | None = None) -> dict:
         """Stop the flusher (after up to ``drain_s`` of draining), write the summary, close the queue."""
         end = time.monotonic() + drain_s
+        self._draining.set()
         started = self._thread.is_alive()
         while started and self._drainable() and time.monotonic() < end:
             self._wake.set()
