@@ -21,6 +21,7 @@ Two modes:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -254,9 +255,19 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
                           confidence=confidence, abstained=abstained)
 
 
-def _best_mask(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, float, str | None, float]:
-    """The road model on SRM regions of the working frame: mask (225, 300), confidence, abstained, clock after classify."""
-    candidate, info = classify(small, seg, params)
+#: :class:`RoadParams` fields read only after :func:`classify` (by :func:`_best_mask` and :func:`abstain`):
+#: :func:`best_masks` classifies once for all params that differ only in these.  A new field is
+#: left out of this list, so it keys the classification (slower, never wrong).
+AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap")
+
+
+def _best_mask(small: np.ndarray, seg, params: RoadParams,
+               classified: tuple[np.ndarray, dict] | None = None) -> tuple[np.ndarray, float, str | None, float]:
+    """The road model on SRM regions of the working frame: mask (225, 300), confidence, abstained, clock after classify.
+
+    ``classified``: :func:`classify`'s result for these params (it is only read), else computed here.
+    """
+    candidate, info = classified if classified is not None else classify(small, seg, params)
     if params.opening > 1:
         candidate = cv2.morphologyEx(candidate, cv2.MORPH_OPEN, np.ones((1, int(params.opening)), np.uint8))
     candidate, confidence, abstained = abstain(candidate, info, params)
@@ -271,18 +282,24 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
     """``best``'s masks of one frame for several :class:`RoadParams`, running SRM once per distinct (q, gamma).
 
     Yields ``(mask, confidence, abstained)`` in the order of ``params_list``; each mask equals
-    ``segment_drivable(rgb, params=params).mask`` (used by cross-validation).
+    ``segment_drivable(rgb, params=params).mask`` (used by cross-validation).  :func:`classify`
+    runs once per distinct SRM and params other than :data:`AFTER_CLASSIFY`.
     """
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
     small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
     segs: dict = {}
+    classified: dict = {}
     for params in params_list:
         params = params.check()
         key = (srm_q("best", q, params), params.gamma)
         if key not in segs:
             segs[key] = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=key[0])
-        mask, confidence, abstained, _t = _best_mask(small, segs[key], params)
+        ckey = (key, dataclasses.replace(params, **{f: RoadParams.__dataclass_fields__[f].default
+                                                    for f in AFTER_CLASSIFY}))
+        if ckey not in classified:
+            classified[ckey] = classify(small, segs[key], params)
+        mask, confidence, abstained, _t = _best_mask(small, segs[key], params, classified[ckey])
         yield mask, confidence, abstained
 
 
