@@ -62,3 +62,31 @@ def test_scenario_report_counts_telemetry(tmp_path):
     paths = write_report(plain, tmp_path)
     assert json.loads(paths["json"].read_text())["telemetry"] == tel
     assert "## Telemetry (data tier)" in paths["md"].read_text()
+
+
+def test_the_count_waits_for_relayed_records_only_while_a_cloud_runs(tmp_path, monkeypatch):
+    """Only a cloud stores records: with the leader alive and no cloud (none in the fleet, or all
+    down at the end) the count does not wait (it waited 5 s for records that could not arrive)."""
+    from scmr_mesh.data import report
+    from scmr_mesh.scenario import runner
+
+    waits = []
+    monkeypatch.setattr(report, "fleet_telemetry", lambda *_a, wait, ods: waits.append(wait) or None)
+
+    class Proc:
+        def __init__(self, up):
+            self.up = up
+
+        def alive(self):
+            return self.up
+
+    class Sup:
+        procs = {"leader": Proc(True), "cloud": Proc(False)}
+
+    sc = parse_scenario({"name": "t", "seed": 1, "duration_s": 1,
+                         "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"}]}})
+    names = {"leader": "leader", "cloud": "cloud"}
+    runner._count_telemetry(tmp_path, sc, Sup(), names)
+    Sup.procs["cloud"].up = True
+    runner._count_telemetry(tmp_path, sc, Sup(), names)
+    assert waits == [False, True]
