@@ -90,3 +90,30 @@ def test_the_count_waits_for_relayed_records_only_while_a_cloud_runs(tmp_path, m
     Sup.procs["cloud"].up = True
     runner._count_telemetry(tmp_path, sc, Sup(), names)
     assert waits == [False, True]
+
+
+def test_settling_waits_only_for_records_a_leader_may_hold(tmp_path, monkeypatch):
+    """After the robots stopped, only records relayed to a leader can still reach the store: a robot
+    that exited holding records it never relayed (no path to any server) is not waited for."""
+    import time
+
+    from scmr_mesh.data.report import settle_telemetry
+
+    class Waited(Exception):
+        pass
+
+    def no_sleep(_s):
+        raise Waited
+
+    summary = tmp_path / "robots" / "r1" / "telemetry.json"
+    summary.parent.mkdir(parents=True)
+    monkeypatch.setattr(time, "sleep", no_sleep)
+    for relayed, replayed, waits in ((0, 0, False), (3, 0, True), (0, 2, True)):
+        summary.write_text(json.dumps({"sent": 5, "queued": 5, "lost": 0, "relayed_unstored": relayed,
+                                       "replayed": replayed}))
+        try:
+            tel = settle_telemetry(tmp_path, ["r1"], timeout_s=60)["telemetry"]
+        except Waited:
+            assert waits, (relayed, replayed)
+        else:
+            assert not waits and tel["sent"] == 5 and tel["stored"] == 0, (relayed, replayed, tel)
