@@ -257,8 +257,9 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
     the leader forwards what it relayed within a fraction of a second once a
     cloud node is up.  Once the robots have stopped, only what a leader holds
     can still arrive: when every robot's summary says it handed no unstored
-    record to a leader (``relayed_unstored`` 0, and no earlier life of it
-    whose relays it cannot know: ``replayed`` 0), nothing is waited for.
+    record to a leader (``relayed_unstored`` 0), nothing is waited for.  (A
+    restarted robot relays its backlog again from the first record when no
+    cloud takes it, so what an earlier life relayed is counted there too.)
     """
     import time
 
@@ -278,13 +279,12 @@ def _leader_may_hold(run_dir: Path, robots: Iterable[str]) -> bool:
     """Whether a leader may still hold records of these (stopped) robots that no store has yet.
 
     True unless every robot's summary (written at a clean exit) says it relayed none that is
-    unstored and had no earlier life (a restart with records on disk) whose relays it cannot
-    know; a robot without a readable summary (killed, say) may have relayed anything.
+    unstored; a robot without a readable summary (killed, say) may have relayed anything.
     """
     for rid in robots:
         d = robot_summary(run_dir / "robots" / rid)
         try:
-            if d is None or int(d["relayed_unstored"]) > 0 or int(d.get("replayed", 0)) > 0:
+            if d is None or int(d["relayed_unstored"]) > 0:
                 return True
         except (KeyError, TypeError, ValueError):
             return True
