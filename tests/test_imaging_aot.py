@@ -2,7 +2,7 @@
 
 The AOT module is built once per session into a temporary directory (a C
 compiler is needed, as for ``make``), or copied from the package's ``__pycache__``
-when ``make`` built it there after the last change to the imaging sources.  Each check runs in a fresh interpreter
+when ``make`` built it there after the last change to ``_aot.py`` and the kernels.  Each check runs in a fresh interpreter
 so that "numba is never imported" can be observed.
 """
 
@@ -28,12 +28,12 @@ def _py(code: str, env: dict, timeout: float = 240) -> subprocess.CompletedProce
 
 def _prebuilt() -> tuple[Path, Path] | None:
     """The module ``make`` built (``python -m scmr_mesh.imaging._aot``, as ``make test`` runs first) for
-    the current key, when it is newer than every source file of the imaging package (the build code,
-    the kernels, and the warm-up that sets the signatures): the build the session would repeat."""
+    the current key (it hashes the kernels), when it is newer than the build code and the kernels (what
+    the Makefile rebuilds it for): the build the session would repeat."""
     so, meta = _aot.paths(_aot.key())
     if not (so.is_file() and meta.is_file()):
         return None
-    newest = max(p.stat().st_mtime for p in Path(_aot.__file__).parent.glob("*.py"))
+    newest = max(Path(_aot.__file__).stat().st_mtime, _aot.SOURCE.stat().st_mtime)
     return (so, meta) if min(so.stat().st_mtime, meta.stat().st_mtime) > newest else None
 
 
