@@ -62,3 +62,57 @@ def test_scenario_report_counts_telemetry(tmp_path):
     paths = write_report(plain, tmp_path)
     assert json.loads(paths["json"].read_text())["telemetry"] == tel
     assert "## Telemetry (data tier)" in paths["md"].read_text()
+
+
+def test_the_count_waits_for_relayed_records_only_while_a_cloud_runs(tmp_path, monkeypatch):
+    """Only a cloud stores records: with the leader alive and no cloud (none in the fleet, or all
+    down at the end) the count does not wait (it waited 5 s for records that could not arrive)."""
+    from scmr_mesh.data import report
+    from scmr_mesh.scenario import runner
+
+    waits = []
+    monkeypatch.setattr(report, "fleet_telemetry", lambda *_a, wait, ods: waits.append(wait) or None)
+
+    class Proc:
+        def __init__(self, up):
+            self.up = up
+
+        def alive(self):
+            return self.up
+
+    class Sup:
+        procs = {"leader": Proc(True), "cloud": Proc(False)}
+
+    sc = parse_scenario({"name": "t", "seed": 1, "duration_s": 1,
+                         "fleet": {"robots": [{"id": "robot1", "synthetic": "stub"}]}})
+    names = {"leader": "leader", "cloud": "cloud"}
+    runner._count_telemetry(tmp_path, sc, Sup(), names)
+    Sup.procs["cloud"].up = True
+    runner._count_telemetry(tmp_path, sc, Sup(), names)
+    assert waits == [False, True]
+
+
+def test_settling_waits_only_for_records_a_leader_may_hold(tmp_path, monkeypatch):
+    """After the robots stopped, only records relayed to a leader can still reach the store: a robot
+    that exited holding records it never relayed (no path to any server) is not waited for."""
+    import time
+
+    from scmr_mesh.data.report import settle_telemetry
+
+    class Waited(Exception):
+        pass
+
+    def no_sleep(_s):
+        raise Waited
+
+    summary = tmp_path / "robots" / "r1" / "telemetry.json"
+    summary.parent.mkdir(parents=True)
+    monkeypatch.setattr(time, "sleep", no_sleep)
+    for relayed, waits in ((0, False), (3, True)):
+        summary.write_text(json.dumps({"sent": 5, "queued": 5, "lost": 0, "relayed_unstored": relayed}))
+        try:
+            tel = settle_telemetry(tmp_path, ["r1"], timeout_s=60)["telemetry"]
+        except Waited:
+            assert waits, relayed
+        else:
+            assert not waits and tel["sent"] == 5 and tel["stored"] == 0, (relayed, tel)

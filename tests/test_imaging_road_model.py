@@ -273,6 +273,27 @@ def test_bad_params_are_refused(bad):
         segment_drivable(np.zeros((225, 300, 3), np.uint8), params=RoadParams(**bad))
 
 
+def test_best_masks_equal_segment_drivable_for_every_params():
+    """best_masks classifies once per params other than AFTER_CLASSIFY (what cross-validation uses):
+    each of its masks, confidences and abstentions must still be segment_drivable's for those params."""
+    import itertools
+
+    from scmr_mesh.imaging.pipeline import best_masks
+
+    grid = {"p": (0.9, 0.99), "frac": (0.3, 0.5), "opening": (0, 9), "reach": (0.0, 0.35), "cap": (0.4, 0.5),
+            "standing": (False, True), "gap": (10, 20)}
+    params = [RoadParams(**dict(zip(grid, v))) for v in itertools.product(*grid.values())]
+    rgb = make_scene("structured_road", seed=1)[0]  # a frame on which each of these fields changes the mask
+    got = list(best_masks(rgb, params))
+    for prm, (mask, conf, why) in zip(params, got):
+        want = segment_drivable(rgb, params=prm)
+        assert (mask == want.mask).all() and (conf, why) == (want.confidence, want.abstained), prm
+    for i, f in enumerate(grid):  # so a field wrongly taken as read after classify is caught
+        stride = math.prod(len(v) for v in list(grid.values())[i + 1:])
+        assert any((got[j][0] != got[j + stride][0]).any() for j in range(len(params))
+                   if getattr(params[j], f) == grid[f][0]), f
+
+
 def test_cross_validation_on_the_shared_images(roads_dir):
     """Leave-one-dataset-out: the shipped defaults are what the grid chooses on all images, and floors hold.
 

@@ -203,6 +203,7 @@ def diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path) -> list[di
 _QUERIER = r"""
 import json, sys, threading, time, zenoh
 ep, key, period_ms, seconds = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+tail_s = float(sys.argv[5]) if len(sys.argv) > 5 else 2.0
 conf = zenoh.Config()
 conf.insert_json5("mode", '"client"')
 conf.insert_json5("connect/endpoints", json.dumps([ep]))
@@ -225,7 +226,7 @@ with zenoh.open(conf) as s:
         with lock:
             print(json.dumps({"k": k, "sent": sent}), flush=True)
         k += 1
-    time.sleep(2)
+    time.sleep(tail_s)
 """
 
 _QUERYABLE = r"""
@@ -242,13 +243,15 @@ with zenoh.open(conf) as s:
 """
 
 
-def silent_diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path, hold_s: float = 12.0) -> list[dict]:
+def silent_diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path, hold_s: float = 12.0,
+                   tail_s: float = 2.0) -> list[dict]:
     """(root) The diamond in network namespaces; relay A or B goes *silent* (blackhole routes, no FIN/RST).
 
     Each router and client runs in its own namespace (``scmr_mesh.scenario.netns``); the relay's
     links to the portal and the far router are blackholed at once, as a robot walking out of range
     would lose them.  Returns per run: queries sent in the ``hold_s`` after the cut, how many were
-    never answered, and ``reroute_ms``: the cut to the first answer to a query sent after it.
+    never answered (an answer may come up to ``tail_s`` after the last query), and ``reroute_ms``:
+    the cut to the first answer to a query sent after it.
     """
     import subprocess
 
@@ -286,7 +289,7 @@ def silent_diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path, hol
             procs.append(srv)
             assert srv.stdout.readline().strip() == "ready"
             cli = subprocess.Popen(["ip", "netns", "exec", be.layout.ns("f"), sys.executable, "-c", _QUERIER,
-                                    ep["f"], KEY, str(period_ms), str(2.0 + hold_s)],
+                                    ep["f"], KEY, str(period_ms), str(2.0 + hold_s), str(tail_s)],
                                    stdout=subprocess.PIPE, text=True)
             procs.append(cli)
             lines: list[dict] = []
@@ -297,7 +300,7 @@ def silent_diamond(runs: int, *, period_ms: float, lease_ms: int, tmp: Path, hol
             t_cut = time.time_ns()
             be.apply_many([Event(0.0, "block", tuple(sorted((victim, "p")))),
                            Event(0.0, "block", tuple(sorted((victim, "f"))))])
-            cli.wait(timeout=hold_s + 30)
+            cli.wait(timeout=hold_s + tail_s + 30)
             reader.join(timeout=10)
             srv.stdin.close()
         finally:

@@ -255,7 +255,11 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
 
     Call it after the robots stopped and before the cloud and leader stop:
     the leader forwards what it relayed within a fraction of a second once a
-    cloud node is up.
+    cloud node is up.  Once the robots have stopped, only what a leader holds
+    can still arrive: when every robot's summary says it handed no unstored
+    record to a leader (``relayed_unstored`` 0), nothing is waited for.  (A
+    restarted robot relays its backlog again from the first record when no
+    cloud takes it, so what an earlier life relayed is counted there too.)
     """
     import time
 
@@ -266,9 +270,25 @@ def settle_telemetry(run_dir: str | Path, robots: list[str] | None = None, *, ti
         # records the robots count as lost can never arrive: do not wait for them
         unstored = t["lost"] + t.get("queued", 0)
         gone = sum(r.get("lost_on_robot", r.get("refused", 0)) for r in t["per_robot"].values())
-        if unstored - gone <= 0 or time.monotonic() >= end:
+        if unstored - gone <= 0 or time.monotonic() >= end or not _leader_may_hold(Path(run_dir), t["per_robot"]):
             return rep
         time.sleep(0.2)
+
+
+def _leader_may_hold(run_dir: Path, robots: Iterable[str]) -> bool:
+    """Whether a leader may still hold records of these (stopped) robots that no store has yet.
+
+    True unless every robot's summary (written at a clean exit) says it relayed none that is
+    unstored; a robot without a readable summary (killed, say) may have relayed anything.
+    """
+    for rid in robots:
+        d = robot_summary(run_dir / "robots" / rid)
+        try:
+            if d is None or int(d["relayed_unstored"]) > 0:
+                return True
+        except (KeyError, TypeError, ValueError):
+            return True
+    return False
 
 
 def fleet_telemetry(run_dir: str | Path, robots: list[str] | None = None, *,

@@ -21,6 +21,7 @@ Two modes:
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 import time
 from dataclasses import dataclass, field
@@ -277,11 +278,19 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
                           confidence=confidence, abstained=abstained, carried=carried)
 
 
-def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None):
+#: :class:`RoadParams` fields read only after :func:`classify` (by :func:`_best_mask` and :func:`abstain`):
+#: :func:`best_masks` classifies once for all params that differ only in these.  A new field is
+#: left out of this list, so it keys the classification (slower, never wrong).
+AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap")
+
+
+def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
+               classified: tuple[np.ndarray, dict] | None = None):
     """The road model on SRM regions of the working frame.
 
     Returns mask (225, 300), confidence, abstained, the clock after classify, and ``carried``
-    (None without ``carry = (track, track_params, t)``).
+    (None without ``carry = (track, track_params, t)``).  ``classified``: :func:`classify`'s
+    result for these params, shared between calls (copied here, never changed), else computed.
     """
     def opening(candidate: np.ndarray) -> np.ndarray:
         if params.opening > 1:
@@ -290,7 +299,10 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None):
 
     carried = None
     if carry is None:
-        candidate, info = classify(small, seg, params)
+        if classified is not None:  # abstain marks info (open_ground) and may edit the candidate
+            candidate, info = classified[0].copy(), dict(classified[1])
+        else:
+            candidate, info = classify(small, seg, params)
         candidate, confidence, abstained = abstain(opening(candidate), info, params)
         lowest = info.get("open_ground", False)
     else:
@@ -335,18 +347,24 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
     """``best``'s masks of one frame for several :class:`RoadParams`, running SRM once per distinct (q, gamma).
 
     Yields ``(mask, confidence, abstained)`` in the order of ``params_list``; each mask equals
-    ``segment_drivable(rgb, params=params).mask`` (used by cross-validation).
+    ``segment_drivable(rgb, params=params).mask`` (used by cross-validation).  :func:`classify`
+    runs once per distinct SRM and params other than :data:`AFTER_CLASSIFY`.
     """
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
     small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
     segs: dict = {}
+    classified: dict = {}
     for params in params_list:
         params = params.check()
         key = (srm_q("best", q, params), params.gamma)
         if key not in segs:
             segs[key] = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=key[0])
-        mask, confidence, abstained, _t, _c = _best_mask(small, segs[key], params)
+        ckey = (key, dataclasses.replace(params, **{f: RoadParams.__dataclass_fields__[f].default
+                                                    for f in AFTER_CLASSIFY}))
+        if ckey not in classified:
+            classified[ckey] = classify(small, segs[key], params)
+        mask, confidence, abstained, _t, _c = _best_mask(small, segs[key], params, classified=classified[ckey])
         yield mask, confidence, abstained
 
 

@@ -501,9 +501,7 @@ class ScenarioRun:
                 self.say("stopping")
                 sup.stop(sorted({self.names[r.id] for r in sc.robots if r.id in self.names}), timeout=ROBOT_STOP_S)
                 self.read_records()
-                servers = [p.name for p in sc.peers if p.role != "robot"]
-                self.telemetry = _count_telemetry(self.out_dir, sc, sup, self.names, servers,
-                                                  ods=self.options.ods)
+                self.telemetry = _count_telemetry(self.out_dir, sc, sup, self.names, ods=self.options.ods)
         finally:
             try:
                 if sup is not None:
@@ -749,17 +747,19 @@ def _restore_interrupts(old) -> None:
         signal.signal(signal.SIGTERM, old[1])
 
 
-def _count_telemetry(out_dir: Path, scenario: Scenario, sup, names: dict[str, str],
-                     servers: list[str], *, ods: str | None = None) -> dict[str, Any] | None:
+def _count_telemetry(out_dir: Path, scenario: Scenario, sup, names: dict[str, str], *,
+                     ods: str | None = None) -> dict[str, Any] | None:
     """The data tier's telemetry count, taken while the servers still run; saved as ``telemetry.json``.
 
     The peers' run dir is ``out_dir`` (their ready files are in ``out_dir/ready``), so the
     cloud's store is ``out_dir/ods.sqlite`` and the robots' queues ``out_dir/queues/<id>``.
-    Waits up to 5 s for the leader's relayed records when a server is still alive.
+    Waits up to 5 s for the leader's relayed records when a cloud node is still alive: only a cloud stores records, so with none running nothing more can arrive (a run
+    without a cloud, or whose clouds are down at the end, was counted 5 s late).
     """
     from scmr_mesh.data.report import fleet_telemetry
 
-    alive = any(names.get(p) in sup.procs and sup.procs[names[p]].alive() for p in servers)
+    clouds = [p.name for p in scenario.peers if p.role == "cloud"]
+    alive = any(names.get(p) in sup.procs and sup.procs[names[p]].alive() for p in clouds)
     tel = fleet_telemetry(out_dir, [r.id for r in scenario.robots], wait=alive, ods=ods)
     if tel is not None:
         (out_dir / "telemetry.json").write_text(json.dumps(tel, indent=2) + "\n")
