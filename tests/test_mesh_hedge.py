@@ -298,3 +298,16 @@ def test_a_lying_servers_refused_replies_are_counted_somewhere(tmp_path, garbage
     summary = metrics.summarize(recs, robots=1)
     assert robot.mismatched == {"cloud/c1": 3} and summary["mismatched"] == 3
     assert summary["mismatched_by_node"] == {"cloud/c1": 3}
+
+
+def test_zenohs_timeout_reply_is_a_timeout_not_a_refused_message(tmp_path):
+    """At the querier's timeout zenoh replies the 7 bytes "Timeout": an outcome, not a malformed
+    scmr error message (it was counted as a refused message and logged as one)."""
+    robot, _ = _robot(tmp_path, "fast", "fast")
+    try:
+        before = wire.rejected().get("error", {})
+        att = {"tier": "leader", "node": "L1", "outcome": "pending"}
+        assert robot._judge(att, _Reply(b"Timeout", "k", error=True), {}) is None
+        assert att["outcome"] == "timeout" and wire.rejected().get("error", {}) == before
+    finally:
+        robot.close()

@@ -427,6 +427,9 @@ class Robot:
             att["outcome"] = Outcome.OK
             return Reply(att["tier"], att["node"], msg, len(data))
         raw = reply.err.payload.to_bytes()
+        if raw == b"Timeout":  # zenoh's own reply at the querier's timeout: not a message to decode
+            att["outcome"] = Outcome.TIMEOUT
+            return None
         try:
             err = wire.decode(raw, kind="error")
             att["outcome"] = error_outcome(err["code"])
