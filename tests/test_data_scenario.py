@@ -116,3 +116,19 @@ def test_settling_waits_only_for_records_a_leader_may_hold(tmp_path, monkeypatch
             assert waits, relayed
         else:
             assert not waits and tel["sent"] == 5 and tel["stored"] == 0, (relayed, tel)
+
+
+def test_a_robots_summary_from_an_earlier_life_is_removed_when_its_agent_starts(tmp_path):
+    """A robot that exited cleanly (telemetry.json: relayed_unstored 0), then restarted in the same
+    folder and killed, must not leave that old 0 for the run's telemetry count to read: it would stop
+    waiting for the records a leader still holds (review of the settling change)."""
+    from scmr_mesh.data.report import _leader_may_hold
+    from scmr_mesh.mesh.commands import stale_telemetry_summary
+
+    out = tmp_path / "robots" / "r1"
+    out.mkdir(parents=True)
+    (out / "telemetry.json").write_text('{"relayed_unstored": 0, "sent": 3}\n')
+    assert _leader_may_hold(tmp_path, ["r1"]) is False  # what the old summary says
+    stale_telemetry_summary(out)  # what the robot's start now does (commands._data_agent)
+    assert not (out / "telemetry.json").exists() and _leader_may_hold(tmp_path, ["r1"]) is True
+    stale_telemetry_summary(out)  # none there: nothing to do

@@ -979,7 +979,25 @@ def _data_agent(robot, args):
     agent = attach_robot(robot, args)
     if agent is not None:  # records the disk refuses wait in memory up to this bound (docs/DATA.md)
         agent.memory_bytes = int(getattr(args, "telemetry_memory_bytes", agent.memory_bytes))
+        stale_telemetry_summary(getattr(args, "out", None))
     return agent
+
+
+def stale_telemetry_summary(out) -> None:
+    """Remove ``OUT/telemetry.json`` left by an earlier life of this robot (written at a clean exit).
+
+    The run's telemetry count reads it to learn whether a leader may still hold records the robot
+    relayed (``settle_telemetry``); a summary from before a restart would say "none" for a robot
+    killed since.  While the robot runs there is no summary: "may hold".
+    """
+    if out:
+        try:
+            (Path(out) / "telemetry.json").unlink()
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            log.warning("cannot remove the stale %s (%s): the run's telemetry count may stop waiting early",
+                        Path(out) / "telemetry.json", exc)
 
 
 def _cmd_router(args) -> int:
