@@ -343,22 +343,18 @@ def test_cross_validation_on_the_shared_images(roads_dir):
 
 
 def test_the_feature_tables_are_built_once_when_threads_race(monkeypatch):
-    """The 16 robots of a `scmr swarm` warm the pipeline at once: each thread that found the
+    """The 16 robots of a `scmr swarm` warm the pipeline at once: each thread that found a lazy
     table cache empty appended the three tables, the kernel got 16 arguments instead of 13
-    ("too many arguments: expected 13, got 16") and those robots lost their local fallback."""
+    ("too many arguments: expected 13, got 16") and those robots lost their local fallback.
+    The tables are built at import now: nothing is built when threads ask for them."""
     import threading
-    import time
 
     from scmr_mesh.imaging import road_model
 
-    real = road_model.feature_tables
+    def built_late(off):
+        raise AssertionError("the feature tables were built at call time, where threads race")
 
-    def slow(off):  # widen the window between the emptiness check and the append
-        time.sleep(0.05)
-        return real(off)
-
-    monkeypatch.setattr(road_model, "feature_tables", slow)
-    monkeypatch.setattr(road_model, "_TABLES", [])
+    monkeypatch.setattr(road_model, "feature_tables", built_late)
     got = []
     threads = [threading.Thread(target=lambda: got.append(len(road_model._tables()))) for _ in range(8)]
     for t in threads:

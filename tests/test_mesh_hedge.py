@@ -8,6 +8,7 @@ request is answered at most once in the records.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -239,9 +240,22 @@ class LieAndHold(FakeTier):
 
         def gen():
             yield _Reply(wire.encode(rep), key)
+            self.judged.set()  # the robot asked for the next reply: the lie is judged
             self._wait_cancel(cancellation_token, self.hold_s)
 
         return gen()
+
+
+class AnswersAfter(FakeTier):
+    """A fast node that answers only once ``event`` is set (orders a race deterministically)."""
+
+    def __init__(self, *a, event: threading.Event, **kw) -> None:
+        super().__init__(*a, **kw)
+        self.event = event
+
+    def get(self, payload, **kw):
+        assert self.event.wait(30), "the other node's reply was never judged"
+        return super().get(payload, **kw)
 
 
 def test_a_mismatched_reply_of_a_hedged_loser_is_in_the_record(tmp_path):
@@ -250,12 +264,13 @@ def test_a_mismatched_reply_of_a_hedged_loser_is_in_the_record(tmp_path):
     of issue 25 item 8: the loser's attempt was marked superseded without what its query saw)."""
     robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=3000, hedge_ms=50)
     liar = LieAndHold("r1", "cloud", "c1", hold_s=3.0)
+    liar.judged = threading.Event()
     robot._queriers[keys.drivable_request("cloud", "c1", "r1")] = liar
+    # the hedge (the leader) answers only after the lie was judged, however the threads are scheduled
+    robot._queriers[keys.drivable_request("leader", "L1", "r1")] = AnswersAfter("r1", "leader", "L1",
+                                                                               event=liar.judged)
     try:
         rec = robot.request(0, FRAME)
-        deadline = time.monotonic() + 5
-        while not robot.mismatched and time.monotonic() < deadline:
-            time.sleep(0.01)
         assert rec["ok"] and rec["tier"] == "leader" and rec["hedged"]
         assert robot.mismatched == {"cloud/c1": 1}
         assert rec["mismatched"] == robot.stats["mismatched"] == 1, rec["attempts"]
