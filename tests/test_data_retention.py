@@ -24,7 +24,8 @@ def test_a_robot_keeps_only_its_newest_masks_over_many_frames(tmp_path):
     robot.emit_telemetry = lambda message: None  # no session: the rest of a delivery is what we look at
     winner = SimpleNamespace(body={"mask_png": b"\x89PNG-mask"})
     for seq in range(1, 501):
-        robot._deliver(seq, None, {"robot": "r1", "seq": seq, "ok": True, "tier": "cloud", "tor_ms": 1.0},
+        robot._deliver(seq, None, {"robot": "r1", "seq": seq, "ok": True, "tier": "cloud", "tor_ms": 1.0,
+                                   "mismatched": 0},
                        winner, tmp_path / "gone")
         assert len(_mask_names(robot.inbox)) == min(seq, 20)
     robot.close()

@@ -214,12 +214,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         mp = MIN_PRECISION if args.min_precision is None else args.min_precision
         result = cross_validate_sequences(args.folder, min_precision=mp, occlude=int(args.occlude), progress=progress)
-        print(format_sequences_table(result))
-        if args.json:
-            _write_json(args.json, result)
-        for s in result["skipped"]:
-            print(f"scmr: error: skipped {s['image']}: {s['error']}", file=sys.stderr)
-        return 1 if result["skipped"] else 0
+        return _report_cv(args, result, format_sequences_table(result))
     if args.occlude:
         raise InputError("--occlude is a stress test of --sequences; add --sequences")
     if args.min_precision is not None and not args.cv:
@@ -231,12 +226,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
         mp = MIN_PRECISION if args.min_precision is None else args.min_precision
         result = cross_validate(args.folder, min_precision=mp, progress=progress)
-        print(format_cv_table(result))
-        if args.json:
-            _write_json(args.json, result)
-        for s in result["skipped"]:
-            print(f"scmr: error: skipped {s['image']}: {s['error']}", file=sys.stderr)
-        return 1 if result["skipped"] else 0
+        return _report_cv(args, result, format_cv_table(result))
 
     result = evaluate(args.folder, mode=args.mode, progress=progress)
     print(format_table(result))
@@ -247,6 +237,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if result["skipped"]:
         print(f"{len(result['skipped'])} item(s) skipped; the means cover the {len(result['images'])} scored",
               file=sys.stderr)
+    return 1 if result["skipped"] else 0
+
+
+def _report_cv(args: argparse.Namespace, result: dict, table: str) -> int:
+    """Print a cross-validation's table, write its JSON, name the images it skipped (exit 1 if any)."""
+    print(table)
+    if args.json:
+        _write_json(args.json, result)
+    for s in result["skipped"]:
+        print(f"scmr: error: skipped {s['image']}: {s['error']}", file=sys.stderr)
     return 1 if result["skipped"] else 0
 
 

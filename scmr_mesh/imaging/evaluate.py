@@ -313,6 +313,20 @@ CV_GRID: dict[str, tuple] = {
 MIN_PRECISION = 0.88
 
 
+
+def _checked_grid(grid: dict, params_cls, min_precision: float, *, what: str) -> dict:
+    """``grid`` (constant -> values) checked against ``params_cls``'s fields, with the precision floor."""
+    grid = dict(grid)
+    if not 0 <= min_precision <= 1:
+        raise InputError(f"min_precision must be in [0, 1], got {min_precision}")
+    fields = set(params_cls.__dataclass_fields__)
+    for k, vals in grid.items():
+        if k not in fields:
+            raise InputError(f"{what}: unknown constant {k!r}; choose from {', '.join(sorted(fields))}")
+        if not vals:
+            raise InputError(f"{what}: no values for {k!r}")
+    return grid
+
 def cross_validate(
     folder: str | Path,
     *,
@@ -345,15 +359,7 @@ def cross_validate(
     from scmr_mesh.imaging.pipeline import best_masks
     from scmr_mesh.imaging.road_model import RoadParams
 
-    grid = dict(grid or CV_GRID)
-    if not 0 <= min_precision <= 1:
-        raise InputError(f"min_precision must be in [0, 1], got {min_precision}")
-    fields = set(RoadParams.__dataclass_fields__)
-    for k, vals in grid.items():
-        if k not in fields:
-            raise InputError(f"cross-validation grid: unknown constant {k!r}; choose from {', '.join(sorted(fields))}")
-        if not vals:
-            raise InputError(f"cross-validation grid: no values for {k!r}")
+    grid = _checked_grid(grid or CV_GRID, RoadParams, min_precision, what="cross-validation grid")
     items = load_manifest(folder)
     frames, skipped = [], []
     for item in items:
@@ -542,15 +548,7 @@ def cross_validate_sequences(
     from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS, best_mask_from, working_frame
     from scmr_mesh.imaging.road_track import RoadTrack, TrackParams
 
-    grid = dict(grid or TRACK_GRID)
-    if not 0 <= min_precision <= 1:
-        raise InputError(f"min_precision must be in [0, 1], got {min_precision}")
-    fields = set(TrackParams.__dataclass_fields__)
-    for k, vals in grid.items():
-        if k not in fields:
-            raise InputError(f"sequence grid: unknown constant {k!r}; choose from {', '.join(sorted(fields))}")
-        if not vals:
-            raise InputError(f"sequence grid: no values for {k!r}")
+    grid = _checked_grid(grid or TRACK_GRID, TrackParams, min_precision, what="sequence grid")
     items = load_manifest(folder)
     try:
         raw = json.loads((Path(folder) / "manifest.json").read_text())["items"]

@@ -405,25 +405,13 @@ class Robot:
             try:
                 msg = wire.decode(data, kind="reply")
             except wire.WireProblem as exc:
-                att["outcome"] = Outcome.BAD_REPLY
-                att["mismatched"] = att.get("mismatched", 0) + 1
-                att["message"] = f"not a reply: {exc}"[:200]
-                self._count_mismatch(att, asked, att["message"])
-                return None
+                return self._refuse(att, Outcome.BAD_REPLY, f"not a reply: {exc}", asked)
             problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply)
             if problem:
-                att["outcome"] = Outcome.BAD_REPLY
-                att["mismatched"] = att.get("mismatched", 0) + 1
-                att["message"] = problem[:200]
-                self._count_mismatch(att, asked, problem)
-                return None
+                return self._refuse(att, Outcome.BAD_REPLY, problem, asked)
             why = wire.reply_mismatch(asked, msg)
             if why:
-                att["outcome"] = Outcome.MISMATCHED
-                att["mismatched"] = att.get("mismatched", 0) + 1
-                att["message"] = why[:200]
-                self._count_mismatch(att, asked, why)
-                return None
+                return self._refuse(att, Outcome.MISMATCHED, why, asked)
             att["outcome"] = Outcome.OK
             return Reply(att["tier"], att["node"], msg, len(data))
         raw = reply.err.payload.to_bytes()
@@ -439,8 +427,12 @@ class Robot:
             att["outcome"] = Outcome.TIMEOUT if text == "Timeout" else error_outcome(text)
         return None
 
-    def _count_mismatch(self, att: dict, asked: dict, why: str) -> None:
-        """Count a reply of ``att``'s node that does not answer ``asked``; log its first, then every 100th."""
+    def _refuse(self, att: dict, outcome: str, why: str, asked: dict) -> None:
+        """A reply of ``att``'s node that is not the answer to ``asked``: never used, counted in the
+        attempt's ``mismatched`` and :attr:`mismatched` by node; its first and every 100th logged."""
+        att["outcome"] = outcome
+        att["mismatched"] = att.get("mismatched", 0) + 1
+        att["message"] = why[:200]
         where = f"{att['tier']}/{att['node']}"
         with self._mismatch_lock:
             n = self.mismatched[where] = self.mismatched.get(where, 0) + 1
@@ -479,8 +471,7 @@ class Robot:
             log.debug("replier identity unknown: %s", exc)
         return None
 
-    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list,
-              asked: dict | None = None) -> Reply | None:
+    def _send(self, targets: list[tuple[str, str]], payload: bytes, attempts: list, asked: dict) -> Reply | None:
         """Send ``payload`` to every target at once; return the first good reply.
 
         Returns the winning :class:`Reply` or None.  Appends one
@@ -502,7 +493,6 @@ class Robot:
         if len(sendable) == 1:
             att, q = sendable[0]
             return self._tier_send(att, q, payload, asked)
-        asked = asked or _asked_of(payload)
         results: queue.Queue = queue.Queue()
         live = []
         for att, q in sendable:
@@ -557,7 +547,7 @@ class Robot:
             ex = self._tier_threads[tier] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}")
         return ex
 
-    def _start(self, att: dict, q, payload: bytes, asked: dict | None) -> _Sent:
+    def _start(self, att: dict, q, payload: bytes, asked: dict) -> _Sent:
         """Send one query on its tier's own thread (:meth:`_collect`); the outcome is read later.
 
         Cloud and leader queries never share a thread: a send held up by one
@@ -568,7 +558,6 @@ class Robot:
         import zenoh
 
         token = zenoh.CancellationToken()
-        asked = asked or _asked_of(payload)
         scratch = dict(att)
         fut = self._tier_executor(att["tier"]).submit(self._collect, scratch, q, payload, token, asked)
         return _Sent(att, fut, token, scratch)
@@ -592,12 +581,14 @@ class Robot:
         return winner
 
     def _tier_send(self, att: dict, q, payload: bytes, asked: dict | None = None) -> Reply | None:
-        """Send one query on its tier's thread and wait (deadline + 0.25 s) for its outcome."""
+        """Send one query on its tier's thread and wait (deadline + 0.25 s) for its outcome.
+
+        ``asked``: what a reply must echo (:func:`scmr_mesh.wire.asked_of`); read from ``payload`` when not given.
+        """
+        asked = _asked_of(payload) if asked is None else asked
         return self._finish_sent(self._start(att, q, payload, asked), wait_s=self.options.deadline_ms / 1e3 + 0.25)
 
-    def _collect(self, att: dict, q, payload: bytes, token=None,
-                 asked: dict | None = None) -> tuple[dict, Reply | None, float | None]:
-        asked = asked or _asked_of(payload)
+    def _collect(self, att: dict, q, payload: bytes, token, asked: dict) -> tuple[dict, Reply | None, float | None]:
         winner = None
         answer_ms = None
         t0 = time.perf_counter()
@@ -756,7 +747,7 @@ class Robot:
         when not given) is taken; any other goes on as a failed attempt would.
         """
         opts = self.options
-        trip = _Trip(asked=asked or _asked_of(payload))
+        trip = _Trip(asked=_asked_of(payload) if asked is None else asked)
         view = self.view.snapshot(local=self._local_available())
         info = FrameInfo(self.id, seq, len(frame.data), frame.encoding)
         plan = [t for t in self.placement(view, info) if t in keys.PLACEMENTS]
@@ -929,7 +920,7 @@ class Robot:
         self._last_seq = record["seq"]
         s = self.stats
         s["requests"] += 1
-        s["mismatched"] += record.get("mismatched", 0)
+        s["mismatched"] += record["mismatched"]
         if record["ok"]:
             s["succeeded"] += 1
             s["by_tier"][record["tier"]] += 1
