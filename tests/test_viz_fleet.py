@@ -24,16 +24,19 @@ def scmr(*args: str) -> list[str]:
     return [sys.executable, "-m", "scmr_mesh", *args]
 
 
-def rerun_processes() -> set[int]:
+def rerun_processes(home: str) -> set[int]:
+    """rerun viewer processes started with this test's ``HOME`` (a suite running beside this
+    one on the same host starts its own: counting those failed two suites run at once)."""
     out = set()
+    want = b"HOME=" + home.encode()
     for d in Path("/proc").iterdir():
         if d.name.isdigit():
             try:
                 exe = (d / "cmdline").read_bytes().split(b"\0")[0]
+                if exe.endswith(b"rerun_cli/rerun") and want in (d / "environ").read_bytes().split(b"\0"):
+                    out.add(int(d.name))
             except OSError:
                 continue
-            if exe.endswith(b"rerun_cli/rerun"):
-                out.add(int(d.name))
     return out
 
 
@@ -56,7 +59,7 @@ def _records(run_dir: Path) -> dict[str, int]:
 @pytest.mark.timeout(240)
 def test_up_save_records_every_robot_frame(tmp_path, env, monkeypatch):
     run_dir, rrd = tmp_path / "run", tmp_path / "fleet.rrd"
-    before = rerun_processes()
+    before = rerun_processes(env["HOME"])
     res = subprocess.run(scmr("up", *STUB, "--run-dir", str(run_dir), "--save", str(rrd)),
                          env=env, capture_output=True, text=True, timeout=200)
     assert res.returncode == 0, res.stderr[-2000:]
@@ -76,18 +79,18 @@ def test_up_save_records_every_robot_frame(tmp_path, env, monkeypatch):
     assert rows["/scmr/alive/cloud/cloud0"]["Scalars:scalars"] >= 1  # the supervisor's view
     report = json.loads((run_dir / "report.json").read_text())
     assert report["requests"] == sum(per_robot.values())
-    assert rerun_processes() <= before  # the recorder is gone
+    assert rerun_processes(env["HOME"]) <= before  # the recorder is gone
     assert list((tmp_path / "home").rglob("*")) == []  # analytics: nothing in HOME
 
 
 @pytest.mark.timeout(240)
 def test_up_without_flags_starts_no_rerun(tmp_path, env):
     run_dir = tmp_path / "run"
-    before = rerun_processes()
+    before = rerun_processes(env["HOME"])
     res = subprocess.run(scmr("up", *STUB, "--run-dir", str(run_dir)),
                          env=env, capture_output=True, text=True, timeout=200)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "rerun" not in res.stdout + res.stderr
     assert list(tmp_path.rglob("*.rrd")) == []
     assert not (tmp_path / "rerun-state").exists()
-    assert rerun_processes() <= before
+    assert rerun_processes(env["HOME"]) <= before
