@@ -44,7 +44,8 @@ class _Reply:
 
 class FakeTier:
     """A querier of one node: ``behaviour`` is ``fast``, ``slow`` (answers after ``slow_s`` unless
-    cancelled), ``silent`` (never answers; the query ends when cancelled or at ``hold_s``) or ``busy``."""
+    cancelled), ``silent`` (never answers; the query ends when cancelled or at ``hold_s``), ``busy``
+    or ``loses_first`` (its first query is lost on the way, as ``silent``; later ones are ``fast``)."""
 
     def __init__(self, robot: str, tier: str, node: str, behaviour: str = "fast", *, slow_s: float = 0.05,
                  hold_s: float = 5.0, seq_offset: int = 0) -> None:
@@ -66,7 +67,7 @@ class FakeTier:
         self.calls += 1
         key = keys.drivable_request(self.tier, self.node, self.robot)
         req = wire.decode(payload, kind="request")
-        if self.behaviour == "silent":
+        if self.behaviour == "silent" or (self.behaviour == "loses_first" and self.calls == 1):
             self._wait_cancel(cancellation_token, self.hold_s)
             return iter([])
         if self.behaviour == "busy":
@@ -108,6 +109,36 @@ def test_a_silent_cloud_is_hedged_to_the_leader_and_the_leader_wins(tmp_path):
         fakes["cloud"].behaviour = "fast"
         rec2 = robot.request(1, FRAME)
         assert rec2["tier"] == "cloud" and not rec2["hedged"]
+    finally:
+        robot.close()
+
+
+def test_a_hedge_lost_on_the_way_is_sent_once_more_and_that_copy_answers(tmp_path):
+    # issue 24 under 2 CPU hogs: the hedge query to a live leader was never answered (lost on the way)
+    # and the frame waited for the 1 s deadline; now a hedge as silent as the first copy is sent again
+    robot, fakes = _robot(tmp_path, "silent", "loses_first", deadline_ms=5000, hedge_ms=20)
+    try:
+        rec = robot.request(0, FRAME)
+        assert rec["ok"] and rec["tier"] == "leader" and rec["hedged"] and rec["hedge_won"], rec
+        assert [(a["tier"], a["outcome"], bool(a.get("hedge")), bool(a.get("resend"))) for a in rec["attempts"]] == [
+            ("cloud", "superseded", False, False), ("leader", "superseded", True, False),
+            ("leader", "ok", True, True)]
+        assert fakes["leader"].calls == 2
+        assert rec["bytes_up"] == 3 * len(robot._request_payload(0, FRAME, rec["sent_unix_ns"]))
+        h = hedge_counts([rec])
+        assert h["resent"] == 1 and h["duplicates_by_tier"] == {"cloud": 1, "leader": 1}
+    finally:
+        robot.close()
+
+
+def test_a_silent_hedge_is_sent_again_only_once(tmp_path):
+    robot, fakes = _robot(tmp_path, "silent", "silent", deadline_ms=400, hedge_ms=20)
+    for f in fakes.values():
+        f.hold_s = 2.0
+    try:
+        rec = robot.request(0, FRAME)
+        assert not rec["ok"] and fakes["leader"].calls == 2
+        assert [a["outcome"] for a in rec["attempts"]] == ["timeout", "superseded", "timeout"]
     finally:
         robot.close()
 
@@ -203,7 +234,9 @@ def test_every_request_is_answered_at_most_once(tmp_path, plan):
             assert len(oks) == (1 if r["ok"] else 0), r
             if r["ok"]:
                 assert (oks[0]["tier"], oks[0]["node"]) == (r["tier"], r["served_by"])
-            assert sum(bool(a.get("hedge")) for a in r["attempts"]) == int(r["hedged"])
+            hedges = [a for a in r["attempts"] if a.get("hedge")]
+            assert sum(not a.get("resend") for a in hedges) == int(r["hedged"])
+            assert sum(bool(a.get("resend")) for a in hedges) <= int(r["hedged"])  # at most once, only a hedge
             assert not r["hedge_won"] or (r["hedged"] and oks[0].get("hedge"))
             assert all(a["outcome"] != "pending" for a in r["attempts"])
         h = hedge_counts(recs)
@@ -218,12 +251,27 @@ def test_a_service_remembers_recent_requests_boundedly():
 
     r = RecentRequests(size=3)
     assert r.add(("r1", 1, 10)) and not r.add(("r1", 1, 10)) and r.duplicates == 1
+    assert r.admit(("r1", 1, 10), "q")[0] == "joined" and r.complete(("r1", 1, 10), None) == ["q"]
+    assert r.admit(("r1", 1, 10), "q")[0] == "duplicate"  # the first copy failed: its answer is not kept
     assert r.add(("r1", 1, 11))  # the same seq from a restarted robot (another sending time) is new
     r.forget(("r1", 1, 10))  # refused busy: a later copy may be taken in
     assert r.add(("r1", 1, 10))
     for seq in range(2, 6):
         r.add(("r1", seq, 10))
     assert len(r._seen) == 3 and r.add(("r1", 1, 11))  # bounded: the oldest are forgotten
+
+
+def test_a_service_keeps_answers_for_later_copies_within_its_byte_budget():
+    from scmr_mesh.mesh.server import RecentRequests
+
+    r = RecentRequests(size=10, max_reply_bytes=10)
+    for seq in range(3):
+        assert r.admit(("r1", seq, 1))[0] == "new"
+        r.complete(("r1", seq, 1), b"x" * 4)
+    # 12 bytes > 10: the oldest answer is no longer kept; its later copy is refused as before
+    assert r.admit(("r1", 0, 1)) == ("duplicate", None)
+    assert r.admit(("r1", 2, 1)) == ("cached", b"xxxx") and r._kept_bytes == 8
+    assert r.forget(("r1", 2, 1)) == [] and r._kept_bytes == 4
 
 
 class LieAndHold(FakeTier):

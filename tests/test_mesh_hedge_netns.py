@@ -54,18 +54,19 @@ for t, n in (("cloud", "cloud"), ("leader", "leader")):
     q = robot._querier(t, n)
     wait_for(lambda: q.matching_status.matching, timeout=30, what=f"{t} queryable")
 frame = Frame("f.png", synthetic_png(1), "png")
-# the same request twice at once to the cloud: one answer, one 'duplicate'
+# the same request twice at once to the cloud, then once more: served once, the same answer to every copy
 req = wire.encode(wire.make_request("r1", 999, frame.data, encoding="png"))
 q = robot._querier("cloud", "cloud")
-got = []
-for r in [*q.get(payload=req), *q.get(payload=req)]:
-    got.append("ok" if r.ok is not None else wire.decode(r.err.payload.to_bytes(), kind="error")["code"])
+first, second = q.get(payload=req), q.get(payload=req)
+replies = [*first, *second, *q.get(payload=req)]
+got = ["ok" if r.ok is not None else wire.decode(r.err.payload.to_bytes(), kind="error")["code"] for r in replies]
+same = len({r.ok.payload.to_bytes() for r in replies if r.ok is not None}) == 1
 warm = [robot.request(i, frame) for i in range(8)]
 subprocess.run(["ip", "route", "add", "blackhole", f"{cloud_addr}/32"], check=True)
 rec = robot.request(8, frame)
 alive_after = list(robot.view.snapshot().cloud)
 print(json.dumps({"warm": [r["tier"] for r in warm], "rec": rec, "cloud_alive_after": alive_after,
-                  "delay_ms": robot.hedge_delay_ms("cloud"), "dup": got}), flush=True)
+                  "delay_ms": robot.hedge_delay_ms("cloud"), "dup": got, "same": same}), flush=True)
 robot.close()
 close_session(session)
 """
@@ -99,7 +100,8 @@ def test_silent_cloud_mid_request_is_answered_by_the_leader_as_a_hedge(repo_root
                                    capture_output=True, text=True, env=env, timeout=120)
             assert robot.returncode == 0, robot.stderr[-3000:]
             res = json.loads(robot.stdout.strip().splitlines()[-1])
-            assert res["dup"] == ["ok", "duplicate"], res["dup"]
+            # one computation (its server_ms is in the reply: two runs would differ), every copy answered
+            assert res["dup"] == ["ok", "ok", "ok"] and res["same"], res
             assert res["warm"] == ["cloud"] * 8
             rec = res["rec"]
             assert rec["ok"] and rec["tier"] == "leader" and rec["served_by"] == "leader", rec

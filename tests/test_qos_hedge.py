@@ -114,7 +114,7 @@ def test_hedges_reach_the_summary_and_the_expectation_metrics():
 
     recs = [rec(0, "cloud"), rec(1, "leader", True, True), rec(2, "cloud", True, False), rec(3, "cloud")]
     s = summarize(recs)
-    assert s["hedges"] == {"hedged": 2, "hedge_won": 1, "hedge_rate": 0.5,
+    assert s["hedges"] == {"hedged": 2, "hedge_won": 1, "hedge_rate": 0.5, "resent": 0,
                            "duplicates_by_tier": {"cloud": 1, "leader": 1}}
     assert (s["per_robot"]["r1"]["hedged"], s["per_robot"]["r1"]["hedge_won"]) == (2, 1)
     m = _metric_values(s)

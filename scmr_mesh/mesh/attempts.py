@@ -32,7 +32,7 @@ class Outcome(str, Enum):
     TIMEOUT = "timeout"          # no reply within the deadline
     NO_REPLY = "no_reply"        # the query ended without a reply
     UNREACHABLE = "unreachable"  # no queryable matched: not sent
-    SUPERSEDED = "superseded"    # another target of the same request answered first
+    SUPERSEDED = "superseded"    # another copy of the same request answered first, or a silent hedge was sent again
     ERROR = "error"              # an error answer (``error:<code>``) or a failed send (``error:send (...)``)
 
     def __str__(self) -> str:

@@ -33,8 +33,10 @@ Hedged requests (issue 24, docs/R2R.md): when the tier tried first has not
 answered within a hedge delay learnt from its recent answers
 (:mod:`scmr_mesh.qos.hedge`; ``--hedge-ms``), the same request goes to the first
 node of the next live tier; the first good answer wins and the other query is
-cancelled.  A ``busy`` answer never triggers a hedge, no hedge goes to a
-saturated node, and hedges are rationed (a token bucket per robot).
+cancelled.  A hedge as silent as the first copy is sent once more to its node
+(a starved sender can drop a query or its reply; the node serves a request once
+and answers every copy).  A ``busy`` answer never triggers a hedge, no hedge goes
+to a saturated node, and hedges and re-sends are rationed (a token bucket per robot).
 
 Output (``--out DIR``)
 ----------------------
@@ -114,6 +116,7 @@ class _Trip:
     winner: Reply | None = None
     hedged: bool = False     # a second copy went to another tier (at most one per request)
     hedge_won: bool = False  # and it answered first
+    resent: bool = False     # the hedge was silent too and was sent once more to its node
     #: what a reply must echo to answer this request: robot, seq, frame digest (wire.asked_of)
     asked: dict = field(default_factory=dict)
 
@@ -684,19 +687,42 @@ class Robot:
                  delay, seq, htier, hnode)
         hedge = self._start(hatt, hq, payload, trip.asked)
         live = {primary.fut: primary, hedge.fut: hedge}
+        # the hedge silent as long as the primary was: its copy or its answer may have been lost on the
+        # way (a starved sender drops a query or reply it cannot queue), so the same request goes to the
+        # same node once more; the node serves it once and answers every copy (server.RecentRequests)
+        resend_at = time.monotonic() + delay / 1e3
+        if resend_at + self.RESEND_MIN_LEFT_S > limit:
+            resend_at = None
         winner = None
         while live and winner is None:
-            left = limit - time.monotonic()
+            now = time.monotonic()
+            left = limit - now
             if left <= 0:
                 break
-            done, _ = wait(list(live), timeout=left, return_when=FIRST_COMPLETED)
+            wake = left if resend_at is None else min(left, max(0.0, resend_at - now))
+            done, _ = wait(list(live), timeout=wake, return_when=FIRST_COMPLETED)
             for fut in done:
                 sent = live.pop(fut)
                 w = self._finish_sent(sent, wait_s=0)
                 if w is not None and winner is None:
                     winner = w
-                    trip.hedge_won = sent is hedge
-        for sent in live.values():  # the loser (or both, past the deadline)
+                    trip.hedge_won = sent is not primary
+            if (winner is None and resend_at is not None and time.monotonic() >= resend_at
+                    and hedge.fut in live):
+                resend_at = None
+                if self._hedge_budget.take():
+                    live.pop(hedge.fut)
+                    hedge.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
+                    ratt = {"tier": htier, "node": hnode, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(),
+                            "hedge": True, "resend": True}
+                    trip.attempts.append(ratt)
+                    trip.bytes_up += len(payload)
+                    trip.resent = True
+                    log.info("robot %s: hedge to %s/%s silent for %.0f ms on request %s: sent again", self.id,
+                             htier, hnode, delay, seq)
+                    hedge = self._start(ratt, hq, payload, trip.asked)
+                    live[hedge.fut] = hedge
+        for sent in live.values():  # the loser (or all, past the deadline)
             sent.give_up(Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT)
         for a in (att, hatt):
             if winner is None and a["outcome"] == BUSY:
@@ -865,6 +891,8 @@ class Robot:
     ELECTION_WAIT_S = 0.3
     #: How long a querier declared just now may take to learn what matches it (:meth:`_matching`).
     MATCH_WAIT_S = 0.05
+    #: A silent hedge is sent again only with this much of the request's deadline left (s).
+    RESEND_MIN_LEFT_S = 0.05
 
     def _retry_fresh(self, attempt, tried: set, t_end: float, attempts: list) -> Reply | None:
         """Before local execution: try remote nodes that appeared since the plan was made.

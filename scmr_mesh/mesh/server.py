@@ -120,47 +120,112 @@ class Replier:
             t.join(timeout=max(0.0, end - time.monotonic()))
 
 
-class RecentRequests:
-    """The last ``size`` requests a service took in, by (robot, seq, sent time): a bounded dedupe.
+class _Seen:
+    """What a service remembers of one request it took in (:class:`RecentRequests`)."""
 
-    A hedged request (docs/R2R.md) can reach one node twice (the node serves
-    two tiers, or a copy came round another way); the second copy is answered
-    ``duplicate`` at once instead of running the pipeline again.  The robot's
-    sending time is part of the identity, so a restarted robot's seq 0 is new.
+    __slots__ = ("waiters", "done", "reply")
+
+    def __init__(self) -> None:
+        self.waiters: list = []      # later copies waiting for the first copy's answer
+        self.done = False            # the first copy was answered
+        self.reply: bytes | None = None  # its good reply, kept while the byte budget allows
+
+
+class RecentRequests:
+    """The last ``size`` requests a service took in, by (robot, seq, sent time, frame digest): a bounded dedupe.
+
+    A hedged or re-sent request (docs/R2R.md) can reach one node twice; the
+    pipeline runs once.  A later copy is answered with the first copy's answer:
+    it waits for it while the first copy is being served (:meth:`admit` returns
+    ``"joined"``), or gets the kept reply at once (``"cached"``; the last good
+    replies are kept up to ``max_reply_bytes`` in all).  Only when that reply is
+    no longer kept (or the first copy failed) is it answered ``duplicate``.
+    The robot's sending time is part of the identity, so a restarted robot's
+    seq 0 is new.
 
     >>> r = RecentRequests(size=2)
     >>> r.add(("r1", 1, 10)), r.add(("r1", 1, 10)), r.add(("r1", 2, 11)), r.add(("r1", 3, 12)), r.add(("r1", 1, 10))
     (True, False, True, True, True)
+    >>> r.admit(("r1", 3, 12), "q2")   # the first copy is still being served: wait for its answer
+    ('joined', None)
+    >>> r.complete(("r1", 3, 12), b"mask")  # the first copy's answer: to the copies that waited
+    ['q2']
+    >>> r.admit(("r1", 3, 12), "q3")
+    ('cached', b'mask')
     """
 
-    def __init__(self, size: int = 4096) -> None:
+    def __init__(self, size: int = 4096, max_reply_bytes: int = 8 << 20) -> None:
         from collections import OrderedDict
 
         self.size = int(size)
+        self.max_reply_bytes = int(max_reply_bytes)
         self._seen: OrderedDict = OrderedDict()
+        self._kept: OrderedDict = OrderedDict()  # ident -> reply size, oldest first
+        self._kept_bytes = 0
         self._lock = threading.Lock()
-        #: duplicates refused so far
+        #: later copies of a request taken in (answered from the first copy, or refused ``duplicate``)
         self.duplicates = 0
+        #: of those, answered with the first copy's answer
+        self.shared = 0
+
+    def admit(self, ident: tuple, query=None) -> tuple[str, bytes | None]:
+        """Take in a copy of ``ident``: ``("new", None)``, ``("joined", None)`` (``query`` waits for
+        :meth:`complete`), ``("cached", reply)`` or ``("duplicate", None)``."""
+        with self._lock:
+            e = self._seen.get(ident)
+            if e is None:
+                self._seen[ident] = _Seen()
+                while len(self._seen) > self.size:
+                    old, _ = self._seen.popitem(last=False)
+                    self._unkeep(old)
+                return "new", None
+            self.duplicates += 1
+            if e.reply is not None:
+                self.shared += 1
+                return "cached", e.reply
+            if not e.done and query is not None:
+                self.shared += 1
+                e.waiters.append(query)
+                return "joined", None
+            return "duplicate", None
 
     def add(self, ident: tuple) -> bool:
         """Remember ``ident``; False (and counted) when it is already remembered."""
-        with self._lock:
-            if ident in self._seen:
-                self.duplicates += 1
-                return False
-            self._seen[ident] = None
-            while len(self._seen) > self.size:
-                self._seen.popitem(last=False)
-            return True
+        return self.admit(ident)[0] == "new"
 
-    def forget(self, ident: tuple) -> None:
-        """A request refused (busy): a later copy of it may be taken in."""
+    def complete(self, ident: tuple, reply: bytes | None) -> list:
+        """The first copy of ``ident`` was answered (``reply``: its good reply, or None): the copies that waited."""
         with self._lock:
-            self._seen.pop(ident, None)
+            e = self._seen.get(ident)
+            if e is None:
+                return []
+            waiters, e.waiters, e.done = e.waiters, [], True
+            if reply is not None and len(reply) <= self.max_reply_bytes:
+                e.reply = reply
+                self._kept[ident] = len(reply)
+                self._kept_bytes += len(reply)
+                while self._kept_bytes > self.max_reply_bytes:
+                    self._unkeep(next(iter(self._kept)))
+            return waiters
+
+    def forget(self, ident: tuple) -> list:
+        """A request refused (busy): a later copy of it may be taken in.  Returns the copies that waited."""
+        with self._lock:
+            e = self._seen.pop(ident, None)
+            self._unkeep(ident)
+            return e.waiters if e is not None else []
+
+    def _unkeep(self, ident: tuple) -> None:
+        n = self._kept.pop(ident, None)
+        if n is not None:
+            self._kept_bytes -= n
+            e = self._seen.get(ident)
+            if e is not None:
+                e.reply = None
 
 
 def _ident(req: dict) -> tuple:
-    return (req["robot"], req["seq"], req.get("sent_unix_ns"))
+    return (req["robot"], req["seq"], req.get("sent_unix_ns"), req.get("digest"))
 
 
 @dataclass
@@ -518,6 +583,7 @@ class Service:
 
     def _on_query(self, query) -> None:
         t_arrival = time.perf_counter()
+        seen = None
         try:
             key = str(query.key_expr)
             target = keys.request_target(key)
@@ -548,14 +614,21 @@ class Service:
                                   f"{keys.drivable_request(tier, self.node, req['robot'])}", req)
                 return
             self._cap_priority(req)
-            if not self.recent.add(_ident(req)):
+            seen, kept = self.recent.admit(_ident(req), query)
+            if seen == "joined":  # answered with the first copy's answer (_finish)
+                return
+            if seen == "cached":
+                self._send_reply(query, kept, req)
+                return
+            if seen == "duplicate":
                 self._reply_error(query, "duplicate",
-                                  f"request {req['robot']}/{req['seq']} already reached {self.node} (a hedged copy); "
-                                  "it is served once: wait for the first copy's answer", req)
+                                  f"request {req['robot']}/{req['seq']} already reached {self.node} (a hedged copy) "
+                                  "and its answer is no longer kept; it is served once: wait for the first "
+                                  "copy's answer", req)
                 return
             refusal = self.admission(req, self.state)
             if refusal is not None:
-                self.recent.forget(_ident(req))
+                self._refuse_copies(req, refusal.code, refusal.message, refusal.retry_after_ms)
                 self._reply_error(query, refusal.code, refusal.message, req, refusal.retry_after_ms)
                 return
             if self.negotiator is not None:
@@ -568,7 +641,10 @@ class Service:
                                       expires_mono=_expiry(req, t_arrival))
         except Exception as exc:  # never let a query go unanswered
             log.exception("query handling failed")
-            self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
+            if seen == "new":  # and none of the copies that joined it
+                self._fail_all(query, req, "internal", f"{type(exc).__name__}: {exc}")
+            else:
+                self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
             return
         fut.add_done_callback(lambda f: self._finish(query, req, f, t_arrival, t_sub))
 
@@ -598,13 +674,12 @@ class Service:
                       payload=(query, req, t_arrival), size=len(req["image"]))
         for e in d.refused:
             q, r, _ = e.payload
-            self.recent.forget(_ident(r))
-            self._reply_error(
-                q, "busy",
-                f"server too busy, try later: request {r['robot']}/{r['seq']} with priority {e.priority} "
-                f"{e.reason} ({neg.waiting} waiting, {neg.in_service} in service, queue {neg.capacity}); "
-                "send it to another tier or run it locally",
-                r, d.retry_after_ms or neg.retry_after_ms())
+            msg = (f"server too busy, try later: request {r['robot']}/{r['seq']} with priority {e.priority} "
+                   f"{e.reason} ({neg.waiting} waiting, {neg.in_service} in service, queue {neg.capacity}); "
+                   "send it to another tier or run it locally")
+            retry = d.retry_after_ms or neg.retry_after_ms()
+            self._refuse_copies(r, "busy", msg, retry)
+            self._reply_error(q, "busy", msg, r, retry)
 
     def _dispatch(self) -> None:
         neg = self.negotiator
@@ -623,7 +698,7 @@ class Service:
                 with self.state.lock:
                     self.state.inflight -= 1
                 neg.done(e)
-                self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}", req)
+                self._fail_all(query, req, "internal", f"{type(exc).__name__}: {exc}")
                 continue
 
             def finished(f, e=e, query=query, req=req, t_arrival=t_arrival, t_sub=t_sub):
@@ -644,14 +719,14 @@ class Service:
         try:
             out = fut.result()
         except (ImageDecodeError, InputError) as exc:
-            self._reply_error(query, "malformed", _image_message(req, exc), req)
+            self._fail_all(query, req, "malformed", _image_message(req, exc))
             return
         except Expired as exc:
-            self._reply_error(query, "expired", f"not processed: {exc} (deadline {req.get('deadline_ms')} ms)", req)
+            self._fail_all(query, req, "expired", f"not processed: {exc} (deadline {req.get('deadline_ms')} ms)")
             return
         except Exception as exc:
             log.error("worker failed on %s/%s: %s: %s", req["robot"], req["seq"], type(exc).__name__, exc)
-            self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}", req)
+            self._fail_all(query, req, "internal", f"{type(exc).__name__}: {exc}")
             return
         now = time.perf_counter()
         worker_ms = float(out.get("worker_ms", 0.0))
@@ -672,20 +747,37 @@ class Service:
             payload = wire.encode(reply)
         except Exception as exc:
             log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
-            _drop(query)
+            self._fail_all(query, req, "internal", f"reply not built: {type(exc).__name__}: {exc}")
             return
+        self._send_reply(query, payload, req, served=True)
+        for q in self.recent.complete(_ident(req), payload):  # later copies that waited for this answer
+            self._send_reply(q, payload, req)
+
+    def _send_reply(self, query, payload: bytes, req: dict, *, served: bool = False) -> None:
+        """Send a good reply to ``query`` on a sender thread (``served``: count it as a frame served)."""
 
         def send() -> None:
             try:
                 query.reply(str(query.key_expr), payload, encoding=_msgpack())  # the concrete request key
-                with self.state.lock:
-                    self.state.served += 1
+                if served:
+                    with self.state.lock:
+                        self.state.served += 1
             except Exception as exc:
                 log.error("reply to %s/%s failed: %s", req["robot"], req["seq"], exc)
             finally:
                 _drop(query)
 
         self.replier.send(send)
+
+    def _fail_all(self, query, req: dict, code: str, message: str) -> None:
+        """The first copy of ``req`` failed with ``code``: that error to it and to every copy that waited."""
+        for q in [query, *self.recent.complete(_ident(req), None)]:
+            self._reply_error(q, code, message, req)
+
+    def _refuse_copies(self, req: dict, code: str, message: str, retry_after_ms) -> None:
+        """``req`` is refused (busy): forget it, so a later copy may be taken in, and refuse the copies that waited."""
+        for q in self.recent.forget(_ident(req)):
+            self._reply_error(q, code, message, req, retry_after_ms)
 
 
 def _msgpack():

@@ -52,7 +52,10 @@ Hedges (issue 24)
     copy went to the next live tier because the first was silent past the hedge
     delay); ``hedge_won`` when that copy's answer was the one used.  The
     *duplicate* of a hedged request is the copy whose answer was not used (the
-    hedge's when neither answered), counted on the tier it was sent to.
+    hedge's when neither answered), counted on the tier it was sent to.  A hedge
+    as silent as the first copy is sent once more to its node (``"resend":
+    true`` on that attempt; the request is counted in ``resent``): that copy is
+    duplicate work too when its answer is not the one used.
 Mismatched replies (issue 25 item 8)
     Replies a robot refused because they did not echo the robot, seq and frame
     digest of the request they came for (a replayed or wrong answer), or were
@@ -303,15 +306,20 @@ def failback_gap_ms(records: Iterable[Record], fault: Fault) -> float | None:
 
 
 def hedge_counts(records: Iterable[Record]) -> dict[str, Any]:
-    """``{"hedged", "hedge_won", "hedge_rate", "duplicates_by_tier"}`` of ``records`` (module docstring).
+    """``{"hedged", "hedge_won", "hedge_rate", "resent", "duplicates_by_tier"}`` of ``records`` (module docstring).
 
     >>> recs = [{"hedged": True, "hedge_won": True, "attempts": [
     ...     {"tier": "cloud", "outcome": "superseded"}, {"tier": "leader", "outcome": "ok", "hedge": True}]},
     ...     {"hedged": False, "attempts": [{"tier": "cloud", "outcome": "ok"}]}]
     >>> hedge_counts(recs)
-    {'hedged': 1, 'hedge_won': 1, 'hedge_rate': 0.5, 'duplicates_by_tier': {'cloud': 1}}
+    {'hedged': 1, 'hedge_won': 1, 'hedge_rate': 0.5, 'resent': 0, 'duplicates_by_tier': {'cloud': 1}}
+    >>> resent = {"hedged": True, "hedge_won": True, "attempts": [{"tier": "cloud", "outcome": "superseded"},
+    ...     {"tier": "leader", "outcome": "superseded", "hedge": True},
+    ...     {"tier": "leader", "outcome": "ok", "hedge": True, "resend": True}]}
+    >>> hedge_counts([resent])["duplicates_by_tier"], hedge_counts([resent])["resent"]
+    ({'cloud': 1, 'leader': 1}, 1)
     """
-    n = hedged = won = 0
+    n = hedged = won = resent = 0
     dup: dict[str, int] = {}
     for r in records:
         n += 1
@@ -323,13 +331,15 @@ def hedge_counts(records: Iterable[Record]) -> dict[str, Any]:
         i = next((k for k, a in enumerate(atts) if a.get("hedge")), None)
         if i is None:
             continue
-        pair = [atts[i - 1], atts[i]] if i > 0 else [atts[i]]
+        copies = [a for a in atts[i:] if a.get("hedge")]
+        resent += any(a.get("resend") for a in copies)
+        pair = ([atts[i - 1]] if i > 0 else []) + copies
         ok = [a for a in pair if a.get("outcome") == "ok"]
-        unused = [a for a in pair if a not in ok] if ok else [atts[i]]
+        unused = [a for a in pair if a not in ok] if ok else copies
         for a in unused:
             t = str(a.get("tier"))
             dup[t] = dup.get(t, 0) + 1
-    return {"hedged": hedged, "hedge_won": won, "hedge_rate": (hedged / n) if n else None,
+    return {"hedged": hedged, "hedge_won": won, "hedge_rate": (hedged / n) if n else None, "resent": resent,
             "duplicates_by_tier": dict(sorted(dup.items()))}
 
 

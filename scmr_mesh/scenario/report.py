@@ -282,6 +282,7 @@ def build_report(
             "hedged": summ["hedges"]["hedged"], "hedge_won": summ["hedges"]["hedge_won"],
             "hedge_rate": summ["hedges"]["hedge_rate"],
             "hedge_duplicates_by_tier": summ["hedges"]["duplicates_by_tier"],
+            "hedge_resent": summ["hedges"]["resent"],
         },
         "per_robot": summ["per_robot"],
         "per_tier": summ["per_tier"],
@@ -407,7 +408,8 @@ def markdown(report: Mapping[str, Any], *, plots: Sequence[str] = ()) -> str:
     L += ["", "## Summary", "",
           f"{s['requests']} requests, {s['succeeded']} succeeded, RoR {_fmt(s['ror'], 3)}; "
           f"ToR p50 {_fmt(s['tor_ms'].get('p50'))} ms, p99 {_fmt(s['tor_ms'].get('p99'))} ms; "
-          f"hedged {s.get('hedged', 0)}, won by the hedge {s.get('hedge_won', 0)}, duplicate work "
+          f"hedged {s.get('hedged', 0)}, won by the hedge {s.get('hedge_won', 0)}, hedges sent again "
+          f"{s.get('hedge_resent', 0)}, duplicate work "
           f"{_dups(s.get('hedge_duplicates_by_tier'))}.", "",
           "| tier | answers | ToR p50 ms | ToR p99 ms |", "|---|---|---|---|"]
     for tier, n in s["by_tier"].items():
