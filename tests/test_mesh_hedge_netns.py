@@ -106,11 +106,14 @@ def test_silent_cloud_mid_request_is_answered_by_the_leader_as_a_hedge(repo_root
             rec = res["rec"]
             assert rec["ok"] and rec["tier"] == "leader" and rec["served_by"] == "leader", rec
             assert rec["hedged"] and rec["hedge_won"], rec
-            cloud, leader = rec["attempts"]
+            cloud, *leader = rec["attempts"]
             # the cloud's query was cancelled because the leader answered first: not ended by the lease
             # (no_reply) nor by the deadline (timeout) ...
             assert (cloud["tier"], cloud["outcome"]) == ("cloud", "superseded"), rec["attempts"]
-            assert (leader["tier"], leader["outcome"], leader.get("hedge")) == ("leader", "ok", True)
+            # (a leader slower than the hedge delay, e.g. on a loaded box, gets its copy once more)
+            assert [(a["tier"], a["outcome"], a.get("hedge"), a.get("resend", False)) for a in leader] in (
+                [("leader", "ok", True, False)],
+                [("leader", "superseded", True, False), ("leader", "ok", True, True)]), rec["attempts"]
             # ... and the cloud was still alive in the robot's view when the answer came: its lease ran on
             assert res["cloud_alive_after"] == ["cloud"], res
         finally:

@@ -116,7 +116,7 @@ class _Trip:
     winner: Reply | None = None
     hedged: bool = False     # a second copy went to another tier (at most one per request)
     hedge_won: bool = False  # and it answered first
-    resent: bool = False     # the hedge was silent too and was sent once more to its node
+    resent: bool = False     # a silent copy was sent once more to the node it went to
     #: what a reply must echo to answer this request: robot, seq, frame digest (wire.asked_of)
     asked: dict = field(default_factory=dict)
 
@@ -644,13 +644,19 @@ class Robot:
 
     def _send_hedged(self, tier: str, node: str, payload: bytes, trip: _Trip, plan: list, seq: int,
                      t_start: float) -> Reply | None:
-        """One attempt at ``tier``/``node``, hedged to the next live tier when it is silent too long.
+        """One attempt at ``tier``/``node``, hedged when it is silent too long.
 
         The primary's own outcome decides when it answers before the hedge delay
         (an error or ``busy`` answer goes on to the normal failover, never to a
-        hedge).  Past the delay the same request goes to the next live tier; the
-        first good answer wins, the other query is cancelled and its attempt
-        marked ``superseded``.
+        hedge).  Past the delay the same request goes to the next live tier or,
+        with none, once more to the same node: a copy or its answer can be lost on
+        the way (a starved sender drops what it cannot queue; a link that misses
+        its lease under load takes its queries with it), and a node serves a
+        request once and answers every copy (:class:`scmr_mesh.mesh.server.RecentRequests`).
+        A hedge as silent as the primary was is sent once more to its node.  The
+        first good answer wins; the other copies are cancelled and their attempts
+        marked ``superseded``.  At most one hedge and one re-send per request, each
+        taking a token of the hedge budget.
         """
         from concurrent.futures import FIRST_COMPLETED, wait
 
@@ -666,42 +672,42 @@ class Robot:
         t_sent = time.monotonic()
         limit = t_sent + self.options.deadline_ms / 1e3 + 0.25
         delay = None if trip.hedged else self.hedge_delay_ms(tier, (time.perf_counter() - t_start) * 1e3)
+        done = True
         if delay is not None:
-            done, _ = wait([primary.fut], timeout=delay / 1e3)
-        target = None
-        if delay is not None and not done:
-            target = self._hedge_target(plan, tier, trip.tried)
-        if target is None or not self._hedge_budget.take():
+            done = bool(wait([primary.fut], timeout=delay / 1e3)[0])
+        if done or not self._hedge_budget.take():
             w = self._finish_sent(primary, wait_s=limit - time.monotonic())
             if w is None and att["outcome"] == BUSY:
                 self.view.mark_busy(node)
             return w
-        (htier, hnode), hq = target
-        hatt = {"tier": htier, "node": hnode, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(),
-                "hedge": True}
-        trip.attempts.append(hatt)
-        trip.tried.add((htier, hnode))
-        trip.bytes_up += len(payload)
+        target = self._hedge_target(plan, tier, trip.tried)
+        resend = target is None  # no other live tier: the same node once more
+        (htier, hnode), hq = target if target is not None else ((tier, node), q)
+        live = {}
+        if resend:
+            primary.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
+        else:
+            live[primary.fut] = primary
+            trip.tried.add((htier, hnode))
         trip.hedged = True
-        log.info("robot %s: %s/%s silent for %.0f ms on request %s: hedged to %s/%s", self.id, tier, node,
-                 delay, seq, htier, hnode)
-        hedge = self._start(hatt, hq, payload, trip.asked)
-        live = {primary.fut: primary, hedge.fut: hedge}
-        # the hedge silent as long as the primary was: its copy or its answer may have been lost on the
-        # way (a starved sender drops a query or reply it cannot queue), so the same request goes to the
-        # same node once more; the node serves it once and answers every copy (server.RecentRequests)
-        resend_at = time.monotonic() + delay / 1e3
-        if resend_at + self.RESEND_MIN_LEFT_S > limit:
+        hedge = self._copy(trip, payload, htier, hnode, hq, resend=resend)
+        log.info("robot %s: %s/%s silent for %.0f ms on request %s: %s %s/%s", self.id, tier, node, delay, seq,
+                 "sent again to" if resend else "hedged to", htier, hnode)
+        live[hedge.fut] = hedge
+        # a hedge as silent as the primary was: its copy or its answer may have been lost too
+        resend_at = None if resend else time.monotonic() + delay / 1e3
+        if resend_at is not None and resend_at + self.RESEND_MIN_LEFT_S > limit:
             resend_at = None
         winner = None
+        hatts = [hedge.att]
         while live and winner is None:
             now = time.monotonic()
             left = limit - now
             if left <= 0:
                 break
             wake = left if resend_at is None else min(left, max(0.0, resend_at - now))
-            done, _ = wait(list(live), timeout=wake, return_when=FIRST_COMPLETED)
-            for fut in done:
+            done_futs, _ = wait(list(live), timeout=wake, return_when=FIRST_COMPLETED)
+            for fut in done_futs:
                 sent = live.pop(fut)
                 w = self._finish_sent(sent, wait_s=0)
                 if w is not None and winner is None:
@@ -713,21 +719,27 @@ class Robot:
                 if self._hedge_budget.take():
                     live.pop(hedge.fut)
                     hedge.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
-                    ratt = {"tier": htier, "node": hnode, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(),
-                            "hedge": True, "resend": True}
-                    trip.attempts.append(ratt)
-                    trip.bytes_up += len(payload)
-                    trip.resent = True
+                    hedge = self._copy(trip, payload, htier, hnode, hq, resend=True)
                     log.info("robot %s: hedge to %s/%s silent for %.0f ms on request %s: sent again", self.id,
                              htier, hnode, delay, seq)
-                    hedge = self._start(ratt, hq, payload, trip.asked)
                     live[hedge.fut] = hedge
-        for sent in live.values():  # the loser (or all, past the deadline)
+                    hatts.append(hedge.att)
+        for sent in live.values():  # the losers (or all, past the deadline)
             sent.give_up(Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT)
-        for a in (att, hatt):
+        for a in (att, *hatts):
             if winner is None and a["outcome"] == BUSY:
                 self.view.mark_busy(a["node"])
         return winner
+
+    def _copy(self, trip: _Trip, payload: bytes, tier: str, node: str, q, *, resend: bool) -> _Sent:
+        """Send another copy of the request (a hedge, or ``resend``: once more to a node already asked)."""
+        att = {"tier": tier, "node": node, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(), "hedge": True}
+        if resend:
+            att["resend"] = True
+            trip.resent = True
+        trip.attempts.append(att)
+        trip.bytes_up += len(payload)
+        return self._start(att, q, payload, trip.asked)
 
     def request(self, seq: int, frame: Frame) -> dict:
         """Process one frame through the mesh (or locally); return its record.
