@@ -713,6 +713,8 @@ class Robot:
                 if w is not None and winner is None:
                     winner = w
                     trip.hedge_won = sent is not primary
+                elif w is not None:  # both copies answered at once: one answer is used, once
+                    sent.att["outcome"] = Outcome.SUPERSEDED
             if (winner is None and resend_at is not None and time.monotonic() >= resend_at
                     and hedge.fut in live):
                 resend_at = None
