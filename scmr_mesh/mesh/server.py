@@ -218,12 +218,27 @@ class ServiceState:
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def predicted_ms(self, inflight: int | None = None) -> float | None:
-        """Time a request admitted now would spend here: the frames ahead of it
-        in full rounds of the workers, then its own (None before any sample)."""
+        """Time a request admitted now would spend here (None before any sample).
+
+        With ``ahead`` requests in progress on ``W`` workers taking ``S`` ms a
+        frame, a request that finds every worker busy waits until
+        ``ahead - W + 1`` of them have finished; busy workers finish one every
+        ``S / W`` ms on average, so it waits ``(ahead - W + 1) x S / W``, then
+        takes its own ``S``.  (Counting a whole ``S`` for each round of ``W``
+        ahead, as before issue 23, priced the first queued request at ``2 S``
+        when one of ``W`` workers frees in about ``S / W``: with a frame over
+        half the budget the node answered busy before any queue formed, at 80 %
+        of its workers' capacity with 8 workers at 40 ms.)
+
+        >>> st = ServiceState("c1", "cloud", workers=8, max_inflight=64, service_ms=40.0)
+        >>> st.predicted_ms(7), st.predicted_ms(8), st.predicted_ms(11), st.predicted_ms(12)
+        (40.0, 45.0, 60.0, 65.0)
+        """
         if self.service_ms is None:
             return None
         ahead = self.inflight if inflight is None else inflight
-        return (ahead // max(1, self.workers) + 1) * self.service_ms
+        workers = max(1, self.workers)
+        return self.service_ms * (1.0 + max(0, ahead - workers + 1) / workers)
 
     def note_service(self, worker_ms: float) -> None:
         """Fold one frame's worker time into :attr:`service_ms` (call with the lock held)."""
@@ -241,8 +256,8 @@ def default_admission(request: dict, state: ServiceState) -> Refusal | None:
     Refuses when ``state.inflight >= state.max_inflight``, or when every
     worker is busy and the request would be answered later than its budget:
     the predicted time here (:meth:`ServiceState.predicted_ms`: the frames
-    ahead of it, in rounds of the workers, each taking the recent average
-    worker time) exceeds ``state.budget_ms``.  The average follows the machine's load (a frame takes
+    ahead of it, finishing at the workers' rate, ``workers`` per recent average
+    worker time, then its own) exceeds ``state.budget_ms``.  The average follows the machine's load (a frame takes
     longer when the cores are shared), so the queue a service accepts shrinks
     as it slows down and an admitted request's time stays near the budget at
     any offered load; the refused robot goes to the leader, a peer or runs the
