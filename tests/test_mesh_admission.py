@@ -112,3 +112,39 @@ def test_overloaded_cloud_answers_busy_before_the_queue_grows(tmp_path):
     last_busy = max(t for c, t in results.values() if c == "busy")
     last_ok = max(t for c, t in results.values() if c == "ok")
     assert last_busy < last_ok
+
+
+def test_frames_a_worker_finished_are_not_waited_for():
+    # issue 23 item 2: a result still on its way back to the service (the result pipe,
+    # the pool's collecting thread, a busy interpreter) no longer holds a worker.  The
+    # old rule counted every request not answered yet: 12 in flight on 2 workers at
+    # 10 ms was 65 ms, busy, though the workers had finished 4 of them.
+    st = _state(service_ms=10.0, budget_ms=60.0, outstanding=lambda: 8)
+    st.inflight = 12
+    assert st.ahead() == 8 and default_admission({}, st) is None
+    st.outstanding = lambda: 12
+    assert default_admission({}, st).code == "busy"
+    st.outstanding = lambda: 99  # never more than the service's own count
+    assert st.ahead() == 12
+
+
+def test_the_pool_counts_the_frames_its_workers_finished(monkeypatch):
+    from scmr_mesh.mesh.testing import FIXED
+    from scmr_mesh.mesh.work import Expired, WorkerPool
+
+    monkeypatch.setenv("SCMR_STUB_DELAY_MS", "1")
+    pool = WorkerPool(1, process=FIXED)
+    try:
+        pool.start()
+        assert pool.outstanding() == 0
+        futs = [pool.submit(b"x", encoding="png", shape=None, mode="best") for _ in range(3)]
+        # a frame past its deadline is skipped, and its worker is free as well
+        futs.append(pool.submit(b"x", encoding="png", shape=None, mode="best", expires_mono=time.monotonic() - 1))
+        assert 0 <= pool.outstanding() <= 4
+        for f in futs[:3]:
+            assert f.result(timeout=30)["threshold"] == 128
+        with pytest.raises(Expired):
+            futs[3].result(timeout=30)
+        assert pool.outstanding() == 0
+    finally:
+        pool.shutdown()

@@ -81,6 +81,13 @@ def cpu_delta(a: dict[str, float], b: dict[str, float]) -> dict[str, float]:
     return {k: round(b[k] - a.get(k, 0.0), 3) for k in sorted(b)}
 
 
+def _pcts(values: Sequence[float]) -> dict[str, float | None]:
+    from scmr_mesh.qos import metrics
+
+    return {p: (round(metrics.percentile(values, q), 1) if values else None)
+            for p, q in (("p50", 50), ("p99", 99))}
+
+
 def knee(capacity_fps: float, steps: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Where the first busy answer appears on a ramp (pure).
 
@@ -204,10 +211,17 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
                 counts: dict[str, int] = defaultdict(int)
                 pending = [0]
 
-                def done(r, counts=counts) -> None:
+                times: dict[str, list[float]] = {"server_ms": [], "queue_ms": []}
+
+                def done(r, counts=counts, times=times) -> None:
                     o = outcome(r)
+                    if o == "ok":  # the cloud's own time: arrival to reply, and of it the wait before a worker
+                        rep = wire.decode(r.ok.payload.to_bytes(), kind="reply")
                     with lock:
                         counts[o] += 1
+                        if o == "ok":
+                            times["server_ms"].append(float(rep["server_ms"]))
+                            times["queue_ms"].append(float(rep.get("queue_ms") or 0.0))
 
                 def finished(counts=counts) -> None:
                     with lock:
@@ -235,10 +249,12 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
                         "served_fps": round(ok / sent_s, 1), "ok": ok, "busy": busy,
                         "other": {k: v for k, v in counts.items() if k not in ("ok", "busy")},
                         "sender_late_max_ms": round(late_ns / 1e6, 1), "cpu_s": cpu,
+                        **{k: _pcts(v) for k, v in times.items()},
                         "cpu_ms_per_request": {k: round(v * 1e3 / n, 3) for k, v in cpu.items()},
                         "loadavg_1min": round(os.getloadavg()[0], 2)}
                 steps.append(step)
                 say(f"  offered {step['offered_fps']} frames/s ({frac:g}): served {step['served_fps']}, busy {busy}, "
+                    f"server ms p50 {step['server_ms']['p50']} (queue {step['queue_ms']['p50']}); "
                     f"cloud CPU ms/request {step['cpu_ms_per_request']}")
         finally:
             close_session(session)

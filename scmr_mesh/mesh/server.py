@@ -200,6 +200,10 @@ class ServiceState:
     queue_managed : bool
         A priority negotiator bounds the queue (``--queue``); the default
         admission then applies only its hard limit.
+    outstanding : callable or None
+        ``fn() -> int``: admitted frames no worker has finished yet, counted
+        by the workers (:meth:`~scmr_mesh.mesh.work.WorkerPool.outstanding`);
+        see :meth:`ahead`.
     served, errors, refused : int
         Totals since start.
     """
@@ -215,7 +219,24 @@ class ServiceState:
     budget_ms: float = DEFAULT_BUDGET_MS
     service_ms: float | None = None
     queue_managed: bool = False
+    outstanding: Callable[[], int] | None = field(default=None, repr=False)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def ahead(self) -> int:
+        """Admitted frames a new request would wait behind: :attr:`inflight`, less those a
+        worker has finished whose result has not reached the service yet (issue 23 item 2).
+
+        >>> st = ServiceState("c1", "cloud", workers=2, max_inflight=16, inflight=5)
+        >>> st.ahead(), ServiceState("c1", "cloud", 2, 16, inflight=5, outstanding=lambda: 3).ahead()
+        (5, 3)
+        """
+        fn = self.outstanding
+        if fn is None:
+            return self.inflight
+        try:
+            return min(self.inflight, int(fn()))
+        except Exception:  # a pool being replaced: the service's own count
+            return self.inflight
 
     def predicted_ms(self, inflight: int | None = None) -> float | None:
         """Time a request admitted now would spend here (None before any sample).
@@ -236,7 +257,7 @@ class ServiceState:
         """
         if self.service_ms is None:
             return None
-        ahead = self.inflight if inflight is None else inflight
+        ahead = self.ahead() if inflight is None else inflight
         workers = max(1, self.workers)
         return self.service_ms * (1.0 + max(0, ahead - workers + 1) / workers)
 
@@ -264,6 +285,9 @@ def default_admission(request: dict, state: ServiceState) -> Refusal | None:
     frame itself.  A request that finds a free worker is always admitted (it
     waits for nothing), and with a priority negotiator (``--queue``) only the
     hard limit applies: the negotiator bounds its own queue.
+    The frames ahead are counted by the workers (:meth:`ServiceState.ahead`):
+    a frame whose worker is done is not waited for, even if its result has not
+    reached the service yet.
     ``retry_after_ms`` says when the queue should have drained enough.
     """
     if state.inflight >= state.max_inflight:
@@ -273,16 +297,19 @@ def default_admission(request: dict, state: ServiceState) -> Refusal | None:
             f"limit {state.max_inflight})",
             retry_after_ms=50.0,
         )
-    if state.queue_managed or state.inflight < state.workers:
+    if state.queue_managed:
         return None
-    predicted = state.predicted_ms()
+    ahead = state.ahead()
+    if ahead < state.workers:
+        return None
+    predicted = state.predicted_ms(ahead)
     if predicted is None:
         return None
     limit = state.budget_ms
     if predicted > limit:
         return Refusal(
             "busy",
-            f"server too busy, try later: {state.inflight} requests in progress on {state.workers} workers "
+            f"server too busy, try later: {ahead} requests in progress on {state.workers} workers "
             f"at {state.service_ms:.0f} ms per frame would answer in about {predicted:.0f} ms, over the "
             f"{limit:.0f} ms budget; send it to another tier or run it locally",
             retry_after_ms=round(max(1.0, predicted - limit), 1),
@@ -361,6 +388,7 @@ class Service:
         #: requests taken in lately: a second copy of one is answered ``duplicate`` (hedged requests)
         self.recent = RecentRequests()
         self.pool = WorkerPool(workers, process=process, clock=clock)
+        self.state.outstanding = self.pool.outstanding
         self.worker_pids = self.pool.start()
         if clock is not None:
             clock.mark("worker pool", workers=workers)
