@@ -91,7 +91,8 @@ def _pcts(values: Sequence[float]) -> dict[str, float | None]:
 def knee(capacity_fps: float, steps: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Where the first busy answer appears on a ramp (pure).
 
-    ``steps``: ``{"offered_fps", "served_fps", "busy"}`` in ramp order.  The
+    ``steps``: ``{"offered_fps", "served_fps", "busy"}`` (and
+    ``sender_late_max_ms``) in ramp order.  The
     ratio is the highest served frames/s of the steps before the first one
     with a busy answer, over ``capacity_fps``.
 
@@ -114,6 +115,8 @@ def knee(capacity_fps: float, steps: Sequence[dict[str, Any]]) -> dict[str, Any]
             "served_at_first_busy_ratio": ratio,
             "first_busy_offered_fps": None if first is None else first["offered_fps"],
             "first_busy_served_fps": None if first is None else first["served_fps"],
+            # a client that fell behind its schedule sent a burst in that step: read the ratio with it
+            "first_busy_sender_late_ms": None if first is None else first.get("sender_late_max_ms"),
             "target": TARGET_RATIO, "ok": ratio is not None and ratio >= TARGET_RATIO}
 
 

@@ -450,7 +450,8 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
               f"({capacity['frames_per_s']} frames/s, {capacity['workers']} workers on {capacity['cores']} cores; "
               f"server time p50 {capacity['server_ms']['p50']} p99 {capacity['server_ms']['p99']} ms)")
     if ingress is not None:
-        first = (f"first busy at {ingress['first_busy_offered_fps']} frames/s offered"
+        first = (f"first busy at {ingress['first_busy_offered_fps']} frames/s offered (the client up to "
+                 f"{ingress['first_busy_sender_late_ms']} ms late in that step)"
                  if ingress["first_busy_offered_fps"] is not None else "no busy answer on the ramp")
         print(f"cloud ingress: workers' closed-loop capacity {ingress['capacity_fps']} frames/s "
               f"({ingress['workers']} workers x {ingress['delay_ms']:g} ms stub); served "
