@@ -133,8 +133,9 @@ def knee(capacity_fps: float, steps: Sequence[dict[str, Any]]) -> dict[str, Any]
 
 def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float = 3.0,
                     ramp: Sequence[float] = RAMP, run_dir: Path, insecure: bool = False,
-                    extra_args: Sequence[str] = (), progress=None) -> dict[str, Any]:
-    """Closed-loop capacity, then the open-loop ramp, of one ``scmr cloud`` on the fixed-time stub."""
+                    extra_args: Sequence[str] = (), process: str | None = None, progress=None) -> dict[str, Any]:
+    """Closed-loop capacity, then the open-loop ramp, of one ``scmr cloud`` on the fixed-time stub
+    (``process``: another process function, e.g. the pipeline, ``delay_ms`` then unused)."""
     import zenoh
 
     from scmr_mesh import keys, wire
@@ -157,7 +158,7 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
         frames += [next(it) for _ in range(2)]
     sec = bench_security(run_dir, "ing0=cloud,ing=robot", insecure=insecure)
     proc = spawn_peer(["cloud", *sec.args, "--node", "ing0", "--listen", f"tcp/127.0.0.1:{port}",
-                       "--workers", str(workers), "--process", FIXED, "--ods", str(run_dir / "ods.sqlite"),
+                       "--workers", str(workers), "--process", process or FIXED, "--ods", str(run_dir / "ods.sqlite"),
                        "--ready-file", str(ready), *extra_args],
                       log_path=run_dir / "cloud.log", env={"SCMR_STUB_DELAY_MS": str(delay_ms)})
     seq = iter(range(1, 1 << 62))
@@ -215,8 +216,9 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
                 t.join(timeout=15)
             capacity = closed["ok"] / (t1 - t0)
             closed_cpu = cpu_delta(c0, c1)
-            say(f"ingress: closed loop {capacity:.1f} frames/s ({workers} workers x {delay_ms:g} ms, {conc} senders; "
-                f"ideal {workers * 1e3 / delay_ms:.0f}); {dict(closed)}")
+            ideal = f"{workers} workers x {delay_ms:g} ms, ideal {workers * 1e3 / delay_ms:.0f}" if not process else \
+                f"{workers} workers running {process}"
+            say(f"ingress: closed loop {capacity:.1f} frames/s ({ideal}, {conc} senders); {dict(closed)}")
 
             # 2. open-loop ramp
             steps = []
@@ -277,7 +279,7 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
             close_session(session)
     finally:
         stop_peer(proc)
-    return {"workers": workers, "delay_ms": delay_ms, "step_s": step_s, "senders": conc,
+    return {"workers": workers, "delay_ms": delay_ms if not process else None, "process": process or FIXED, "step_s": step_s, "senders": conc,
             "closed_loop": {"frames_per_s": round(capacity, 1), "outcomes": dict(closed), "cpu_s": closed_cpu,
                             "cpu_ms_per_request": {k: round(v * 1e3 / max(1, closed["ok"]), 3)
                                                    for k, v in closed_cpu.items()}},

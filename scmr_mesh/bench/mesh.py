@@ -454,7 +454,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
                  f"{ingress['first_busy_sender_late_ms']} ms late in that step)"
                  if ingress["first_busy_offered_fps"] is not None else "no busy answer on the ramp")
         print(f"cloud ingress: workers' closed-loop capacity {ingress['capacity_fps']} frames/s "
-              f"({ingress['workers']} workers x {ingress['delay_ms']:g} ms stub); served "
+              f"({ingress['workers']} workers x {ingress['delay_ms'] or '-'} ms stub); served "
               f"{ingress['served_before_busy_fps']} frames/s before any busy answer: "
               f"served_at_first_busy_ratio {ingress['served_at_first_busy_ratio']} (target >= "
               f"{MESH_TARGETS['served_at_first_busy_ratio']}); {first}")
