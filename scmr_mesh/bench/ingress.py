@@ -39,8 +39,9 @@ _TICK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 def thread_cpu(pid: int) -> dict[str, float]:
     """CPU seconds of process ``pid``'s threads by name (``comm``), plus ``"workers"``: its children's.
 
-    Python's own threads are all named after the interpreter (``python``);
-    the service names its threads (``scmr-...``, see :func:`scmr_mesh.mesh.server.name_thread`).
+    zenoh's threads carry their pool's name (``rx-0``, ``tx-0``, ``net-0``, ``acc-0``: grouped
+    without the number); Python's threads are all named after the interpreter (``python``):
+    the service's callback, pool, reply and load threads together.
     """
     out: dict[str, float] = defaultdict(float)
     children: list[int] = []
