@@ -383,3 +383,21 @@ def test_mismatched_replies_are_in_the_report_the_console_and_fail_the_run():
     assert "PROBLEM: 2 replies did not answer" in format_summary(rep)
     with pytest.raises(MeshError, match="did not answer the request"):
         check_fleet(rep, 0.0)
+
+
+def test_ingress_knee_is_the_last_step_before_the_first_busy_answer():
+    # issue 23 item 2: served frames/s before any busy answer, over the workers' capacity
+    from scmr_mesh.bench.ingress import cpu_delta, knee
+
+    steps = [{"offered_fps": 50, "served_fps": 50, "busy": 0}, {"offered_fps": 90, "served_fps": 90, "busy": 0},
+             {"offered_fps": 95, "served_fps": 93, "busy": 2, "sender_late_max_ms": 31.0},
+             {"offered_fps": 99, "served_fps": 99, "busy": 0}]  # a clean step after a busy one does not count
+    k = knee(100.0, steps)
+    assert (k["served_at_first_busy_ratio"], k["first_busy_offered_fps"], k["first_busy_sender_late_ms"]) == (0.9, 95, 31.0)
+    assert k["ok"] is True and knee(100.0, steps[:1] + steps[2:])["ok"] is False
+    none = knee(100.0, steps[:2])
+    assert none["first_busy_offered_fps"] is None and none["served_at_first_busy_ratio"] == 0.9
+    assert knee(100.0, [{"offered_fps": 50, "served_fps": 49, "busy": 1}])["served_at_first_busy_ratio"] == 0.0
+    assert cpu_delta({"rx": 1.0, "gone": 2.0}, {"rx": 1.25, "workers": 0.5}) == {"rx": 0.25, "workers": 0.5}
+    t = bench_targets([], None, None, {"served_at_first_busy_ratio": 0.84})
+    assert t["served_at_first_busy_ok"] is False and bench_targets([], None)["served_at_first_busy_ok"] is None

@@ -164,7 +164,8 @@ def add_mesh(bench: argparse._SubParsersAction) -> None:
         description=(
             "Measure the cloud service's capacity (a closed loop of requests against one `scmr cloud` "
             "running the real pipeline: frames/s, and frames per CPU-second of the service = frames/s per "
-            "core), run fleets of each size in --robots (no faults; ToR of all requests and of those a "
+            "core), the cloud's ingress (--ingress-seconds: served frames/s before the first busy answer over "
+            "the workers' closed-loop capacity, on a fixed-time stub), run fleets of each size in --robots (no faults; ToR of all requests and of those a "
             "cloud or leader admitted, the busy answers, the hedge rate, and where the fleet's CPU went: CPU ms "
             "per request of the cloud nodes, the leader, the routers and the robots, each peer's process group "
             "sampled from /proc over the run, and the share of the host's cores the fleet used), then "
@@ -182,6 +183,17 @@ def add_mesh(bench: argparse._SubParsersAction) -> None:
     _add_fleet_args(b)
     b.add_argument("--capacity-seconds", type=ca.non_negative("seconds", hi=3600), default=10.0, metavar="S",
                    help="length of the capacity measurement (0 skips it; default: %(default)s)")
+    b.add_argument("--ingress-seconds", type=ca.non_negative("seconds", hi=600), default=3.0, metavar="S",
+                   help="length of each step of the ingress ramp (0 skips it; default: %(default)s): one cloud "
+                        "whose workers run a fixed-time stub (no CPU), its workers' closed-loop capacity, then "
+                        "requests at 0.5-1.1 of it; reports served_at_first_busy_ratio (served frames/s before "
+                        "the first busy answer over that capacity, target >= 0.85) and the cloud's CPU per "
+                        "request by thread (issue 23 item 2)")
+    b.add_argument("--ingress-workers", type=ca.count("worker processes", hi=256, example="8"), default=8, metavar="N",
+                   help="workers of the ingress run's cloud (default: %(default)s)")
+    b.add_argument("--ingress-service-ms", type=ca.positive("milliseconds", hi=10000, example="20"), default=20.0,
+                   metavar="MS", help="the ingress run's stub time per frame (default: %(default)s; capacity "
+                                      "about N x 1000 / MS frames/s)")
     b.add_argument("--crash-robots", type=ca.count("robots", lo=0, hi=1000), default=4, metavar="N",
                    help="robots in each crash run (0 skips them; default: %(default)s)")
     b.add_argument("--crash-runs", type=ca.count("runs", lo=0, hi=1000), default=10, metavar="N",

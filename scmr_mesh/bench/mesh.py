@@ -31,7 +31,9 @@ from scmr_mesh.thesis.cpu import CpuSampler
 MESH_TARGETS = {"tor_p50_ms": 15.0, "tor_p99_ms": 50.0, "crash_ror": 1.0,
                 "failover_gap_median_ms": 20.0, "failback_gap_max_ms": 500.0,
                 "hogs_failover_gap_max_ms": 1000.0, "hogs_failback_gap_max_ms": 1000.0,
-                "tor_admitted_p99_ms": 100.0, "hedge_rate_fault_free": 0.02}
+                "tor_admitted_p99_ms": 100.0, "hedge_rate_fault_free": 0.02,
+                # issue 23 item 2: served frames/s before the first busy answer, over the workers' capacity
+                "served_at_first_busy_ratio": 0.85}
 
 
 #: ``scmr bench mesh`` plays fleets above this many robots this many to a ``scmr swarm`` process
@@ -47,9 +49,11 @@ def _stat(values: Sequence[float | None]) -> dict[str, Any]:
 
 
 def bench_targets(runs: Sequence[Mapping[str, Any]], crash: Mapping[str, Any] | None,
-                  hogs: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                  hogs: Mapping[str, Any] | None = None, ingress: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Compare bench results with the targets (``None`` where not measured)."""
     out: dict[str, Any] = {"limits": dict(MESH_TARGETS)}
+    ratio = (ingress or {}).get("served_at_first_busy_ratio")
+    out["served_at_first_busy_ok"] = None if ratio is None else ratio >= MESH_TARGETS["served_at_first_busy_ratio"]
     four = next((r for r in runs if r["robots"] == 4 and abs(r["rate_hz"] - 5) < 1e-9), None)
     if four is not None:
         p50, p99 = four["tor_ms"]["p50"], four["tor_ms"]["p99"]
@@ -382,6 +386,15 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
                                     progress=say, insecure=args.insecure)
         say(f"  capacity: {capacity['frames_per_s_per_core']} frames/s per core ({capacity['frames_per_s']} frames/s "
             f"with {capacity['workers']} workers, {capacity['service_cpu_s']} CPU-s in {capacity['seconds']} s)")
+    ingress = None
+    if args.ingress_seconds > 0:
+        from scmr_mesh.bench.ingress import measure_ingress
+
+        say(f"bench mesh: the cloud's ingress ({args.ingress_workers} workers on a {args.ingress_service_ms:g} ms "
+            f"fixed-time stub: closed loop, then a ramp of {args.ingress_seconds:g} s steps) ...")
+        ingress = measure_ingress(workers=args.ingress_workers, delay_ms=args.ingress_service_ms,
+                                  step_s=args.ingress_seconds, run_dir=root / "ingress", insecure=args.insecure,
+                                  progress=say)
     runs = []
     for n in sizes:
         say(f"bench mesh: {n} robots at {args.rate:g} Hz for {args.duration:g} s ...")
@@ -421,11 +434,12 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         ]}
     result = {
         "capacity": capacity,
+        "ingress": ingress,
         "runs": runs,
         "crash": crash,
         "crash_hogs": hogs,
         "overload": overload,
-        "targets": bench_targets(runs, crash, hogs),
+        "targets": bench_targets(runs, crash, hogs, ingress),
         "machine": {"cpus": os.cpu_count(), "loadavg_at_end": list(os.getloadavg())},
         "measured_unix_ns": time.time_ns(),
     }
@@ -435,6 +449,15 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         print(f"service capacity: {capacity['frames_per_s_per_core']} frames/s per core "
               f"({capacity['frames_per_s']} frames/s, {capacity['workers']} workers on {capacity['cores']} cores; "
               f"server time p50 {capacity['server_ms']['p50']} p99 {capacity['server_ms']['p99']} ms)")
+    if ingress is not None:
+        first = (f"first busy at {ingress['first_busy_offered_fps']} frames/s offered (the client up to "
+                 f"{ingress['first_busy_sender_late_ms']} ms late in that step)"
+                 if ingress["first_busy_offered_fps"] is not None else "no busy answer on the ramp")
+        print(f"cloud ingress: workers' closed-loop capacity {ingress['capacity_fps']} frames/s "
+              f"({ingress['workers']} workers x {ingress['delay_ms'] or '-'} ms stub); served "
+              f"{ingress['served_before_busy_fps']} frames/s before any busy answer: "
+              f"served_at_first_busy_ratio {ingress['served_at_first_busy_ratio']} (target >= "
+              f"{MESH_TARGETS['served_at_first_busy_ratio']}); {first}")
     print(f"{'robots':>7}{'rate':>6}{'requests':>10}{'RoR':>7}{'p50':>8}{'p90':>8}{'p99':>8}{'max':>8}"
           f"{'adm p99':>9}{'busy':>6}  (ms)")
     for r in runs:

@@ -265,6 +265,10 @@ class ServiceState:
     queue_managed : bool
         A priority negotiator bounds the queue (``--queue``); the default
         admission then applies only its hard limit.
+    outstanding : callable or None
+        ``fn() -> int``: admitted frames no worker has finished yet, counted
+        by the workers (:meth:`~scmr_mesh.mesh.work.WorkerPool.outstanding`);
+        see :meth:`ahead`.
     served, errors, refused : int
         Totals since start.
     """
@@ -280,15 +284,47 @@ class ServiceState:
     budget_ms: float = DEFAULT_BUDGET_MS
     service_ms: float | None = None
     queue_managed: bool = False
+    outstanding: Callable[[], int] | None = field(default=None, repr=False)
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
+    def ahead(self) -> int:
+        """Admitted frames a new request would wait behind: :attr:`inflight`, less those a
+        worker has finished whose result has not reached the service yet (issue 23 item 2).
+
+        >>> st = ServiceState("c1", "cloud", workers=2, max_inflight=16, inflight=5)
+        >>> st.ahead(), ServiceState("c1", "cloud", 2, 16, inflight=5, outstanding=lambda: 3).ahead()
+        (5, 3)
+        """
+        fn = self.outstanding
+        if fn is None:
+            return self.inflight
+        try:
+            return min(self.inflight, int(fn()))
+        except Exception:  # a pool being replaced: the service's own count
+            return self.inflight
+
     def predicted_ms(self, inflight: int | None = None) -> float | None:
-        """Time a request admitted now would spend here: the frames ahead of it
-        in full rounds of the workers, then its own (None before any sample)."""
+        """Time a request admitted now would spend here (None before any sample).
+
+        With ``ahead`` requests in progress on ``W`` workers taking ``S`` ms a
+        frame, a request that finds every worker busy waits until
+        ``ahead - W + 1`` of them have finished; busy workers finish one every
+        ``S / W`` ms on average, so it waits ``(ahead - W + 1) x S / W``, then
+        takes its own ``S``.  (Counting a whole ``S`` for each round of ``W``
+        ahead, as before issue 23, priced the first queued request at ``2 S``
+        when one of ``W`` workers frees in about ``S / W``: with a frame over
+        half the budget the node answered busy before any queue formed, at 80 %
+        of its workers' capacity with 8 workers at 40 ms.)
+
+        >>> st = ServiceState("c1", "cloud", workers=8, max_inflight=64, service_ms=40.0)
+        >>> st.predicted_ms(7), st.predicted_ms(8), st.predicted_ms(11), st.predicted_ms(12)
+        (40.0, 45.0, 60.0, 65.0)
+        """
         if self.service_ms is None:
             return None
-        ahead = self.inflight if inflight is None else inflight
-        return (ahead // max(1, self.workers) + 1) * self.service_ms
+        ahead = self.ahead() if inflight is None else inflight
+        workers = max(1, self.workers)
+        return self.service_ms * (1.0 + max(0, ahead - workers + 1) / workers)
 
     def note_service(self, worker_ms: float) -> None:
         """Fold one frame's worker time into :attr:`service_ms` (call with the lock held)."""
@@ -306,14 +342,17 @@ def default_admission(request: dict, state: ServiceState) -> Refusal | None:
     Refuses when ``state.inflight >= state.max_inflight``, or when every
     worker is busy and the request would be answered later than its budget:
     the predicted time here (:meth:`ServiceState.predicted_ms`: the frames
-    ahead of it, in rounds of the workers, each taking the recent average
-    worker time) exceeds ``state.budget_ms``.  The average follows the machine's load (a frame takes
+    ahead of it, finishing at the workers' rate, ``workers`` per recent average
+    worker time, then its own) exceeds ``state.budget_ms``.  The average follows the machine's load (a frame takes
     longer when the cores are shared), so the queue a service accepts shrinks
     as it slows down and an admitted request's time stays near the budget at
     any offered load; the refused robot goes to the leader, a peer or runs the
     frame itself.  A request that finds a free worker is always admitted (it
     waits for nothing), and with a priority negotiator (``--queue``) only the
     hard limit applies: the negotiator bounds its own queue.
+    The frames ahead are counted by the workers (:meth:`ServiceState.ahead`):
+    a frame whose worker is done is not waited for, even if its result has not
+    reached the service yet.
     ``retry_after_ms`` says when the queue should have drained enough.
     """
     if state.inflight >= state.max_inflight:
@@ -323,16 +362,19 @@ def default_admission(request: dict, state: ServiceState) -> Refusal | None:
             f"limit {state.max_inflight})",
             retry_after_ms=50.0,
         )
-    if state.queue_managed or state.inflight < state.workers:
+    if state.queue_managed:
         return None
-    predicted = state.predicted_ms()
+    ahead = state.ahead()
+    if ahead < state.workers:
+        return None
+    predicted = state.predicted_ms(ahead)
     if predicted is None:
         return None
     limit = state.budget_ms
     if predicted > limit:
         return Refusal(
             "busy",
-            f"server too busy, try later: {state.inflight} requests in progress on {state.workers} workers "
+            f"server too busy, try later: {ahead} requests in progress on {state.workers} workers "
             f"at {state.service_ms:.0f} ms per frame would answer in about {predicted:.0f} ms, over the "
             f"{limit:.0f} ms budget; send it to another tier or run it locally",
             retry_after_ms=round(max(1.0, predicted - limit), 1),
@@ -411,6 +453,7 @@ class Service:
         #: requests taken in lately: a second copy of one is answered ``duplicate`` (hedged requests)
         self.recent = RecentRequests()
         self.pool = WorkerPool(workers, process=process, clock=clock)
+        self.state.outstanding = self.pool.outstanding
         self.worker_pids = self.pool.start()
         if clock is not None:
             clock.mark("worker pool", workers=workers)

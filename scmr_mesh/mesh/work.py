@@ -40,6 +40,8 @@ log = logging.getLogger(__name__)
 DEFAULT_PROCESS = "scmr_mesh.mesh.work:process_frame"
 
 _FN: Callable[..., dict] | None = None
+#: In a worker: the pool's shared count of frames its workers have finished (see WorkerPool.outstanding)
+_DONE = None
 
 
 def resolve(spec: str) -> Callable[..., dict]:
@@ -173,8 +175,9 @@ def _die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="scmr-parent-watch", daemon=True).start()
 
 
-def _init_worker(spec: str, parent_pid: int, warmed: bool = False) -> None:
-    global _FN
+def _init_worker(spec: str, parent_pid: int, warmed: bool = False, done=None) -> None:
+    global _FN, _DONE
+    _DONE = done
     # the parent owns shutdown: a SIGTERM/Ctrl-C sent to the whole process group
     # must not kill a worker in the middle of a frame the service is draining;
     # workers still die with the parent (PR_SET_PDEATHSIG) and on pool shutdown
@@ -192,14 +195,19 @@ class Expired(Exception):
 
 def _run(image: bytes, encoding: str, shape, mode: str, expires_mono: float | None = None) -> dict:
     assert _FN is not None
-    if expires_mono is not None and time.monotonic() > expires_mono:
-        # the robot has given up and re-sent elsewhere: skip the work (CLOCK_MONOTONIC
-        # is system-wide, so the service's arrival-based expiry is valid here)
-        raise Expired(f"deadline passed {1e3 * (time.monotonic() - expires_mono):.0f} ms before a worker was free")
-    t0 = time.perf_counter()
-    out = _FN(image, encoding=encoding, shape=shape, mode=mode)
-    out["worker_ms"] = (time.perf_counter() - t0) * 1e3
-    return out
+    try:
+        if expires_mono is not None and time.monotonic() > expires_mono:
+            # the robot has given up and re-sent elsewhere: skip the work (CLOCK_MONOTONIC
+            # is system-wide, so the service's arrival-based expiry is valid here)
+            raise Expired(f"deadline passed {1e3 * (time.monotonic() - expires_mono):.0f} ms before a worker was free")
+        t0 = time.perf_counter()
+        out = _FN(image, encoding=encoding, shape=shape, mode=mode)
+        out["worker_ms"] = (time.perf_counter() - t0) * 1e3
+        return out
+    finally:  # this worker is free now, before its result reaches the service (see WorkerPool.outstanding)
+        if _DONE is not None:
+            with _DONE.get_lock():
+                _DONE.value += 1
 
 
 def _ping() -> int:
@@ -252,11 +260,14 @@ class WorkerPool:
         self.process = process
         self.restarts = 0
         self._respawn_lock = threading.Lock()
+        self._count_lock = threading.Lock()
+        self._submitted = 0
+        self._done = mp.get_context("fork").Value("q", 0)
         self._executor = ProcessPoolExecutor(
             max_workers=self.workers,
             mp_context=mp.get_context("fork"),
             initializer=_init_worker,
-            initargs=(process, os.getpid(), True),
+            initargs=(process, os.getpid(), True, self._done),
         )
 
     def start(self, *, timeout: float = 300.0) -> list[int]:
@@ -294,11 +305,34 @@ class WorkerPool:
         """
         from concurrent.futures.process import BrokenProcessPool
 
+        with self._count_lock:  # counted before a worker can finish it
+            self._submitted += 1
         try:
-            return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
-        except BrokenProcessPool:
-            self._respawn()
-            return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
+            try:
+                return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
+            except BrokenProcessPool:
+                self._respawn()
+                with self._count_lock:
+                    self._submitted += 1
+                return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
+        except BaseException:
+            with self._count_lock:
+                self._submitted -= 1
+            raise
+
+    def outstanding(self) -> int:
+        """Frames submitted that no worker has finished yet (waiting or being worked on).
+
+        Counted from the workers' side (a shared counter each worker bumps as it
+        finishes a frame), so a frame whose result is still on its way back to
+        the service (the result pipe, the pool's collecting thread, the
+        interpreter lock of a busy service) no longer counts: its worker is free.
+        The service's own in-flight count includes those, and on a loaded host
+        it priced work that was already done (issue 23 item 2).
+        """
+        with self._count_lock:
+            submitted = self._submitted
+        return max(0, submitted - int(self._done.value))
 
     def _respawn(self) -> None:
         """Replace a broken pool.  New workers are *spawned* (not forked): zenoh's
@@ -311,11 +345,15 @@ class WorkerPool:
                 return
             self.restarts += 1
             log.error("a worker process died; starting a new pool of %d (restart %d)", self.workers, self.restarts)
+            # the old pool's frames fail: count afresh (the service's in-flight count still bounds admission)
+            done = mp.get_context("spawn").Value("q", 0)
+            with self._count_lock:
+                self._submitted, self._done = 0, done
             self._executor = ProcessPoolExecutor(
                 max_workers=self.workers,
                 mp_context=mp.get_context("spawn"),
                 initializer=_init_worker,
-                initargs=(self.process, os.getpid()),
+                initargs=(self.process, os.getpid(), False, done),
             )
             try:
                 old.shutdown(wait=False, cancel_futures=True)
