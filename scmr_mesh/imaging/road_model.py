@@ -99,6 +99,11 @@ class RoadParams:
         A candidate that reaches above ``reach`` is *open ground*, not a leak, when its upper
         edge is a horizon: a flat front over at least this share of the frame's width, with sky
         room above it (see :func:`open_ground`; 0 = never, the abstention as before).
+    lateral : float
+        A seed region other than the one covering most of the bottom-centre cell is dropped when
+        its centroid lies outside ``[lateral, 1 - lateral]`` of the frame's width and it reaches
+        above the cell: it is a verge, pavement or field running beside the road, not the
+        surface ahead (see :func:`seed_regions`; 0 = off).
     """
 
     gamma: float = 1.0
@@ -117,6 +122,7 @@ class RoadParams:
     cap: float = 0.5
     standing: bool = True
     front: float = 0.97
+    lateral: float = 0.25
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -149,6 +155,8 @@ class RoadParams:
             raise InputError(f"cap must be in [0, 1), got {self.cap}")
         if not 0 <= self.front <= 1:
             raise InputError(f"front must be a share of the width in [0, 1], got {self.front}")
+        if not 0 <= self.lateral < 0.5:
+            raise InputError(f"lateral must be a share of the width in [0, 0.5), got {self.lateral}")
         return self
 
     def as_dict(self) -> dict:
@@ -235,7 +243,7 @@ def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return _TABLES
 
 
-def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray:
+def seed_regions(labels: np.ndarray, n_regions: int, share: float, lateral: float = 0.0) -> np.ndarray:
     """The self-supervised seeds: regions covering ``share`` of the bottom-centre cell and touching its lower half.
 
     The second condition is a ground-contact check: the road is the surface the robot
@@ -243,6 +251,21 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray
     a vehicle ahead stands *on* the road and ends above them (its lower edge is road).
     When no region passes both tests the largest region of the cell is the seed (and
     :func:`classify` reports the seed as not ground).
+
+    With ``lateral`` > 0, a seed other than the one covering most of the cell is dropped when its
+    centroid lies outside ``[lateral, 1 - lateral]`` of the width *and* it reaches above the cell
+    (its top row is above the cell's): the surface ahead of a forward camera is centred in the
+    frame, while a verge, pavement or field that runs beside the road reaches into the cell's
+    corner with most of its pixels to one side, up along the road.  Such a region's Gaussian
+    would make everything of its appearance road-like (issue 27: lateral over-fill).  A piece
+    of the road's own surface in the cell's corner (a patch of shade or of new asphalt near the
+    robot) lies within the cell's rows and stays a seed.
+
+    Examples
+    --------
+    >>> lab = np.zeros((112, 150), np.int32); lab[56:, 125:] = 1; lab[100:, 80:] = 1   # a verge beside the road
+    >>> seed_regions(lab, 2, 0.1).tolist(), seed_regions(lab, 2, 0.1, 0.25).tolist()
+    ([0, 1], [0])
     """
     cell = bottom_centre(roi(labels))
     counts = np.bincount(cell.ravel(), minlength=n_regions)
@@ -250,6 +273,20 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float) -> np.ndarray
     seeds = np.flatnonzero((counts >= share * cell.size) & (low > 0))
     if seeds.size == 0:
         seeds = np.array([int(np.argmax(counts))])
+    elif lateral > 0 and seeds.size > 1:
+        h, w = labels.shape
+        top = h - cell.shape[0]   # the cell ends at the frame's bottom
+        lo, hi = lateral * (w - 1), (1 - lateral) * (w - 1)
+        main = seeds[np.argmax(counts[seeds])]
+        keep = []
+        for s in seeds.tolist():
+            if s != main:
+                cols = np.count_nonzero(labels == s, axis=0)
+                centre = float(cols @ np.arange(w)) / max(int(cols.sum()), 1)
+                if not lo <= centre <= hi and (labels[:top] == s).any():
+                    continue   # off to one side and running up beside the road
+            keep.append(s)
+        seeds = np.array(keep, dtype=seeds.dtype)
     return seeds
 
 
@@ -281,7 +318,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     labels = seg.labels
     h, w = labels.shape
     k = seg.n_regions
-    seeds = seed_regions(labels, k, params.seed_share)
+    seeds = seed_regions(labels, k, params.seed_share, params.lateral)
     grounded = _grounded(labels, k, params.seed_share)
     slot = np.full(k, -1, np.int32)
     slot[seeds] = np.arange(seeds.size, dtype=np.int32)
