@@ -519,6 +519,9 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--ros-mode", choices=("auto", "peer", "client"), default="auto",
                    help="the bridges' --ros-mode (default auto: peer, as the router is on loopback; client: "
                         "every frame and mask through the router, as `scmr ros` was before --ros-mode)")
+    b.add_argument("--compressed", action="store_true",
+                   help="the cameras publish sensor_msgs/CompressedImage (JPEG 90 of the same scenes, the bytes "
+                        "`scmr robot` sends) and the bridges run --compressed")
     b.add_argument("--floor-router", action=argparse.BooleanOptionalAction, default=True,
                    help="also time the floor with both ends clients of the router (floor_router; default on)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")

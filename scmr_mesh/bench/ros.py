@@ -30,6 +30,10 @@ to it directly) that answers each with a mask-sized sample at once; e2e of that 
 with this process and the echo process both clients of the router, every sample through it (the
 transport of a bridge that is a client: ``--ros-mode client``, as ``scmr ros`` was).
 
+With ``compressed`` the cameras publish ``sensor_msgs/msg/CompressedImage`` (image_transport's
+``jpeg``: each scene as JPEG 90, the bytes ``scmr robot`` sends for it) on
+``/rI/camera/image_raw/compressed`` and the bridges run ``--compressed``.
+
 Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
 N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
 same rate, phases within one period) and their ``tor_ms`` (``robot_tor_ms``);
@@ -71,7 +75,7 @@ def _scene(h: int, w: int, seed: int):
 
 def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
         process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True, ros_mode: str = "auto",
-        floor_router: bool = True, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+        floor_router: bool = True, compressed: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     import zenoh
 
     from scmr_mesh.mesh.config import close_session, open_session
@@ -83,6 +87,10 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
     say = progress or (lambda m: None)
     process = process or STUB
     w, h = size
+    # with compressed, each camera publishes its scene as image_transport's `jpeg` (JPEG 90, encoded once:
+    # the camera's cost, not the bridge's), the bytes `scmr robot` sends for the same scene
+    image_topic = (lambda i: f"/r{i}/camera/image_raw/compressed") if compressed else (
+        lambda i: f"/r{i}/camera/image_raw")
     tmp = Path(tmp or tempfile.mkdtemp(prefix="scmr-bench-ros-"))
     cport, rport = _port(), _port()
     ros_ep = f"tcp/127.0.0.1:{rport}"
@@ -106,7 +114,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             procs[f"r{i}"] = spawn_peer(
                 ["ros", "--insecure", "--id", f"r{i}", "--connect", f"tcp/127.0.0.1:{cport}", "--ros-connect", ros_ep,
                  "--ros-mode", ros_mode,
-                 "--image-topic", f"/r{i}/camera/image_raw", "--mask-topic", f"/r{i}/drivable/mask", "--quiet",
+                 *(["--compressed"] if compressed else []), "--image-topic", image_topic(i), "--mask-topic", f"/r{i}/drivable/mask", "--quiet",
                  "--out", str(tmp / f"r{i}"), "--process", process, "--ready-file", str(tmp / f"r{i}.ready")],
                 log_path=tmp / f"r{i}.log")
         for i in range(robots):
@@ -118,7 +126,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             wall = time.time_ns()
             key = rw.parse_topic_key(str(sample.key_expr))
             hdr = rw.decode_image(sample.payload.to_bytes()).header
-            name = f"{key.topic.replace('/drivable/mask', '/camera/image_raw')}@{hdr.sec}.{hdr.nanosec:09d}"
+            name = f"{image_topic(int(key.topic.split('/')[1][1:]))}@{hdr.sec}.{hdr.nanosec:09d}"
             att = rw.decode_attachment(sample.attachment.to_bytes()) if sample.attachment is not None else None
             with lock:
                 got[name] = t
@@ -126,7 +134,8 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                     back[name] = (wall - att.timestamp_ns) / 1e6
 
         subs = [session.declare_subscriber(f"0/r{i}/drivable/mask/*/*", on_mask) for i in range(robots)]
-        pubs = [session.declare_publisher(rw.topic_key(0, f"/r{i}/camera/image_raw", rw.IMAGE),
+        pubs = [session.declare_publisher(rw.topic_key(0, image_topic(i), rw.COMPRESSED_IMAGE if compressed
+                                                       else rw.IMAGE),
                                           congestion_control=zenoh.CongestionControl.BLOCK) for i in range(robots)]
         for p in pubs:
             wait_for(lambda: p.matching_status.matching, timeout=30, what="a bridge's subscription")
@@ -135,6 +144,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         bridges_linked = sum(json.loads((tmp / f"r{i}.ready").read_text()).get("ros_zid") in linked
                              for i in range(robots))
         scenes = [_scene(h, w, i) for i in range(robots)]
+        frame = _frames(scenes, compressed)
         gid = bytes(16)
         period_ns = int(round(1e9 / rate_hz))
         frames = int(duration_s * rate_hz)
@@ -143,8 +153,8 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         due = sorted((t0 + k * period_ns + i * period_ns // robots, i, k) for k in range(frames)
                      for i in range(robots))
         for t_due, i, k in due:
-            topic = f"/r{i}/camera/image_raw"
-            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            topic = image_topic(i)
+            payload = frame(k, i)
             left = t_due - time.monotonic_ns()
             if left > 0:
                 time.sleep(left / 1e9)
@@ -167,7 +177,8 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         e2e = {n: (got[n] - sent[n]) / 1e6 for n in sent if n in got}
         paired = [n for n in e2e if n in tor]
         res = {
-            "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "rgb8", "process": process,
+            "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "jpeg" if compressed else "rgb8",
+            "frame_bytes": len(frame(0, 0)), "process": process,
             "ros_mode": ros_mode, "bridges_linked": bridges_linked,
             "frames_sent": len(sent), "masks_received": len(e2e), "paired": len(paired),
             "e2e_ms": _stats([e2e[n] for n in paired]), "tor_ms": _stats([tor[n] for n in paired]),
@@ -178,7 +189,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             "bridges": summaries,
         }
         say("the same frames to an echo node: the ROS-side transport alone")
-        floor, floor_lost = _transport_floor(session, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs,
+        floor, floor_lost = _transport_floor(session, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
                                              mode="peer")
         res["floor_ms"], res["floor_lost"] = _stats(floor), floor_lost  # echoes that never came back
         if floor_lost:
@@ -187,7 +198,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             say("the same with both ends clients of the router: every sample through it")
             client = open_session(ros_session_config([ros_ep], [], mode="client"))
             try:
-                floor, lost = _transport_floor(client, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs,
+                floor, lost = _transport_floor(client, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
                                                mode="client")
             finally:
                 close_session(client)
@@ -238,7 +249,19 @@ def echo_node(ros_ep: str, ready: str, mask_bytes: int, mode: str = "peer") -> N
     threading.Event().wait()  # until SIGTERM
 
 
-def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes: int,
+def _frames(scenes, compressed: bool) -> Callable[[int, int], bytes]:
+    """``frame(k, i)``: the CDR sample of robot i's frame k (stamp k+1 s + i ns): ``Image`` rgb8 or ``CompressedImage``."""
+    from scmr_mesh.ros import wire as rw
+
+    if not compressed:
+        return lambda k, i: rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+    import cv2
+
+    jpegs = [cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes() for rgb in scenes]
+    return lambda k, i: rw.encode_compressed(rw.CompressedImage(rw.Header(k + 1, i, "cam"), "jpeg", jpegs[i]))
+
+
+def _transport_floor(session, ros_ep: str, tmp: Path, frame, robots: int, due, *, mask_bytes: int,
                      procs: dict, mode: str) -> tuple[list[float], int]:
     """Round trips of the bench's frames to :func:`echo_node` (a ``mode`` session of the router) and back (ms),
     and how many never came back."""
@@ -247,7 +270,6 @@ def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes
     import zenoh
 
     from scmr_mesh.mesh.testing import stop_peer, wait_for
-    from scmr_mesh.ros import wire as rw
 
     ready = tmp / f"echo-{mode}.ready"
     with open(tmp / "echo.log", "ab") as logf:
@@ -268,13 +290,13 @@ def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes
     wait_for(ready.exists, timeout=60, what="the echo node")
     sub = session.declare_subscriber(f"{_ECHO_OUT}/*", on_echo)
     pubs = [session.declare_publisher(f"{_ECHO_IN}/{i}", congestion_control=zenoh.CongestionControl.BLOCK)
-            for i in range(len(scenes))]
+            for i in range(robots)]
     try:
         for p in pubs:
             wait_for(lambda: p.matching_status.matching, timeout=30, what="the echo node's subscription")
         shift = time.monotonic_ns() + 100_000_000 - due[0][0]
         for t_due, i, k in due:
-            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            payload = frame(k, i)
             left = t_due + shift - time.monotonic_ns()
             if left > 0:
                 time.sleep(left / 1e9)
@@ -324,7 +346,7 @@ def cmd_bench_ros(args: argparse.Namespace) -> int:
         raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
     res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size,
               process=args.process, robot_baseline=args.robot_baseline, ros_mode=args.ros_mode,
-              floor_router=args.floor_router, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
+              floor_router=args.floor_router, compressed=args.compressed, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
     text = json.dumps(res, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")
