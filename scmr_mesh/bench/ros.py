@@ -148,7 +148,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         gid = bytes(16)
         period_ns = int(round(1e9 / rate_hz))
         frames = int(duration_s * rate_hz)
-        say(f"{robots} robots x {frames} frames of {w}x{h} rgb8 at {rate_hz:g} Hz")
+        say(f"{robots} robots x {frames} frames of {w}x{h} {'jpeg' if compressed else 'rgb8'} at {rate_hz:g} Hz")
         t0 = time.monotonic_ns() + 100_000_000
         due = sorted((t0 + k * period_ns + i * period_ns // robots, i, k) for k in range(frames)
                      for i in range(robots))
