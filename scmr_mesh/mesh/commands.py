@@ -755,7 +755,8 @@ def _cmd_ros(args) -> int:
                                       "ros_zid": str(ros_session.info.zid()), "ros_mode": ros_mc.mode, "ros_node": node,
                                       "keys": []})
         if not args.quiet:
-            print(f"ros {args.id}: serving {args.image_topic} (domain {args.domain}) -> {args.mask_topic}",
+            print(f"ros {args.id}: serving {args.image_topic} (domain {args.domain}, joined as a {ros_mc.mode} of "
+                  f"{' '.join(ros_connect)}) -> {args.mask_topic}",
                   file=sys.stderr, flush=True)
         last = [0.0]
 
