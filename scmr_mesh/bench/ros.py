@@ -188,6 +188,10 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                                  if b and b.get("bridge_ms_median") is not None]),
             "bridges": summaries,
         }
+        if len(e2e) < len(sent):
+            published = sum(b["published"] for b in summaries.values() if b)
+            say(f"  {len(sent) - len(e2e)} of {len(sent)} frames got no mask here ({published} masks published by "
+                "the bridges; not in e2e_ms)")
         say("the same frames to an echo node: the ROS-side transport alone")
         floor, floor_lost = _transport_floor(session, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
                                              mode="peer")
