@@ -434,7 +434,6 @@ RMW_ZENOHD_KEYS: dict[str, Any] = {
     "scouting/gossip/autoconnect_strategy": {"router": {"to_router": "always", "to_peer": "always"}},
     "routing/router/peers_failover_brokering": False,
 }
-ROS_MODES = ("auto", "peer", "client")
 
 
 def cfg_items(keys: dict[str, Any]) -> list[str]:
@@ -468,8 +467,8 @@ def ros_session_config(connect: list[str], cfg: list[str], mode: str = "peer"):
 
     ``peer``: as an rmw_zenoh node (:data:`RMW_NODE_KEYS`, listening on :data:`RMW_NODE_LISTEN`):
     discovery through the router, data directly to and from the ROS nodes.  ``client``: every
-    sample through the router (rmw_zenohd forwards to and from clients; a peer it would not
-    serve, rmw_zenoh#929).  ``cfg`` (``--ros-cfg``) is applied after either.
+    sample through the router (a router forwards to and from its clients, never between two
+    peers: rmw_zenoh#929).  ``cfg`` (``--ros-cfg``) is applied after either.
     """
     from scmr_mesh.mesh.config import CLIENT_CONNECT_TIMEOUT_MS, MeshConfig
 
