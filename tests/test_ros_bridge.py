@@ -2,11 +2,13 @@
 
 The outside ROS 2 publisher here is written from the rmw_zenoh contract, not from
 scmr_mesh.ros.wire: keys, the 33-byte attachment and ``@ros2_lv`` tokens spelt out by hand,
-messages serialized and read back by rosbags.  It is a Zenoh *client* of the router, as
-rmw_zenoh nodes are.  It sends an ``Image`` to one bridge and a ``CompressedImage`` to the
+messages serialized and read back by rosbags.  It is a Zenoh *client* of the router (configured
+with rmw_zenohd's keys), as the ``ros2`` CLI or RViz on another host are: every sample through
+the router to the bridges, which are peers.  It sends an ``Image`` to one bridge and a ``CompressedImage`` to the
 other and gets ``mono8`` masks of the same size and stamp (and an ``rgb8`` overlay) with the
 attachment; a ``bgra16`` frame and a truncated one are counted and the bridge keeps serving.
 Then zenoh-ros2-sdk (tests/ros_sdk_client.py, offline) sends an Image and gets its mask, when installed.
+A camera node configured as rmw_zenoh nodes are (a peer) is linked to the bridge directly.
 """
 
 from __future__ import annotations
@@ -26,6 +28,25 @@ rosbags = pytest.importorskip("rosbags.typesys")
 zenoh = pytest.importorskip("zenoh")
 
 IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
+
+
+# rmw_zenoh's own configs (rolling, read 2026-11), spelt out here rather than taken from scmr_mesh.mesh.ros:
+# DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5 (rmw_zenohd) and DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5 (every node)
+_RMW_GOSSIP = {"scouting/multicast/enabled": "false", "scouting/gossip/enabled": "true",
+               "scouting/gossip/multihop": "false",
+               "scouting/gossip/target": '{router: ["router", "peer"], peer: ["router"]}',
+               "scouting/gossip/autoconnect": '{router: [], peer: ["router", "peer"]}'}
+_RMW_ZENOHD = {"mode": '"router"', **_RMW_GOSSIP, "routing/router/peers_failover_brokering": "false",
+               "scouting/gossip/autoconnect_strategy": '{router: {to_router: "always", to_peer: "always"}}'}
+_RMW_NODE = {"mode": '"peer"', "listen/endpoints": '["tcp/localhost:0"]', **_RMW_GOSSIP,
+             "scouting/gossip/autoconnect_strategy": '{peer: {to_router: "always", to_peer: "greater-zid"}}'}
+
+
+def _zconf(keys: dict, **endpoints) -> "zenoh.Config":
+    conf = zenoh.Config()
+    for k, v in {**keys, **{f"{k}/endpoints": json.dumps(v) for k, v in endpoints.items()}}.items():
+        conf.insert_json5(k, v)
+    return conf
 
 
 def _key(ts, topic: str, ros_type: str) -> str:
@@ -87,7 +108,8 @@ def test_ros_publisher_gets_mono8_masks_through_the_mesh(tmp_path):
     bridges = {"img": ("/camera/image_raw", "/drivable/mask", []),
                "cmp": ("/camera/compressed", "/drivable/cmask", ["--compressed"])}
     try:
-        procs["router"] = spawn_peer(["router", "--insecure", "--listen", ros_ep, "--ready-file",
+        rmw_zenohd = [a for k, v in _RMW_ZENOHD.items() if k != "mode" for a in ("--cfg", f"{k}:{v}")]
+        procs["router"] = spawn_peer(["router", "--insecure", "--listen", ros_ep, *rmw_zenohd, "--ready-file",
                                       str(tmp_path / "router.ready")], log_path=tmp_path / "router.log")
         procs["cloud"] = spawn_peer(["cloud", "--insecure", "--node", "cloud0", "--listen", f"tcp/127.0.0.1:{cport}",
                                      "--workers", "1", "--process", STUB, "--ready-file", str(tmp_path / "cloud.ready")],
@@ -277,3 +299,63 @@ def test_a_reduced_ros_frame_is_never_smaller_than_the_services_working_frame():
     for w, h in ((599, 449), (1199, 899)):
         r = reduced_for_service(np.zeros((h, w, 3), np.uint8))
         assert r.shape[1] >= 300 and r.shape[0] >= 225, (w, h, r.shape)
+
+
+@pytest.mark.timeout(90)
+def test_next_to_rmw_zenohd_frames_and_masks_go_node_to_node_and_survive_the_router(tmp_path):
+    """As rmw_zenoh nodes do, the bridge (default --ros-mode) uses rmw_zenohd for discovery only.
+
+    A router configured as rmw_zenohd is and a camera node configured as every rmw_zenoh node is
+    (both written from rmw_zenoh's default configs above); the bridge computes locally (stub).
+    Its ROS session must be linked to the camera node directly, and a frame sent after the
+    router is gone must still get its mask.  Fails on the old code: its bridge was a client of
+    the router, so the node had no link to it and the second frame had no path.
+    """
+    from pathlib import Path
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    ros_ep = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(_zconf(_RMW_ZENOHD, listen=[ros_ep]))
+    proc = None
+    try:
+        proc = spawn_peer(["ros", "--insecure", "--id", "rp", "--ros-connect", ros_ep, "--image-topic", "/cam/image_raw",
+                           "--mask-topic", "/cam/mask", "--out", str(tmp_path / "rp"), "--process", STUB,
+                           "--count", "2", "--wait-ms", "0", "--quiet", "--ready-file", str(tmp_path / "rp.ready")],
+                          log_path=tmp_path / "rp.log")
+        ready = Path(tmp_path / "rp.ready")
+        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60, what="the bridge")
+        assert proc.poll() is None, (tmp_path / "rp.log").read_text()[-2000:]
+        bridge_zid = json.loads(ready.read_text())["ros_zid"]
+        masks: list = []
+        with zenoh.open(_zconf(_RMW_NODE, connect=[ros_ep])) as node:
+            node.declare_subscriber("0/cam/mask/*/*", lambda s: masks.append(s.payload.to_bytes()))
+            pub = node.declare_publisher(_key(ts, "/cam/image_raw", IMAGE))
+            wait_for(lambda: pub.matching_status.matching, timeout=30, what="the bridge's subscription")
+            assert bridge_zid in {str(z) for z in node.info.peers_zid()}, "the bridge is not linked to the node"
+            pub.put(_image(ts, 1, _scene(48, 64)), attachment=_attachment(1))
+            wait_for(lambda: len(masks) >= 1, timeout=30, what="the first mask")
+            router.close()
+            router = None
+            wait_for(lambda: not list(node.info.routers_zid()), timeout=10, what="the node to see the router gone")
+            pub.put(_image(ts, 2, _scene(48, 64)), attachment=_attachment(2))
+            wait_for(lambda: len(masks) >= 2, timeout=30, what="the mask of a frame sent with no router")
+        m = ts.deserialize_cdr(masks[1], IMAGE)
+        assert (m.encoding, m.height, m.width, m.header.stamp.sec) == ("mono8", 48, 64, 2)
+        wait_for(lambda: proc.poll() is not None, timeout=30, what="the bridge to stop after --count 2")
+        assert proc.returncode == 0, (tmp_path / "rp.log").read_text()[-2000:]
+    finally:
+        if proc is not None:
+            stop_peer(proc)
+        if router is not None:
+            router.close()
+
+
+def test_ros_mode_auto_is_peer_next_to_the_router_and_client_from_another_host():
+    from scmr_mesh.mesh.ros import ros_mode_for
+
+    assert ros_mode_for("auto", ["tcp/localhost:7447"]) == "peer"
+    assert ros_mode_for("auto", ["tcp/127.0.0.1:7447", "tcp/[::1]:7447#iface=lo"]) == "peer"
+    assert ros_mode_for("auto", ["tcp/127.0.0.1:7447", "tcp/192.168.1.5:7447"]) == "client"
+    assert ros_mode_for("auto", ["tls/robot.local:7447"]) == "client"
+    assert ros_mode_for("client", ["tcp/localhost:7447"]) == "client"
+    assert ros_mode_for("peer", ["tcp/10.0.0.1:7447"]) == "peer"

@@ -504,13 +504,15 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
     """``scmr bench ros``."""
     b = bench.add_parser(
         "ros", help="ROS 2 bridge: ms `scmr ros` adds to a frame's time to result (paired per frame)",
-        description="Real processes on loopback: `scmr router` playing rmw_zenohd, a cloud, N `scmr ros` bridges; "
-                    "this process publishes sensor_msgs/Image rgb8 frames as a ROS node would and times each "
+        description="Real processes on loopback: `scmr router` playing rmw_zenohd (its gossip and routing keys), a "
+                    "cloud, N `scmr ros` bridges; this process, a peer configured as an rmw_zenoh node is, "
+                    "publishes sensor_msgs/Image rgb8 frames as a ROS node would and times each "
                     "frame from put to its mask (e2e), against the bridge's own record of the same frame (the "
                     "`scmr robot` request path: tor).  overhead = e2e - tor, median/p95/p99; ros_out (the mask's "
                     "hop back, which any rmw_zenoh node pays) and the bridges' own time outside their ToR "
-                    "(bridge_ms); floor: the same frames through the router to an echo node that answers at "
-                    "once (the ROS-side transport alone).  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
+                    "(bridge_ms); floor: the same frames to an echo node (a peer like the publisher) that "
+                    "answers at once (the ROS-side transport alone); floor_router: the same with both ends "
+                    "clients, through the router.  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
                     "the same cloud: robot_tor, and added_vs_robot = median e2e - median robot ToR, the "
                     "issue's target (docs/BENCHMARKS.md).")
     b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
@@ -526,5 +528,13 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
                         "the overhead is paired per frame, so the pipeline's own time cancels out)")
     b.add_argument("--robot-baseline", action=argparse.BooleanOptionalAction, default=True,
                    help="after the bridges, time the same frames from `scmr robot` processes (default on)")
+    b.add_argument("--ros-mode", choices=("auto", "peer", "client"), default="auto",
+                   help="the bridges' --ros-mode (default auto: peer, as the router is on loopback; client: "
+                        "every frame and mask through the router, as `scmr ros` was before --ros-mode)")
+    b.add_argument("--compressed", action="store_true",
+                   help="the cameras publish sensor_msgs/CompressedImage (JPEG 90 of the same scenes, the bytes "
+                        "`scmr robot` sends) and the bridges run --compressed")
+    b.add_argument("--floor-router", action=argparse.BooleanOptionalAction, default=True,
+                   help="also time the floor with both ends clients of the router (floor_router; default on)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")
     b.set_defaults(func=_handler("ros", "cmd_bench_ros"))

@@ -1,7 +1,10 @@
 """``scmr bench ros``: what the ROS 2 bridge adds to a frame's time to result (issue 26, target 5).
 
-Real processes on loopback: ``scmr router`` playing rmw_zenohd, one cloud, N ``scmr ros``
-bridges.  This process is the ROS side: a Zenoh client of the router that publishes
+Real processes on loopback: ``scmr router`` playing rmw_zenohd (its keys: gossip, no multicast,
+no peers failover brokering, :data:`scmr_mesh.mesh.ros.RMW_ZENOHD_KEYS`), one cloud, N ``scmr ros``
+bridges (``ros_mode``: their ``--ros-mode``).  This process is the ROS side: a Zenoh peer of the
+router configured as an rmw_zenoh node is (:data:`scmr_mesh.mesh.ros.RMW_NODE_KEYS`: discovery
+through the router, data directly to the nodes it links to) that publishes
 ``sensor_msgs/msg/Image`` rgb8 frames at ``rate`` Hz per robot (robots' phases spread over
 one period; frame k of robot i due at t0 + k x period + i x period / N, integer ns) and
 subscribes to the masks.  Per frame, paired in one run:
@@ -12,6 +15,8 @@ subscribes to the masks.  Per frame, paired in one run:
   sends (the frame reduced to the service's scale, :func:`scmr_mesh.mesh.ros.reduced_for_service`);
 * ``overhead_ms = e2e_ms - tor_ms``: what the bridge adds (CDR decode, RGB, reduction and JPEG,
   the mask back to the frame's size, CDR encode, both ROS-side Zenoh hops);
+* ``bridges_linked``: how many bridges this process is linked to directly (peer to peer) when
+  the frames start: all with ``--ros-mode peer``, none with ``client``;
 * ``ros_out_ms``: from the mask's put in the bridge (its attachment's timestamp) to its arrival
   here: the ROS-side hop back through the router, which any rmw_zenoh node pays;
 * ``bridges[*].bridge_ms_median``: the bridge's own time outside the robot's ToR (arrival to
@@ -19,9 +24,15 @@ subscribes to the masks.  Per frame, paired in one run:
   ``bridge_ms`` is their median/p95/p99 over the bridges.
 
 ``floor_ms``: the ROS-side transport alone, what any rmw_zenoh node that answers a frame
-pays: the same frames on the same schedule to an echo process (a client of the same router)
-that answers each with a mask-sized sample at once; e2e of that round trip (``floor_lost``: echoes that
-never came back, left out of it).
+pays: the same frames on the same schedule to an echo process (a peer like this one, so linked
+to it directly) that answers each with a mask-sized sample at once; e2e of that round trip
+(``floor_lost``: echoes that never came back, left out of it).  ``floor_router_ms``: the same
+with this process and the echo process both clients of the router, every sample through it (the
+transport of a bridge that is a client: ``--ros-mode client``, as ``scmr ros`` was).
+
+With ``compressed`` the cameras publish ``sensor_msgs/msg/CompressedImage`` (image_transport's
+``jpeg``: each scene as JPEG 90, the bytes ``scmr robot`` sends for it) on
+``/rI/camera/image_raw/compressed`` and the bridges run ``--compressed``.
 
 Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
 N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
@@ -63,12 +74,12 @@ def _scene(h: int, w: int, seed: int):
 
 
 def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
-        process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True,
-        progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+        process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True, ros_mode: str = "auto",
+        floor_router: bool = True, compressed: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     import zenoh
 
     from scmr_mesh.mesh.config import close_session, open_session
-    from scmr_mesh.mesh.ros import ros_session_config
+    from scmr_mesh.mesh.ros import RMW_ZENOHD_KEYS, cfg_items, ros_session_config
     from scmr_mesh.mesh.testing import STUB, read_records, spawn_peer, stop_peer, wait_for
     from scmr_mesh.bench.r2r import _port
     from scmr_mesh.ros import wire as rw
@@ -76,6 +87,10 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
     say = progress or (lambda m: None)
     process = process or STUB
     w, h = size
+    # with compressed, each camera publishes its scene as image_transport's `jpeg` (JPEG 90, encoded once:
+    # the camera's cost, not the bridge's), the bytes `scmr robot` sends for the same scene
+    image_topic = (lambda i: f"/r{i}/camera/image_raw/compressed") if compressed else (
+        lambda i: f"/r{i}/camera/image_raw")
     tmp = Path(tmp or tempfile.mkdtemp(prefix="scmr-bench-ros-"))
     cport, rport = _port(), _port()
     ros_ep = f"tcp/127.0.0.1:{rport}"
@@ -87,7 +102,8 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
     session = None
     try:
         say("starting the router, the cloud and the bridges")
-        procs["router"] = spawn_peer(["router", "--insecure", "--listen", ros_ep, "--ready-file",
+        rmw_zenohd = [a for item in cfg_items(RMW_ZENOHD_KEYS) for a in ("--cfg", item)]
+        procs["router"] = spawn_peer(["router", "--insecure", "--listen", ros_ep, *rmw_zenohd, "--ready-file",
                                       str(tmp / "router.ready")], log_path=tmp / "router.log")
         procs["cloud"] = spawn_peer(["cloud", "--insecure", "--node", "cloud0", "--listen", f"tcp/127.0.0.1:{cport}",
                                      "--process", process, "--ready-file", str(tmp / "cloud.ready")],
@@ -97,19 +113,20 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         for i in range(robots):
             procs[f"r{i}"] = spawn_peer(
                 ["ros", "--insecure", "--id", f"r{i}", "--connect", f"tcp/127.0.0.1:{cport}", "--ros-connect", ros_ep,
-                 "--image-topic", f"/r{i}/camera/image_raw", "--mask-topic", f"/r{i}/drivable/mask", "--quiet",
+                 "--ros-mode", ros_mode,
+                 *(["--compressed"] if compressed else []), "--image-topic", image_topic(i), "--mask-topic", f"/r{i}/drivable/mask", "--quiet",
                  "--out", str(tmp / f"r{i}"), "--process", process, "--ready-file", str(tmp / f"r{i}.ready")],
                 log_path=tmp / f"r{i}.log")
         for i in range(robots):
             wait_for((tmp / f"r{i}.ready").exists, timeout=120, what=f"bridge r{i}")
-        session = open_session(ros_session_config([ros_ep], []))
+        session = open_session(ros_session_config([ros_ep], [], mode="peer"))
 
         def on_mask(sample):
             t = time.perf_counter_ns()
             wall = time.time_ns()
             key = rw.parse_topic_key(str(sample.key_expr))
             hdr = rw.decode_image(sample.payload.to_bytes()).header
-            name = f"{key.topic.replace('/drivable/mask', '/camera/image_raw')}@{hdr.sec}.{hdr.nanosec:09d}"
+            name = f"{image_topic(int(key.topic.split('/')[1][1:]))}@{hdr.sec}.{hdr.nanosec:09d}"
             att = rw.decode_attachment(sample.attachment.to_bytes()) if sample.attachment is not None else None
             with lock:
                 got[name] = t
@@ -117,21 +134,27 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                     back[name] = (wall - att.timestamp_ns) / 1e6
 
         subs = [session.declare_subscriber(f"0/r{i}/drivable/mask/*/*", on_mask) for i in range(robots)]
-        pubs = [session.declare_publisher(rw.topic_key(0, f"/r{i}/camera/image_raw", rw.IMAGE),
+        pubs = [session.declare_publisher(rw.topic_key(0, image_topic(i), rw.COMPRESSED_IMAGE if compressed
+                                                       else rw.IMAGE),
                                           congestion_control=zenoh.CongestionControl.BLOCK) for i in range(robots)]
         for p in pubs:
             wait_for(lambda: p.matching_status.matching, timeout=30, what="a bridge's subscription")
+        # which bridges this node is linked to directly (a client bridge is reached through the router)
+        linked = {str(z) for z in session.info.peers_zid()}
+        bridges_linked = sum(json.loads((tmp / f"r{i}.ready").read_text()).get("ros_zid") in linked
+                             for i in range(robots))
         scenes = [_scene(h, w, i) for i in range(robots)]
+        frame = _frames(scenes, compressed)
         gid = bytes(16)
         period_ns = int(round(1e9 / rate_hz))
         frames = int(duration_s * rate_hz)
-        say(f"{robots} robots x {frames} frames of {w}x{h} rgb8 at {rate_hz:g} Hz")
+        say(f"{robots} robots x {frames} frames of {w}x{h} {'jpeg' if compressed else 'rgb8'} at {rate_hz:g} Hz")
         t0 = time.monotonic_ns() + 100_000_000
         due = sorted((t0 + k * period_ns + i * period_ns // robots, i, k) for k in range(frames)
                      for i in range(robots))
         for t_due, i, k in due:
-            topic = f"/r{i}/camera/image_raw"
-            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            topic = image_topic(i)
+            payload = frame(k, i)
             left = t_due - time.monotonic_ns()
             if left > 0:
                 time.sleep(left / 1e9)
@@ -154,7 +177,9 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         e2e = {n: (got[n] - sent[n]) / 1e6 for n in sent if n in got}
         paired = [n for n in e2e if n in tor]
         res = {
-            "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "rgb8", "process": process,
+            "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "jpeg" if compressed else "rgb8",
+            "frame_bytes": len(frame(0, 0)), "process": process,
+            "ros_mode": ros_mode, "bridges_linked": bridges_linked,
             "frames_sent": len(sent), "masks_received": len(e2e), "paired": len(paired),
             "e2e_ms": _stats([e2e[n] for n in paired]), "tor_ms": _stats([tor[n] for n in paired]),
             "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]),
@@ -163,11 +188,27 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                                  if b and b.get("bridge_ms_median") is not None]),
             "bridges": summaries,
         }
+        if len(e2e) < len(sent):
+            published = sum(b["published"] for b in summaries.values() if b)
+            say(f"  {len(sent) - len(e2e)} of {len(sent)} frames got no mask here ({published} masks published by "
+                "the bridges; not in e2e_ms)")
         say("the same frames to an echo node: the ROS-side transport alone")
-        floor, floor_lost = _transport_floor(session, ros_ep, tmp, scenes, due, mask_bytes=w * h, procs=procs)
+        floor, floor_lost = _transport_floor(session, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
+                                             mode="peer")
         res["floor_ms"], res["floor_lost"] = _stats(floor), floor_lost  # echoes that never came back
         if floor_lost:
             say(f"  {floor_lost} of {len(due)} frames sent to the echo node never came back (not in floor_ms)")
+        if floor_router:
+            say("the same with both ends clients of the router: every sample through it")
+            client = open_session(ros_session_config([ros_ep], [], mode="client"))
+            try:
+                floor, lost = _transport_floor(client, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
+                                               mode="client")
+            finally:
+                close_session(client)
+            res["floor_router_ms"], res["floor_router_lost"] = _stats(floor), lost
+            if lost:
+                say(f"  {lost} of {len(due)} frames sent through the router never came back (not in floor_router_ms)")
         if robot_baseline:
             say(f"the same frames from {robots} scmr robot processes")
             rtor = _robot_baseline(tmp, scenes, robots=robots, rate_hz=rate_hz, frames=frames, process=process,
@@ -187,7 +228,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
 _ECHO_IN, _ECHO_OUT = "scmr_bench/echo/in", "scmr_bench/echo/out"
 
 
-def echo_node(ros_ep: str, ready: str, mask_bytes: int) -> None:
+def echo_node(ros_ep: str, ready: str, mask_bytes: int, mode: str = "peer") -> None:
     """The floor's echo process: answer each frame on ``_ECHO_IN/<i>`` with ``mask_bytes`` on ``_ECHO_OUT/<i>``.
 
     The answer starts with the frame's first 16 bytes (its CDR header: the stamp), as a
@@ -196,7 +237,7 @@ def echo_node(ros_ep: str, ready: str, mask_bytes: int) -> None:
     from scmr_mesh.mesh.config import open_session
     from scmr_mesh.mesh.ros import ros_session_config
 
-    session = open_session(ros_session_config([ros_ep], []))
+    session = open_session(ros_session_config([ros_ep], [], mode=mode))
     pubs: dict[str, Any] = {}
     fill = bytes(mask_bytes)
 
@@ -212,22 +253,33 @@ def echo_node(ros_ep: str, ready: str, mask_bytes: int) -> None:
     threading.Event().wait()  # until SIGTERM
 
 
-def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes: int,
-                     procs: dict) -> tuple[list[float], int]:
-    """Round trips of the bench's frames through the router to :func:`echo_node` and back (ms), and how many
-    never came back."""
+def _frames(scenes, compressed: bool) -> Callable[[int, int], bytes]:
+    """``frame(k, i)``: the CDR sample of robot i's frame k (stamp k+1 s + i ns): ``Image`` rgb8 or ``CompressedImage``."""
+    from scmr_mesh.ros import wire as rw
+
+    if not compressed:
+        return lambda k, i: rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+    import cv2
+
+    jpegs = [cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes() for rgb in scenes]
+    return lambda k, i: rw.encode_compressed(rw.CompressedImage(rw.Header(k + 1, i, "cam"), "jpeg", jpegs[i]))
+
+
+def _transport_floor(session, ros_ep: str, tmp: Path, frame, robots: int, due, *, mask_bytes: int,
+                     procs: dict, mode: str) -> tuple[list[float], int]:
+    """Round trips of the bench's frames to :func:`echo_node` (a ``mode`` session of the router) and back (ms),
+    and how many never came back."""
     import subprocess
 
     import zenoh
 
     from scmr_mesh.mesh.testing import stop_peer, wait_for
-    from scmr_mesh.ros import wire as rw
 
-    ready = tmp / "echo.ready"
+    ready = tmp / f"echo-{mode}.ready"
     with open(tmp / "echo.log", "ab") as logf:
         procs["echo"] = subprocess.Popen(
             [sys.executable, "-c", f"from scmr_mesh.bench.ros import echo_node; echo_node({ros_ep!r}, "
-                                   f"{str(ready)!r}, {mask_bytes})"],
+                                   f"{str(ready)!r}, {mask_bytes}, {mode!r})"],
             stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
     lock = threading.Lock()
     sent: dict[tuple, int] = {}
@@ -242,13 +294,13 @@ def _transport_floor(session, ros_ep: str, tmp: Path, scenes, due, *, mask_bytes
     wait_for(ready.exists, timeout=60, what="the echo node")
     sub = session.declare_subscriber(f"{_ECHO_OUT}/*", on_echo)
     pubs = [session.declare_publisher(f"{_ECHO_IN}/{i}", congestion_control=zenoh.CongestionControl.BLOCK)
-            for i in range(len(scenes))]
+            for i in range(robots)]
     try:
         for p in pubs:
             wait_for(lambda: p.matching_status.matching, timeout=30, what="the echo node's subscription")
         shift = time.monotonic_ns() + 100_000_000 - due[0][0]
         for t_due, i, k in due:
-            payload = rw.encode_image(rw.rgb8(rw.Header(k + 1, i, "cam"), scenes[i]))
+            payload = frame(k, i)
             left = t_due + shift - time.monotonic_ns()
             if left > 0:
                 time.sleep(left / 1e9)
@@ -297,7 +349,8 @@ def cmd_bench_ros(args: argparse.Namespace) -> int:
     if args.robots < 1 or args.duration <= 0:
         raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
     res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size,
-              process=args.process, robot_baseline=args.robot_baseline, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
+              process=args.process, robot_baseline=args.robot_baseline, ros_mode=args.ros_mode,
+              floor_router=args.floor_router, compressed=args.compressed, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
     text = json.dumps(res, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")

@@ -104,8 +104,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "ros", help="run a robot whose camera is a ROS 2 topic on rmw_zenoh: masks go back as ROS images",
         formatter_class=fmt,
-        description="A ROS 2 robot gets drivable-region masks with no code (docs/ROS2.md).  As a client of "
-                    "the ROS side's Zenoh router (rmw_zenohd, --ros-connect) it subscribes to --image-topic "
+        description="A ROS 2 robot gets drivable-region masks with no code (docs/ROS2.md).  Joining the ROS "
+                    "graph through its Zenoh router (rmw_zenohd, --ros-connect) as an rmw_zenoh node does "
+                    "(--ros-mode) it subscribes to --image-topic "
                     "(sensor_msgs/msg/Image, or CompressedImage JPEG/PNG with --compressed), sends each frame "
                     "through the scmr tiers like `scmr robot` (cloud, leader, peers, local; same failover, "
                     "security, records and telemetry) and publishes the mask as sensor_msgs/msg/Image mono8 "
@@ -127,9 +128,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--mask-topic", default="/drivable/mask", metavar="TOPIC",
                    help="where masks go (mono8); the overlay goes to TOPIC/overlay (default /drivable/mask)")
     r.add_argument("--ros-connect", action="append", default=[], metavar="EP",
-                   help="endpoint of the ROS side's Zenoh router, joined as a client (default "
-                        "tcp/localhost:7447, where rmw_zenohd listens; waited for up to 30 s, then exit 1); "
-                        "repeat for several")
+                   help="endpoint of the ROS side's Zenoh router (default tcp/localhost:7447, where rmw_zenohd "
+                        "listens; waited for up to 30 s, then exit 1); repeat for several")
+    r.add_argument("--ros-mode", choices=("auto", "peer", "client"), default="auto",
+                   help="how the bridge joins the ROS graph: peer, as an rmw_zenoh node does (the router for "
+                        "discovery only, frames and masks directly to and from the ROS nodes, which accept "
+                        "links on loopback); client (every sample through the router: for a router on another "
+                        "host); auto (default): peer when every --ros-connect is on loopback, else client")
     r.add_argument("--ros-cfg", action="append", default=[], metavar="KEY:JSON5",
                    help="zenoh config override for the ROS session only, e.g. TLS to the ROS router")
     r.add_argument("--node-name", default=None, metavar="NAME",
@@ -697,7 +702,7 @@ def _cmd_ros(args) -> int:
     from scmr_mesh.mesh.config import close_session, open_session
     from scmr_mesh.mesh.peers import StopFlag, clear_ready, write_ready
     from scmr_mesh.mesh.robot import Robot
-    from scmr_mesh.mesh.ros import RosBridge, ros_node_name, ros_session_config
+    from scmr_mesh.mesh.ros import RosBridge, ros_mode_for, ros_node_name, ros_session_config
     from scmr_mesh.ros import wire as rw
 
     require_security(args, "ros")
@@ -715,7 +720,7 @@ def _cmd_ros(args) -> int:
         if not re.fullmatch(r"[a-z0-9]+/[^\s/]\S*", ep):
             raise InputError(f"--ros-connect {ep!r} is not a zenoh endpoint: give PROTO/ADDRESS such as "
                              "tcp/localhost:7447 (where rmw_zenohd listens)")
-    ros_mc = ros_session_config(ros_connect, args.ros_cfg)
+    ros_mc = ros_session_config(ros_connect, args.ros_cfg, mode=ros_mode_for(args.ros_mode, ros_connect))
     ros_mc.build()  # a bad --ros-connect / --ros-cfg is one line before anything starts
     _setup_logging(args)
     stop = StopFlag().install()
@@ -747,9 +752,11 @@ def _cmd_ros(args) -> int:
                            jpeg_quality=args.jpeg_quality, node_name=node, full_frames=args.full_frames)
         bridge.start()
         write_ready(args.ready_file, {"role": "ros", "node": args.id, "zid": str(session.info.zid()),
-                                      "ros_zid": str(ros_session.info.zid()), "ros_node": node, "keys": []})
+                                      "ros_zid": str(ros_session.info.zid()), "ros_mode": ros_mc.mode, "ros_node": node,
+                                      "keys": []})
         if not args.quiet:
-            print(f"ros {args.id}: serving {args.image_topic} (domain {args.domain}) -> {args.mask_topic}",
+            print(f"ros {args.id}: serving {args.image_topic} (domain {args.domain}, joined as a {ros_mc.mode} of "
+                  f"{' '.join(ros_connect)}) -> {args.mask_topic}",
                   file=sys.stderr, flush=True)
         last = [0.0]
 

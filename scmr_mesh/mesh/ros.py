@@ -1,7 +1,9 @@
 """``scmr ros``: a robot whose camera is a ROS 2 topic on rmw_zenoh (docs/ROS2.md).
 
-A :class:`RosBridge` holds a second Zenoh session, a *client* of the ROS side's router
-(``rmw_zenohd``, tcp/localhost:7447 by default), next to the robot's mesh session.  It
+A :class:`RosBridge` holds a second Zenoh session on the ROS side (``rmw_zenohd``,
+tcp/localhost:7447 by default), next to the robot's mesh session: a *peer* like an rmw_zenoh
+node when the router is on this host (discovery through the router, frames and masks directly
+to and from the ROS nodes), a *client* of the router otherwise (:func:`ros_mode_for`).  It
 subscribes to the image topic (``sensor_msgs/msg/Image`` or, with ``compressed``,
 ``CompressedImage``; any type hash, so Humble's ``TypeHashNotSupported`` matches), sends
 each frame through :meth:`Robot.request <scmr_mesh.mesh.robot.Robot.request>` (the same
@@ -407,8 +409,75 @@ class RosBridge:
         return self.stats
 
 
-def ros_session_config(connect: list[str], cfg: list[str]):
-    """The :class:`MeshConfig` of the ROS side: a client of the ROS router (rmw_zenoh#929: a peer gets no data)."""
-    from scmr_mesh.mesh.config import MeshConfig
+#: How an rmw_zenoh node joins the graph (rmw_zenoh's DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5, rolling,
+#: read 2026-11): a peer that connects to rmw_zenohd, listens on loopback, sends its gossip to the
+#: router only and dials the peers the router gossips back (the greater zid of a pair dials).  Data
+#: then goes node to node: rmw_zenohd forwards nothing between peers (docs/ROS2.md, docs/ZENOH.md 16).
+RMW_NODE_LISTEN = "tcp/localhost:0"
+RMW_NODE_KEYS: dict[str, Any] = {
+    "scouting/multicast/enabled": False,
+    "scouting/gossip/enabled": True,
+    "scouting/gossip/multihop": False,
+    "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
+    "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
+    "scouting/gossip/autoconnect_strategy": {"peer": {"to_router": "always", "to_peer": "greater-zid"}},
+}
+#: rmw_zenohd's own keys that decide what it does for peers (DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5):
+#: gossip to routers and peers, no multicast, and no failover brokering (rmw_zenoh#341: it never
+#: forwards data between two peers; zenoh >= 1.9 ignores the key and never does anyway).
+RMW_ZENOHD_KEYS: dict[str, Any] = {
+    "scouting/multicast/enabled": False,
+    "scouting/gossip/enabled": True,
+    "scouting/gossip/multihop": False,
+    "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
+    "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
+    "scouting/gossip/autoconnect_strategy": {"router": {"to_router": "always", "to_peer": "always"}},
+    "routing/router/peers_failover_brokering": False,
+}
 
-    return MeshConfig(mode="client", connect=list(connect), cfg=list(cfg))
+
+def cfg_items(keys: dict[str, Any]) -> list[str]:
+    """``keys`` as ``KEY:JSON`` items for ``--cfg`` / :class:`MeshConfig`'s ``cfg``."""
+    import json
+
+    return [f"{k}:{json.dumps(v)}" for k, v in keys.items()]
+
+
+def _loopback(endpoint: str) -> bool:
+    """Whether a zenoh endpoint ``PROTO/HOST:PORT[...]`` names this host's loopback."""
+    addr = endpoint.split("/", 1)[1].split("#", 1)[0].split("?", 1)[0]
+    host = addr.rsplit(":", 1)[0].strip("[]").lower()
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+def ros_mode_for(mode: str, connect: list[str]) -> str:
+    """The ROS session's mode: ``auto`` is ``peer`` when every router endpoint is loopback, else ``client``.
+
+    A peer gets data only over direct links to the ROS nodes, which rmw_zenoh nodes accept on
+    loopback only (``tcp/localhost:0``); from another host the bridge is a client of the router,
+    as rmw_zenoh's README has RViz on another host join.
+    """
+    if mode == "auto":
+        return "peer" if connect and all(_loopback(ep) for ep in connect) else "client"
+    return mode
+
+
+def ros_session_config(connect: list[str], cfg: list[str], mode: str = "peer"):
+    """The :class:`MeshConfig` of the ROS side.
+
+    ``peer``: as an rmw_zenoh node (:data:`RMW_NODE_KEYS`, listening on :data:`RMW_NODE_LISTEN`):
+    discovery through the router, data directly to and from the ROS nodes.  ``client``: every
+    sample through the router (a router forwards to and from its clients, never between two
+    peers: rmw_zenoh#929).  ``cfg`` (``--ros-cfg``) is applied after either.
+    """
+    from scmr_mesh.mesh.config import CLIENT_CONNECT_TIMEOUT_MS, MeshConfig
+
+    if mode == "peer":
+        # a router that never answers is an error after 30 s, as for a client (a peer would open
+        # without it and wait for ever: zenoh >= 1.9 retries peers' endpoints with no end)
+        own = {"listen/endpoints": [RMW_NODE_LISTEN], **RMW_NODE_KEYS,
+               "connect/timeout_ms": CLIENT_CONNECT_TIMEOUT_MS, "connect/exit_on_failure": True}
+        return MeshConfig(mode="peer", connect=list(connect), cfg=cfg_items(own) + list(cfg))
+    if mode == "client":
+        return MeshConfig(mode="client", connect=list(connect), cfg=list(cfg))
+    raise ValueError(f"ROS session mode must be peer or client, got {mode!r}")
