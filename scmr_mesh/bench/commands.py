@@ -514,7 +514,8 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
                     "answers at once (the ROS-side transport alone); floor_router: the same with both ends "
                     "clients, through the router.  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
                     "the same cloud: robot_tor, and added_vs_robot = median e2e - median robot ToR, the "
-                    "issue's target (docs/BENCHMARKS.md).")
+                    "issue's target (docs/BENCHMARKS.md).  Exit 1 when a mask or a floor echo never arrived "
+                    "(counted in the JSON and on the console).")
     b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
                    help="bridges, each with its own camera topic (default 4)")
     b.add_argument("--rate", type=ca.positive("frames per second", hi=1000, example="5"), default=5.0, metavar="HZ",

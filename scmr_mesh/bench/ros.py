@@ -355,4 +355,27 @@ def cmd_bench_ros(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(text + "\n")
     print(text)
+    lost = lost_in(res)
+    if lost:
+        print(f"bench ros: FAILED: {lost} (a loss is never a figure: see the lines above)", file=sys.stderr)
+        return 1
     return 0
+
+
+def lost_in(res: dict) -> str:
+    """What a bench ros result lost, in one line ('' when nothing): masks the bridges never delivered
+    and echoes of the floor's transport that never came back.
+
+    >>> lost_in({"frames_sent": 80, "masks_received": 78, "floor_lost": 0})
+    '2 of 80 masks never reached the camera node'
+    >>> lost_in({"frames_sent": 80, "masks_received": 80, "floor_lost": 1, "floor_router_lost": 0})
+    '1 floor echo(es) never came back'
+    """
+    parts = []
+    missing = int(res.get("frames_sent", 0)) - int(res.get("masks_received", 0))
+    if missing > 0:
+        parts.append(f"{missing} of {res['frames_sent']} masks never reached the camera node")
+    echoes = int(res.get("floor_lost") or 0) + int(res.get("floor_router_lost") or 0)
+    if echoes:
+        parts.append(f"{echoes} floor echo(es) never came back")
+    return "; ".join(parts)
