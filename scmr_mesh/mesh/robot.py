@@ -45,13 +45,14 @@ Output (``--out DIR``)
 * ``DIR/records.jsonl``: one JSON object per finished request, flushed per
   line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
   received_unix_ns, tor_ms, ok, tier ("cloud"|"leader"|"peer"|"local"|null),
-  served_by, attempts [{tier, node, outcome, t_unix_ns, hedge?}], error, server_ms,
+  served_by, attempts [{tier, node, outcome, t_unix_ns, hedge?, resend?}], error, server_ms,
   hedged, hedge_won, confidence, abstained`` (``confidence`` and ``abstained``: the road
   model's trust in the mask and why it shrank it, issue 27; null from servers that do not
   send them and in ``thesis`` mode).
   ``sent_unix_ns`` is when the first attempt was sent.  Attempt outcomes:
   ``ok``, ``timeout``, ``no_reply`` (server gone mid-request), ``unreachable``
-  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode, or a hedged copy answered first),
+  (no matching queryable), ``error:<code>``, ``superseded`` (redundant mode, or another copy of the request
+  answered first, or the copy was given up for its re-send),
   ``bad_reply``, ``mismatched`` (the node's reply did not echo this request's robot, seq and frame digest:
   a replayed or wrong answer, never used; the attempt's ``mismatched`` counts such replies, and the record's
   ``mismatched`` sums them).
@@ -116,20 +117,22 @@ class _Trip:
     winner: Reply | None = None
     hedged: bool = False     # a second copy went to another tier (at most one per request)
     hedge_won: bool = False  # and it answered first
-    resent: bool = False     # a silent copy was sent once more to the node it went to
     #: what a reply must echo to answer this request: robot, seq, frame digest (wire.asked_of)
     asked: dict = field(default_factory=dict)
 
 
 @dataclass
 class _Sent:
-    """One query sent on its tier's thread: its attempt record, its future, its cancellation token."""
+    """One query sent on its node's thread: its attempt record, its future, its cancellation token."""
 
     att: dict
     fut: Any
     token: Any
     #: the copy of ``att`` the tier's thread writes; read back when the query is given up on
     scratch: dict = field(default_factory=dict)
+    #: ``time.perf_counter()`` when the request was first sent to this node (a re-sent copy keeps its
+    #: first copy's): its answer time counts from there
+    t0: float = 0.0
 
     def cancel(self) -> None:
         try:
@@ -209,7 +212,7 @@ class Robot:
         self.annotators: list[Callable[[dict, Any], None]] = []
         self._queriers: dict[str, Any] = {}
         self._born: dict[str, float] = {}  # querier key -> when it was declared (monotonic s)
-        self._tier_threads: dict[str, Any] = {}  # tier -> its sender thread (_tier_send)
+        self._tier_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender thread (_start)
         self._session = None
         self._subs: list[Any] = []
         self._token = None
@@ -541,29 +544,32 @@ class Robot:
                     pass
         return winner
 
-    # ------------------------------------------- one sender thread per tier
-    def _tier_executor(self, tier: str):
+    # ------------------------------------------- one sender thread per node
+    def _tier_executor(self, tier: str, node: str):
         from concurrent.futures import ThreadPoolExecutor
 
-        ex = self._tier_threads.get(tier)
+        ex = self._tier_threads.get((tier, node))
         if ex is None:
-            ex = self._tier_threads[tier] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}")
+            ex = self._tier_threads[(tier, node)] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}-{node}")
         return ex
 
-    def _start(self, att: dict, q, payload: bytes, asked: dict) -> _Sent:
-        """Send one query on its tier's own thread (:meth:`_collect`); the outcome is read later.
+    def _start(self, att: dict, q, payload: bytes, asked: dict, t0: float | None = None) -> _Sent:
+        """Send one query on its node's own thread (:meth:`_collect`); the outcome is read later.
 
-        Cloud and leader queries never share a thread: a send held up by one
-        tier's dead link holds that tier's thread, and the request gives up on it
-        after the deadline and goes on to the next tier (issue 14, docs/ZENOH.md
-        section 8).  The attempt record is only written on the request thread.
+        Queries to two nodes never share a thread: a send held up by one node's
+        dead link holds that node's thread, and the request gives up on it after
+        the deadline and goes on to the next node or tier (issue 14, docs/ZENOH.md
+        section 8), and a hedge to a second node of the same tier (a second cloud
+        node) never waits behind the silent first.  The attempt record is only
+        written on the request thread.
         """
         import zenoh
 
         token = zenoh.CancellationToken()
         scratch = dict(att)
-        fut = self._tier_executor(att["tier"]).submit(self._collect, scratch, q, payload, token, asked)
-        return _Sent(att, fut, token, scratch)
+        t0 = time.perf_counter() if t0 is None else t0
+        fut = self._tier_executor(att["tier"], att["node"]).submit(self._collect, scratch, q, payload, token, asked, t0)
+        return _Sent(att, fut, token, scratch, t0)
 
     def _finish_sent(self, sent: _Sent, *, wait_s: float) -> Reply | None:
         """Wait up to ``wait_s`` for one sent query; write its outcome to its attempt; learn its answer time."""
@@ -591,10 +597,12 @@ class Robot:
         asked = _asked_of(payload) if asked is None else asked
         return self._finish_sent(self._start(att, q, payload, asked), wait_s=self.options.deadline_ms / 1e3 + 0.25)
 
-    def _collect(self, att: dict, q, payload: bytes, token, asked: dict) -> tuple[dict, Reply | None, float | None]:
+    def _collect(self, att: dict, q, payload: bytes, token, asked: dict,
+                 t0: float | None = None) -> tuple[dict, Reply | None, float | None]:
+        """Run one query on the tier's thread; its answer time counts from ``t0`` (default: now)."""
         winner = None
         answer_ms = None
-        t0 = time.perf_counter()
+        t0 = time.perf_counter() if t0 is None else t0
         try:
             kw = {} if token is None else {"cancellation_token": token}
             # ends at the querier timeout = deadline, or when the token is cancelled (a hedge won)
@@ -627,19 +635,20 @@ class Robot:
         return hedge_delay_ms(self._answer_times[str(tier)].values(), deadline_ms=opts.deadline_ms,
                               elapsed_ms=elapsed_ms)
 
-    def _hedge_target(self, plan: list, tier: str, tried: set) -> tuple[str, Any] | None:
-        """The next live tier's first node after ``tier`` in ``plan`` (not tried, not saturated, matching)."""
+    def _hedge_target(self, plan: list, tier: str, tried: set) -> tuple[tuple[str, str], Any] | None:
+        """Where a hedge of a request silent at ``tier`` goes: another live node of the same tier (a
+        second cloud node), else the first node of the next live tier in ``plan``; never a node tried,
+        saturated or without a matching queryable."""
         later = plan[plan.index(tier) + 1:] if tier in plan else []
         fresh = self.view.snapshot(local=False)
-        for t in later:
-            if t == Tier.LOCAL or t == tier:
-                continue
-            for node in fresh.nodes(t)[:1]:
-                if (t, node) in tried or fresh.saturated(node):
-                    continue  # a busy node is not hedged to: its admission stays in charge
-                q = self._querier(t, node)
-                if self._matching(t, node, q):
-                    return (t, node), q
+        options = [(tier, n) for n in fresh.nodes(tier)]
+        options += [(t, n) for t in later if t not in (Tier.LOCAL, tier) for n in fresh.nodes(t)[:1]]
+        for t, node in options:
+            if (t, node) in tried or fresh.saturated(node):
+                continue  # a busy node is not hedged to: its admission stays in charge
+            q = self._querier(t, node)
+            if self._matching(t, node, q):
+                return (t, node), q
         return None
 
     def _send_hedged(self, tier: str, node: str, payload: bytes, trip: _Trip, plan: list, seq: int,
@@ -648,15 +657,17 @@ class Robot:
 
         The primary's own outcome decides when it answers before the hedge delay
         (an error or ``busy`` answer goes on to the normal failover, never to a
-        hedge).  Past the delay the same request goes to the next live tier or,
-        with none, once more to the same node: a copy or its answer can be lost on
-        the way (a starved sender drops what it cannot queue; a link that misses
-        its lease under load takes its queries with it), and a node serves a
-        request once and answers every copy (:class:`scmr_mesh.mesh.server.RecentRequests`).
-        A hedge as silent as the primary was is sent once more to its node.  The
-        first good answer wins; the other copies are cancelled and their attempts
-        marked ``superseded``.  At most one hedge and one re-send per request, each
-        taking a token of the hedge budget.
+        hedge).  Past the delay the same request goes to another live node
+        (:meth:`_hedge_target`) or, with none, once more to the same node: a copy
+        or its answer can be lost on the way (a starved sender drops what it
+        cannot queue; a link that misses its lease under load takes its queries
+        with it), and a node serves a request once and answers every copy
+        (:class:`scmr_mesh.mesh.server.RecentRequests`).  A hedge as silent as the
+        primary was is sent once more to its node.  The first good answer wins;
+        the other copies are cancelled and their attempts marked ``superseded``
+        (a copy given up for its re-send is ``timeout`` when nothing answered).
+        At most one hedge and one re-send per request, each taking a token of the
+        hedge budget.
         """
         from concurrent.futures import FIRST_COMPLETED, wait
 
@@ -669,28 +680,27 @@ class Robot:
             return None
         trip.bytes_up += len(payload)
         primary = self._start(att, q, payload, trip.asked)
-        t_sent = time.monotonic()
-        limit = t_sent + self.options.deadline_ms / 1e3 + 0.25
+        limit = time.monotonic() + self.options.deadline_ms / 1e3 + 0.25
         delay = None if trip.hedged else self.hedge_delay_ms(tier, (time.perf_counter() - t_start) * 1e3)
-        done = True
-        if delay is not None:
-            done = bool(wait([primary.fut], timeout=delay / 1e3)[0])
-        if done or not self._hedge_budget.take():
+        target = None
+        if delay is not None and not wait([primary.fut], timeout=delay / 1e3)[0]:
+            target = self._hedge_target(plan, tier, trip.tried) or ((tier, node), q)  # (may wait for a matching)
+        if target is None or primary.fut.done() or not self._hedge_budget.take():
             w = self._finish_sent(primary, wait_s=limit - time.monotonic())
             if w is None and att["outcome"] == BUSY:
                 self.view.mark_busy(node)
             return w
-        target = self._hedge_target(plan, tier, trip.tried)
-        resend = target is None  # no other live tier: the same node once more
-        (htier, hnode), hq = target if target is not None else ((tier, node), q)
-        live = {}
+        (htier, hnode), hq = target
+        resend = (htier, hnode) == (tier, node)  # no other live node: the same one once more
+        live, resent_from = {}, []
         if resend:
             primary.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
+            resent_from.append(att)
         else:
             live[primary.fut] = primary
             trip.tried.add((htier, hnode))
         trip.hedged = True
-        hedge = self._copy(trip, payload, htier, hnode, hq, resend=resend)
+        hedge = self._copy(trip, payload, htier, hnode, hq, after=primary if resend else None)
         log.info("robot %s: %s/%s silent for %.0f ms on request %s: %s %s/%s", self.id, tier, node, delay, seq,
                  "sent again to" if resend else "hedged to", htier, hnode)
         live[hedge.fut] = hedge
@@ -716,32 +726,36 @@ class Robot:
                 elif w is not None:  # both copies answered at once: one answer is used, once
                     sent.att["outcome"] = Outcome.SUPERSEDED
             if (winner is None and resend_at is not None and time.monotonic() >= resend_at
-                    and hedge.fut in live):
+                    and hedge.fut in live and not hedge.fut.done()):
                 resend_at = None
                 if self._hedge_budget.take():
                     live.pop(hedge.fut)
                     hedge.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
-                    hedge = self._copy(trip, payload, htier, hnode, hq, resend=True)
+                    resent_from.append(hedge.att)
+                    hedge = self._copy(trip, payload, htier, hnode, hq, after=hedge)
                     log.info("robot %s: hedge to %s/%s silent for %.0f ms on request %s: sent again", self.id,
                              htier, hnode, delay, seq)
                     live[hedge.fut] = hedge
                     hatts.append(hedge.att)
         for sent in live.values():  # the losers (or all, past the deadline)
             sent.give_up(Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT)
+        if winner is None:
+            for a in resent_from:  # given up for a re-send that did not answer either
+                a["outcome"] = Outcome.TIMEOUT
         for a in (att, *hatts):
             if winner is None and a["outcome"] == BUSY:
                 self.view.mark_busy(a["node"])
         return winner
 
-    def _copy(self, trip: _Trip, payload: bytes, tier: str, node: str, q, *, resend: bool) -> _Sent:
-        """Send another copy of the request (a hedge, or ``resend``: once more to a node already asked)."""
+    def _copy(self, trip: _Trip, payload: bytes, tier: str, node: str, q, *, after: _Sent | None = None) -> _Sent:
+        """Send another copy of the request: a hedge, or (``after``: the copy it replaces) once more to
+        the same node, its answer time counted from the first copy's send."""
         att = {"tier": tier, "node": node, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(), "hedge": True}
-        if resend:
+        if after is not None:
             att["resend"] = True
-            trip.resent = True
         trip.attempts.append(att)
         trip.bytes_up += len(payload)
-        return self._start(att, q, payload, trip.asked)
+        return self._start(att, q, payload, trip.asked, t0=None if after is None else after.t0)
 
     def request(self, seq: int, frame: Frame) -> dict:
         """Process one frame through the mesh (or locally); return its record.

@@ -137,22 +137,34 @@ class RecentRequests:
     A hedged or re-sent request (docs/R2R.md) can reach one node twice; the
     pipeline runs once.  A later copy is answered with the first copy's answer:
     it waits for it while the first copy is being served (:meth:`admit` returns
-    ``"joined"``), or gets the kept reply at once (``"cached"``; the last good
-    replies are kept up to ``max_reply_bytes`` in all).  Only when that reply is
-    no longer kept (or the first copy failed) is it answered ``duplicate``.
+    ``"joined"``; at most :attr:`MAX_WAITERS` copies), or gets the kept reply at
+    once (``"cached"``; the last good replies are kept up to ``max_reply_bytes``
+    in all); a copy that waited for a first copy that failed gets that copy's
+    error.  Otherwise (the reply no longer kept, the first copy failed, too many
+    copies waiting) it is answered ``duplicate``.  The identity includes the tier
+    the request came on: a node that changed tier answers a copy on its new tier
+    afresh, never with a reply naming the old one.
     The robot's sending time is part of the identity, so a restarted robot's
     seq 0 is new.
 
     >>> r = RecentRequests(size=2)
-    >>> r.add(("r1", 1, 10)), r.add(("r1", 1, 10)), r.add(("r1", 2, 11)), r.add(("r1", 3, 12)), r.add(("r1", 1, 10))
-    (True, False, True, True, True)
-    >>> r.admit(("r1", 3, 12), "q2")   # the first copy is still being served: wait for its answer
-    ('joined', None)
+    >>> r.admit(("r1", 3, 12)), r.admit(("r1", 3, 12), "q2"), r.admit(("r1", 3, 12), "q3")
+    (('new', None), ('joined', None), ('joined', None))
+    >>> r.admit(("r1", 3, 12), "q4")  # more copies than MAX_WAITERS: not parked
+    ('duplicate', None)
     >>> r.complete(("r1", 3, 12), b"mask")  # the first copy's answer: to the copies that waited
-    ['q2']
-    >>> r.admit(("r1", 3, 12), "q3")
+    ['q2', 'q3']
+    >>> r.admit(("r1", 3, 12), "q5")
     ('cached', b'mask')
+    >>> for seq in (4, 5):
+    ...     _ = r.admit(("r1", seq, 12)), r.complete(("r1", seq, 12), None)
+    >>> r.admit(("r1", 3, 12))  # bounded: the oldest answered requests are forgotten
+    ('new', None)
     """
+
+    #: Copies of one request that may wait for its first copy's answer; a further copy is answered
+    #: ``duplicate`` at once (a robot sends at most three; a looping or hostile one cannot park more).
+    MAX_WAITERS = 2
 
     def __init__(self, size: int = 4096, max_reply_bytes: int = 8 << 20) -> None:
         from collections import OrderedDict
@@ -175,15 +187,13 @@ class RecentRequests:
             e = self._seen.get(ident)
             if e is None:
                 self._seen[ident] = _Seen()
-                while len(self._seen) > self.size:
-                    old, _ = self._seen.popitem(last=False)
-                    self._unkeep(old)
+                self._evict()
                 return "new", None
             self.duplicates += 1
             if e.reply is not None:
                 self.shared += 1
                 return "cached", e.reply
-            if not e.done and query is not None:
+            if not e.done and query is not None and len(e.waiters) < self.MAX_WAITERS:
                 self.shared += 1
                 e.waiters.append(query)
                 return "joined", None
@@ -200,6 +210,7 @@ class RecentRequests:
             if e is None:
                 return []
             waiters, e.waiters, e.done = e.waiters, [], True
+            self._unkeep(ident)  # (a reply kept already: replaced, never counted twice)
             if reply is not None and len(reply) <= self.max_reply_bytes:
                 e.reply = reply
                 self._kept[ident] = len(reply)
@@ -215,6 +226,17 @@ class RecentRequests:
             self._unkeep(ident)
             return e.waiters if e is not None else []
 
+    def _evict(self) -> None:
+        """Forget the oldest answered requests beyond ``size``.  One still being served stays (its
+        copies wait for it, and a copy of it must not run again): those are bounded by the
+        node's in-flight limit."""
+        while len(self._seen) > self.size:
+            old = next((k for k, e in self._seen.items() if e.done), None)
+            if old is None:
+                return
+            del self._seen[old]
+            self._unkeep(old)
+
     def _unkeep(self, ident: tuple) -> None:
         n = self._kept.pop(ident, None)
         if n is not None:
@@ -225,7 +247,8 @@ class RecentRequests:
 
 
 def _ident(req: dict) -> tuple:
-    return (req["robot"], req["seq"], req.get("sent_unix_ns"), req.get("digest"))
+    """A request's identity at a node: robot, seq, sending time, frame digest and the tier it came on."""
+    return (req["robot"], req["seq"], req.get("sent_unix_ns"), req.get("digest"), req.get("_tier"))
 
 
 @dataclass
@@ -450,7 +473,7 @@ class Service:
         self._stop = threading.Event()
         self._load_thread: threading.Thread | None = None
         self.replier = Replier()
-        #: requests taken in lately: a second copy of one is answered ``duplicate`` (hedged requests)
+        #: requests taken in lately: a later copy of one gets the first copy's answer (hedged and re-sent requests)
         self.recent = RecentRequests()
         self.pool = WorkerPool(workers, process=process, clock=clock)
         self.state.outstanding = self.pool.outstanding
@@ -576,7 +599,7 @@ class Service:
         if self.negotiator is not None:
             for e in self.negotiator.close():
                 query, req, _ = e.payload
-                self._reply_error(query, "unavailable", "service shutting down; send it to another tier", req)
+                self._fail_all(query, req, "unavailable", "service shutting down; send it to another tier")
         self.replier.close()
         self.pool.shutdown()
 
@@ -680,8 +703,13 @@ class Service:
             with self.state.lock:
                 self.state.inflight += 1
             t_sub = time.perf_counter()
-            fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"],
-                                      expires_mono=_expiry(req, t_arrival))
+            try:
+                fut = self.pool.submit(req["image"], encoding=req["encoding"], shape=req["shape"], mode=req["mode"],
+                                       expires_mono=_expiry(req, t_arrival))
+            except BaseException:
+                with self.state.lock:  # its slot back: a node whose pool failed to take frames must not stay busy
+                    self.state.inflight -= 1
+                raise
         except Exception as exc:  # never let a query go unanswered
             log.exception("query handling failed")
             if seen == "new":  # and none of the copies that joined it

@@ -305,20 +305,19 @@ class WorkerPool:
         """
         from concurrent.futures.process import BrokenProcessPool
 
-        with self._count_lock:  # counted before a worker can finish it
-            self._submitted += 1
         try:
-            try:
-                return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
-            except BrokenProcessPool:
-                self._respawn()
-                with self._count_lock:
-                    self._submitted += 1
-                return self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
-        except BaseException:
-            with self._count_lock:
-                self._submitted -= 1
-            raise
+            return self._submit_counted(image, encoding, shape, mode, expires_mono)
+        except BrokenProcessPool:
+            self._respawn()
+            return self._submit_counted(image, encoding, shape, mode, expires_mono)
+
+    def _submit_counted(self, image, encoding, shape, mode, expires_mono) -> Future:
+        # the pool and its count change together (see _respawn): a frame is counted for the pool
+        # it went to, never for a pool that replaced it meanwhile
+        with self._count_lock:
+            fut = self._executor.submit(_run, image, encoding, shape, mode, expires_mono)
+            self._submitted += 1
+            return fut
 
     def outstanding(self) -> int:
         """Frames submitted that no worker has finished yet (waiting or being worked on).
@@ -347,14 +346,14 @@ class WorkerPool:
             log.error("a worker process died; starting a new pool of %d (restart %d)", self.workers, self.restarts)
             # the old pool's frames fail: count afresh (the service's in-flight count still bounds admission)
             done = mp.get_context("spawn").Value("q", 0)
-            with self._count_lock:
+            with self._count_lock:  # the new pool and its count together (see _submit_counted)
                 self._submitted, self._done = 0, done
-            self._executor = ProcessPoolExecutor(
-                max_workers=self.workers,
-                mp_context=mp.get_context("spawn"),
-                initializer=_init_worker,
-                initargs=(self.process, os.getpid(), False, done),
-            )
+                self._executor = ProcessPoolExecutor(
+                    max_workers=self.workers,
+                    mp_context=mp.get_context("spawn"),
+                    initializer=_init_worker,
+                    initargs=(self.process, os.getpid(), False, done),
+                )
             try:
                 old.shutdown(wait=False, cancel_futures=True)
             except Exception as exc:  # pragma: no cover

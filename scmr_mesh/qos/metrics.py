@@ -51,11 +51,12 @@ Hedges (issue 24)
     A request is *hedged* when its record says ``"hedged": true`` (a second
     copy went to the next live tier because the first was silent past the hedge
     delay); ``hedge_won`` when that copy's answer was the one used.  The
-    *duplicate* of a hedged request is the copy whose answer was not used (the
-    hedge's when neither answered), counted on the tier it was sent to.  A hedge
-    as silent as the first copy is sent once more to its node (``"resend":
-    true`` on that attempt; the request is counted in ``resent``): that copy is
-    duplicate work too when its answer is not the one used.
+    *duplicate* of a hedged request is the work of a node whose answer was not
+    used (the hedge's node when none answered), counted on its tier.  A copy
+    sent once more to the same node (``"resend": true`` on that attempt, when
+    the hedge or, with no other live node, the first copy was silent; the
+    request is counted in ``resent``) is no extra work: a node serves a request
+    once and answers every copy.
 Mismatched replies (issue 25 item 8)
     Replies a robot refused because they did not echo the robot, seq and frame
     digest of the request they came for (a replayed or wrong answer), or were
@@ -317,7 +318,7 @@ def hedge_counts(records: Iterable[Record]) -> dict[str, Any]:
     ...     {"tier": "leader", "outcome": "superseded", "hedge": True},
     ...     {"tier": "leader", "outcome": "ok", "hedge": True, "resend": True}]}
     >>> hedge_counts([resent])["duplicates_by_tier"], hedge_counts([resent])["resent"]
-    ({'cloud': 1, 'leader': 1}, 1)
+    ({'cloud': 1}, 1)
     """
     n = hedged = won = resent = 0
     dup: dict[str, int] = {}
@@ -335,10 +336,11 @@ def hedge_counts(records: Iterable[Record]) -> dict[str, Any]:
         resent += any(a.get("resend") for a in copies)
         pair = ([atts[i - 1]] if i > 0 else []) + copies
         ok = [a for a in pair if a.get("outcome") == "ok"]
-        unused = [a for a in pair if a not in ok] if ok else copies
-        for a in unused:
-            t = str(a.get("tier"))
-            dup[t] = dup.get(t, 0) + 1
+        nodes = list(dict.fromkeys((str(a.get("tier")), a.get("node")) for a in pair))
+        used = (str(ok[0].get("tier")), ok[0].get("node")) if ok else nodes[0]
+        for t, _node in nodes:  # a node serves a request once, however many copies it got
+            if (t, _node) != used:
+                dup[t] = dup.get(t, 0) + 1
     return {"hedged": hedged, "hedge_won": won, "hedge_rate": (hedged / n) if n else None, "resent": resent,
             "duplicates_by_tier": dict(sorted(dup.items()))}
 
