@@ -104,6 +104,8 @@ class LiveView:
         self._clocks: dict[str, float] = {}
         self._cands: dict[str, Any] = {}  # node -> election.Candidacy
         self.changed = threading.Condition(self._lock)
+        #: serving nodes seen leaving so far (a robot re-sends a copy pending elsewhere: Robot._send_hedged)
+        self.departures = 0
         self._rr = itertools.count()
 
     def on_liveliness(self, sample) -> None:
@@ -122,6 +124,8 @@ class LiveView:
             if alive:
                 bucket.add(node)
             else:
+                if node in bucket and role in keys.TIERS:
+                    self.departures += 1
                 bucket.discard(node)
                 if role != "candidate":
                     self._loads.pop(node, None)

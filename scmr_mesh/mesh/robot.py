@@ -550,7 +550,8 @@ class Robot:
 
         ex = self._tier_threads.get((tier, node))
         if ex is None:
-            ex = self._tier_threads[(tier, node)] = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-{tier}-{node}")
+            ex = self._tier_threads[(tier, node)] = ThreadPoolExecutor(
+                self.SENDERS_PER_NODE, thread_name_prefix=f"scmr-{tier}-{node}")
         return ex
 
     def _start(self, att: dict, q, payload: bytes, asked: dict, t0: float | None = None) -> _Sent:
@@ -663,11 +664,15 @@ class Robot:
         cannot queue; a link that misses its lease under load takes its queries
         with it), and a node serves a request once and answers every copy
         (:class:`scmr_mesh.mesh.server.RecentRequests`).  A hedge as silent as the
-        primary was is sent once more to its node.  The first good answer wins;
-        the other copies are cancelled and their attempts marked ``superseded``
-        (a copy given up for its re-send is ``timeout`` when nothing answered).
-        At most one hedge and one re-send per request, each taking a token of the
-        hedge budget.
+        primary was is sent once more to its node.  A re-sent copy runs beside
+        the first (two sender threads per node), so whichever answer comes first
+        is used.  When a serving node is seen leaving while a copy waits (zenoh
+        re-routes as the link closes, and copies in flight then were lost), the
+        waiting copy is sent once more, at once.  The first good answer wins; the
+        other copies are cancelled and their attempts marked ``superseded``
+        (``timeout`` when nothing answered).  At most one hedge (a budget token)
+        and two re-sends per request: one when the copy stays silent (a token),
+        one when a node leaves (no token: a rare event).
         """
         from concurrent.futures import FIRST_COMPLETED, wait
 
@@ -692,14 +697,11 @@ class Robot:
             return w
         (htier, hnode), hq = target
         resend = (htier, hnode) == (tier, node)  # no other live node: the same one once more
-        live, resent_from = {}, []
-        if resend:
-            primary.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
-            resent_from.append(att)
-        else:
-            live[primary.fut] = primary
+        live = {primary.fut: primary}  # (a re-sent copy runs beside the first: either answer will do)
+        if not resend:
             trip.tried.add((htier, hnode))
         trip.hedged = True
+        departures = self.view.departures  # (before the send: a node leaving from now on counts)
         hedge = self._copy(trip, payload, htier, hnode, hq, after=primary if resend else None)
         log.info("robot %s: %s/%s silent for %.0f ms on request %s: %s %s/%s", self.id, tier, node, delay, seq,
                  "sent again to" if resend else "hedged to", htier, hnode)
@@ -708,6 +710,9 @@ class Robot:
         resend_at = None if resend else time.monotonic() + delay / 1e3
         if resend_at is not None and resend_at + self.RESEND_MIN_LEFT_S > limit:
             resend_at = None
+        # a serving node seen leaving while a copy is pending elsewhere: that copy once more (zenoh
+        # re-routes when a link closes; copies in flight then were lost, docs/ZENOH.md section 17)
+        after_departure = False
         winner = None
         hatts = [hedge.att]
         while live and winner is None:
@@ -716,6 +721,8 @@ class Robot:
             if left <= 0:
                 break
             wake = left if resend_at is None else min(left, max(0.0, resend_at - now))
+            if not after_departure:
+                wake = min(wake, self.DEPARTURE_POLL_S)
             done_futs, _ = wait(list(live), timeout=wake, return_when=FIRST_COMPLETED)
             for fut in done_futs:
                 sent = live.pop(fut)
@@ -729,27 +736,31 @@ class Robot:
                     and hedge.fut in live and not hedge.fut.done()):
                 resend_at = None
                 if self._hedge_budget.take():
-                    live.pop(hedge.fut)
-                    hedge.give_up(Outcome.SUPERSEDED)  # frees the tier's thread for the copy
-                    resent_from.append(hedge.att)
+                    departures = self.view.departures  # (before the send: a node leaving from now on counts)
                     hedge = self._copy(trip, payload, htier, hnode, hq, after=hedge)
                     log.info("robot %s: hedge to %s/%s silent for %.0f ms on request %s: sent again", self.id,
                              htier, hnode, delay, seq)
                     live[hedge.fut] = hedge
                     hatts.append(hedge.att)
+            if (winner is None and not after_departure and self.view.departures != departures
+                    and hedge.fut in live and not hedge.fut.done()
+                    and time.monotonic() + self.RESEND_MIN_LEFT_S < limit):
+                after_departure, resend_at = True, None  # (this copy replaces a timed re-send still due)
+                hedge = self._copy(trip, payload, htier, hnode, hq, after=hedge)
+                log.info("robot %s: a node left while request %s waited for %s/%s: sent again", self.id, seq,
+                         htier, hnode)
+                live[hedge.fut] = hedge
+                hatts.append(hedge.att)
         for sent in live.values():  # the losers (or all, past the deadline)
             sent.give_up(Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT)
-        if winner is None:
-            for a in resent_from:  # given up for a re-send that did not answer either
-                a["outcome"] = Outcome.TIMEOUT
         for a in (att, *hatts):
             if winner is None and a["outcome"] == BUSY:
                 self.view.mark_busy(a["node"])
         return winner
 
     def _copy(self, trip: _Trip, payload: bytes, tier: str, node: str, q, *, after: _Sent | None = None) -> _Sent:
-        """Send another copy of the request: a hedge, or (``after``: the copy it replaces) once more to
-        the same node, its answer time counted from the first copy's send."""
+        """Send another copy of the request: a hedge, or (``after``: the copy it repeats) once more to
+        the same node, beside that copy, its answer time counted from the first copy's send."""
         att = {"tier": tier, "node": node, "outcome": Outcome.PENDING, "t_unix_ns": time.time_ns(), "hedge": True}
         if after is not None:
             att["resend"] = True
@@ -921,6 +932,11 @@ class Robot:
     MATCH_WAIT_S = 0.05
     #: A silent hedge is sent again only with this much of the request's deadline left (s).
     RESEND_MIN_LEFT_S = 0.05
+    #: Sender threads per node: a copy sent once more runs beside the first, never behind it
+    #: (a request has at most three copies at one node: the first and two re-sends).
+    SENDERS_PER_NODE = 3
+    #: How often a request waiting for a copy checks whether a serving node left (s).
+    DEPARTURE_POLL_S = 0.01
 
     def _retry_fresh(self, attempt, tried: set, t_end: float, attempts: list) -> Reply | None:
         """Before local execution: try remote nodes that appeared since the plan was made.
