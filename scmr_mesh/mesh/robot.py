@@ -665,7 +665,7 @@ class Robot:
         with it), and a node serves a request once and answers every copy
         (:class:`scmr_mesh.mesh.server.RecentRequests`).  A hedge as silent as the
         primary was is sent once more to its node.  A re-sent copy runs beside
-        the first (two sender threads per node), so whichever answer comes first
+        the first (each node has :attr:`SENDERS_PER_NODE` sender threads), so whichever answer comes first
         is used.  When a serving node is seen leaving while a copy waits (zenoh
         re-routes as the link closes, and copies in flight then were lost), the
         waiting copy is sent once more, at once.  The first good answer wins; the
