@@ -26,7 +26,6 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any, Sequence
 
-from scmr_mesh.errors import MeshError
 
 #: Offered load of the ramp's steps, as fractions of the closed-loop capacity.
 RAMP = (0.5, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0, 1.1)
@@ -140,11 +139,10 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
     import zenoh
 
     from scmr_mesh import keys, wire
-    from scmr_mesh.bench.secure import bench_security
+    from scmr_mesh.bench.secure import bench_cloud
     from scmr_mesh.imaging.synthetic import SCENE_KINDS
-    from scmr_mesh.mesh.config import close_session, open_session
     from scmr_mesh.mesh.robot import frames_from_args
-    from scmr_mesh.mesh.testing import FIXED, spawn_peer, stop_peer, wait_for
+    from scmr_mesh.mesh.testing import FIXED, wait_for
     from scmr_mesh.qos.schedule import due_ns
     from scmr_mesh.scenario.loopback import free_ports
 
@@ -152,134 +150,119 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     port = free_ports(["ing"])["ing"]
-    ready = run_dir / "cloud.ready"
     frames = []
     for i, kind in enumerate(SCENE_KINDS):
         it = frames_from_args(None, kind, seed=i)
         frames += [next(it) for _ in range(2)]
-    sec = bench_security(run_dir, "ing0=cloud,ing=robot", insecure=insecure)
-    proc = spawn_peer(["cloud", *sec.args, "--node", "ing0", "--listen", f"tcp/127.0.0.1:{port}",
-                       "--workers", str(workers), "--process", process or FIXED, "--ods", str(run_dir / "ods.sqlite"),
-                       "--ready-file", str(ready), *extra_args],
-                      log_path=run_dir / "cloud.log", env={"SCMR_STUB_DELAY_MS": str(delay_ms)})
     seq = iter(range(1, 1 << 62))
     lock = threading.Lock()
-    try:
-        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=120, what="ingress cloud ready")
-        if proc.poll() is not None:
-            raise MeshError(f"the ingress run's cloud exited; see {run_dir / 'cloud.log'}")
-        session = open_session(sec.mesh("ing", connect=[f"tcp/127.0.0.1:{port}"]))
-        try:
-            q = session.declare_querier(keys.drivable_request("cloud", "ing0", "ing"), timeout=10.0)
-            wait_for(lambda: q.matching_status.matching, timeout=10, what="the ingress cloud's queryable")
+    with bench_cloud(run_dir, "ing0", "ing", port=port, insecure=insecure, what="ingress",
+                     args=["--workers", str(workers), "--process", process or FIXED, *extra_args],
+                     env={"SCMR_STUB_DELAY_MS": str(delay_ms)}) as (proc, session, q):
 
-            def payload() -> bytes:
+        def payload() -> bytes:
+            with lock:
+                n = next(seq)
+            f = frames[n % len(frames)]
+            return wire.encode(wire.make_request("ing", n, f.data, encoding=f.encoding, shape=f.shape))
+
+        def outcome(r) -> str:
+            if r.ok is not None:
+                return "ok"
+            code = _fields(r.err).get("code")
+            return "busy" if code == "busy" else str(code)
+
+        # 1. closed loop
+        conc = 2 * workers
+        state = {"stop": False, "measure": False}
+        closed = defaultdict(int)
+
+        def sender() -> None:
+            while not state["stop"]:
+                out, retry_ms = "none", None
+                for r in q.get(payload=payload()):
+                    out = outcome(r)
+                    if out == "busy":
+                        retry_ms = _fields(r.err).get("retry_after_ms")
+                if state["measure"]:
+                    with lock:
+                        closed[out] += 1
+                if retry_ms:  # as a robot would: elsewhere now, back here when the queue has drained
+                    time.sleep(min(1.0, float(retry_ms) / 1e3))
+
+        threads = [threading.Thread(target=sender, daemon=True) for _ in range(conc)]
+        for t in threads:
+            t.start()
+        time.sleep(1.0)
+        c0, t0 = thread_cpu(proc.pid), time.monotonic()
+        state["measure"] = True
+        time.sleep(step_s * 2)
+        state["measure"] = False
+        c1, t1 = thread_cpu(proc.pid), time.monotonic()
+        state["stop"] = True
+        for t in threads:
+            t.join(timeout=15)
+        capacity = closed["ok"] / (t1 - t0)
+        closed_cpu = cpu_delta(c0, c1)
+        ideal = f"{workers} workers x {delay_ms:g} ms, ideal {workers * 1e3 / delay_ms:.0f}" if not process else \
+            f"{workers} workers running {process}"
+        say(f"ingress: closed loop {capacity:.1f} frames/s ({ideal}, {conc} senders); {dict(closed)}")
+
+        # 2. open-loop ramp
+        steps = []
+        for frac in ramp:
+            rate = frac * capacity
+            counts: dict[str, int] = defaultdict(int)
+            pending = [0]
+
+            times: dict[str, list[float]] = {"server_ms": [], "queue_ms": []}
+
+            def done(r, counts=counts, times=times) -> None:
+                o = outcome(r)
+                if o == "ok":  # the cloud's own time: arrival to reply, and of it the wait before a worker
+                    rep = _fields(r.ok)
                 with lock:
-                    n = next(seq)
-                f = frames[n % len(frames)]
-                return wire.encode(wire.make_request("ing", n, f.data, encoding=f.encoding, shape=f.shape))
+                    counts[o] += 1
+                    if o == "ok":
+                        times["server_ms"].append(float(rep["server_ms"]))
+                        times["queue_ms"].append(float(rep.get("queue_ms") or 0.0))
 
-            def outcome(r) -> str:
-                if r.ok is not None:
-                    return "ok"
-                code = _fields(r.err).get("code")
-                return "busy" if code == "busy" else str(code)
+            def finished(counts=counts) -> None:
+                with lock:
+                    pending[0] -= 1
 
-            # 1. closed loop
-            conc = 2 * workers
-            state = {"stop": False, "measure": False}
-            closed = defaultdict(int)
-
-            def sender() -> None:
-                while not state["stop"]:
-                    out, retry_ms = "none", None
-                    for r in q.get(payload=payload()):
-                        out = outcome(r)
-                        if out == "busy":
-                            retry_ms = _fields(r.err).get("retry_after_ms")
-                    if state["measure"]:
-                        with lock:
-                            closed[out] += 1
-                    if retry_ms:  # as a robot would: elsewhere now, back here when the queue has drained
-                        time.sleep(min(1.0, float(retry_ms) / 1e3))
-
-            threads = [threading.Thread(target=sender, daemon=True) for _ in range(conc)]
-            for t in threads:
-                t.start()
-            time.sleep(1.0)
-            c0, t0 = thread_cpu(proc.pid), time.monotonic()
-            state["measure"] = True
-            time.sleep(step_s * 2)
-            state["measure"] = False
-            c1, t1 = thread_cpu(proc.pid), time.monotonic()
-            state["stop"] = True
-            for t in threads:
-                t.join(timeout=15)
-            capacity = closed["ok"] / (t1 - t0)
-            closed_cpu = cpu_delta(c0, c1)
-            ideal = f"{workers} workers x {delay_ms:g} ms, ideal {workers * 1e3 / delay_ms:.0f}" if not process else \
-                f"{workers} workers running {process}"
-            say(f"ingress: closed loop {capacity:.1f} frames/s ({ideal}, {conc} senders); {dict(closed)}")
-
-            # 2. open-loop ramp
-            steps = []
-            for frac in ramp:
-                rate = frac * capacity
-                counts: dict[str, int] = defaultdict(int)
-                pending = [0]
-
-                times: dict[str, list[float]] = {"server_ms": [], "queue_ms": []}
-
-                def done(r, counts=counts, times=times) -> None:
-                    o = outcome(r)
-                    if o == "ok":  # the cloud's own time: arrival to reply, and of it the wait before a worker
-                        rep = _fields(r.ok)
-                    with lock:
-                        counts[o] += 1
-                        if o == "ok":
-                            times["server_ms"].append(float(rep["server_ms"]))
-                            times["queue_ms"].append(float(rep.get("queue_ms") or 0.0))
-
-                def finished(counts=counts) -> None:
-                    with lock:
-                        pending[0] -= 1
-
-                n = max(1, int(rate * step_s))
-                # made before the step: the client's one interpreter then only sends on time (a late
-                # client sends a burst, which the node rightly answers busy)
-                payloads = [payload() for _ in range(n)]
-                c0, s0 = thread_cpu(proc.pid), time.monotonic_ns()
-                late_ns = 0
-                for k in range(n):  # request k due at s0 + k / rate, from integers (no float drift)
-                    wait_ns = due_ns(s0, k, rate) - time.monotonic_ns()
-                    if wait_ns > 0:
-                        time.sleep(wait_ns / 1e9)
-                    else:
-                        late_ns = max(late_ns, -wait_ns)
-                    with lock:
-                        pending[0] += 1
-                    session.get(keys.drivable_request("cloud", "ing0", "ing"), payload=payloads[k], timeout=10.0,
-                                handler=zenoh.handlers.Callback(done, finished))
-                sent_s = (time.monotonic_ns() - s0) / 1e9
-                wait_for(lambda: pending[0] <= 0, timeout=30, what="the ramp step's replies")
-                c1 = thread_cpu(proc.pid)
-                cpu = cpu_delta(c0, c1)
-                ok, busy = counts.get("ok", 0), counts.get("busy", 0)
-                step = {"fraction": frac, "offered_fps": round(n / sent_s, 1), "requests": n,
-                        "served_fps": round(ok / sent_s, 1), "ok": ok, "busy": busy,
-                        "other": {k: v for k, v in counts.items() if k not in ("ok", "busy")},
-                        "sender_late_max_ms": round(late_ns / 1e6, 1), "cpu_s": cpu,
-                        **{k: _pcts(v) for k, v in times.items()},
-                        "cpu_ms_per_request": {k: round(v * 1e3 / n, 3) for k, v in cpu.items()},
-                        "loadavg_1min": round(os.getloadavg()[0], 2)}
-                steps.append(step)
-                say(f"  offered {step['offered_fps']} frames/s ({frac:g}): served {step['served_fps']}, busy {busy}, "
-                    f"server ms p50 {step['server_ms']['p50']} (queue {step['queue_ms']['p50']}); "
-                    f"cloud CPU ms/request {step['cpu_ms_per_request']}")
-        finally:
-            close_session(session)
-    finally:
-        stop_peer(proc)
+            n = max(1, int(rate * step_s))
+            # made before the step: the client's one interpreter then only sends on time (a late
+            # client sends a burst, which the node rightly answers busy)
+            payloads = [payload() for _ in range(n)]
+            c0, s0 = thread_cpu(proc.pid), time.monotonic_ns()
+            late_ns = 0
+            for k in range(n):  # request k due at s0 + k / rate, from integers (no float drift)
+                wait_ns = due_ns(s0, k, rate) - time.monotonic_ns()
+                if wait_ns > 0:
+                    time.sleep(wait_ns / 1e9)
+                else:
+                    late_ns = max(late_ns, -wait_ns)
+                with lock:
+                    pending[0] += 1
+                session.get(keys.drivable_request("cloud", "ing0", "ing"), payload=payloads[k], timeout=10.0,
+                            handler=zenoh.handlers.Callback(done, finished))
+            sent_s = (time.monotonic_ns() - s0) / 1e9
+            wait_for(lambda: pending[0] <= 0, timeout=30, what="the ramp step's replies")
+            c1 = thread_cpu(proc.pid)
+            cpu = cpu_delta(c0, c1)
+            ok, busy = counts.get("ok", 0), counts.get("busy", 0)
+            step = {"fraction": frac, "offered_fps": round(n / sent_s, 1), "requests": n,
+                    "served_fps": round(ok / sent_s, 1), "ok": ok, "busy": busy,
+                    "other": {k: v for k, v in counts.items() if k not in ("ok", "busy")},
+                    "sender_late_max_ms": round(late_ns / 1e6, 1), "cpu_s": cpu,
+                    **{k: _pcts(v) for k, v in times.items()},
+                    "cpu_ms_per_request": {k: round(v * 1e3 / n, 3) for k, v in cpu.items()},
+                    "loadavg_1min": round(os.getloadavg()[0], 2)}
+            steps.append(step)
+            say(f"  offered {step['offered_fps']} frames/s ({frac:g}): served {step['served_fps']}, busy {busy}, "
+                f"server ms p50 {step['server_ms']['p50']} (queue {step['queue_ms']['p50']}); "
+                f"cloud CPU ms/request {step['cpu_ms_per_request']}")
     return {"workers": workers, "delay_ms": delay_ms if not process else None, "process": process or FIXED, "step_s": step_s, "senders": conc,
             "closed_loop": {"frames_per_s": round(capacity, 1), "outcomes": dict(closed), "cpu_s": closed_cpu,
                             "cpu_ms_per_request": {k: round(v * 1e3 / max(1, closed["ok"]), 3)

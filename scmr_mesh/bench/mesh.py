@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from scmr_mesh.bench.overload import run_overload
-from scmr_mesh.errors import InputError, MeshError
+from scmr_mesh.errors import InputError
 from scmr_mesh.fleet.commands import _config_from_args
 from scmr_mesh.fleet.output import _ms, run_with_output
 from scmr_mesh.fleet.plan import parse_outage
@@ -212,80 +212,63 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
     """
     import zenoh  # noqa: F401  (bench layer: the client side)
 
-    from scmr_mesh import keys, wire
+    from scmr_mesh import wire
     from scmr_mesh.scenario.loopback import free_ports as _free_ports
     from scmr_mesh.imaging.synthetic import SCENE_KINDS
-    from scmr_mesh.mesh.config import close_session, open_session
     from scmr_mesh.mesh.robot import frames_from_args
-    from scmr_mesh.mesh.testing import spawn_peer, stop_peer, wait_for
     from scmr_mesh.qos import metrics
 
     workers = int(workers or os.cpu_count() or 1)
     concurrency = int(concurrency or 2 * workers)
     run_dir.mkdir(parents=True, exist_ok=True)
     port = _free_ports(["cap"])["cap"]
-    ready = run_dir / "cloud.ready"
     frames = []
     for i, kind in enumerate(SCENE_KINDS):
         it = frames_from_args(None, kind, seed=i)
         frames += [next(it) for _ in range(4)]
-    from scmr_mesh.bench.secure import bench_security
+    from scmr_mesh.bench.secure import bench_cloud
 
-    sec = bench_security(run_dir, "cap0=cloud,cap=robot", insecure=insecure)
-    proc = spawn_peer(["cloud", *sec.args, "--node", "cap0", "--listen", f"tcp/127.0.0.1:{port}", "--workers", str(workers),
-                       "--ods", str(run_dir / "ods.sqlite"), "--ready-file", str(ready)],
-                      log_path=run_dir / "cloud.log")
     counts = {"ok": 0, "busy": 0, "other": 0}
     server_ms: list[float] = []
     lock = threading.Lock()
-    try:
-        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=120, what="capacity cloud ready")
-        if proc.poll() is not None:
-            raise MeshError(f"the capacity run's cloud exited; see {run_dir / 'cloud.log'}")
-        session = open_session(sec.mesh("cap", connect=[f"tcp/127.0.0.1:{port}"]))
-        try:
-            q = session.declare_querier(keys.drivable_request("cloud", "cap0", "cap"), timeout=10.0)
-            wait_for(lambda: q.matching_status.matching, timeout=10, what="the capacity cloud's queryable")
-            state = {"measure": False, "stop": False}
+    with bench_cloud(run_dir, "cap0", "cap", port=port, insecure=insecure, what="capacity",
+                     args=["--workers", str(workers)]) as (proc, _session, q):
+        state = {"measure": False, "stop": False}
 
-            def sender(k: int) -> None:
-                n = k
-                while not state["stop"]:
-                    f = frames[n % len(frames)]
-                    n += concurrency
-                    req = wire.make_request("cap", n, f.data, encoding=f.encoding, shape=f.shape)
-                    outcome, sms = "other", None
-                    for r in q.get(payload=wire.encode(req)):
-                        if r.ok is not None:
-                            outcome = "ok"
-                            sms = wire.decode(r.ok.payload.to_bytes(), kind="reply")["server_ms"]
-                        else:
-                            err = wire.decode(r.err.payload.to_bytes(), kind="error")
-                            outcome = "busy" if err["code"] == "busy" else "other"
-                    if state["measure"]:
-                        with lock:
-                            counts[outcome] += 1
-                            if sms is not None:
-                                server_ms.append(sms)
+        def sender(k: int) -> None:
+            n = k
+            while not state["stop"]:
+                f = frames[n % len(frames)]
+                n += concurrency
+                req = wire.make_request("cap", n, f.data, encoding=f.encoding, shape=f.shape)
+                outcome, sms = "other", None
+                for r in q.get(payload=wire.encode(req)):
+                    if r.ok is not None:
+                        outcome = "ok"
+                        sms = wire.decode(r.ok.payload.to_bytes(), kind="reply")["server_ms"]
+                    else:
+                        err = wire.decode(r.err.payload.to_bytes(), kind="error")
+                        outcome = "busy" if err["code"] == "busy" else "other"
+                if state["measure"]:
+                    with lock:
+                        counts[outcome] += 1
+                        if sms is not None:
+                            server_ms.append(sms)
 
-            threads = [threading.Thread(target=sender, args=(k,), daemon=True) for k in range(concurrency)]
-            for t in threads:
-                t.start()
-            time.sleep(min(2.0, seconds / 4))  # warm: every worker busy, averages settled
-            cpu0, t0 = _tree_cpu_s(proc.pid), time.monotonic()
-            state["measure"] = True
-            if progress:
-                progress(f"capacity: {concurrency} senders, {workers} workers, {seconds:g} s ...")
-            time.sleep(seconds)
-            state["measure"] = False
-            cpu1, t1 = _tree_cpu_s(proc.pid), time.monotonic()
-            state["stop"] = True
-            for t in threads:
-                t.join(timeout=15)
-        finally:
-            close_session(session)
-    finally:
-        stop_peer(proc)
+        threads = [threading.Thread(target=sender, args=(k,), daemon=True) for k in range(concurrency)]
+        for t in threads:
+            t.start()
+        time.sleep(min(2.0, seconds / 4))  # warm: every worker busy, averages settled
+        cpu0, t0 = _tree_cpu_s(proc.pid), time.monotonic()
+        state["measure"] = True
+        if progress:
+            progress(f"capacity: {concurrency} senders, {workers} workers, {seconds:g} s ...")
+        time.sleep(seconds)
+        state["measure"] = False
+        cpu1, t1 = _tree_cpu_s(proc.pid), time.monotonic()
+        state["stop"] = True
+        for t in threads:
+            t.join(timeout=15)
     wall, cpu = t1 - t0, cpu1 - cpu0
     return {
         "workers": workers, "cores": os.cpu_count(), "concurrency": concurrency, "seconds": round(wall, 2),

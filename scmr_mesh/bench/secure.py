@@ -4,10 +4,13 @@
 peer's command line gets (``--security ... --credentials ...``) and the
 :class:`~scmr_mesh.mesh.config.MeshConfig` of the bench's own in-process sessions; with
 ``insecure`` every peer gets ``--insecure`` and the sessions no security.
+:func:`bench_cloud` starts one such ``scmr cloud`` and a robot's querier on it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -47,3 +50,37 @@ def bench_security(run_dir: str | Path, peers: str | Sequence[Peer], *, insecure
 
 
 __all__ = ["BenchSecurity", "bench_security"]
+
+
+@contextmanager
+def bench_cloud(run_dir: str | Path, node: str, client: str, *, port: int, args: Sequence[str] = (),
+                env: dict | None = None, insecure: bool = False, what: str = "bench") -> Iterator[tuple]:
+    """One ``scmr cloud`` ``node`` (secured as deployed, its store in ``RUN/ods.sqlite``, its log in
+    ``RUN/cloud.log``) and a session of robot ``client`` holding a querier on the cloud's drivable
+    key, matched: yields ``(process, session, querier)``; the session is closed and the cloud stopped after.
+    ``args``: more ``scmr cloud`` flags (``--workers``, ``--process``); ``what`` names the run in errors.
+    """
+    from scmr_mesh import keys
+    from scmr_mesh.errors import MeshError
+    from scmr_mesh.mesh.config import close_session, open_session
+    from scmr_mesh.mesh.testing import spawn_peer, stop_peer, wait_for
+
+    run_dir = Path(run_dir)
+    ready = run_dir / "cloud.ready"
+    sec = bench_security(run_dir, f"{node}=cloud,{client}=robot", insecure=insecure)
+    proc = spawn_peer(["cloud", *sec.args, "--node", node, "--listen", f"tcp/127.0.0.1:{port}", *args,
+                       "--ods", str(run_dir / "ods.sqlite"), "--ready-file", str(ready)],
+                      log_path=run_dir / "cloud.log", env=env)
+    try:
+        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=120, what=f"{what} cloud ready")
+        if proc.poll() is not None:
+            raise MeshError(f"the {what} run's cloud exited; see {run_dir / 'cloud.log'}")
+        session = open_session(sec.mesh(client, connect=[f"tcp/127.0.0.1:{port}"]))
+        try:
+            q = session.declare_querier(keys.drivable_request("cloud", node, client), timeout=10.0)
+            wait_for(lambda: q.matching_status.matching, timeout=10, what=f"the {what} cloud's queryable")
+            yield proc, session, q
+        finally:
+            close_session(session)
+    finally:
+        stop_peer(proc)
