@@ -5,6 +5,7 @@ reproductions of a hostile review); no middleware, no worker processes.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import zenoh
@@ -67,13 +68,18 @@ def test_a_primary_that_answered_while_the_hedge_target_was_sought_is_not_thrown
     robot, fakes = _robot(tmp_path, "slow", "fast", deadline_ms=5000, hedge_ms=20)
     fakes["cloud"].slow_s = 0.03
     robot.view.on_liveliness(_Sample(keys.alive("leader", "L1"), zenoh.SampleKind.DELETE))
-    seek = robot._hedge_target
+    seek, start, sent = robot._hedge_target, robot._start, []
+
+    def start_recorded(*a, **kw):
+        sent.append(start(*a, **kw))
+        return sent[-1]
 
     def slow_seek(*a, **kw):
-        time.sleep(0.06)  # as _matching's wait for a querier declared moments ago
+        # as _matching's wait for a querier declared moments ago: the primary answers meanwhile
+        sent[0].fut.result(timeout=30)
         return seek(*a, **kw)
 
-    robot._hedge_target = slow_seek
+    robot._start, robot._hedge_target = start_recorded, slow_seek
     try:
         rec = robot.request(0, FRAME)
         assert rec["ok"]
@@ -90,7 +96,7 @@ class FakeQuery:
         self.key_expr = key
         self.payload = type("P", (), {"to_bytes": lambda _s: payload})()
         self.answers: list[tuple[str, bytes]] = []
-        self.dropped = False
+        self.dropped = threading.Event()  # set when the service is done with the query
 
     def reply(self, key, payload, encoding=None):
         self.answers.append(("ok", payload))
@@ -99,7 +105,7 @@ class FakeQuery:
         self.answers.append(("err", payload))
 
     def drop(self):
-        self.dropped = True
+        self.dropped.set()
 
 
 class FakePool:
@@ -139,9 +145,7 @@ def _query(seq: int, robot: str = "r1") -> FakeQuery:
 
 
 def _answered(q: FakeQuery, timeout: float = 5.0) -> list:
-    end = time.monotonic() + timeout
-    while not q.dropped and time.monotonic() < end:
-        time.sleep(0.001)
+    q.dropped.wait(timeout)
     return [(k, wire.decode(p, kind="reply" if k == "ok" else "error")) for k, p in q.answers]
 
 
