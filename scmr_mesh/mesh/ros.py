@@ -414,23 +414,23 @@ class RosBridge:
 #: router only and dials the peers the router gossips back (the greater zid of a pair dials).  Data
 #: then goes node to node: rmw_zenohd forwards nothing between peers (docs/ROS2.md, docs/ZENOH.md 16).
 RMW_NODE_LISTEN = "tcp/localhost:0"
-RMW_NODE_KEYS: dict[str, Any] = {
+#: The scouting keys rmw_zenoh's session and router configs share.
+_RMW_SCOUTING: dict[str, Any] = {
     "scouting/multicast/enabled": False,
     "scouting/gossip/enabled": True,
     "scouting/gossip/multihop": False,
     "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
     "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
+}
+RMW_NODE_KEYS: dict[str, Any] = {
+    **_RMW_SCOUTING,
     "scouting/gossip/autoconnect_strategy": {"peer": {"to_router": "always", "to_peer": "greater-zid"}},
 }
 #: rmw_zenohd's own keys that decide what it does for peers (DEFAULT_RMW_ZENOH_ROUTER_CONFIG.json5):
 #: gossip to routers and peers, no multicast, and no failover brokering (rmw_zenoh#341: it never
 #: forwards data between two peers; zenoh >= 1.9 ignores the key and never does anyway).
 RMW_ZENOHD_KEYS: dict[str, Any] = {
-    "scouting/multicast/enabled": False,
-    "scouting/gossip/enabled": True,
-    "scouting/gossip/multihop": False,
-    "scouting/gossip/target": {"router": ["router", "peer"], "peer": ["router"]},
-    "scouting/gossip/autoconnect": {"router": [], "peer": ["router", "peer"]},
+    **_RMW_SCOUTING,
     "scouting/gossip/autoconnect_strategy": {"router": {"to_router": "always", "to_peer": "always"}},
     "routing/router/peers_failover_brokering": False,
 }
