@@ -212,7 +212,7 @@ class Robot:
         self.annotators: list[Callable[[dict, Any], None]] = []
         self._queriers: dict[str, Any] = {}
         self._born: dict[str, float] = {}  # querier key -> when it was declared (monotonic s)
-        self._tier_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender thread (_start)
+        self._node_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender thread (_start)
         self._session = None
         self._subs: list[Any] = []
         self._token = None
@@ -304,7 +304,7 @@ class Robot:
 
     def close(self) -> None:
         """Undeclare everything this robot declared and close the records file."""
-        for ex in self._tier_threads.values():
+        for ex in self._node_threads.values():
             ex.shutdown(wait=False, cancel_futures=True)
         undeclare_all([self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub])
         self._subs, self._queriers, self._token = [], {}, None
@@ -545,12 +545,12 @@ class Robot:
         return winner
 
     # ------------------------------------------- one sender thread per node
-    def _tier_executor(self, tier: str, node: str):
+    def _node_executor(self, tier: str, node: str):
         from concurrent.futures import ThreadPoolExecutor
 
-        ex = self._tier_threads.get((tier, node))
+        ex = self._node_threads.get((tier, node))
         if ex is None:
-            ex = self._tier_threads[(tier, node)] = ThreadPoolExecutor(
+            ex = self._node_threads[(tier, node)] = ThreadPoolExecutor(
                 self.SENDERS_PER_NODE, thread_name_prefix=f"scmr-{tier}-{node}")
         return ex
 
@@ -569,7 +569,7 @@ class Robot:
         token = zenoh.CancellationToken()
         scratch = dict(att)
         t0 = time.perf_counter() if t0 is None else t0
-        fut = self._tier_executor(att["tier"], att["node"]).submit(self._collect, scratch, q, payload, token, asked, t0)
+        fut = self._node_executor(att["tier"], att["node"]).submit(self._collect, scratch, q, payload, token, asked, t0)
         return _Sent(att, fut, token, scratch, t0)
 
     def _finish_sent(self, sent: _Sent, *, wait_s: float) -> Reply | None:
