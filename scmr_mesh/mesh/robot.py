@@ -212,7 +212,7 @@ class Robot:
         self.annotators: list[Callable[[dict, Any], None]] = []
         self._queriers: dict[str, Any] = {}
         self._born: dict[str, float] = {}  # querier key -> when it was declared (monotonic s)
-        self._node_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender thread (_start)
+        self._node_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender threads (_start)
         self._session = None
         self._subs: list[Any] = []
         self._token = None
