@@ -44,7 +44,7 @@ from scmr_mesh.errors import WireError
 #: Version written in every message; a peer rejects other versions.
 WIRE_VERSION = 1
 #: Message kinds, each with ``schemas/<kind>.schema.json``.
-KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load", "candidate")
+KINDS: tuple[str, ...] = ("request", "reply", "error", "telemetry", "load", "candidate", "receipt")
 #: Codes of error replies.
 ERROR_CODES: tuple[str, ...] = (
     "malformed", "oversized", "wrong_version", "busy", "internal", "unavailable", "expired", "forbidden",
@@ -76,7 +76,8 @@ DIGEST_BYTES = 16
 MAX_WIRE_INT = 2**63 - 1
 #: Default size caps of the small control messages (bytes), checked before parsing:
 #: a real candidacy or load message is about 200-300 bytes.
-MAX_BYTES: dict[str, int] = {"candidate": 4096, "load": 4096, "telemetry": 64 * 1024, "error": 16 * 1024}
+MAX_BYTES: dict[str, int] = {"candidate": 4096, "load": 4096, "telemetry": 64 * 1024, "error": 16 * 1024,
+                             "receipt": 4096}
 
 SCHEMA_DIR = Path(__file__).resolve().parents[1] / "schemas"
 
@@ -414,6 +415,7 @@ def make_request(
     attempt: int = 0,
     deadline_ms: float | None = None,
     digest: bytes | None = None,
+    receipt: bool = False,
 ) -> dict:
     """Build a request message (see ``schemas/request.schema.json``).
 
@@ -430,6 +432,9 @@ def make_request(
     deadline_ms : float, optional
         How long the robot waits for this attempt; a service skips the work
         when no worker got to it in time (error ``expired``).
+    receipt : bool
+        Ask the service for a :func:`make_receipt` at once when the request
+        arrives, before its answer (left out of the message when False).
     """
     msg = {
         "v": WIRE_VERSION,
@@ -447,7 +452,26 @@ def make_request(
     }
     if deadline_ms is not None:
         msg["deadline_ms"] = float(deadline_ms)
+    if receipt:
+        msg["receipt"] = True
     return msg
+
+
+def make_receipt(request: Mapping[str, Any], *, served_by: str, tier: str) -> dict:
+    """Build a receipt (``schemas/receipt.schema.json``): ``request`` has reached ``served_by``.
+
+    A service sends it at once when a request that asked for it (``receipt``)
+    has arrived, decoded and been taken in; its answer follows on the same query.
+    A robot that gets no receipt within a delay learnt from its tier's recent
+    receipts hedges (the copy or the node is lost), far sooner than the
+    answer's own delay allows (docs/R2R.md "Hedged requests").
+
+    >>> r = make_receipt(make_request("r1", 7, b"frame"), served_by="cloud", tier="cloud")
+    >>> r["kind"], r["seq"], reply_mismatch({"robot": "r1", "seq": 7, "digest": frame_digest(b"frame")}, r)
+    ('receipt', 7, None)
+    """
+    return {"v": WIRE_VERSION, "kind": "receipt", "robot": request["robot"], "seq": request["seq"],
+            **_digest_of(request), "served_by": served_by, "tier": tier}
 
 
 def make_reply(

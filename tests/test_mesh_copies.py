@@ -98,7 +98,7 @@ class FakeQuery:
         self.answers: list[tuple[str, bytes]] = []
         self.dropped = threading.Event()  # set when the service is done with the query
 
-    def reply(self, key, payload, encoding=None):
+    def reply(self, key, payload, encoding=None, **qos):  # (receipts: congestion_control, express)
         self.answers.append(("ok", payload))
 
     def reply_err(self, payload, encoding=None):

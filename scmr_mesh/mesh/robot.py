@@ -133,6 +133,8 @@ class _Sent:
     #: ``time.perf_counter()`` when the request was first sent to this node (a re-sent copy keeps its
     #: first copy's): its answer time counts from there
     t0: float = 0.0
+    #: set when the node's receipt for this copy came, or the copy finished (whichever first)
+    heard: threading.Event = field(default_factory=threading.Event)
 
     def cancel(self) -> None:
         try:
@@ -144,7 +146,8 @@ class _Sent:
         """Cancel the query and set its attempt's ``outcome``, keeping the replies it refused so far.
 
         A node that sent a mismatched or untrusted reply and then held its query open
-        (e.g. a hedge answered first) is still counted in the record.
+        (e.g. a hedge answered first) is still counted in the record, and so is the receipt
+        of a node that had the request (``receipt_ms``).
         """
         self.cancel()
         self.att["outcome"] = outcome
@@ -152,6 +155,9 @@ class _Sent:
         if n:
             self.att["mismatched"] = n
             self.att.setdefault("message", self.scratch.get("message"))
+        receipt_ms = self.scratch.get("receipt_ms")
+        if receipt_ms is not None:  # its node had it, yet never answered in time
+            self.att["receipt_ms"] = receipt_ms
 
 
 @dataclass
@@ -235,6 +241,10 @@ class Robot:
         from scmr_mesh.qos.hedge import AnswerTimes, HedgeBudget
 
         self._answer_times = {t: AnswerTimes() for t in keys.TIERS}
+        #: the time from a copy's send to its node's receipt, by tier, and over every tier (a tier
+        #: not heard from enough yet, e.g. the leader at the cloud's loss, uses the pooled one)
+        self._receipt_times = {t: AnswerTimes(warmup=0) for t in keys.TIERS}
+        self._receipt_all = AnswerTimes(warmup=0)
         self._hedge_budget = HedgeBudget()
 
     # ------------------------------------------------------------ hooks
@@ -395,7 +405,7 @@ class Robot:
                 log.warning("local warm-up failed: %s", exc)
                 self._local_ok = False
 
-    def _judge(self, att: dict, reply, asked: dict) -> Reply | None:
+    def _judge(self, att: dict, reply, asked: dict, t_send: float | None = None) -> Reply | None:
         """Set ``att["outcome"]`` from one zenoh reply; return the :class:`Reply` if it is good.
 
         A good reply came on this robot's own request key of the node it was sent to,
@@ -409,7 +419,7 @@ class Robot:
         if reply.ok is not None:
             data = reply.ok.payload.to_bytes()
             try:
-                msg = wire.decode(data, kind="reply")
+                msg = wire.decode(data, kind=("reply", "receipt"))
             except wire.WireProblem as exc:
                 return self._refuse(att, Outcome.BAD_REPLY, f"not a reply: {exc}", asked)
             problem = self._reply_problem(att, str(reply.ok.key_expr), msg, reply)
@@ -418,6 +428,10 @@ class Robot:
             why = wire.reply_mismatch(asked, msg)
             if why:
                 return self._refuse(att, Outcome.MISMATCHED, why, asked)
+            if msg["kind"] == "receipt":  # the node has the request; its answer follows
+                if t_send is not None and "receipt_ms" not in att:
+                    att["receipt_ms"] = round((time.perf_counter() - t_send) * 1e3, 3)
+                return None
             att["outcome"] = Outcome.OK
             return Reply(att["tier"], att["node"], msg, len(data))
         raw = reply.err.payload.to_bytes()
@@ -569,8 +583,11 @@ class Robot:
         token = zenoh.CancellationToken()
         scratch = dict(att)
         t0 = time.perf_counter() if t0 is None else t0
-        fut = self._node_executor(att["tier"], att["node"]).submit(self._collect, scratch, q, payload, token, asked, t0)
-        return _Sent(att, fut, token, scratch, t0)
+        heard = threading.Event()
+        fut = self._node_executor(att["tier"], att["node"]).submit(self._collect, scratch, q, payload, token, asked,
+                                                                   t0, heard)
+        fut.add_done_callback(lambda _f: heard.set())
+        return _Sent(att, fut, token, scratch, t0, heard)
 
     def _finish_sent(self, sent: _Sent, *, wait_s: float) -> Reply | None:
         """Wait up to ``wait_s`` for one sent query; write its outcome to its attempt; learn its answer time."""
@@ -588,6 +605,10 @@ class Robot:
         att.update(scratch)
         if winner is not None and answer_ms is not None:
             self._answer_times[str(att["tier"])].add(answer_ms)
+        receipt_ms = scratch.get("receipt_ms")
+        if receipt_ms is not None:
+            self._receipt_times[str(att["tier"])].add(receipt_ms)
+            self._receipt_all.add(receipt_ms)
         return winner
 
     def _tier_send(self, att: dict, q, payload: bytes, asked: dict | None = None) -> Reply | None:
@@ -599,18 +620,27 @@ class Robot:
         return self._finish_sent(self._start(att, q, payload, asked), wait_s=self.options.deadline_ms / 1e3 + 0.25)
 
     def _collect(self, att: dict, q, payload: bytes, token, asked: dict,
-                 t0: float | None = None) -> tuple[dict, Reply | None, float | None]:
-        """Run one query on the tier's thread; its answer time counts from ``t0`` (default: now)."""
+                 t0: float | None = None, heard: threading.Event | None = None
+                 ) -> tuple[dict, Reply | None, float | None]:
+        """Run one query on the tier's thread; its answer time counts from ``t0`` (default: now).
+
+        The node's receipt (it has the request, the answer follows) sets ``heard`` and
+        ``att["receipt_ms"]``, counted from this copy's own send.
+        """
         winner = None
         answer_ms = None
-        t0 = time.perf_counter() if t0 is None else t0
+        t_send = time.perf_counter()
+        t0 = t_send if t0 is None else t0
         try:
             kw = {} if token is None else {"cancellation_token": token}
             # ends at the querier timeout = deadline, or when the token is cancelled (a hedge won)
             for reply in q.get(payload=payload, encoding=_msgpack(), **kw):
                 if winner is not None:
                     continue  # the answer is in; later replies change nothing
-                w = self._judge(att, reply, asked)
+                had = "receipt_ms" in att
+                w = self._judge(att, reply, asked, t_send)
+                if not had and "receipt_ms" in att and heard is not None:
+                    heard.set()
                 if w is not None and winner is None:
                     winner, answer_ms = w, (time.perf_counter() - t0) * 1e3
         except Exception as exc:
@@ -635,6 +665,23 @@ class Robot:
             return opts.hedge_ms if elapsed_ms + opts.hedge_ms < opts.deadline_ms else None
         return hedge_delay_ms(self._answer_times[str(tier)].values(), deadline_ms=opts.deadline_ms,
                               elapsed_ms=elapsed_ms)
+
+    def receipt_delay_ms(self, tier: str, elapsed_ms: float = 0.0) -> float | None:
+        """How long a copy sent to ``tier`` may go without its node's receipt (ms), or None: not judged.
+
+        Learnt from the tier's recent receipts, or from every tier's while the tier has
+        too few (the leader at the cloud's loss): :func:`scmr_mesh.qos.hedge.receipt_delay_ms`.
+        None with hedging off or fixed (``--hedge-ms MS``), or before enough receipts came.
+        """
+        from scmr_mesh.qos.hedge import RECEIPT_RULE, receipt_delay_ms
+
+        opts = self.options
+        if not opts.hedge or opts.hedge_ms is not None:
+            return None
+        xs = self._receipt_times[str(tier)].values()
+        if len(xs) < RECEIPT_RULE.min_samples:
+            xs = self._receipt_all.values()
+        return receipt_delay_ms(xs, deadline_ms=opts.deadline_ms, elapsed_ms=elapsed_ms)
 
     def _hedge_target(self, plan: list, tier: str, tried: set) -> tuple[tuple[str, str], Any] | None:
         """Where a hedge of a request silent at ``tier`` goes: another live node of the same tier (a
@@ -686,10 +733,20 @@ class Robot:
         trip.bytes_up += len(payload)
         primary = self._start(att, q, payload, trip.asked)
         limit = time.monotonic() + self.options.deadline_ms / 1e3 + 0.25
-        delay = None if trip.hedged else self.hedge_delay_ms(tier, (time.perf_counter() - t_start) * 1e3)
+        elapsed_ms = (time.perf_counter() - t_start) * 1e3
+        delay = None if trip.hedged else self.hedge_delay_ms(tier, elapsed_ms)
         target = None
-        if delay is not None and not wait([primary.fut], timeout=delay / 1e3)[0]:
-            target = self._hedge_target(plan, tier, trip.tried) or ((tier, node), q)  # (may wait for a matching)
+        silence = "silent for"
+        if delay is not None:
+            # no receipt in time: the copy or its node is lost, known long before the answer is late
+            rdelay = self.receipt_delay_ms(tier, elapsed_ms)
+            if rdelay is not None and rdelay < delay and not primary.heard.wait(rdelay / 1e3):
+                silent, delay, silence = True, rdelay, "no receipt in"
+            else:
+                left = delay / 1e3 - (time.perf_counter() - primary.t0)
+                silent = not wait([primary.fut], timeout=max(0.0, left))[0]
+            if silent:
+                target = self._hedge_target(plan, tier, trip.tried) or ((tier, node), q)  # (may wait for a matching)
         if target is None or primary.fut.done() or not self._hedge_budget.take():
             w = self._finish_sent(primary, wait_s=limit - time.monotonic())
             if w is None and att["outcome"] == BUSY:
@@ -703,11 +760,16 @@ class Robot:
         trip.hedged = True
         departures = self.view.departures  # (before the send: a node leaving from now on counts)
         hedge = self._copy(trip, payload, htier, hnode, hq, after=primary if resend else None)
-        log.info("robot %s: %s/%s silent for %.0f ms on request %s: %s %s/%s", self.id, tier, node, delay, seq,
+        log.info("robot %s: %s/%s %s %.0f ms on request %s: %s %s/%s", self.id, tier, node, silence, delay, seq,
                  "sent again to" if resend else "hedged to", htier, hnode)
         live[hedge.fut] = hedge
-        # a hedge as silent as the primary was: its copy or its answer may have been lost too
-        resend_at = None if resend else time.monotonic() + delay / 1e3
+        # a hedge as silent as the primary was: its copy or its answer may have been lost too.  With
+        # receipts it is silent when its receipt is late; a hedge whose node has it waits for the
+        # answer as long as the primary did
+        hedge_sent = time.monotonic()
+        hreceipt = self.receipt_delay_ms(htier, (time.perf_counter() - t_start) * 1e3)
+        answer_due = hedge_sent + max(delay, self.hedge_delay_ms(tier, 0.0) or delay) / 1e3
+        resend_at = None if resend else hedge_sent + (delay if hreceipt is None else min(hreceipt, delay)) / 1e3
         if resend_at is not None and resend_at + self.RESEND_MIN_LEFT_S > limit:
             resend_at = None
         # a serving node seen leaving while a copy is pending elsewhere: that copy once more (zenoh
@@ -732,6 +794,12 @@ class Robot:
                     trip.hedge_won = sent is not primary
                 elif w is not None:  # both copies answered at once: one answer is used, once
                     sent.att["outcome"] = Outcome.SUPERSEDED
+            if (winner is None and resend_at is not None and time.monotonic() >= resend_at
+                    and hedge.fut in live and hedge.heard.is_set() and not hedge.fut.done()
+                    and time.monotonic() < answer_due):
+                resend_at = answer_due  # its node has it: wait for the answer as the primary was waited for
+                if resend_at + self.RESEND_MIN_LEFT_S > limit:
+                    resend_at = None
             if (winner is None and resend_at is not None and time.monotonic() >= resend_at
                     and hedge.fut in live and not hedge.fut.done()):
                 resend_at = None
@@ -799,7 +867,7 @@ class Robot:
         opts = self.options
         return wire.make_request(self.id, seq, frame.data, encoding=frame.encoding, shape=frame.shape,
                                  priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns,
-                                 deadline_ms=opts.deadline_ms)
+                                 deadline_ms=opts.deadline_ms, receipt=bool(opts.hedge))
 
     def _request_payload(self, seq: int, frame: Frame, sent_ns: int) -> bytes:
         return wire.encode(self._request_message(seq, frame, sent_ns))

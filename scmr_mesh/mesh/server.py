@@ -681,6 +681,8 @@ class Service:
                 return
             self._cap_priority(req)
             seen, kept = self.recent.admit(_ident(req), query)
+            if req.get("receipt") and seen in ("new", "joined"):
+                self._send_receipt(query, req, tier)
             if seen == "joined":  # answered with the first copy's answer (_finish)
                 return
             if seen == "cached":
@@ -718,6 +720,22 @@ class Service:
                 self._reply_error(query, "internal", f"{type(exc).__name__}: {exc}")
             return
         fut.add_done_callback(lambda f: self._finish(query, req, f, t_arrival, t_sub))
+
+    def _send_receipt(self, query, req: dict, tier: str) -> None:
+        """Tell the robot at once that ``req`` is here (it asked: ``receipt``); its answer follows.
+
+        Sent from zenoh's callback thread, before any answer can be (so always first), with
+        congestion control ``drop`` and ``express``: it never waits for queue space, and a
+        receipt lost to a full link only makes the robot hedge (docs/R2R.md "Hedged requests").
+        """
+        import zenoh
+
+        try:
+            payload = wire.encode(wire.make_receipt(req, served_by=self.node, tier=tier))
+            query.reply(str(query.key_expr), payload, encoding=_msgpack(),
+                        congestion_control=zenoh.CongestionControl.DROP, express=True)
+        except Exception as exc:  # the answer still follows; without the receipt the robot may hedge
+            log.debug("receipt to %s/%s not sent: %s", req.get("robot"), req.get("seq"), exc)
 
     def _cap_priority(self, req: dict) -> None:
         """Lower ``req["priority"]`` to the fleet's cap for its (key-bound) robot."""

@@ -39,7 +39,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-__all__ = ["AnswerTimes", "HedgeBudget", "HedgeRule", "hedge_delay_ms"]
+__all__ = ["AnswerTimes", "HedgeBudget", "HedgeRule", "RECEIPT_RULE", "hedge_delay_ms", "receipt_delay_ms"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +65,12 @@ class HedgeRule:
 
 
 DEFAULT_RULE = HedgeRule()
+#: The rule for a copy's *receipt* (docs/R2R.md "Hedged requests"): a node sends it the moment
+#: the request is taken in, so it measures the way there and back, not the pipeline; a copy
+#: with no receipt past p95 + 10 ms (at least 15 ms) of its tier's recent receipts is
+#: silent.  No cold delay (:func:`receipt_delay_ms`): with fewer than ``min_samples`` receipts (a node of an older
+#: version, or none yet) only the answer's delay (:data:`DEFAULT_RULE`) applies.
+RECEIPT_RULE = HedgeRule(floor_ms=15.0, margin_ms=10.0)
 
 
 def _quantile(values: Sequence[float], q: float) -> float:
@@ -106,6 +112,25 @@ def hedge_delay_ms(recent_ms: Sequence[float], *, deadline_ms: float, elapsed_ms
     if elapsed_ms + delay + rule.min_left_ms > deadline_ms:
         return None
     return delay
+
+
+def receipt_delay_ms(recent_ms: Sequence[float], *, deadline_ms: float, elapsed_ms: float = 0.0,
+                     rule: HedgeRule = RECEIPT_RULE) -> float | None:
+    """How long to wait for a copy's receipt before the copy counts as silent (ms), or None.
+
+    ``max(floor, p95 + margin)`` of the tier's recent receipt times (ms from the send to
+    the receipt), like :func:`hedge_delay_ms`; None with fewer than ``rule.min_samples``
+    receipts (no receipt to expect) or when the hedge would have too little of the deadline left.
+
+    >>> receipt_delay_ms([2.0, 3.0, 2.5, 4.0, 3.5, 2.0], deadline_ms=1000)  # p95 3.9 + 10, floor 15
+    15.0
+    >>> receipt_delay_ms([2.0] * 4, deadline_ms=1000) is None  # too few receipts: none expected
+    True
+    """
+    xs = [float(x) for x in recent_ms if math.isfinite(x) and x >= 0]
+    if len(xs) < rule.min_samples:
+        return None
+    return hedge_delay_ms(xs, deadline_ms=deadline_ms, elapsed_ms=elapsed_ms, rule=rule)
 
 
 class AnswerTimes:

@@ -1,0 +1,202 @@
+"""Receipts (issue 24): a node says at once that it has a request, so a robot knows a copy is lost
+within a few ms of its send, long before the answer is late.  Fake queriers and a Service without
+zenoh or worker processes: no middleware, < 2 s."""
+
+from __future__ import annotations
+
+
+import pytest
+import zenoh
+from test_mesh_copies import FakePool, FakeQuery, _query, _service
+from test_mesh_hedge import FRAME, FakeTier, _Reply, _robot, _Sample
+
+from scmr_mesh import keys, wire
+from scmr_mesh.qos.hedge import RECEIPT_RULE, receipt_delay_ms
+
+ANSWER_HEDGE_S = 30.0  # the answer's hedge delay in these tests: far beyond what any test waits
+
+
+class Receipting(FakeTier):
+    """A node of this version: a receipt at once, then the answer after ``slow_s`` (or never:
+    ``behaviour="silent"``, a node whose link went silent; ``receipt=False``, a node that got
+    the request but never says so, as one lost on the way)."""
+
+    def __init__(self, *a, receipt: bool = True, **kw) -> None:
+        super().__init__(*a, **kw)
+        self.receipt = receipt
+        self.asked_receipt: list[bool] = []
+
+    def get(self, payload, *, encoding=None, cancellation_token=None):
+        self.calls += 1
+        req = wire.decode(payload, kind="request")
+        self.asked_receipt.append(bool(req.get("receipt")))
+        key = keys.drivable_request(self.tier, self.node, self.robot)
+        if self.behaviour == "silent":
+            self._wait_cancel(cancellation_token, self.hold_s)
+            return
+        if self.receipt and req.get("receipt"):
+            yield _Reply(wire.encode(wire.make_receipt(req, served_by=self.node, tier=self.tier)), key)
+        if self._wait_cancel(cancellation_token, self.slow_s):
+            return
+        rep = wire.make_reply(req, mask_png=b"\x89PNG\r\n\x1a\n..", shape=(225, 300), threshold=1,
+                              timings_ms={}, served_by=self.node, tier=self.tier, server_ms=1.0)
+        yield _Reply(wire.encode(rep), key)
+
+
+def _receipting_robot(tmp_path, **cloud_kw):
+    robot, fakes = _robot(tmp_path, "fast", "fast", deadline_ms=60_000)
+    cloud = Receipting("r1", "cloud", "c1", "fast", slow_s=0.0, **cloud_kw)
+    leader = Receipting("r1", "leader", "L1", "fast", slow_s=0.0)
+    robot._queriers[keys.drivable_request("cloud", "c1", "r1")] = cloud
+    robot._queriers[keys.drivable_request("leader", "L1", "r1")] = leader
+    robot.hedge_delay_ms = lambda tier, elapsed_ms=0.0: ANSWER_HEDGE_S * 1e3  # the answer is never late here
+    return robot, cloud, leader
+
+
+def _learn_receipts(robot, n: int = RECEIPT_RULE.min_samples) -> None:
+    for seq in range(n):
+        rec = robot.request(seq, FRAME)
+        assert rec["ok"] and rec["tier"] == "cloud" and not rec["hedged"], rec
+        assert rec["attempts"][0]["receipt_ms"] >= 0, rec["attempts"]
+    assert len(robot._receipt_times["cloud"]) == n
+
+
+def test_a_copy_with_no_receipt_is_hedged_at_the_receipt_delay_not_the_answers(tmp_path):
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    try:
+        _learn_receipts(robot)
+        assert RECEIPT_RULE.floor_ms <= robot.receipt_delay_ms("cloud") < ANSWER_HEDGE_S * 1e3
+        cloud.behaviour = "silent"  # the cloud's link goes silent: no receipt, no answer
+        rec = robot.request(10, FRAME)
+        # hedged on the missing receipt (15 ms), not after the answer's 30 s delay
+        assert rec["ok"] and rec["tier"] == "leader" and rec["hedged"] and rec["hedge_won"], rec
+        assert rec["tor_ms"] < ANSWER_HEDGE_S * 1e3 / 2, rec["tor_ms"]
+        assert all(leader.asked_receipt) and all(cloud.asked_receipt)
+    finally:
+        robot.close()
+
+
+def test_a_copy_whose_node_sent_its_receipt_waits_for_the_answer(tmp_path):
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    try:
+        _learn_receipts(robot)
+        cloud.slow_s = 0.3  # a long frame: the receipt comes at once, the answer 300 ms later
+        rec = robot.request(10, FRAME)
+        assert rec["ok"] and rec["tier"] == "cloud" and not rec["hedged"], rec["attempts"]
+        assert leader.calls == 0
+    finally:
+        robot.close()
+
+
+def test_a_node_that_never_sends_receipts_is_judged_by_its_answers_only(tmp_path):
+    # a node of an older version (or one that lost every receipt): no receipt delay is learnt
+    robot, cloud, leader = _receipting_robot(tmp_path, receipt=False)
+    try:
+        for seq in range(RECEIPT_RULE.min_samples + 1):
+            assert robot.request(seq, FRAME)["tier"] == "cloud"
+        assert robot.receipt_delay_ms("cloud") is None and "receipt_ms" not in robot.request(9, FRAME)["attempts"][0]
+        cloud.slow_s = 0.3
+        rec = robot.request(10, FRAME)
+        assert rec["tier"] == "cloud" and not rec["hedged"], rec["attempts"]
+    finally:
+        robot.close()
+
+
+def test_receipts_are_asked_for_only_with_hedging_on(tmp_path):
+    robot, fakes = _robot(tmp_path, "fast", "fast", hedge=False)
+    try:
+        req = wire.decode(robot._request_payload(0, FRAME, 1), kind="request")
+        assert "receipt" not in req
+    finally:
+        robot.close()
+
+
+def test_a_receipt_is_never_taken_as_the_answer(tmp_path):
+    """A node that sends its receipt and then nothing (it died in service): the request is not
+    'ok' on the receipt; it is hedged after the answer's delay (here: the deadline's failover)."""
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    robot.hedge_delay_ms = lambda tier, elapsed_ms=0.0: 50.0
+    robot.view.on_liveliness(_Sample(keys.alive("leader", "L1"), zenoh.SampleKind.DELETE))
+    try:
+        _learn_receipts(robot)
+        cloud.slow_s, cloud.hold_s = 60.0, 60.0
+        robot.options.deadline_ms = 400
+        rec = robot.request(10, FRAME)
+        assert not rec["ok"], rec
+        assert all(a["outcome"] != "ok" for a in rec["attempts"]), rec["attempts"]
+        assert all("receipt_ms" in a for a in rec["attempts"] if a["node"] == "c1"), rec["attempts"]
+    finally:
+        robot.close()
+
+
+# -------------------------------------------------------------- service side
+def _kinds(q: FakeQuery) -> list[str]:
+    return [wire.decode(p, kind=("reply", "receipt", "error"))["kind"] for _k, p in q.answers]
+
+
+@pytest.mark.parametrize("asked", [True, False])
+def test_a_service_sends_the_receipt_first_only_when_asked(asked):
+    svc = _service(FakePool())
+    try:
+        req = wire.make_request("r1", 5, b"\x89PNG frame", encoding="png", receipt=asked)
+        q = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), wire.encode(req))
+        svc._on_query(q)
+        assert _kinds(q) == (["receipt"] if asked else [])  # at once, before any work
+        if asked:
+            rc = wire.decode(q.answers[0][1], kind="receipt")
+            assert wire.reply_mismatch(wire.asked_of(req), rc) is None and rc["served_by"] == "c1"
+        svc.pool.futs[0].set_result({"mask_png": b"\x89PNG\r\n\x1a\n..", "shape": [225, 300], "threshold": 1,
+                                     "worker_ms": 5.0})
+        assert q.dropped.wait(5.0)
+        assert _kinds(q) == (["receipt", "reply"] if asked else ["reply"])
+    finally:
+        svc.replier.close()
+
+
+def test_a_copy_that_joins_gets_its_own_receipt_and_a_refused_request_none_after_a_malformed_one():
+    svc = _service(FakePool())
+    try:
+        req = wire.make_request("r1", 6, b"\x89PNG frame", encoding="png", receipt=True)
+        first = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), wire.encode(req))
+        copy = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), wire.encode(req))
+        svc._on_query(first)
+        svc._on_query(copy)
+        assert _kinds(first) == ["receipt"] and _kinds(copy) == ["receipt"]  # the copy waits for the first's run
+        bad = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), b"\x81\xa1v\x01")  # not a request
+        svc._on_query(bad)
+        assert bad.dropped.wait(5.0) and _kinds(bad) == ["error"]  # no receipt for what it could not read
+    finally:
+        svc.replier.close()
+
+
+def test_the_receipt_delay_rule():
+    assert receipt_delay_ms([1.0] * (RECEIPT_RULE.min_samples - 1), deadline_ms=1000) is None
+    assert receipt_delay_ms([1.0] * 20, deadline_ms=1000) == RECEIPT_RULE.floor_ms
+    xs = [float(i) for i in range(1, 21)]  # p95 of 1..20 = 19.05
+    assert receipt_delay_ms(xs, deadline_ms=1000) == pytest.approx(19.05 + RECEIPT_RULE.margin_ms)
+    assert receipt_delay_ms(xs, deadline_ms=60, elapsed_ms=0) is None  # too little of the deadline left
+
+
+def test_a_receipt_from_another_node_does_not_count(tmp_path):
+    """A receipt is trusted as a reply is: one that names another node is refused and counted."""
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    try:
+        key = keys.drivable_request("cloud", "c1", "r1")
+        req = wire.decode(robot._request_payload(3, FRAME, 1), kind="request")
+        forged = _Reply(wire.encode(wire.make_receipt(req, served_by="L1", tier="cloud")), key)
+        att = {"tier": "cloud", "node": "c1", "outcome": "pending"}
+        assert robot._judge(att, forged, wire.asked_of(req), t_send=0.0) is None
+        assert att["outcome"] == "bad_reply" and "receipt_ms" not in att
+    finally:
+        robot.close()
+
+
+def test_receipt_schema_round_trip():
+    req = wire.make_request("r1", 1, b"x", receipt=True)
+    assert wire.decode(wire.encode(req), kind="request")["receipt"] is True
+    rc = wire.make_receipt(req, served_by="c1", tier="leader")
+    assert wire.decode(wire.encode(rc), kind="receipt") == rc
+    with pytest.raises(wire.WireProblem):
+        wire.decode(wire.encode({**rc, "mask_png": b"x"}), kind="receipt")  # a receipt carries no answer
+
+
