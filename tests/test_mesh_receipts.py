@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 import zenoh
-from test_mesh_copies import FakePool, FakeQuery, _query, _service
+from test_mesh_copies import FakePool, FakeQuery, _service
 from test_mesh_hedge import FRAME, FakeTier, _Reply, _robot, _Sample
 
 from scmr_mesh import keys, wire
