@@ -200,3 +200,21 @@ def test_receipt_schema_round_trip():
         wire.decode(wire.encode({**rc, "mask_png": b"x"}), kind="receipt")  # a receipt carries no answer
 
 
+
+
+def test_a_silent_hedge_is_sent_again_without_a_budget_token(tmp_path):
+    """cloud-link-drop at load 6-14: a fault-free hedge and its re-send 1.4 s before the cut spent both
+    saved tokens, so the frame sent 68 ms after the cut was not hedged at all (98 ms, the run's
+    largest failover).  A re-send goes to the node that already has (or lost) the request: no
+    pipeline run, no token; the hedge itself still takes one."""
+    from test_mesh_hedge import _robot as hedge_robot
+
+    robot, fakes = hedge_robot(tmp_path, "silent", "loses_first", deadline_ms=5000, hedge_ms=20)
+    robot._hedge_budget.tokens = 1.0  # one hedge left, as after a fault-free hedge
+    try:
+        rec = robot.request(0, FRAME)
+        assert rec["ok"] and rec["tier"] == "leader" and rec["hedged"], rec["attempts"]
+        assert [bool(a.get("resend")) for a in rec["attempts"]] == [False, False, True], rec["attempts"]
+        assert robot._hedge_budget.tokens < 1.0  # the hedge took the token; the re-send none
+    finally:
+        robot.close()

@@ -718,8 +718,8 @@ class Robot:
         waiting copy is sent once more, at once.  The first good answer wins; the
         other copies are cancelled and their attempts marked ``superseded``
         (``timeout`` when nothing answered).  At most one hedge (a budget token)
-        and two re-sends per request: one when the copy stays silent (a token),
-        one when a node leaves (no token: a rare event).
+        and two re-sends per request: one when the copy stays silent (no token:
+        the node it goes to serves a request once), one when a node leaves.
         """
         from concurrent.futures import FIRST_COMPLETED, wait
 
@@ -802,14 +802,17 @@ class Robot:
                     resend_at = None
             if (winner is None and resend_at is not None and time.monotonic() >= resend_at
                     and hedge.fut in live and not hedge.fut.done()):
+                # no budget token: a copy to the node that already has (or lost) this request adds
+                # no pipeline run there (it serves a request once), and at most two go per request
                 resend_at = None
-                if self._hedge_budget.take():
-                    departures = self.view.departures  # (before the send: a node leaving from now on counts)
-                    hedge = self._copy(trip, payload, htier, hnode, hq, after=hedge)
-                    log.info("robot %s: hedge to %s/%s silent for %.0f ms on request %s: sent again", self.id,
-                             htier, hnode, delay, seq)
-                    live[hedge.fut] = hedge
-                    hatts.append(hedge.att)
+                departures = self.view.departures  # (before the send: a node leaving from now on counts)
+                silence = "no answer in" if hedge.heard.is_set() else "no receipt in"
+                waited = (time.monotonic() - hedge_sent) * 1e3
+                hedge = self._copy(trip, payload, htier, hnode, hq, after=hedge)
+                log.info("robot %s: hedge to %s/%s %s %.0f ms on request %s: sent again", self.id,
+                         htier, hnode, silence, waited, seq)
+                live[hedge.fut] = hedge
+                hatts.append(hedge.att)
             if (winner is None and not after_departure and self.view.departures != departures
                     and hedge.fut in live and not hedge.fut.done()
                     and time.monotonic() + self.RESEND_MIN_LEFT_S < limit):
