@@ -372,8 +372,10 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                    default="auto", metavar="auto|off|MS",
                    help="hedged requests: when the preferred tier has not answered within the hedge delay, send "
                         "the same frame to the next live tier and keep the first good answer; 'auto' (default) "
-                        "learns the delay per tier (recent p95 + 20 ms, at least 30 ms, 150 ms before 5 answers), "
-                        "MS fixes it, 'off' waits for the deadline as before (docs/R2R.md, Hedged requests)")
+                        "learns the delay per tier (recent p95 + 20 ms, at least 30 ms, 150 ms before 5 answers) "
+                        "and hedges sooner a copy whose node sent no receipt within p95 + 10 ms (at least 15 ms) "
+                        "of its receipts; MS fixes the delay (no receipts asked), 'off' waits for the deadline as "
+                        "before (docs/R2R.md, Hedged requests)")
     g.add_argument("--local-fallback", action=argparse.BooleanOptionalAction, default=True,
                    help="run the pipeline on the robot when no tier answers (default on)")
     g.add_argument("--priority", type=ca.count("priority", lo=0, hi=1000000, example="10"), default=0, help="request priority (willingness to pay), default 0")
