@@ -218,3 +218,15 @@ def test_a_silent_hedge_is_sent_again_without_a_budget_token(tmp_path):
         assert robot._hedge_budget.tokens < 1.0  # the hedge took the token; the re-send none
     finally:
         robot.close()
+
+
+def test_the_scenario_bench_counts_hedges_of_fault_free_requests_only():
+    from scmr_mesh.bench.scenario import _hedged, fault_free_rows
+
+    att = [{"tier": "cloud", "outcome": "superseded"}, {"tier": "leader", "outcome": "ok", "hedge": True}]
+    rep = {"faults": [{"started_at_s": 4.0, "ended_at_s": 10.0}, {"started_at_s": 14.0, "ended_at_s": None}],
+           "request_log": [{"sent_s": t, "attempts": att if t in (3.5, 12.0) else att[:1]}
+                           for t in (0.5, 3.5, 6.0, 10.5, 12.0, 13.5, 20.0)]}
+    rows = fault_free_rows(rep)
+    assert [q["sent_s"] for q in rows] == [0.5, 12.0]  # 1 s around each fault; the last never ends
+    assert [_hedged(q) for q in rows] == [False, True]
