@@ -84,6 +84,8 @@ def test_a_copy_whose_node_sent_its_receipt_waits_for_the_answer(tmp_path):
         rec = robot.request(10, FRAME)
         assert rec["ok"] and rec["tier"] == "cloud" and not rec["hedged"], rec["attempts"]
         assert leader.calls == 0
+        receipt = rec["attempts"][0]["receipt_bytes"]
+        assert 0 < receipt < rec["bytes_down"]  # the energy model pays for the receipt too
     finally:
         robot.close()
 

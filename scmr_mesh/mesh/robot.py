@@ -158,6 +158,7 @@ class _Sent:
         receipt_ms = self.scratch.get("receipt_ms")
         if receipt_ms is not None:  # its node had it, yet never answered in time
             self.att["receipt_ms"] = receipt_ms
+            self.att["receipt_bytes"] = self.scratch.get("receipt_bytes", 0)
 
 
 @dataclass
@@ -431,6 +432,7 @@ class Robot:
             if msg["kind"] == "receipt":  # the node has the request; its answer follows
                 if t_send is not None and "receipt_ms" not in att:
                     att["receipt_ms"] = round((time.perf_counter() - t_send) * 1e3, 3)
+                    att["receipt_bytes"] = len(data)  # (in the record's bytes_down: energy counts it)
                 return None
             att["outcome"] = Outcome.OK
             return Reply(att["tier"], att["node"], msg, len(data))
@@ -938,7 +940,8 @@ class Robot:
                      "no tier answered: " + ", ".join(f"{a['tier']}/{a['node']}={a['outcome']}" for a in trip.attempts))
         return {
             "robot": self.id, "seq": int(seq), "image": frame.name, "bytes_up": int(trip.bytes_up),
-            "bytes_down": int(w.nbytes) if w is not None else 0, "sent_unix_ns": sent_ns,
+            "bytes_down": (int(w.nbytes) if w is not None else 0)
+            + sum(int(a.get("receipt_bytes", 0)) for a in trip.attempts), "sent_unix_ns": sent_ns,
             "received_unix_ns": received_ns, "tor_ms": round(tor_ms, 3), "ok": w is not None,
             "tier": None if w is None else str(w.tier), "served_by": None if w is None else w.node,
             "attempts": trip.attempts, "error": error, "hedged": trip.hedged, "hedge_won": trip.hedge_won,
