@@ -249,8 +249,12 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float, lateral: floa
     The second condition is a ground-contact check: the road is the surface the robot
     stands on, so in a forward camera it continues down to the cell's lower rows, while
     a vehicle ahead stands *on* the road and ends above them (its lower edge is road).
-    When no region passes both tests the largest region of the cell is the seed (and
-    :func:`classify` reports the seed as not ground).
+    When no region passes both tests, the ground under the robot is fragmented into regions
+    smaller than ``share`` of the cell (leaf litter, gravel, a patchwork of shade): the seeds are
+    then all the regions that reach the cell's lower half, the ground the robot stands on, and
+    :func:`classify` reports the seed as not ground, so :func:`abstain` shrinks the mask to the
+    rows below ``cap`` (issue 27: before, the largest region of the cell alone was the seed, and
+    a forest floor of leaf litter kept a fraction of its own ground).
 
     With ``lateral`` > 0, a seed other than the one covering most of the cell is dropped when its
     centroid lies outside ``[lateral, 1 - lateral]`` of the width *and* it reaches above the cell
@@ -266,14 +270,18 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float, lateral: floa
     >>> lab = np.zeros((112, 150), np.int32); lab[56:, 125:] = 1; lab[100:, 80:] = 1   # a verge beside the road
     >>> seed_regions(lab, 2, 0.1).tolist(), seed_regions(lab, 2, 0.1, 0.25).tolist()
     ([0, 1], [0])
+    >>> litter = (np.arange(112)[:, None] // 4 * 38 + np.arange(150)[None, :] // 4).astype(np.int32)
+    >>> seed_regions(litter, int(litter.max()) + 1, 0.1).size   # 4x4 patches: 39 in the cell's lower half
+    39
     """
     cell = bottom_centre(roi(labels))
     counts = np.bincount(cell.ravel(), minlength=n_regions)
     low = np.bincount(cell[cell.shape[0] // 2:].ravel(), minlength=n_regions)
     seeds = np.flatnonzero((counts >= share * cell.size) & (low > 0))
     if seeds.size == 0:
-        seeds = np.array([int(np.argmax(counts))])
-    elif lateral > 0 and seeds.size > 1:
+        # the ground under the robot is fragmented (leaf litter, gravel): it is all of it
+        seeds = np.flatnonzero(low > 0)
+    if lateral > 0 and seeds.size > 1:
         h, w = labels.shape
         top = h - cell.shape[0]   # the cell ends at the frame's bottom
         lo, hi = lateral * (w - 1), (1 - lateral) * (w - 1)
