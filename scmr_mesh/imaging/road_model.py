@@ -317,7 +317,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
         the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
         the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
-        had ground contact and the largest region of the cell was taken instead), and for
+        had both the share and ground contact, so the cell's fragments were taken instead), and for
         :func:`abstain` ``labels``, ``sizes`` (pixels per region) and ``grad`` (Sobel magnitude
         of the grey working frame, for :func:`open_ground`'s sky test).
     """
@@ -506,8 +506,9 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     A robot drives where the mask is green, so green where it cannot drive is the costly
     error.  Three signs say the seed cannot be trusted to extend:
 
-    * **seed not ground**: no region of the bottom-centre cell reaches its lower half (the
-      largest region was taken instead: a vehicle, a wall, a trunk close ahead);
+    * **seed not ground**: no region of the bottom-centre cell has both ``seed_share`` of it and
+      ground contact (the seeds are the fragments reaching the cell's lower half, see
+      :func:`seed_regions`: leaf litter, or a vehicle, a wall, a trunk close ahead over them);
     * **seed reaches the horizon**: the road-like regions connected to the seed reach above
       ``reach`` of the height, so the seed's appearance also matches what stands on the
       ground (trunks, building bases, leaf litter against a hillside), a low-contrast seed;
