@@ -249,8 +249,12 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float, lateral: floa
     The second condition is a ground-contact check: the road is the surface the robot
     stands on, so in a forward camera it continues down to the cell's lower rows, while
     a vehicle ahead stands *on* the road and ends above them (its lower edge is road).
-    When no region passes both tests the largest region of the cell is the seed (and
-    :func:`classify` reports the seed as not ground).
+    When no region passes both tests, the ground under the robot is fragmented into regions
+    smaller than ``share`` of the cell (leaf litter, gravel, a patchwork of shade): the seeds are
+    then all the regions that reach the cell's lower half, the ground the robot stands on, and
+    :func:`classify` reports the seed as not ground, so :func:`abstain` shrinks the mask to the
+    rows below ``cap`` (issue 27: before, the largest region of the cell alone was the seed, and
+    a forest floor of leaf litter kept a fraction of its own ground).
 
     With ``lateral`` > 0, a seed other than the one covering most of the cell is dropped when its
     centroid lies outside ``[lateral, 1 - lateral]`` of the width *and* it reaches above the cell
@@ -266,14 +270,18 @@ def seed_regions(labels: np.ndarray, n_regions: int, share: float, lateral: floa
     >>> lab = np.zeros((112, 150), np.int32); lab[56:, 125:] = 1; lab[100:, 80:] = 1   # a verge beside the road
     >>> seed_regions(lab, 2, 0.1).tolist(), seed_regions(lab, 2, 0.1, 0.25).tolist()
     ([0, 1], [0])
+    >>> litter = (np.arange(112)[:, None] // 4 * 38 + np.arange(150)[None, :] // 4).astype(np.int32)
+    >>> seed_regions(litter, int(litter.max()) + 1, 0.1).size   # 4x4 patches: 39 in the cell's lower half
+    39
     """
     cell = bottom_centre(roi(labels))
     counts = np.bincount(cell.ravel(), minlength=n_regions)
     low = np.bincount(cell[cell.shape[0] // 2:].ravel(), minlength=n_regions)
     seeds = np.flatnonzero((counts >= share * cell.size) & (low > 0))
     if seeds.size == 0:
-        seeds = np.array([int(np.argmax(counts))])
-    elif lateral > 0 and seeds.size > 1:
+        # the ground under the robot is fragmented (leaf litter, gravel): it is all of it
+        seeds = np.flatnonzero(low > 0)
+    if lateral > 0 and seeds.size > 1:
         h, w = labels.shape
         top = h - cell.shape[0]   # the cell ends at the frame's bottom
         lo, hi = lateral * (w - 1), (1 - lateral) * (w - 1)
@@ -309,7 +317,7 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
         ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
         the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
         the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
-        had ground contact and the largest region of the cell was taken instead), and for
+        had both the share and ground contact, so the cell's fragments were taken instead), and for
         :func:`abstain` ``labels``, ``sizes`` (pixels per region) and ``grad`` (Sobel magnitude
         of the grey working frame, for :func:`open_ground`'s sky test).
     """
@@ -498,8 +506,9 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     A robot drives where the mask is green, so green where it cannot drive is the costly
     error.  Three signs say the seed cannot be trusted to extend:
 
-    * **seed not ground**: no region of the bottom-centre cell reaches its lower half (the
-      largest region was taken instead: a vehicle, a wall, a trunk close ahead);
+    * **seed not ground**: no region of the bottom-centre cell has both ``seed_share`` of it and
+      ground contact (the seeds are the fragments reaching the cell's lower half, see
+      :func:`seed_regions`: leaf litter, or a vehicle, a wall, a trunk close ahead over them);
     * **seed reaches the horizon**: the road-like regions connected to the seed reach above
       ``reach`` of the height, so the seed's appearance also matches what stands on the
       ground (trunks, building bases, leaf litter against a hillside), a low-contrast seed;
