@@ -185,6 +185,29 @@ def test_records_round_trip_and_validation():
         decode_records(b"\xc1")
 
 
+def test_a_records_digest_and_dict_are_as_before_and_the_digest_is_hashed_once(monkeypatch):
+    # issue 23: the cloud asked a record for its digest three times (signature, insert, ack); it is
+    # now kept, with the same bytes as before (pinned: computed by the code before the change) and
+    # to_dict() the same as dataclasses.asdict gave. Fails on the old code (sha256 run each call).
+    import dataclasses
+    import hashlib
+
+    import scmr_mesh.data.record as record
+
+    rec = TelemetryRecord("r7", 3, 1795776480033490829, (1.0, -2.5, 0.25), 0.5, "degraded",
+                          {"z": [1, (2, 3), {"b": b"\x00", "a": None}], "a": {"y": 1.5, "x": True}}, 42, b"sig")
+    calls, sha256 = [], hashlib.sha256
+    monkeypatch.setattr(record.hashlib, "sha256", lambda b: calls.append(1) or sha256(b))
+    assert rec.digest().hex() == "b5ca0dab7240435e32af01648fc4411a8dc1401bdb5bb7f006a72778b041159f"
+    assert rec.digest() == rec.digest() and len(calls) == 1
+    want = dataclasses.asdict(rec)
+    want["pose"] = [1.0, -2.5, 0.25]
+    assert rec.to_dict() == want and rec.to_dict()["results"] is not rec.results
+    del want["sig"]
+    assert rec.to_dict(signed=False) == want
+    assert rec == dataclasses.replace(rec) and repr(rec) == repr(dataclasses.replace(rec))
+
+
 def test_telemetry_report_counts_lost_duplicates_and_unexpected(tmp_path):
     with OperationalDataStore(tmp_path / "ods.sqlite") as ods:
         ods.insert([make_record("r1", s, t_unix_ns=s) for s in (1, 2, 3, 3, 5, 6, 7)], received_from="cloud")

@@ -118,3 +118,33 @@ def test_a_leader_beyond_the_term_window_is_not_the_robots_first_choice():
     assert v.snapshot().leader == ("leader0", "r9")
     _down(v, "leader", "leader0")
     assert v.snapshot().leader == ("r9",)  # alone, it is a leader like any other
+
+
+def test_robots_of_one_process_check_a_load_or_candidacy_payload_once(monkeypatch):
+    """Issue 23: the robots a swarm plays receive the same load and heartbeat bytes; the first
+    checks them against the schema, the others reuse it, and each view still gets the sample.
+    A payload that fails the check is not kept: each robot refuses it. Fails on the old code
+    (wire.decode ran for every sample of every robot: 8 calls, not 4)."""
+    import scmr_mesh.mesh.liveview as liveview
+
+    calls = []
+    decode = wire.decode
+    monkeypatch.setattr(liveview.wire, "decode", lambda data, kind: calls.append(kind) or decode(data, kind=kind))
+    monkeypatch.setattr(liveview, "_decoded", {}, raising=False)
+    views = [LiveView(), LiveView()]
+    load = wire.encode(wire.make_load("c7", "cloud", workers=2, inflight=3, served=11, clock_hz=2e9))
+    cand = wire.encode(wire.make_candidate("L7", term=4, leading=True, clock_hz=1e9, power_w=None, battery=1.0,
+                                           load=0.0))
+    for v in views:
+        _up(v, "cloud", "c7")
+        _up(v, "leader", "L7")
+        v.on_load(_Sample(keys.load("cloud", "c7"), zenoh.SampleKind.PUT, _Payload(load)))
+        v.on_candidate(_Sample(keys.candidate("L7"), zenoh.SampleKind.PUT, _Payload(cand)))
+        # the same heartbeat on another candidate's key is still refused by each robot
+        v.on_candidate(_Sample(keys.candidate("r9"), zenoh.SampleKind.PUT, _Payload(cand)))
+        v.on_load(_Sample(keys.load("cloud", "c7"), zenoh.SampleKind.PUT, _Payload(b"\xc1junk")))
+    assert sorted(calls) == ["candidate", "load", "load", "load"]  # junk checked (and refused) by each
+    for v in views:
+        snap = v.snapshot()
+        assert snap.loads == {"c7": 1.5} and snap.clocks == {"c7": 2e9}
+        assert v._cands["L7"].term == 4 and "r9" not in v._cands

@@ -15,10 +15,11 @@ relay cannot make up another robot's records.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 import msgpack
@@ -80,17 +81,27 @@ class TelemetryRecord:
         """SHA-256 of the record's content (every field but ``sig``; maps in key order): the identity
         of its content.  The store acks a repeated ``(robot, inc, seq)`` as a duplicate only when
         the digests match, a robot deletes a queued record only when the store's ack names its
-        digest, and the robot signs it (:mod:`scmr_mesh.data.signing`)."""
-        body = ["scmr-record/1", self.robot, self.inc, self.seq, self.t_unix_ns,
-                None if self.pose is None else list(self.pose), self.battery, self.health, _canon(self.results)]
-        return hashlib.sha256(msgpack.packb(body, use_bin_type=True)).digest()
+        digest, and the robot signs it (:mod:`scmr_mesh.data.signing`).
+
+        Computed once per record object and kept (the record is frozen; its ``results`` map must
+        not be changed once it is made): the cloud asks for it three times per record (the
+        signature check, the store's insert, the ack; issue 23)."""
+        cached = self.__dict__.get("_digest")
+        if cached is None:
+            body = ["scmr-record/1", self.robot, self.inc, self.seq, self.t_unix_ns,
+                    None if self.pose is None else list(self.pose), self.battery, self.health, _canon(self.results)]
+            cached = hashlib.sha256(msgpack.packb(body, use_bin_type=True)).digest()
+            object.__setattr__(self, "_digest", cached)  # not a field: eq, hash, repr, replace() ignore it
+        return cached
 
     def to_dict(self, *, signed: bool = True) -> dict[str, Any]:
         """The record as a plain dict (``pose`` as a list or None; ``sig`` only when signed and ``signed``)."""
-        d = asdict(self)
-        d["pose"] = list(self.pose) if self.pose is not None else None
-        if d["sig"] is None or not signed:
-            del d["sig"]
+        # what dataclasses.asdict gave (a fresh copy of ``results``), without its per-value dataclass checks
+        d = {"robot": self.robot, "seq": self.seq, "t_unix_ns": self.t_unix_ns,
+             "pose": list(self.pose) if self.pose is not None else None, "battery": self.battery,
+             "health": self.health, "results": _copy(self.results), "inc": self.inc}
+        if self.sig is not None and signed:
+            d["sig"] = self.sig
         return d
 
     @classmethod
@@ -144,7 +155,35 @@ class TelemetryRecord:
         return cls(robot, seq, t, pose, battery, health, dict(results), inc, sig)
 
 
+#: Types :func:`_canon` and :func:`_copy` pass through as they are (immutable scalars).
+_SCALARS = frozenset((str, int, float, bool, bytes, type(None)))
+
+
+def _copy(obj: Any) -> Any:
+    """A copy of a record's ``results`` as ``dataclasses.asdict`` makes it (dicts, lists and
+    tuples rebuilt, immutable scalars shared, anything else deep-copied), only faster."""
+    t = type(obj)
+    if t in _SCALARS:
+        return obj
+    if t is dict:
+        return {_copy(k): _copy(v) for k, v in obj.items()}
+    if t is list or t is tuple:
+        return t(_copy(v) for v in obj)
+    if isinstance(obj, dict):
+        return type(obj)((_copy(k), _copy(v)) for k, v in obj.items())
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_copy(v) for v in obj)
+    return copy.deepcopy(obj)
+
+
 def _canon(obj: Any) -> Any:
+    t = type(obj)  # the common exact types first: isinstance(x, typing.Mapping) is an ABC check
+    if t in _SCALARS:
+        return obj
+    if t is dict:
+        return [[k, _canon(obj[k])] for k in sorted(obj, key=repr)]
+    if t is list or t is tuple:
+        return [_canon(v) for v in obj]
     if isinstance(obj, Mapping):
         return [[k, _canon(obj[k])] for k in sorted(obj, key=repr)]
     if isinstance(obj, (list, tuple)):
