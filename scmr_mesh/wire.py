@@ -290,7 +290,9 @@ def decode(data: bytes | bytearray, *, kind: str | tuple[str, ...], max_bytes: i
         Expected kind(s); the message's own ``kind`` picks the schema.
     max_bytes : int, optional
         Reject larger payloads with code ``oversized`` before parsing; default
-        :data:`MAX_BYTES` of the (first) kind, no cap for requests and replies.
+        :data:`MAX_BYTES` of the (first) kind, no cap for requests and replies, and
+        then the cap of the kind the message turned out to be (a receipt where a
+        reply or a receipt may come).
 
     Returns
     -------
@@ -304,13 +306,14 @@ def decode(data: bytes | bytearray, *, kind: str | tuple[str, ...], max_bytes: i
     """
     kinds = (kind,) if isinstance(kind, str) else tuple(kind)
     try:
-        return _decode(data, kinds, max_bytes if max_bytes is not None else MAX_BYTES.get(kinds[0]))
+        return _decode(data, kinds, max_bytes if max_bytes is not None else MAX_BYTES.get(kinds[0]),
+                       per_kind=max_bytes is None)
     except WireProblem as exc:
         _count_rejection(kinds[0], exc)
         raise
 
 
-def _decode(data: bytes | bytearray, kinds: tuple[str, ...], max_bytes: int | None) -> dict:
+def _decode(data: bytes | bytearray, kinds: tuple[str, ...], max_bytes: int | None, per_kind: bool = False) -> dict:
     if max_bytes is not None and len(data) > max_bytes:
         raise WireProblem(
             "oversized",
@@ -335,6 +338,10 @@ def _decode(data: bytes | bytearray, kinds: tuple[str, ...], max_bytes: int | No
             validate(msg, kinds[0])
         raise WireProblem("malformed", f"expected a message of kind {'/'.join(kinds)}, got kind "
                           f"{str(got)[:60]!r}; {fix}", partial=msg)
+    cap = MAX_BYTES.get(got) if per_kind and got != kinds[0] else None
+    if cap is not None and len(data) > cap:  # e.g. a "receipt" read where a reply or a receipt may come
+        raise WireProblem("oversized", f"payload of {len(data)} bytes exceeds the limit of {cap} bytes; "
+                          f"a {got} message is a few hundred bytes")
     validate(msg, got)
     return msg
 

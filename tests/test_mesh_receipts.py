@@ -58,14 +58,14 @@ def _learn_receipts(robot, n: int = RECEIPT_RULE.min_samples) -> None:
         rec = robot.request(seq, FRAME)
         assert rec["ok"] and rec["tier"] == "cloud" and not rec["hedged"], rec
         assert rec["attempts"][0]["receipt_ms"] >= 0, rec["attempts"]
-    assert len(robot._receipt_times["cloud"]) == n
+    assert len(robot._receipt_times["cloud", "c1"]) == n
 
 
 def test_a_copy_with_no_receipt_is_hedged_at_the_receipt_delay_not_the_answers(tmp_path):
     robot, cloud, leader = _receipting_robot(tmp_path)
     try:
         _learn_receipts(robot)
-        assert RECEIPT_RULE.floor_ms <= robot.receipt_delay_ms("cloud") < ANSWER_HEDGE_S * 1e3
+        assert RECEIPT_RULE.floor_ms <= robot.receipt_delay_ms("cloud", "c1") < ANSWER_HEDGE_S * 1e3
         cloud.behaviour = "silent"  # the cloud's link goes silent: no receipt, no answer
         rec = robot.request(10, FRAME)
         # hedged on the missing receipt (15 ms), not after the answer's 30 s delay
@@ -96,7 +96,8 @@ def test_a_node_that_never_sends_receipts_is_judged_by_its_answers_only(tmp_path
     try:
         for seq in range(RECEIPT_RULE.min_samples + 1):
             assert robot.request(seq, FRAME)["tier"] == "cloud"
-        assert robot.receipt_delay_ms("cloud") is None and "receipt_ms" not in robot.request(9, FRAME)["attempts"][0]
+        assert robot.receipt_delay_ms("cloud", "c1") is None
+        assert "receipt_ms" not in robot.request(9, FRAME)["attempts"][0]
         cloud.slow_s = 0.3
         rec = robot.request(10, FRAME)
         assert rec["tier"] == "cloud" and not rec["hedged"], rec["attempts"]
@@ -104,11 +105,18 @@ def test_a_node_that_never_sends_receipts_is_judged_by_its_answers_only(tmp_path
         robot.close()
 
 
-def test_receipts_are_asked_for_only_with_hedging_on(tmp_path):
-    robot, fakes = _robot(tmp_path, "fast", "fast", hedge=False)
+@pytest.mark.parametrize("opts", [{"hedge": False}, {"hedge_ms": 40.0}, {"redundant": True}])
+def test_receipts_are_asked_for_only_when_learnt_hedging_uses_them(tmp_path, opts):
+    # --hedge-ms off / MS: nothing judges receipts; --redundant sends to both tiers at once
+    robot, fakes = _robot(tmp_path, "fast", "fast", **opts)
     try:
         req = wire.decode(robot._request_payload(0, FRAME, 1), kind="request")
-        assert "receipt" not in req
+        assert "receipt" not in req and robot.receipt_delay_ms("cloud", "c1") is None
+    finally:
+        robot.close()
+    robot, fakes = _robot(tmp_path / "auto", "fast", "fast")
+    try:
+        assert wire.decode(robot._request_payload(0, FRAME, 1), kind="request")["receipt"] is True
     finally:
         robot.close()
 
@@ -132,7 +140,11 @@ def test_a_receipt_is_never_taken_as_the_answer(tmp_path):
 
 
 # -------------------------------------------------------------- service side
-def _kinds(q: FakeQuery) -> list[str]:
+def _kinds(q: FakeQuery, n: int = 0, timeout: float = 5.0) -> list[str]:
+    """The kinds of what ``q`` got, once it got at least ``n`` messages (they go from sender threads)."""
+    from scmr_mesh.mesh.testing import wait_for
+
+    wait_for(lambda: len(q.answers) >= n, timeout=timeout, what=f"{n} messages on the query")
     return [wire.decode(p, kind=("reply", "receipt", "error"))["kind"] for _k, p in q.answers]
 
 
@@ -143,14 +155,14 @@ def test_a_service_sends_the_receipt_first_only_when_asked(asked):
         req = wire.make_request("r1", 5, b"\x89PNG frame", encoding="png", receipt=asked)
         q = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), wire.encode(req))
         svc._on_query(q)
-        assert _kinds(q) == (["receipt"] if asked else [])  # at once, before any work
-        if asked:
+        if asked:  # at once, before any work
+            assert _kinds(q, 1) == ["receipt"]
             rc = wire.decode(q.answers[0][1], kind="receipt")
             assert wire.reply_mismatch(wire.asked_of(req), rc) is None and rc["served_by"] == "c1"
         svc.pool.futs[0].set_result({"mask_png": b"\x89PNG\r\n\x1a\n..", "shape": [225, 300], "threshold": 1,
                                      "worker_ms": 5.0})
         assert q.dropped.wait(5.0)
-        assert _kinds(q) == (["receipt", "reply"] if asked else ["reply"])
+        assert _kinds(q, 2 if asked else 1) == (["receipt", "reply"] if asked else ["reply"])
     finally:
         svc.replier.close()
 
@@ -163,7 +175,7 @@ def test_a_copy_that_joins_gets_its_own_receipt_and_a_refused_request_none_after
         copy = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), wire.encode(req))
         svc._on_query(first)
         svc._on_query(copy)
-        assert _kinds(first) == ["receipt"] and _kinds(copy) == ["receipt"]  # the copy waits for the first's run
+        assert _kinds(first, 1) == ["receipt"] and _kinds(copy, 1) == ["receipt"]  # the copy waits for the first's run
         bad = FakeQuery(keys.drivable_request("cloud", "c1", "r1"), b"\x81\xa1v\x01")  # not a request
         svc._on_query(bad)
         assert bad.dropped.wait(5.0) and _kinds(bad) == ["error"]  # no receipt for what it could not read
@@ -232,3 +244,48 @@ def test_the_scenario_bench_counts_hedges_of_fault_free_requests_only():
     rows = fault_free_rows(rep)
     assert [q["sent_s"] for q in rows] == [0.5, 12.0]  # 1 s around each fault; the last never ends
     assert [_hedged(q) for q in rows] == [False, True]
+
+
+# -------------------------------------------- the hostile review's reproductions (all failed on b8c218c)
+def test_a_node_without_receipts_stops_being_expected_to_send_them(tmp_path):
+    """Windows were per tier and pooled: once the cloud had sent receipts, a leader that sends none
+    (an outside server, or one whose receipts are lost) was 'silent' after every send, each frame
+    copied again and the budget drained.  Now receipts are learnt per node, and a node whose last
+    UNRECEIPTED_MAX answers came without one is judged by its answers only."""
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    leader.receipt, leader.slow_s = False, 0.05  # answers in 50 ms, never a receipt
+    try:
+        _learn_receipts(robot)
+        robot.view.on_liveliness(_Sample(keys.alive("cloud", "c1"), zenoh.SampleKind.DELETE))  # cloud gone
+        recs = [robot.request(20 + i, FRAME) for i in range(5)]
+        assert all(r["ok"] and r["tier"] == "leader" for r in recs)
+        late = recs[robot.UNRECEIPTED_MAX:]
+        assert all(len(r["attempts"]) == 1 for r in late), [r["attempts"] for r in recs]
+        assert leader.calls <= len(recs) + robot.UNRECEIPTED_MAX
+    finally:
+        robot.close()
+
+
+def test_a_hedge_whose_node_sent_its_receipt_waits_for_its_own_tiers_answer_delay(tmp_path):
+    """answer_due used the primary tier's answer delay for the hedge's node: a leader (slower than the
+    cloud) that had receipted the hedge got the whole frame again after the cloud's 50 ms."""
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    try:
+        _learn_receipts(robot)
+        robot.hedge_delay_ms = lambda tier, elapsed_ms=0.0: {"cloud": 50.0, "leader": 1000.0}.get(tier)
+        cloud.behaviour = "silent"
+        leader.slow_s = 0.25  # receipt at once, answer at 250 ms: inside the leader's own 1 s delay
+        rec = robot.request(10, FRAME)
+        assert rec["ok"] and rec["tier"] == "leader"
+        assert leader.calls == 1, rec["attempts"]
+    finally:
+        robot.close()
+
+
+def test_a_receipt_read_where_a_reply_may_come_has_the_receipt_size_cap():
+    req = wire.make_request("r1", 1, b"x", receipt=True)
+    big = wire.encode(wire.make_receipt(req, served_by="c1" * 5000, tier="cloud"))
+    assert len(big) > wire.MAX_BYTES["receipt"]
+    with pytest.raises(wire.WireProblem) as exc:
+        wire.decode(big, kind=("reply", "receipt"))
+    assert exc.value.code == "oversized"

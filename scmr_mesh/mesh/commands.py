@@ -373,7 +373,7 @@ def _robot_args(p: argparse.ArgumentParser, *, leader: bool) -> None:
                    help="hedged requests: when the preferred tier has not answered within the hedge delay, send "
                         "the same frame to the next live tier and keep the first good answer; 'auto' (default) "
                         "learns the delay per tier (recent p95 + 20 ms, at least 30 ms, 150 ms before 5 answers) "
-                        "and hedges sooner a copy whose node sent no receipt within p95 + 10 ms (at least 15 ms) "
+                        "and hedges sooner a copy whose node sent no receipt within p95 + 10 ms (at least 20 ms) "
                         "of its receipts; MS fixes the delay (no receipts asked), 'off' waits for the deadline as "
                         "before (docs/R2R.md, Hedged requests)")
     g.add_argument("--local-fallback", action=argparse.BooleanOptionalAction, default=True,

@@ -244,8 +244,11 @@ class Robot:
         self._answer_times = {t: AnswerTimes() for t in keys.TIERS}
         #: the time from a copy's send to its node's receipt, by tier, and over every tier (a tier
         #: not heard from enough yet, e.g. the leader at the cloud's loss, uses the pooled one)
-        self._receipt_times = {t: AnswerTimes(warmup=0) for t in keys.TIERS}
+        self._receipt_times: dict[tuple[str, str], AnswerTimes] = {}  # by (tier, node)
         self._receipt_all = AnswerTimes(warmup=0)
+        #: answers in a row that came with no receipt, by (tier, node): a node that sends none
+        #: (a server outside the project, or one whose receipts are lost) is not expected to
+        self._unreceipted: dict[tuple[str, str], int] = {}
         self._hedge_budget = HedgeBudget()
 
     # ------------------------------------------------------------ hooks
@@ -430,9 +433,9 @@ class Robot:
             if why:
                 return self._refuse(att, Outcome.MISMATCHED, why, asked)
             if msg["kind"] == "receipt":  # the node has the request; its answer follows
-                if t_send is not None and "receipt_ms" not in att:
-                    att["receipt_ms"] = round((time.perf_counter() - t_send) * 1e3, 3)
+                if "receipt_ms" not in att:
                     att["receipt_bytes"] = len(data)  # (in the record's bytes_down: energy counts it)
+                    att["receipt_ms"] = round((time.perf_counter() - t_send) * 1e3, 3) if t_send is not None else None
                 return None
             att["outcome"] = Outcome.OK
             return Reply(att["tier"], att["node"], msg, len(data))
@@ -607,10 +610,19 @@ class Robot:
         att.update(scratch)
         if winner is not None and answer_ms is not None:
             self._answer_times[str(att["tier"])].add(answer_ms)
+        where = (str(att["tier"]), str(att["node"]))
         receipt_ms = scratch.get("receipt_ms")
         if receipt_ms is not None:
-            self._receipt_times[str(att["tier"])].add(receipt_ms)
+            times = self._receipt_times.get(where)
+            if times is None:
+                from scmr_mesh.qos.hedge import AnswerTimes
+
+                times = self._receipt_times[where] = AnswerTimes(warmup=0)
+            times.add(receipt_ms)
             self._receipt_all.add(receipt_ms)
+            self._unreceipted[where] = 0
+        elif winner is not None and self._receipts_asked():
+            self._unreceipted[where] = self._unreceipted.get(where, 0) + 1
         return winner
 
     def _tier_send(self, att: dict, q, payload: bytes, asked: dict | None = None) -> Reply | None:
@@ -668,22 +680,33 @@ class Robot:
         return hedge_delay_ms(self._answer_times[str(tier)].values(), deadline_ms=opts.deadline_ms,
                               elapsed_ms=elapsed_ms)
 
-    def receipt_delay_ms(self, tier: str, elapsed_ms: float = 0.0) -> float | None:
-        """How long a copy sent to ``tier`` may go without its node's receipt (ms), or None: not judged.
+    #: Answers in a row without a receipt after which a node is no longer expected to send one.
+    UNRECEIPTED_MAX = 2
 
-        Learnt from the tier's recent receipts, or from every tier's while the tier has
-        too few (the leader at the cloud's loss): :func:`scmr_mesh.qos.hedge.receipt_delay_ms`.
-        None with hedging off or fixed (``--hedge-ms MS``), or before enough receipts came.
+    def _receipts_asked(self) -> bool:
+        """Whether requests ask for receipts: only when something uses them (learnt hedging; not
+        ``--hedge-ms MS``, not ``--redundant``, which sends to both tiers at once anyway)."""
+        opts = self.options
+        return bool(opts.hedge and opts.hedge_ms is None and not opts.redundant)
+
+    def receipt_delay_ms(self, tier: str, node: str, elapsed_ms: float = 0.0) -> float | None:
+        """How long a copy sent to ``node`` may go without its receipt (ms), or None: not judged.
+
+        Learnt from the node's recent receipts, or from every node's while it has too few
+        (a leader at the cloud's loss): :func:`scmr_mesh.qos.hedge.receipt_delay_ms`.  None
+        when receipts are not asked for (:meth:`_receipts_asked`), before enough receipts
+        came, or for a node whose last :attr:`UNRECEIPTED_MAX` answers came without one.
         """
         from scmr_mesh.qos.hedge import RECEIPT_RULE, receipt_delay_ms
 
-        opts = self.options
-        if not opts.hedge or opts.hedge_ms is not None:
+        if not self._receipts_asked():
             return None
-        xs = self._receipt_times[str(tier)].values()
-        if len(xs) < RECEIPT_RULE.min_samples:
-            xs = self._receipt_all.values()
-        return receipt_delay_ms(xs, deadline_ms=opts.deadline_ms, elapsed_ms=elapsed_ms)
+        where = (str(tier), str(node))
+        if self._unreceipted.get(where, 0) >= self.UNRECEIPTED_MAX:
+            return None
+        own = self._receipt_times.get(where)
+        xs = own.values() if own is not None and len(own) >= RECEIPT_RULE.min_samples else self._receipt_all.values()
+        return receipt_delay_ms(xs, deadline_ms=self.options.deadline_ms, elapsed_ms=elapsed_ms)
 
     def _hedge_target(self, plan: list, tier: str, tried: set) -> tuple[tuple[str, str], Any] | None:
         """Where a hedge of a request silent at ``tier`` goes: another live node of the same tier (a
@@ -741,7 +764,7 @@ class Robot:
         silence = "silent for"
         if delay is not None:
             # no receipt in time: the copy or its node is lost, known long before the answer is late
-            rdelay = self.receipt_delay_ms(tier, elapsed_ms)
+            rdelay = self.receipt_delay_ms(tier, node, elapsed_ms)
             if rdelay is not None and rdelay < delay and not primary.heard.wait(rdelay / 1e3):
                 silent, delay, silence = True, rdelay, "no receipt in"
             else:
@@ -769,8 +792,9 @@ class Robot:
         # receipts it is silent when its receipt is late; a hedge whose node has it waits for the
         # answer as long as the primary did
         hedge_sent = time.monotonic()
-        hreceipt = self.receipt_delay_ms(htier, (time.perf_counter() - t_start) * 1e3)
-        answer_due = hedge_sent + max(delay, self.hedge_delay_ms(tier, 0.0) or delay) / 1e3
+        hreceipt = self.receipt_delay_ms(htier, hnode, (time.perf_counter() - t_start) * 1e3)
+        # (the hedge's own tier's answer delay: a leader answers slower than the cloud it stands in for)
+        answer_due = hedge_sent + max(delay, self.hedge_delay_ms(htier, 0.0) or delay) / 1e3
         resend_at = None if resend else hedge_sent + (delay if hreceipt is None else min(hreceipt, delay)) / 1e3
         if resend_at is not None and resend_at + self.RESEND_MIN_LEFT_S > limit:
             resend_at = None
@@ -872,7 +896,7 @@ class Robot:
         opts = self.options
         return wire.make_request(self.id, seq, frame.data, encoding=frame.encoding, shape=frame.shape,
                                  priority=opts.priority, mode=opts.mode, sent_unix_ns=sent_ns,
-                                 deadline_ms=opts.deadline_ms, receipt=bool(opts.hedge))
+                                 deadline_ms=opts.deadline_ms, receipt=self._receipts_asked())
 
     def _request_payload(self, seq: int, frame: Frame, sent_ns: int) -> bytes:
         return wire.encode(self._request_message(seq, frame, sent_ns))

@@ -722,20 +722,29 @@ class Service:
         fut.add_done_callback(lambda f: self._finish(query, req, f, t_arrival, t_sub))
 
     def _send_receipt(self, query, req: dict, tier: str) -> None:
-        """Tell the robot at once that ``req`` is here (it asked: ``receipt``); its answer follows.
+        """Tell the robot that ``req`` is here (it asked: ``receipt``); its answer follows.
 
-        Sent from zenoh's callback thread, before any answer can be (so always first), with
-        congestion control ``drop`` and ``express``: it never waits for queue space, and a
-        receipt lost to a full link only makes the robot hedge (docs/R2R.md "Hedged requests").
+        Queued on the reply senders like every reply, never sent from zenoh's callback
+        thread: a reply inherits its query's congestion control (zenoh 1.10 ignores a
+        reply's own), and a client whose link is stuck would hold that thread, and with
+        it the reception of every other query, up to ``wait_before_close``.  Queued at
+        once, it goes out long before an answer that needs the pipeline; a copy that joins a
+        run about to finish, or a request refused at once, may see its answer first (robots
+        ignore a receipt after the answer; docs/protocol.md says clients must too).
         """
-        import zenoh
-
         try:
             payload = wire.encode(wire.make_receipt(req, served_by=self.node, tier=tier))
-            query.reply(str(query.key_expr), payload, encoding=_msgpack(),
-                        congestion_control=zenoh.CongestionControl.DROP, express=True)
         except Exception as exc:  # the answer still follows; without the receipt the robot may hedge
-            log.debug("receipt to %s/%s not sent: %s", req.get("robot"), req.get("seq"), exc)
+            log.debug("receipt to %s/%s not built: %s", req.get("robot"), req.get("seq"), exc)
+            return
+
+        def send() -> None:
+            try:
+                query.reply(str(query.key_expr), payload, encoding=_msgpack())
+            except Exception as exc:  # the query was answered and dropped meanwhile
+                log.debug("receipt to %s/%s not sent: %s", req.get("robot"), req.get("seq"), exc)
+
+        self.replier.send(send)
 
     def _cap_priority(self, req: dict) -> None:
         """Lower ``req["priority"]`` to the fleet's cap for its (key-bound) robot."""

@@ -67,10 +67,10 @@ class HedgeRule:
 DEFAULT_RULE = HedgeRule()
 #: The rule for a copy's *receipt* (docs/R2R.md "Hedged requests"): a node sends it the moment
 #: the request is taken in, so it measures the way there and back, not the pipeline; a copy
-#: with no receipt past p95 + 10 ms (at least 15 ms) of its tier's recent receipts is
+#: with no receipt past p95 + 10 ms (at least 20 ms) of its node's recent receipts is
 #: silent.  No cold delay (:func:`receipt_delay_ms`): with fewer than ``min_samples`` receipts (a node of an older
 #: version, or none yet) only the answer's delay (:data:`DEFAULT_RULE`) applies.
-RECEIPT_RULE = HedgeRule(floor_ms=15.0, margin_ms=10.0)
+RECEIPT_RULE = HedgeRule(floor_ms=20.0, margin_ms=10.0)
 
 
 def _quantile(values: Sequence[float], q: float) -> float:
@@ -122,8 +122,8 @@ def receipt_delay_ms(recent_ms: Sequence[float], *, deadline_ms: float, elapsed_
     the receipt), like :func:`hedge_delay_ms`; None with fewer than ``rule.min_samples``
     receipts (no receipt to expect) or when the hedge would have too little of the deadline left.
 
-    >>> receipt_delay_ms([2.0, 3.0, 2.5, 4.0, 3.5, 2.0], deadline_ms=1000)  # p95 3.9 + 10, floor 15
-    15.0
+    >>> receipt_delay_ms([2.0, 3.0, 2.5, 4.0, 3.5, 2.0], deadline_ms=1000)  # p95 3.9 + 10, floor 20
+    20.0
     >>> receipt_delay_ms([2.0] * 4, deadline_ms=1000) is None  # too few receipts: none expected
     True
     """
