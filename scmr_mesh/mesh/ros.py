@@ -11,7 +11,9 @@ placement, failover, hedging, security, records and telemetry as ``scmr robot``)
 publishes the mask as ``mono8`` (255 = drivable, the input's size, header stamp and
 frame_id) on the mask topic and an ``rgb8`` overlay on ``<mask topic>/overlay`` (made
 only while that topic has a subscriber), each
-sample with rmw_zenoh's attachment.  Liveliness tokens declare its node, its two
+sample with rmw_zenoh's attachment.  A ``CompressedImage`` goes to the mesh as it is: only its
+JPEG/PNG header is read (size, bounds, end marker); its pixels are decoded only for the overlay
+or ``--mcap``.  Liveliness tokens declare its node, its two
 publishers and its subscription, so ``ros2 node list`` / ``ros2 topic info`` see it.
 
 Frames that arrive while one is being served wait in a one-frame slot: a newer frame
@@ -282,15 +284,16 @@ class RosBridge:
         if self.in_type == rw.COMPRESSED_IMAGE:
             msg = rw.decode_compressed(payload)
             kind = rw.compressed_kind(msg.format, msg.data)
-            from scmr_mesh.imaging.codec import decode_image  # bounded: checks the declared size first
+            from scmr_mesh.imaging.codec import image_size  # bounded: the declared size, checked
             from scmr_mesh.errors import ImageDecodeError
 
             try:
-                rgb = decode_image(msg.data)
+                _, width, height = image_size(msg.data)
             except ImageDecodeError as exc:
                 raise rw.RosWireError("encoding", str(exc)) from None
-            frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind, rgb=rgb)
-            return _Pending(msg.header, frame, rgb.shape[0], rgb.shape[1])
+            # sent as it is; its pixels are decoded (Frame.pixels) only for the overlay or --mcap
+            frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind)
+            return _Pending(msg.header, frame, height, width)
         img = rw.decode_image(payload)
         rgb = rw.image_to_rgb(img)
         from scmr_mesh.imaging import encode_jpeg, encode_png
