@@ -359,3 +359,29 @@ def test_ros_mode_auto_is_peer_next_to_the_router_and_client_from_another_host()
     assert ros_mode_for("auto", ["tls/robot.local:7447"]) == "client"
     assert ros_mode_for("client", ["tcp/localhost:7447"]) == "client"
     assert ros_mode_for("peer", ["tcp/10.0.0.1:7447"]) == "peer"
+
+
+def test_a_compressed_frame_is_sized_from_its_header_not_decoded(tmp_path):
+    """A CompressedImage goes to the mesh as it is and its size comes from the JPEG header: its
+    pixels are not decoded on the way in (old code: a full decode of every frame, 2-3 ms at
+    640x480, rgb set here); a JPEG cut before its end marker is still rejected."""
+    from scmr_mesh.mesh.robot import Robot, RobotOptions
+    from scmr_mesh.mesh.ros import RosBridge
+    from scmr_mesh.ros.wire import RosWireError
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    robot = Robot("r1", tmp_path / "r1", options=RobotOptions(process=STUB))
+    try:
+        b = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask", compressed=True)
+        key = _key(ts, "/cam", COMPRESSED)
+        payload = _compressed(ts, 7, _scene(48, 64))
+        p = b._decode(key, payload)
+        assert (p.height, p.width, p.frame.encoding, p.frame.rgb) == (48, 64, "jpeg", None)
+        assert p.frame.pixels().shape == (48, 64, 3)  # decoded when the overlay or --mcap asks
+        ok, jpg = cv2.imencode(".jpg", _scene(48, 64))
+        cut = ts.types[COMPRESSED](header=_header(ts, 8, "cam"), format="jpeg", data=jpg.reshape(-1)[:-40])
+        with pytest.raises(RosWireError) as exc:
+            b._decode(key, bytes(ts.serialize_cdr(cut, COMPRESSED)))
+        assert exc.value.reason == "encoding", exc.value
+    finally:
+        robot.close()

@@ -512,23 +512,27 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
                     "hop back, which any rmw_zenoh node pays) and the bridges' own time outside their ToR "
                     "(bridge_ms); floor: the same frames to an echo node (a peer like the publisher) that "
                     "answers at once (the ROS-side transport alone); floor_router: the same with both ends "
-                    "clients, through the router.  Then N `scmr robot` processes send the same frames (JPEG 90, full size) to "
-                    "the same cloud: robot_tor, and added_vs_robot = median e2e - median robot ToR, the "
-                    "issue's target (docs/BENCHMARKS.md).  Exit 1 when a mask or a floor echo never arrived "
+                    "clients, through the router.  Alternating with the bridges' frames (--rounds blocks each), "
+                    "N `scmr robot` processes send the same frames (JPEG 90, full size) to "
+                    "the same cloud: robot_tor, and added_vs_robot = the median over rounds of (a round's median "
+                    "e2e - the median ToR of its robot block), the issue's target (docs/BENCHMARKS.md).  Exit 1 when a mask or a floor echo never arrived "
                     "(counted in the JSON and on the console).")
     b.add_argument("--robots", type=ca.count("robots", hi=64, example="4"), default=4, metavar="N",
                    help="bridges, each with its own camera topic (default 4)")
     b.add_argument("--rate", type=ca.positive("frames per second", hi=1000, example="5"), default=5.0, metavar="HZ",
                    help="frames per second per robot (default 5)")
     b.add_argument("--duration", type=ca.positive("seconds", hi=3600, example="10"), default=10.0, metavar="S",
-                   help="seconds of frames (default 10)")
+                   help="seconds of frames per round (default 10)")
+    b.add_argument("--rounds", type=ca.count("rounds", hi=100, example="3"), default=3, metavar="R",
+                   help="rounds of a bridge block and an `scmr robot` block, alternating B R, R B, ... (default 3); "
+                        "added_vs_robot is the median of the rounds' paired differences")
     b.add_argument("--size", type=ca.parsed(_frame_size, what="WIDTHxHEIGHT in pixels", example="640x480"),
                    default="640x480", help="camera frame WxH (default: %(default)s)")
     b.add_argument("--process", default=None, metavar="MODULE:FUNC",
                    help="the cloud's process function (default: the stub, scmr_mesh.mesh.testing:stub_process; "
                         "the overhead is paired per frame, so the pipeline's own time cancels out)")
     b.add_argument("--robot-baseline", action=argparse.BooleanOptionalAction, default=True,
-                   help="after the bridges, time the same frames from `scmr robot` processes (default on)")
+                   help="in each round, time the same frames from `scmr robot` processes (default on)")
     b.add_argument("--ros-mode", choices=("auto", "peer", "client"), default="auto",
                    help="the bridges' --ros-mode (default auto: peer, as the router is on loopback; client: "
                         "every frame and mask through the router, as `scmr ros` was before --ros-mode)")

@@ -34,10 +34,14 @@ With ``compressed`` the cameras publish ``sensor_msgs/msg/CompressedImage`` (ima
 ``jpeg``: each scene as JPEG 90, the bytes ``scmr robot`` sends for it) on
 ``/rI/camera/image_raw/compressed`` and the bridges run ``--compressed``.
 
-Then, unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
+Unless ``robot_baseline`` is off, the same frames the way the issue's target is set:
 N ``scmr robot`` processes (``--images`` of the same scenes, JPEG 90 at full size, same cloud,
-same rate, phases within one period) and their ``tor_ms`` (``robot_tor_ms``);
-``added_vs_robot_ms`` is the median e2e minus the median of those ToRs.
+same rate, phases within one period) and their ``tor_ms`` (``robot_tor_ms``), in blocks that
+alternate with the bridges' blocks (``rounds`` rounds: bridge then robot, robot then bridge, ...),
+so each pair runs under the same load of a shared box; ``added_vs_robot_ms`` is the median over
+rounds of (the round's median e2e - its robot block's median ToR), every round counted
+(:func:`added_vs_robot`; ``added_vs_robot_pooled_ms``: all e2e against all robot ToRs, the
+figure before the rounds).
 """
 
 from __future__ import annotations
@@ -75,7 +79,8 @@ def _scene(h: int, w: int, seed: int):
 
 def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
         process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True, ros_mode: str = "auto",
-        floor_router: bool = True, compressed: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+        floor_router: bool = True, compressed: bool = False, rounds: int = 3,
+        progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     import zenoh
 
     from scmr_mesh.mesh.config import close_session, open_session
@@ -148,23 +153,44 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         gid = bytes(16)
         period_ns = int(round(1e9 / rate_hz))
         frames = int(duration_s * rate_hz)
-        say(f"{robots} robots x {frames} frames of {w}x{h} {'jpeg' if compressed else 'rgb8'} at {rate_hz:g} Hz")
-        t0 = time.monotonic_ns() + 100_000_000
-        due = sorted((t0 + k * period_ns + i * period_ns // robots, i, k) for k in range(frames)
-                     for i in range(robots))
-        for t_due, i, k in due:
-            topic = image_topic(i)
-            payload = frame(k, i)
-            left = t_due - time.monotonic_ns()
-            if left > 0:
-                time.sleep(left / 1e9)
-            name = f"{topic}@{k + 1}.{i:09d}"
-            sent[name] = time.perf_counter_ns()
-            pubs[i].put(payload, attachment=rw.Attachment(k + 1, time.time_ns(), gid).encode())
-        try:
-            wait_for(lambda: len(got) >= len(sent), timeout=10, what="the last masks")
-        except TimeoutError:
-            pass
+        say(f"{rounds} round(s) of {robots} robots x {frames} frames of {w}x{h} {'jpeg' if compressed else 'rgb8'} "
+            f"at {rate_hz:g} Hz" + (", bridges and scmr robot alternating" if robot_baseline else ""))
+
+        def bridge_block(r: int) -> list[str]:
+            """Round r's frames (stamps r x frames + k + 1 s) to the bridges; their names."""
+            t0 = time.monotonic_ns() + 100_000_000
+            block = sorted((t0 + k * period_ns + i * period_ns // robots, i, r * frames + k) for k in range(frames)
+                           for i in range(robots))
+            names = []
+            for t_due, i, k in block:
+                payload = frame(k, i)
+                left = t_due - time.monotonic_ns()
+                if left > 0:
+                    time.sleep(left / 1e9)
+                name = f"{image_topic(i)}@{k + 1}.{i:09d}"
+                names.append(name)
+                sent[name] = time.perf_counter_ns()
+                pubs[i].put(payload, attachment=rw.Attachment(k + 1, time.time_ns(), gid).encode())
+            try:
+                wait_for(lambda: len(got) >= len(sent), timeout=10, what="the last masks")
+            except TimeoutError:
+                pass
+            return names
+
+        # bridge and robot blocks alternate (B R, R B, B R, ...): each round's pair ran under the same load
+        rounds_names: list[list[str]] = []
+        rounds_rtor: list[list[float]] = []
+        for r in range(rounds):
+            order = ("bridge", "robot") if r % 2 == 0 else ("robot", "bridge")
+            for what in order:
+                if what == "bridge":
+                    rounds_names.append(bridge_block(r))
+                elif robot_baseline:
+                    say(f"round {r + 1}: the same frames from {robots} scmr robot processes")
+                    rounds_rtor.append(_robot_baseline(tmp / f"round{r}", scenes, robots=robots, rate_hz=rate_hz,
+                                                       frames=frames, process=process,
+                                                       cloud_ep=f"tcp/127.0.0.1:{cport}", procs=procs))
+        due = sorted((k * period_ns + i * period_ns // robots, i, k) for k in range(frames) for i in range(robots))
         for x in (*subs, *pubs):
             x.undeclare()
         summaries = {}
@@ -210,13 +236,10 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
             if lost:
                 say(f"  {lost} of {len(due)} frames sent through the router never came back (not in floor_router_ms)")
         if robot_baseline:
-            say(f"the same frames from {robots} scmr robot processes")
-            rtor = _robot_baseline(tmp, scenes, robots=robots, rate_hz=rate_hz, frames=frames, process=process,
-                                   cloud_ep=f"tcp/127.0.0.1:{cport}", procs=procs)
+            rtor = [t for ts in rounds_rtor for t in ts]
             res["robot_frames"] = len(rtor)
             res["robot_tor_ms"] = _stats(rtor)
-            med = res["robot_tor_ms"]["median"]
-            res["added_vs_robot_ms"] = None if med is None or not paired else round(res["e2e_ms"]["median"] - med, 2)
+            res.update(added_vs_robot(rounds_names, e2e, rounds_rtor))
         return res
     finally:
         if session is not None:
@@ -318,6 +341,29 @@ def _transport_floor(session, ros_ep: str, tmp: Path, frame, robots: int, due, *
     return [(got[n] - sent[n]) / 1e6 for n in sent if n in got], sum(1 for n in sent if n not in got)
 
 
+def added_vs_robot(rounds_names: list[list[str]], e2e: dict[str, float], rounds_rtor: list[list[float]]) -> dict:
+    """The issue's figure from alternating rounds: per round, the median e2e of its bridge block
+    minus the median ToR of its ``scmr robot`` block (run next to it, under the same load);
+    ``added_vs_robot_ms`` is the median of those paired differences, every round counted (a round
+    without a mask or a robot record gives None, listed, and is left out of the median).
+
+    >>> added_vs_robot([["a", "b"], ["c"]], {"a": 10.0, "b": 12.0, "c": 30.0}, [[9.0, 10.0], [20.0]])
+    {'added_vs_robot_rounds_ms': [1.5, 10.0], 'added_vs_robot_ms': 5.75, 'added_vs_robot_pooled_ms': 2.0}
+    """
+    diffs = []
+    for names, rtor in zip(rounds_names, rounds_rtor):
+        ms = [e2e[n] for n in names if n in e2e]
+        diffs.append(round(statistics.median(ms) - statistics.median(rtor), 2) if ms and rtor else None)
+    good = [d for d in diffs if d is not None]
+    all_e2e = [e2e[n] for names in rounds_names for n in names if n in e2e]
+    all_rtor = [t for ts in rounds_rtor for t in ts]
+    return {"added_vs_robot_rounds_ms": diffs,
+            "added_vs_robot_ms": round(statistics.median(good), 2) if good else None,
+            # the old figure, pooled: median of all e2e minus median of all robot ToRs
+            "added_vs_robot_pooled_ms": round(statistics.median(all_e2e) - statistics.median(all_rtor), 2)
+            if all_e2e and all_rtor else None}
+
+
 def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: int, process: str, cloud_ep: str,
                     procs: dict) -> list[float]:
     """ToRs of ``scmr robot`` sending ``scenes`` (one PNG per robot, sent as JPEG 90) to the same cloud."""
@@ -325,6 +371,7 @@ def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: i
 
     from scmr_mesh.mesh.testing import read_records, stop_peer, spawn_peer, wait_for
 
+    tmp.mkdir(parents=True, exist_ok=True)
     start = tmp / "robots.start"
     for i, rgb in enumerate(scenes):
         (tmp / f"img{i}").mkdir(exist_ok=True)
@@ -348,7 +395,7 @@ def _robot_baseline(tmp: Path, scenes, *, robots: int, rate_hz: float, frames: i
 def cmd_bench_ros(args: argparse.Namespace) -> int:
     if args.robots < 1 or args.duration <= 0:
         raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
-    res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size,
+    res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size, rounds=args.rounds,
               process=args.process, robot_baseline=args.robot_baseline, ros_mode=args.ros_mode,
               floor_router=args.floor_router, compressed=args.compressed, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
     text = json.dumps(res, indent=1)

@@ -161,6 +161,26 @@ def _sniff(data: bytes) -> tuple[str, int, int]:
     )
 
 
+def image_size(data: bytes) -> tuple[str, int, int]:
+    """``(kind, width, height)`` of PNG/JPEG bytes from their header, without decoding the pixels.
+
+    The checks :func:`decode_image` makes before it decodes: PNG or JPEG, a size within
+    :data:`MAX_PIXELS` (and :data:`MAX_PROGRESSIVE_PIXELS` for a progressive JPEG), the end
+    marker present (IEND / EOI).  A body corrupt past its header is not detected here.
+
+    Raises
+    ------
+    ImageDecodeError
+        As :func:`decode_image` does for the same checks.
+
+    Examples
+    --------
+    >>> image_size(encode_png(np.zeros((2, 3), np.uint8)))
+    ('PNG', 3, 2)
+    """
+    return _sniff(_check_bytes(data))
+
+
 def _imdecode(data: bytes, flags: int, kind: str) -> np.ndarray:
     buf = np.frombuffer(data, dtype=np.uint8)
     try:

@@ -11,7 +11,9 @@ placement, failover, hedging, security, records and telemetry as ``scmr robot``)
 publishes the mask as ``mono8`` (255 = drivable, the input's size, header stamp and
 frame_id) on the mask topic and an ``rgb8`` overlay on ``<mask topic>/overlay`` (made
 only while that topic has a subscriber), each
-sample with rmw_zenoh's attachment.  Liveliness tokens declare its node, its two
+sample with rmw_zenoh's attachment.  A ``CompressedImage`` goes to the mesh as it is: only its
+JPEG/PNG header is read (size, bounds, end marker); its pixels are decoded only for the overlay
+or ``--mcap``.  Liveliness tokens declare its node, its two
 publishers and its subscription, so ``ros2 node list`` / ``ros2 topic info`` see it.
 
 Frames that arrive while one is being served wait in a one-frame slot: a newer frame
@@ -120,7 +122,7 @@ def mask_for(mask_png: bytes, height: int, width: int):
     small = cv2.imdecode(np.frombuffer(mask_png, np.uint8), cv2.IMREAD_GRAYSCALE)
     if small is None:
         raise ValueError(f"the service's mask ({len(mask_png)} bytes) is not a PNG")
-    small = np.where(small > 0, np.uint8(255), np.uint8(0))
+    small = cv2.threshold(small, 0, 255, cv2.THRESH_BINARY)[1]  # > 0 -> 255 (0.002 ms; np.where: 0.04)
     if small.shape != (height, width):
         small = cv2.resize(small, (width, height), interpolation=cv2.INTER_NEAREST)
     return small
@@ -282,15 +284,16 @@ class RosBridge:
         if self.in_type == rw.COMPRESSED_IMAGE:
             msg = rw.decode_compressed(payload)
             kind = rw.compressed_kind(msg.format, msg.data)
-            from scmr_mesh.imaging.codec import decode_image  # bounded: checks the declared size first
+            from scmr_mesh.imaging.codec import image_size  # bounded: the declared size, checked
             from scmr_mesh.errors import ImageDecodeError
 
             try:
-                rgb = decode_image(msg.data)
+                _, width, height = image_size(msg.data)
             except ImageDecodeError as exc:
                 raise rw.RosWireError("encoding", str(exc)) from None
-            frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind, rgb=rgb)
-            return _Pending(msg.header, frame, rgb.shape[0], rgb.shape[1])
+            # sent as it is; its pixels are decoded (Frame.pixels) only for the overlay or --mcap
+            frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind)
+            return _Pending(msg.header, frame, height, width)
         img = rw.decode_image(payload)
         rgb = rw.image_to_rgb(img)
         from scmr_mesh.imaging import encode_jpeg, encode_png
