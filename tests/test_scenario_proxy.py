@@ -251,7 +251,10 @@ def test_crash_and_restart_through_the_runner(tmp_path):
     f = rep["faults"][0]
     assert f["tier"] == "cloud" and f["failover_gap_ms"] is not None
     leader = [r for r in res.records if r["ok"] and r["tier"] == "leader"]
-    assert leader and all(r["received_unix_ns"] >= af.start_unix_ns for r in leader)
+    # before the crash the leader answers only hedges: a cloud slow to send its receipt or answer
+    # (a loaded box: under stress-ng --cpu 2 one was, in 1 of 3 suite runs) is hedged to it
+    assert leader and all(r["received_unix_ns"] >= af.start_unix_ns or r["hedge_won"] for r in leader), \
+        [(r["seq"], r["attempts"]) for r in leader if r["received_unix_ns"] < af.start_unix_ns]
     if af.ready_unix_ns is not None and af.ready_unix_ns < res.records[-1]["sent_unix_ns"]:
         # the restarted cloud served again
         assert f["failback_gap_ms"] is not None and f["restart_ready_after_ms"] > 0
