@@ -82,6 +82,7 @@ import math
 import queue
 import threading
 import time
+from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -242,9 +243,9 @@ class Robot:
         from scmr_mesh.qos.hedge import AnswerTimes, HedgeBudget
 
         self._answer_times = {t: AnswerTimes() for t in keys.TIERS}
-        #: the time from a copy's send to its node's receipt, by tier, and over every tier (a tier
-        #: not heard from enough yet, e.g. the leader at the cloud's loss, uses the pooled one)
-        self._receipt_times: dict[tuple[str, str], AnswerTimes] = {}  # by (tier, node)
+        #: the time from a copy's send to its node's receipt, by (tier, node), and over every node (a
+        #: node not heard from enough yet, e.g. the leader at the cloud's loss, uses the pooled one)
+        self._receipt_times: defaultdict[tuple[str, str], AnswerTimes] = defaultdict(lambda: AnswerTimes(warmup=0))
         self._receipt_all = AnswerTimes(warmup=0)
         #: answers in a row that came with no receipt, by (tier, node): a node that sends none
         #: (a server outside the project, or one whose receipts are lost) is not expected to
@@ -613,12 +614,7 @@ class Robot:
         where = (str(att["tier"]), str(att["node"]))
         receipt_ms = scratch.get("receipt_ms")
         if receipt_ms is not None:
-            times = self._receipt_times.get(where)
-            if times is None:
-                from scmr_mesh.qos.hedge import AnswerTimes
-
-                times = self._receipt_times[where] = AnswerTimes(warmup=0)
-            times.add(receipt_ms)
+            self._receipt_times[where].add(receipt_ms)
             self._receipt_all.add(receipt_ms)
             self._unreceipted[where] = 0
         elif winner is not None and self._receipts_asked():

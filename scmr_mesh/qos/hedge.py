@@ -68,8 +68,8 @@ DEFAULT_RULE = HedgeRule()
 #: The rule for a copy's *receipt* (docs/R2R.md "Hedged requests"): a node sends it the moment
 #: the request is taken in, so it measures the way there and back, not the pipeline; a copy
 #: with no receipt past p95 + 10 ms (at least 20 ms) of its node's recent receipts is
-#: silent.  No cold delay (:func:`receipt_delay_ms`): with fewer than ``min_samples`` receipts (a node of an older
-#: version, or none yet) only the answer's delay (:data:`DEFAULT_RULE`) applies.
+#: silent.  No cold delay (:func:`receipt_delay_ms`): with fewer than ``min_samples`` receipts (none
+#: yet, or a node that sends none) only the answer's delay (:data:`DEFAULT_RULE`) applies.
 RECEIPT_RULE = HedgeRule(floor_ms=20.0, margin_ms=10.0)
 
 
