@@ -90,7 +90,10 @@ def test_up_with_cloud_outage(tmp_path):
         assert min(x["sent_unix_ns"] for x in recs) >= rep["started_unix_ns"]
         assert max(x["sent_unix_ns"] for x in recs) <= rep["started_unix_ns"] + 8e9  # and until time 0 + duration
         during = [x for x in recs if fault["start_unix_ns"] <= x["sent_unix_ns"] < fault["end_unix_ns"]]
-        assert during and all(x["tier"] == "leader" for x in during)
+        # (or a won hedge: a leader slow to send its receipt on a loaded box is hedged to a live
+        # peer; under stress-ng --cpu 2 one frame of r1 was answered by r2 as a peer this way)
+        assert during and all(x["tier"] == "leader" or x["hedge_won"] for x in during), \
+            [(x["robot"], x["seq"], x["tier"], x["attempts"]) for x in during if x["tier"] != "leader"]
         # logs per peer, both lives of the cloud in one log, masks in the inboxes
         for name in ("cloud", "leader", "r1", "r2"):
             assert (run_dir / "logs" / f"{name}.log").stat().st_size > 0
