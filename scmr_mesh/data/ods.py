@@ -229,6 +229,18 @@ def _row_to_dict(row: Sequence[Any]) -> dict[str, Any]:
     return d
 
 
+class _Busy(Exception):
+    """Another connection held the lock that opening the store needs (retried)."""
+
+
+def _is_busy(exc: sqlite3.OperationalError) -> bool:
+    code = getattr(exc, "sqlite_errorcode", None)
+    if code is not None:
+        return code & 0xFF in (sqlite3.SQLITE_BUSY, sqlite3.SQLITE_LOCKED)
+    text = str(exc)
+    return "database is locked" in text or "database is busy" in text
+
+
 def _connect(path: Path, *, readonly: bool) -> sqlite3.Connection:
     uri = f"file:{path}?mode={'ro' if readonly else 'rwc'}"
     con = sqlite3.connect(uri, uri=True, timeout=BUSY_TIMEOUT_MS / 1000, check_same_thread=False,
@@ -342,9 +354,32 @@ class OperationalDataStore:
             )
 
     def _open_writer(self) -> sqlite3.Connection:
+        # Switching a fresh file to WAL takes an exclusive lock and SQLite answers "database is
+        # locked" at once, without its busy handler, while another process switches or migrates
+        # the same file (seen in CI: 1 of 4 cloud nodes opening one new file failed). Such an
+        # open is retried, with growing pauses, until the busy timeout has passed.
+        deadline = time.monotonic() + BUSY_TIMEOUT_MS / 1000
+        pause = 0.005
+        while True:
+            try:
+                return self._open_writer_once()
+            except _Busy as busy:
+                if time.monotonic() + pause > deadline:
+                    raise StoreError(
+                        f"cannot open {str(self.path)!r} as an operational data store ({busy}); "
+                        "another process held it locked for "
+                        f"{BUSY_TIMEOUT_MS / 1000:g} s; stop it or choose another --db path"
+                    ) from None
+                time.sleep(pause)
+                pause = min(pause * 2, 0.2)
+
+    def _open_writer_once(self) -> sqlite3.Connection:
+        con = None
         try:
             con = _connect(self.path, readonly=False)
-            mode = con.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            mode = con.execute("PRAGMA journal_mode").fetchone()[0]
+            if mode.lower() != "wal":  # WAL is kept in the file: only a new file is switched
+                mode = con.execute("PRAGMA journal_mode = WAL").fetchone()[0]
             if mode.lower() != "wal":
                 log.warning("ODS %s: journal mode is %s, not WAL", self.path, mode)
             con.execute("PRAGMA synchronous = FULL")  # an ack means the row survives power loss
@@ -364,6 +399,10 @@ class OperationalDataStore:
                 log.info("ODS %s: migrated schema to version %d", self.path, version + 1)
             return con
         except sqlite3.DatabaseError as exc:
+            if con is not None:
+                con.close()
+            if isinstance(exc, sqlite3.OperationalError) and _is_busy(exc):
+                raise _Busy(str(exc)) from None
             raise StoreError(
                 f"cannot open {str(self.path)!r} as an operational data store ({exc}); "
                 "move the file away or choose another --db path"
