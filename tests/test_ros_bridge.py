@@ -350,6 +350,61 @@ def test_next_to_rmw_zenohd_frames_and_masks_go_node_to_node_and_survive_the_rou
             router.close()
 
 
+# rmw_zenoh's session config with shared memory turned on, as its docs tell users to do
+_RMW_NODE_SHM = {**_RMW_NODE, "transport/shared_memory/enabled": "true",
+                 "transport/shared_memory/transport_optimization/message_size_threshold": "512"}
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("flag", ["--ros-shm", "--no-ros-shm"])
+def test_a_ros_node_with_shared_memory_gets_its_masks_through_shared_memory(tmp_path, flag):
+    """A ROS node whose rmw_zenoh config enables shared memory exchanges frames and masks with the bridge
+    through /dev/shm (the default, ``--ros-shm``), and through the socket with ``--no-ros-shm``: the
+    masks' payloads say which (``ZBytes.as_shm``).  Zenoh sends the first large message of a link
+    through the socket while it sets the memory up, so frames go until one mask came through shared
+    memory (at most 8).  Fails on a bridge whose ROS session kept scmr's mesh default (shared memory off)."""
+    from pathlib import Path
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    ros_ep = f"tcp/127.0.0.1:{free_port()}"
+    router = zenoh.open(_zconf(_RMW_ZENOHD, listen=[ros_ep]))
+    proc = None
+    try:
+        proc = spawn_peer(["ros", "--insecure", "--id", "rs", "--ros-connect", ros_ep, "--image-topic", "/cam/image_raw",
+                           "--mask-topic", "/cam/mask", "--out", str(tmp_path / "rs"), "--process", STUB, flag,
+                           "--wait-ms", "0", "--quiet", "--ready-file", str(tmp_path / "rs.ready")],
+                          log_path=tmp_path / "rs.log")
+        ready = Path(tmp_path / "rs.ready")
+        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60, what="the bridge")
+        assert proc.poll() is None, (tmp_path / "rs.log").read_text()[-2000:]
+        masks: list = []
+        with zenoh.open(_zconf(_RMW_NODE_SHM, connect=[ros_ep])) as node:
+            node.declare_subscriber("0/cam/mask/*/*", lambda s: masks.append(
+                (s.payload.as_shm() is not None, s.payload.to_bytes())))
+            pub = node.declare_publisher(_key(ts, "/cam/image_raw", IMAGE))
+            wait_for(lambda: pub.matching_status.matching, timeout=30, what="the bridge's subscription")
+            for k in range(1, 9):
+                pub.put(_image(ts, k, _scene(120, 160)), attachment=_attachment(k))
+                wait_for(lambda: len(masks) >= k, timeout=30, what=f"mask {k}")
+                if masks[-1][0]:
+                    break
+        for shm, payload in masks:
+            m = ts.deserialize_cdr(payload, IMAGE)
+            assert (m.encoding, m.height, m.width) == ("mono8", 120, 160)
+            assert np.asarray(m.data).reshape(120, 160)[-1].min() == 255
+        through_shm = [shm for shm, _ in masks]
+        if flag == "--ros-shm":
+            assert through_shm[-1], through_shm  # measured: from the second mask on
+        else:
+            assert not any(through_shm) and len(masks) == 8, through_shm
+        assert stop_peer(proc) == 0, (tmp_path / "rs.log").read_text()[-2000:]
+        proc = None
+    finally:
+        if proc is not None:
+            stop_peer(proc)
+        router.close()
+
+
 def test_ros_mode_auto_is_peer_next_to_the_router_and_client_from_another_host():
     from scmr_mesh.mesh.ros import ros_mode_for
 

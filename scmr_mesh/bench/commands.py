@@ -539,6 +539,9 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--compressed", action="store_true",
                    help="the cameras publish sensor_msgs/CompressedImage (JPEG 90 of the same scenes, the bytes "
                         "`scmr robot` sends) and the bridges run --compressed")
+    b.add_argument("--ros-cfg", action="append", default=[], metavar="KEY:JSON5",
+                   help="zenoh setting of the whole ROS side (the cameras, the echo node and the bridges' "
+                        "--ros-cfg), e.g. transport/shared_memory/enabled:true for ROS nodes with shared memory on")
     b.add_argument("--floor-router", action=argparse.BooleanOptionalAction, default=True,
                    help="also time the floor with both ends clients of the router (floor_router; default on)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the JSON here")

@@ -79,7 +79,7 @@ def _scene(h: int, w: int, seed: int):
 
 def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size: tuple[int, int] = (640, 480),
         process: str | None = None, tmp: Path | None = None, robot_baseline: bool = True, ros_mode: str = "auto",
-        floor_router: bool = True, compressed: bool = False, rounds: int = 3,
+        floor_router: bool = True, compressed: bool = False, rounds: int = 3, ros_cfg: list[str] | None = None,
         progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     import zenoh
 
@@ -91,6 +91,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
 
     say = progress or (lambda m: None)
     process = process or STUB
+    ros_cfg = list(ros_cfg or [])  # the ROS side's zenoh settings: the cameras', the echo node's, the bridges'
     w, h = size
     # with compressed, each camera publishes its scene as image_transport's `jpeg` (JPEG 90, encoded once:
     # the camera's cost, not the bridge's), the bytes `scmr robot` sends for the same scene
@@ -118,13 +119,13 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         for i in range(robots):
             procs[f"r{i}"] = spawn_peer(
                 ["ros", "--insecure", "--id", f"r{i}", "--connect", f"tcp/127.0.0.1:{cport}", "--ros-connect", ros_ep,
-                 "--ros-mode", ros_mode,
+                 "--ros-mode", ros_mode, *[a for item in ros_cfg for a in ("--ros-cfg", item)],
                  *(["--compressed"] if compressed else []), "--image-topic", image_topic(i), "--mask-topic", f"/r{i}/drivable/mask", "--quiet",
                  "--out", str(tmp / f"r{i}"), "--process", process, "--ready-file", str(tmp / f"r{i}.ready")],
                 log_path=tmp / f"r{i}.log")
         for i in range(robots):
             wait_for((tmp / f"r{i}.ready").exists, timeout=120, what=f"bridge r{i}")
-        session = open_session(ros_session_config([ros_ep], [], mode="peer"))
+        session = open_session(ros_session_config([ros_ep], ros_cfg, mode="peer"))
 
         def on_mask(sample):
             t = time.perf_counter_ns()
@@ -205,7 +206,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
         res = {
             "robots": robots, "rate_hz": rate_hz, "size": f"{w}x{h}", "encoding": "jpeg" if compressed else "rgb8",
             "frame_bytes": len(frame(0, 0)), "process": process,
-            "ros_mode": ros_mode, "bridges_linked": bridges_linked,
+            "ros_mode": ros_mode, "ros_cfg": ros_cfg, "bridges_linked": bridges_linked,
             "frames_sent": len(sent), "masks_received": len(e2e), "paired": len(paired),
             "e2e_ms": _stats([e2e[n] for n in paired]), "tor_ms": _stats([tor[n] for n in paired]),
             "overhead_ms": _stats([e2e[n] - tor[n] for n in paired]),
@@ -220,16 +221,16 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
                 "the bridges; not in e2e_ms)")
         say("the same frames to an echo node: the ROS-side transport alone")
         floor, floor_lost = _transport_floor(session, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
-                                             mode="peer")
+                                             mode="peer", ros_cfg=ros_cfg)
         res["floor_ms"], res["floor_lost"] = _stats(floor), floor_lost  # echoes that never came back
         if floor_lost:
             say(f"  {floor_lost} of {len(due)} frames sent to the echo node never came back (not in floor_ms)")
         if floor_router:
             say("the same with both ends clients of the router: every sample through it")
-            client = open_session(ros_session_config([ros_ep], [], mode="client"))
+            client = open_session(ros_session_config([ros_ep], ros_cfg, mode="client"))
             try:
                 floor, lost = _transport_floor(client, ros_ep, tmp, frame, robots, due, mask_bytes=w * h, procs=procs,
-                                               mode="client")
+                                               mode="client", ros_cfg=ros_cfg)
             finally:
                 close_session(client)
             res["floor_router_ms"], res["floor_router_lost"] = _stats(floor), lost
@@ -251,7 +252,7 @@ def run(*, robots: int = 4, rate_hz: float = 5.0, duration_s: float = 10.0, size
 _ECHO_IN, _ECHO_OUT = "scmr_bench/echo/in", "scmr_bench/echo/out"
 
 
-def echo_node(ros_ep: str, ready: str, mask_bytes: int, mode: str = "peer") -> None:
+def echo_node(ros_ep: str, ready: str, mask_bytes: int, mode: str = "peer", ros_cfg: list[str] | None = None) -> None:
     """The floor's echo process: answer each frame on ``_ECHO_IN/<i>`` with ``mask_bytes`` on ``_ECHO_OUT/<i>``.
 
     The answer starts with the frame's first 16 bytes (its CDR header: the stamp), as a
@@ -260,7 +261,7 @@ def echo_node(ros_ep: str, ready: str, mask_bytes: int, mode: str = "peer") -> N
     from scmr_mesh.mesh.config import open_session
     from scmr_mesh.mesh.ros import ros_session_config
 
-    session = open_session(ros_session_config([ros_ep], [], mode=mode))
+    session = open_session(ros_session_config([ros_ep], list(ros_cfg or []), mode=mode))
     pubs: dict[str, Any] = {}
     fill = bytes(mask_bytes)
 
@@ -289,7 +290,7 @@ def _frames(scenes, compressed: bool) -> Callable[[int, int], bytes]:
 
 
 def _transport_floor(session, ros_ep: str, tmp: Path, frame, robots: int, due, *, mask_bytes: int,
-                     procs: dict, mode: str) -> tuple[list[float], int]:
+                     procs: dict, mode: str, ros_cfg: list[str] | None = None) -> tuple[list[float], int]:
     """Round trips of the bench's frames to :func:`echo_node` (a ``mode`` session of the router) and back (ms),
     and how many never came back."""
     import subprocess
@@ -302,7 +303,7 @@ def _transport_floor(session, ros_ep: str, tmp: Path, frame, robots: int, due, *
     with open(tmp / "echo.log", "ab") as logf:
         procs["echo"] = subprocess.Popen(
             [sys.executable, "-c", f"from scmr_mesh.bench.ros import echo_node; echo_node({ros_ep!r}, "
-                                   f"{str(ready)!r}, {mask_bytes}, {mode!r})"],
+                                   f"{str(ready)!r}, {mask_bytes}, {mode!r}, {list(ros_cfg or [])!r})"],
             stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True)
     lock = threading.Lock()
     sent: dict[tuple, int] = {}
@@ -397,7 +398,7 @@ def cmd_bench_ros(args: argparse.Namespace) -> int:
         raise InputError(f"--robots must be >= 1 and --duration > 0, got {args.robots} and {args.duration}")
     res = run(robots=args.robots, rate_hz=args.rate, duration_s=args.duration, size=args.size, rounds=args.rounds,
               process=args.process, robot_baseline=args.robot_baseline, ros_mode=args.ros_mode,
-              floor_router=args.floor_router, compressed=args.compressed, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
+              floor_router=args.floor_router, compressed=args.compressed, ros_cfg=args.ros_cfg, progress=lambda m: print(f"bench ros: {m} ...", file=sys.stderr, flush=True))
     text = json.dumps(res, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")

@@ -137,6 +137,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "host); auto (default): peer when every --ros-connect is on loopback, else client")
     r.add_argument("--ros-cfg", action="append", default=[], metavar="KEY:JSON5",
                    help="zenoh config override for the ROS session only, e.g. TLS to the ROS router")
+    r.add_argument("--ros-shm", action=argparse.BooleanOptionalAction, default=True,
+                   help="offer zenoh shared memory on the ROS session (default on): frames from ROS nodes that "
+                        "enable it too (rmw_zenoh's transport/shared_memory/enabled, off in its default config) "
+                        "cross without a copy through loopback; with nodes that do not, nothing changes")
     r.add_argument("--node-name", default=None, metavar="NAME",
                    help="ROS node name (default scmr_ros_ID, characters ROS refuses written _)")
     g = p.add_argument_group("robot")
@@ -722,7 +726,8 @@ def _cmd_ros(args) -> int:
         if not re.fullmatch(r"[a-z0-9]+/[^\s/]\S*", ep):
             raise InputError(f"--ros-connect {ep!r} is not a zenoh endpoint: give PROTO/ADDRESS such as "
                              "tcp/localhost:7447 (where rmw_zenohd listens)")
-    ros_mc = ros_session_config(ros_connect, args.ros_cfg, mode=ros_mode_for(args.ros_mode, ros_connect))
+    ros_mc = ros_session_config(ros_connect, args.ros_cfg, mode=ros_mode_for(args.ros_mode, ros_connect),
+                                shm=args.ros_shm)
     ros_mc.build()  # a bad --ros-connect / --ros-cfg is one line before anything starts
     _setup_logging(args)
     stop = StopFlag().install()
