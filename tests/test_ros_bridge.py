@@ -359,10 +359,10 @@ _RMW_NODE_SHM = {**_RMW_NODE, "transport/shared_memory/enabled": "true",
 @pytest.mark.parametrize("flag", ["--ros-shm", "--no-ros-shm"])
 def test_a_ros_node_with_shared_memory_gets_its_masks_through_shared_memory(tmp_path, flag):
     """A ROS node whose rmw_zenoh config enables shared memory exchanges frames and masks with the bridge
-    through /dev/shm (the default, ``--ros-shm``), and through the socket with ``--no-ros-shm``: the
+    through /dev/shm with ``--ros-shm``, and through the socket with ``--no-ros-shm`` (the default): the
     masks' payloads say which (``ZBytes.as_shm``).  Zenoh sends the first large message of a link
     through the socket while it sets the memory up, so frames go until one mask came through shared
-    memory (at most 8).  Fails on a bridge whose ROS session kept scmr's mesh default (shared memory off)."""
+    memory (at most 8).  Fails on a bridge whose ROS session always keeps scmr's mesh default (off)."""
     from pathlib import Path
 
     ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)

@@ -137,10 +137,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "host); auto (default): peer when every --ros-connect is on loopback, else client")
     r.add_argument("--ros-cfg", action="append", default=[], metavar="KEY:JSON5",
                    help="zenoh config override for the ROS session only, e.g. TLS to the ROS router")
-    r.add_argument("--ros-shm", action=argparse.BooleanOptionalAction, default=True,
-                   help="offer zenoh shared memory on the ROS session (default on): frames from ROS nodes that "
-                        "enable it too (rmw_zenoh's transport/shared_memory/enabled, off in its default config) "
-                        "cross without a copy through loopback; with nodes that do not, nothing changes")
+    r.add_argument("--ros-shm", action=argparse.BooleanOptionalAction, default=False,
+                   help="offer zenoh shared memory on the ROS session (default off, as in rmw_zenoh's config): "
+                        "frames and masks then go through /dev/shm with ROS nodes that enable it too "
+                        "(rmw_zenoh's transport/shared_memory/enabled); the frames' hop is ~1 ms shorter, but "
+                        "the time to mask was not (docs/ROS2.md)")
     r.add_argument("--node-name", default=None, metavar="NAME",
                    help="ROS node name (default scmr_ros_ID, characters ROS refuses written _)")
     g = p.add_argument_group("robot")

@@ -438,11 +438,11 @@ RMW_ZENOHD_KEYS: dict[str, Any] = {
     "routing/router/peers_failover_brokering": False,
 }
 
-#: The ROS session's shared memory (``scmr ros``, on unless ``--no-ros-shm``): zenoh's own setting, which
-#: scmr's mesh sessions turn off.  Enabling it only announces support: a 0.9 MB frame goes through
-#: /dev/shm (files mode 0600, this user's) only from a ROS node that enabled it as well (rmw_zenoh
-#: ships it off, "until fully tested"); otherwise nothing changes and nothing is allocated.  With it
-#: on at both ends the frame's hop took 1.3 instead of 2.3 ms (docs/BENCHMARKS.md, ROS 2 bridge).
+#: The ROS session's shared memory (``scmr ros --ros-shm``; off by default, as in rmw_zenoh's config and
+#: scmr's mesh sessions).  It only announces support: a frame goes through /dev/shm (files mode 0600,
+#: this user's) only from a ROS node that enabled it as well.  With it on at both ends the frame's and
+#: the mask's hops were about 1 ms shorter in all, but the time to mask was not, as the bridge's ToR
+#: rose as much in the same runs (docs/BENCHMARKS.md, "ROS 2 bridge", "Shared memory").
 ROS_SHM_KEYS: dict[str, Any] = {"transport/shared_memory/enabled": True}
 
 
