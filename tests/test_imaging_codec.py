@@ -299,3 +299,42 @@ def test_decompression_bomb_costs_little(tmp_path):
         assert r["bytes"] < (30_000 if name.startswith("png") else 1000), (name, r)
         assert r["peak_growth_mb"] < 20, (name, r)
         assert r["cpu_ms"] < 100, (name, r)
+
+
+def _png_rows_filters(png: bytes) -> tuple[int, int, set[int]]:
+    """(bit depth, colour type, the filter bytes of its rows) of a greyscale PNG, read from its chunks."""
+    pos, idat, ihdr = 8, b"", None
+    while pos < len(png):
+        n, kind = struct.unpack(">I4s", png[pos:pos + 8])
+        body = png[pos + 8:pos + 8 + n]
+        if kind == b"IHDR":
+            ihdr = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    w, h, depth, colour = ihdr[:4]
+    raw = zlib.decompress(idat)
+    stride = 1 + w * depth // 8
+    return depth, colour, {raw[r * stride] for r in range(h)}
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_mask_png_is_lossless_8_bit_grey_with_unfiltered_rows(seed):
+    """encode_mask_png: the same uint8 values back, still an 8-bit greyscale PNG for every reader, and
+    rows unfiltered (filter byte 0), which is what makes it decode 5x faster than OpenCV's default."""
+    from scmr_mesh.imaging import encode_mask_png
+    from scmr_mesh.mesh.work import process_frame
+
+    rng = np.random.default_rng(seed)
+    mask = np.where(rng.random((225, 300)) < 0.5, 255, 0).astype(np.uint8)
+    mask[rng.integers(0, 225, 40), rng.integers(0, 300, 40)] = rng.integers(0, 256, 40)  # any uint8
+    png = encode_mask_png(mask)
+    assert (cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) == mask).all()
+    assert _png_rows_filters(png) == (8, 0, {0})
+    assert _png_rows_filters(cv2.imencode(".png", mask)[1].tobytes())[2] != {0}  # OpenCV's default filters
+    scene = np.zeros((225, 300, 3), np.uint8)
+    scene[120:] = 120
+    out = process_frame(cv2.imencode(".png", scene)[1].tobytes(), encoding="png", shape=None)
+    assert _png_rows_filters(out["mask_png"]) == (8, 0, {0})
+    with pytest.raises(InputError, match="encode_mask_png needs a \\(H, W\\) uint8 array"):
+        encode_mask_png(np.zeros((2, 2, 3), np.uint8))

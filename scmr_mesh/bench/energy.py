@@ -20,7 +20,7 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
     from scmr_mesh.energy.experiments import _pct, measured_inputs_report
     from scmr_mesh.energy.measure import host_clock_hz
     from scmr_mesh.energy.placement import LinkEstimate, Task, choose_placement
-    from scmr_mesh.imaging import decode_frame, encode_png, segment_drivable, warm_up
+    from scmr_mesh.imaging import decode_frame, encode_mask_png, segment_drivable, warm_up
 
     files = _frame_files(args.data)
     if args.count is not None:
@@ -39,7 +39,7 @@ def cmd_bench_energy(args: argparse.Namespace) -> int:
         c0 = time.thread_time()
         rgb = decode_frame(data)
         res = segment_drivable(rgb, mode=args.mode)
-        mask_png = encode_png(res.mask)
+        mask_png = encode_mask_png(res.mask)
         cpu = time.thread_time() - c0
         samples.append({"cpu_s": cpu, "bytes_up": len(data), "bytes_down": len(mask_png)})
         print(f"\r{i + 1}/{len(files)} frames", end="", file=sys.stderr, flush=True)

@@ -453,6 +453,29 @@ def encode_png(array: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
+#: A mask's PNG: rows unfiltered and deflate level 1.  OpenCV's default (adaptive filters) took
+#: 0.26 ms to decode a service's 300x225 mask and 0.11 ms to encode it; this takes 0.05 and 0.08 ms,
+#: for about 150 bytes more (medians over 10 pipeline masks of ../shared/data/roads, 2-core box).
+#: The same 8-bit greyscale PNG to every reader; the bridge decodes one per frame (docs/ROS2.md).
+MASK_PNG_PARAMS = (cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE, cv2.IMWRITE_PNG_COMPRESSION, 1)
+
+
+def encode_mask_png(mask: np.ndarray) -> bytes:
+    """Encode a (H, W) uint8 mask as an 8-bit greyscale PNG that decodes fast (:data:`MASK_PNG_PARAMS`).
+
+    >>> m = np.zeros((4, 6), np.uint8); m[2:] = 255
+    >>> bool((cv2.imdecode(np.frombuffer(encode_mask_png(m), np.uint8), cv2.IMREAD_UNCHANGED) == m).all())
+    True
+    """
+    if not isinstance(mask, np.ndarray) or mask.dtype != np.uint8 or mask.ndim != 2:
+        raise InputError(f"encode_mask_png needs a (H, W) uint8 array, got {getattr(mask, 'dtype', type(mask))} "
+                         f"{getattr(mask, 'shape', '')}")
+    ok, buf = cv2.imencode(".png", mask, list(MASK_PNG_PARAMS))
+    if not ok:  # pragma: no cover
+        raise InputError(f"OpenCV could not encode a mask of shape {mask.shape} as PNG")
+    return buf.tobytes()
+
+
 def encode_jpeg(rgb: np.ndarray, *, quality: int = JPEG_QUALITY) -> bytes:
     """Encode an RGB frame as a baseline JPEG (what robots send).
 

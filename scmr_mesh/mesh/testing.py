@@ -39,7 +39,9 @@ def stub_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> d
     grey = small.mean(axis=2)
     thr = int(grey.mean())
     mask = np.where(grey >= thr, 255, 0).astype(np.uint8)
-    ok, buf = cv2.imencode(".png", mask)
+    from scmr_mesh.imaging.codec import MASK_PNG_PARAMS
+
+    ok, buf = cv2.imencode(".png", mask, list(MASK_PNG_PARAMS))  # as the pipeline's masks (work.py)
     return {
         "mask_png": buf.tobytes(),
         "shape": (225, 300),
@@ -82,7 +84,9 @@ def _fixed_mask() -> bytes:
 
         mask = np.zeros((225, 300), np.uint8)
         mask[112:, 75:225] = 255  # the bottom centre is road
-        _FIXED_MASK = cv2.imencode(".png", mask)[1].tobytes()
+        from scmr_mesh.imaging.codec import MASK_PNG_PARAMS
+
+        _FIXED_MASK = cv2.imencode(".png", mask, list(MASK_PNG_PARAMS))[1].tobytes()
     return _FIXED_MASK
 
 

@@ -97,7 +97,7 @@ def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str 
         ``threshold``, ``timings_ms`` (per stage, plus ``decode`` and ``encode``), and
         ``confidence`` and ``abstained`` (``best``'s calibrated abstention; None in ``thesis``).
     """
-    from scmr_mesh.imaging import decode_frame, encode_png, segment_drivable
+    from scmr_mesh.imaging import decode_frame, encode_mask_png, segment_drivable
     from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS
 
     t0 = time.perf_counter()
@@ -106,7 +106,7 @@ def process_frame(image: bytes, *, encoding: str, shape: list | None, mode: str 
     t1 = time.perf_counter()
     res = segment_drivable(rgb, mode=mode)
     t2 = time.perf_counter()
-    png = encode_png(res.mask)
+    png = encode_mask_png(res.mask)
     t3 = time.perf_counter()
     timings = {str(k): float(v) for k, v in dict(getattr(res, "timings_ms", {}) or {}).items()}
     timings["decode"] = (t1 - t0) * 1e3
