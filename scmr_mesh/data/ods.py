@@ -398,6 +398,9 @@ class OperationalDataStore:
                 con.execute("COMMIT")
                 log.info("ODS %s: migrated schema to version %d", self.path, version + 1)
             return con
+        except StoreError:  # a newer schema: refused, and the connection closed
+            con.close()
+            raise
         except sqlite3.DatabaseError as exc:
             if con is not None:
                 con.close()
