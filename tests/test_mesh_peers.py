@@ -106,7 +106,9 @@ def test_normal_service_and_leader_crash_has_no_effect(fleet):
     for r in recs:
         assert r["sent_unix_ns"] <= r["received_unix_ns"]
         assert r["bytes_up"] > 0 and r["bytes_down"] > 0 and r["tor_ms"] > 0
-        assert [a["outcome"] for a in r["attempts"]] == ["ok"]
+        # (on a loaded box a slow cloud answer may be hedged to the leader; the cloud's answer still won)
+        assert r["attempts"][0]["outcome"] == "ok" and r["attempts"][0]["tier"] == "cloud", r["attempts"]
+        assert all(a.get("hedge") and a["outcome"] != "ok" for a in r["attempts"][1:]), r["attempts"]
         assert (fleet.tmp / "r1" / "inbox" / f"{r['seq']}.mask.png").exists()
     assert list((fleet.tmp / "r1" / "outbox").iterdir()) == []
     summary = [json.loads(x) for x in fleet.log("r1").splitlines() if x.startswith('{"robot"')][-1]

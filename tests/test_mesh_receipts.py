@@ -289,3 +289,39 @@ def test_a_receipt_read_where_a_reply_may_come_has_the_receipt_size_cap():
     with pytest.raises(wire.WireProblem) as exc:
         wire.decode(big, kind=("reply", "receipt"))
     assert exc.value.code == "oversized"
+
+
+class BusyAfterReceipt(Receipting):
+    """A node that takes the request in (receipt), is then made to refuse it (displaced by a request of
+    higher priority: ``busy``) and finalises the query late: ``hold_s`` or the robot's cancel."""
+
+    def get(self, payload, *, encoding=None, cancellation_token=None):
+        self.calls += 1
+        self.token = cancellation_token
+        req = wire.decode(payload, kind="request")
+        key = keys.drivable_request(self.tier, self.node, self.robot)
+        yield _Reply(wire.encode(wire.make_receipt(req, served_by=self.node, tier=self.tier)), key)
+        err = wire.make_error("busy", f"server too busy, try later: request r1/{req['seq']} with priority 0 "
+                              "displaced", served_by=self.node, tier=self.tier, request=req)
+        yield _Reply(wire.encode(err), key, error=True)
+        self._wait_cancel(cancellation_token, self.hold_s)  # the query ends late (or when cancelled)
+
+
+def test_a_busy_answer_after_the_receipt_ends_the_copy_at_once(tmp_path):
+    """Seen in CI on a loaded box: the cloud sent r2/10 its receipt, then displaced it (busy), and its
+    query ended a second later; the robot waited for that end (its 1 s deadline), recorded a timeout
+    and only then went to the leader.  The node's error is its answer: the copy ends there."""
+    robot, cloud, leader = _receipting_robot(tmp_path)
+    try:
+        _learn_receipts(robot)
+        busy = BusyAfterReceipt("r1", "cloud", "c1", "fast", hold_s=20.0)
+        robot._queriers[keys.drivable_request("cloud", "c1", "r1")] = busy
+        rec = robot.request(10, FRAME)
+        assert rec["ok"] and rec["tier"] == "leader", rec
+        first = rec["attempts"][0]
+        assert (first["tier"], first["outcome"]) == ("cloud", "error:busy"), rec["attempts"]
+        assert "displaced" in first["message"] and "_final" not in first
+        assert rec["tor_ms"] < 10_000, rec["tor_ms"]  # not the node's 20 s hold (nor the 30 s answer delay)
+        assert busy.token.is_cancelled, "the robot did not cancel the copy its node had answered"
+    finally:
+        robot.close()

@@ -448,6 +448,8 @@ class Robot:
             err = wire.decode(raw, kind="error")
             att["outcome"] = error_outcome(err["code"])
             att["message"] = err["message"][:200]
+            if err.get("served_by") == att["node"] and err.get("seq") in (None, asked.get("seq")):
+                att["_final"] = True  # its node's answer: nothing more comes on this copy (_collect)
         except wire.WireProblem:
             text = raw.decode("utf-8", "replace")[:200]
             att["outcome"] = Outcome.TIMEOUT if text == "Timeout" else error_outcome(text)
@@ -554,6 +556,7 @@ class Robot:
                     att["outcome"] = Outcome.NO_REPLY
                 continue
             winner = self._judge(att, reply, asked)
+            att.pop("_final", None)  # (the query ends by itself here: its callback sends None)
         for att, token in live:
             if att["outcome"] == Outcome.PENDING:
                 att["outcome"] = Outcome.SUPERSEDED if winner is not None else Outcome.TIMEOUT
@@ -645,14 +648,19 @@ class Robot:
             kw = {} if token is None else {"cancellation_token": token}
             # ends at the querier timeout = deadline, or when the token is cancelled (a hedge won)
             for reply in q.get(payload=payload, encoding=_msgpack(), **kw):
-                if winner is not None:
-                    continue  # the answer is in; later replies change nothing
                 had = "receipt_ms" in att
                 w = self._judge(att, reply, asked, t_send)
                 if not had and "receipt_ms" in att and heard is not None:
                     heard.set()
-                if w is not None and winner is None:
+                if w is not None:
                     winner, answer_ms = w, (time.perf_counter() - t0) * 1e3
+                if w is not None or att.pop("_final", False):
+                    # the node's answer or its error is in: the copy ends here, not when the node
+                    # finalises the query (a node whose final is late held a busy copy for its
+                    # whole deadline, 1 s, before the robot fell back)
+                    if token is not None:
+                        token.cancel()
+                    break
         except Exception as exc:
             att["outcome"] = error_outcome(f"send ({exc})")
         if att["outcome"] == Outcome.PENDING:

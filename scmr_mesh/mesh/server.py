@@ -108,6 +108,9 @@ class Replier:
             except Exception:  # a send never takes a sender down
                 log.exception("reply failed")
             finally:
+                # let go of the send, and with it its query, now: a sender idle until the next reply
+                # would otherwise keep the query alive, and zenoh finalises a query when it is freed
+                fn = None
                 with self._lock:
                     self.pending -= 1
 
@@ -911,8 +914,23 @@ def _expiry(req: dict, t_arrival: float) -> float | None:
     return time.monotonic() - (time.perf_counter() - t_arrival) + float(d) / 1e3
 
 
+#: How long :func:`_drop` tries to finalise a query whose other reply (its receipt) is being sent.
+DROP_RETRY_S = 0.05
+
+
 def _drop(query) -> None:
-    try:
-        query.drop()
-    except Exception:  # already finalised
-        pass
+    """Finalise ``query`` (its robot's ``get`` ends).  zenoh-python refuses ``drop`` with "Already
+    borrowed" while another thread is inside ``reply`` on the same query (a receipt on another reply
+    sender; docs/ZENOH.md section 18): tried again until that send is over, at most
+    :data:`DROP_RETRY_S`; then the query ends when it is freed."""
+    deadline = time.monotonic() + DROP_RETRY_S
+    while True:
+        try:
+            query.drop()
+            return
+        except RuntimeError as exc:
+            if "borrow" not in str(exc) or time.monotonic() > deadline:
+                return
+            time.sleep(0.0002)  # a receipt is 90 bytes: its reply call takes microseconds
+        except Exception:  # already finalised
+            return
