@@ -301,6 +301,21 @@ def test_a_reduced_ros_frame_is_never_smaller_than_the_services_working_frame():
         assert r.shape[1] >= 300 and r.shape[0] >= 225, (w, h, r.shape)
 
 
+def _bridge_on_cam(tmp_path, ros_ep: str, rid: str, *extra: str):
+    """An `scmr ros` (default --ros-mode, stub computed locally) on /cam/image_raw -> /cam/mask next to the
+    router at ``ros_ep``, once ready: (its process, its ready file)."""
+    from pathlib import Path
+
+    proc = spawn_peer(["ros", "--insecure", "--id", rid, "--ros-connect", ros_ep, "--image-topic", "/cam/image_raw",
+                       "--mask-topic", "/cam/mask", "--out", str(tmp_path / rid), "--process", STUB, *extra,
+                       "--wait-ms", "0", "--quiet", "--ready-file", str(tmp_path / f"{rid}.ready")],
+                      log_path=tmp_path / f"{rid}.log")
+    ready = Path(tmp_path / f"{rid}.ready")
+    wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60, what="the bridge")
+    assert proc.poll() is None, (tmp_path / f"{rid}.log").read_text()[-2000:]
+    return proc, ready
+
+
 @pytest.mark.timeout(90)
 def test_next_to_rmw_zenohd_frames_and_masks_go_node_to_node_and_survive_the_router(tmp_path):
     """As rmw_zenoh nodes do, the bridge (default --ros-mode) uses rmw_zenohd for discovery only.
@@ -311,20 +326,12 @@ def test_next_to_rmw_zenohd_frames_and_masks_go_node_to_node_and_survive_the_rou
     router is gone must still get its mask.  Fails on the old code: its bridge was a client of
     the router, so the node had no link to it and the second frame had no path.
     """
-    from pathlib import Path
-
     ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
     ros_ep = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(_zconf(_RMW_ZENOHD, listen=[ros_ep]))
     proc = None
     try:
-        proc = spawn_peer(["ros", "--insecure", "--id", "rp", "--ros-connect", ros_ep, "--image-topic", "/cam/image_raw",
-                           "--mask-topic", "/cam/mask", "--out", str(tmp_path / "rp"), "--process", STUB,
-                           "--count", "2", "--wait-ms", "0", "--quiet", "--ready-file", str(tmp_path / "rp.ready")],
-                          log_path=tmp_path / "rp.log")
-        ready = Path(tmp_path / "rp.ready")
-        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60, what="the bridge")
-        assert proc.poll() is None, (tmp_path / "rp.log").read_text()[-2000:]
+        proc, ready = _bridge_on_cam(tmp_path, ros_ep, "rp", "--count", "2")
         bridge_zid = json.loads(ready.read_text())["ros_zid"]
         masks: list = []
         with zenoh.open(_zconf(_RMW_NODE, connect=[ros_ep])) as node:
@@ -363,20 +370,12 @@ def test_a_ros_node_with_shared_memory_gets_its_masks_through_shared_memory(tmp_
     masks' payloads say which (``ZBytes.as_shm``).  Zenoh sends the first large message of a link
     through the socket while it sets the memory up, so frames go until one mask came through shared
     memory (at most 8).  Fails on a bridge whose ROS session always keeps scmr's mesh default (off)."""
-    from pathlib import Path
-
     ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
     ros_ep = f"tcp/127.0.0.1:{free_port()}"
     router = zenoh.open(_zconf(_RMW_ZENOHD, listen=[ros_ep]))
     proc = None
     try:
-        proc = spawn_peer(["ros", "--insecure", "--id", "rs", "--ros-connect", ros_ep, "--image-topic", "/cam/image_raw",
-                           "--mask-topic", "/cam/mask", "--out", str(tmp_path / "rs"), "--process", STUB, flag,
-                           "--wait-ms", "0", "--quiet", "--ready-file", str(tmp_path / "rs.ready")],
-                          log_path=tmp_path / "rs.log")
-        ready = Path(tmp_path / "rs.ready")
-        wait_for(lambda: ready.exists() or proc.poll() is not None, timeout=60, what="the bridge")
-        assert proc.poll() is None, (tmp_path / "rs.log").read_text()[-2000:]
+        proc, _ = _bridge_on_cam(tmp_path, ros_ep, "rs", flag)
         masks: list = []
         with zenoh.open(_zconf(_RMW_NODE_SHM, connect=[ros_ep])) as node:
             node.declare_subscriber("0/cam/mask/*/*", lambda s: masks.append(

@@ -39,11 +39,10 @@ def stub_process(image: bytes, *, encoding: str, shape, mode: str = "best") -> d
     grey = small.mean(axis=2)
     thr = int(grey.mean())
     mask = np.where(grey >= thr, 255, 0).astype(np.uint8)
-    from scmr_mesh.imaging.codec import MASK_PNG_PARAMS
+    from scmr_mesh.imaging.codec import encode_mask_png
 
-    ok, buf = cv2.imencode(".png", mask, list(MASK_PNG_PARAMS))  # as the pipeline's masks (work.py)
     return {
-        "mask_png": buf.tobytes(),
+        "mask_png": encode_mask_png(mask),  # as the pipeline's masks (work.py)
         "shape": (225, 300),
         "threshold": thr,
         "timings_ms": {"stub": (time.perf_counter() - t0) * 1e3},
@@ -79,14 +78,13 @@ _FIXED_MASK: bytes | None = None
 def _fixed_mask() -> bytes:
     global _FIXED_MASK
     if _FIXED_MASK is None:
-        import cv2
         import numpy as np
 
         mask = np.zeros((225, 300), np.uint8)
         mask[112:, 75:225] = 255  # the bottom centre is road
-        from scmr_mesh.imaging.codec import MASK_PNG_PARAMS
+        from scmr_mesh.imaging.codec import encode_mask_png
 
-        _FIXED_MASK = cv2.imencode(".png", mask, list(MASK_PNG_PARAMS))[1].tobytes()
+        _FIXED_MASK = encode_mask_png(mask)
     return _FIXED_MASK
 
 
