@@ -160,11 +160,38 @@ def test_a_flooded_cloud_stays_within_bounded_memory(tmp_path):
     """Unpaced 200-record batches for 3 s (before the bounds: +470 MB in such a run)."""
     from scmr_mesh.bench.ingest import flood_case
 
-    res = flood_case(rate_hz=0, records=200, duration_s=3.0, extra=[], workdir=tmp_path)
+    # lease 5 s: a cloud starved for half a second on a loaded box lost its link, and zenoh ended the
+    # 901 of 1,551 queries in flight with no answer (fc49; test_a_stalled_cloud_s_link_drop_is_reported)
+    res = flood_case(rate_hz=0, records=200, duration_s=3.0, extra=[], workdir=tmp_path, lease_ms=5000)
     a = res["answers"]
-    assert res["cloud_alive"] and a["sent"] > 0 and a["busy"] > 0, res
-    assert a["ok"] + a["busy"] + a["refused"] + a["timeout"] == a["sent"], res
+    assert res["cloud_alive"] and a["sent"] > 0 and a["busy"] > 0 and a["ok"] > 0, res
+    assert a["ok"] + a["busy"] + a["refused"] + a["timeout"] == a["sent"] and a["link_drops"] == 0, res
     assert res["rss_rise_mb"] < 60, res
+
+
+@pytest.mark.timeout(240)
+def test_a_stalled_cloud_s_link_drop_is_reported(tmp_path):
+    """A cloud stalled for 3 leases (SIGSTOP 1.5 s, lease 500 ms) mid-flood: its link drops and zenoh ends
+    the queries in flight with no reply and no Timeout; the bench shows the drop beside them."""
+    import signal
+    import time
+
+    from scmr_mesh.bench.ingest import flood_case
+
+    stalled = []
+
+    def stall(pid: int) -> None:  # the fault is a duration, not a wait for a condition
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            stalled.append(pid)
+            time.sleep(1.5)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+
+    res = flood_case(rate_hz=0, records=200, duration_s=3.0, extra=[], workdir=tmp_path, lease_ms=500, fault=stall)
+    a = res["answers"]
+    assert stalled and res["cloud_alive"], res
+    assert a["link_drops"] >= 1 and a["none"] > 0, res
 
 
 def test_the_gate_answers_with_a_verdict_not_an_empty_string():

@@ -333,7 +333,8 @@ def add_ingest(bench: argparse._SubParsersAction) -> None:
         "ingest", help="a cloud's peak RSS under a telemetry flood at any rate (bounded ingest)",
         description="Flood a real cloud (stub pipeline, its own ODS) with telemetry batches from a stranger's "
                     "session at each rate for --duration s, a fresh cloud per case; report the answers (ok, "
-                    "busy, refused, none) and the cloud's RSS at the start and its peak (VmHWM).  With "
+                    "busy, refused, none, and the link drops) and the cloud's RSS at the start and its peak (VmHWM); "
+                    "it exits 1 when a query had no answer at all.  With "
                     "--unbounded every case also runs with the bounds lifted (the behaviour before them), "
                     "for the ratio.  docs/DATA.md has the figures.")
     b.add_argument("--rates", default="10,100,1000,0", metavar="LIST",
@@ -347,6 +348,9 @@ def add_ingest(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--duration", type=ca.positive("seconds", hi=3600, example="5"), default=5.0, metavar="S",
                    help="seconds of flood per case (default %(default)s)")
     b.add_argument("--unbounded", action="store_true", help="also run each case with the bounds lifted")
+    b.add_argument("--lease-ms", type=ca.count("milliseconds", lo=10, hi=3600000, example="5000"), default=None,
+                   metavar="MS", help="the cloud's and the flooder's zenoh lease (default: scmr's, 500); a cloud "
+                                      "stalled past it loses its link and the queries in flight on it")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", help="also write the results here")
     b.add_argument("--quiet", action="store_true", help="no progress on stderr")
     _insecure_arg(b)

@@ -5,7 +5,11 @@ zenoh session with telemetry batches on ``scmr/data/cloud/<node>/telemetry/flood
 at several rates (batches per second; 0 = as fast as the sender can), for a few
 seconds per rate.  Each case starts a fresh cloud, samples its RSS (``/proc``,
 20 Hz) and reads its peak (``VmHWM``), and counts the answers: stored (ok),
-busy, refused (error) and none.  With ``--unbounded`` each case also runs
+busy, refused (error) and none.  A query ends with none only when zenoh
+finalises it without a reply: the link that carried it closed (a cloud stalled
+past the lease, docs/ZENOH.md section 20).  The flooder watches its transports
+and reports the link drops beside the count; any query left unanswered makes
+the command exit 1.  With ``--unbounded`` each case also runs
 against a cloud whose bounds are lifted (``--ingest-queue 10000000
 --ingest-batch 100000``), the behaviour before the bounds, so the ratio is
 measured in the same run.
@@ -60,8 +64,12 @@ def _payloads(records: int, k: int = 8, *, key: Path | None = None) -> list[byte
 
 
 def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[str], workdir: Path,
-               say=lambda m: None, insecure: bool = False) -> dict:
-    """One case: a fresh cloud flooded at ``rate_hz`` batches/s of ``records`` records for ``duration_s``."""
+               say=lambda m: None, insecure: bool = False, lease_ms: int | None = None, fault=None) -> dict:
+    """One case: a fresh cloud flooded at ``rate_hz`` batches/s of ``records`` records for ``duration_s``.
+
+    ``lease_ms``: the cloud's and the flooder's lease (default: scmr's).  ``fault``: called with the
+    cloud's pid, on a thread of its own, when the flood starts (tests stall the cloud with it).
+    """
     import zenoh
 
     from scmr_mesh.mesh.config import open_session
@@ -78,24 +86,33 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
     from scmr_mesh.bench.secure import bench_security
 
     sec = bench_security(workdir / tag, "c1=cloud,flood=robot", insecure=insecure)
-    cloud = spawn_peer(["cloud", *sec.args, "--node", "c1", "--workers", "1", "--process", STUB, "--listen",
+    lease = [] if lease_ms is None else ["--lease-ms", str(int(lease_ms))]
+    cloud = spawn_peer(["cloud", *sec.args, *lease, "--node", "c1", "--workers", "1", "--process", STUB, "--listen",
                         f"tcp/127.0.0.1:{port}", "--ready-file", str(ready), "--ods", str(workdir / f"{tag}.sqlite"),
                         *extra], log_path=workdir / f"{tag}.log")
     payloads = _payloads(records, key=None if sec.creds is None else sec.creds.directory / "flood" / "key.pem")
     counts = {"sent": 0, "ok": 0, "busy": 0, "refused": 0, "timeout": 0}
     lock = threading.Lock()
+    link_drops: list[float] = []  # when a transport to the cloud closed (monotonic, since the flood's start)
     samples: list[float] = []
     try:
         wait_for(lambda: ready.exists() or cloud.poll() is not None, timeout=120, what="cloud ready")
         if cloud.poll() is not None:
             raise InputError(f"the cloud did not start; see {workdir / f'{tag}.log'}")
-        session = open_session(sec.mesh("flood", connect=[f"tcp/127.0.0.1:{port}"]))
+        session = open_session(sec.mesh("flood", connect=[f"tcp/127.0.0.1:{port}"], lease_ms=lease_ms))
         try:
             key = telemetry_key("cloud", "c1", "flood")
             q = session.declare_querier(key, timeout=10.0)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="the cloud's telemetry queryable")
             base = _rss_mb(cloud.pid)
+            t0 = time.monotonic()
 
+            def on_transport(ev) -> None:  # a link to the cloud closed: zenoh ends its queries with no reply
+                if ev.kind == zenoh.SampleKind.DELETE:
+                    with lock:
+                        link_drops.append(round(time.monotonic() - t0, 3))
+
+            listener = session.info.declare_transport_events_listener(on_transport)
             seen: set[int] = set()
 
             def on_reply(i: int, reply) -> None:  # the first answer of query i counts
@@ -137,6 +154,8 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
                 session.get(key, handler=functools.partial(on_reply, i), payload=payloads[i % len(payloads)],
                             timeout=10.0)
                 i += 1
+                if i == 1 and fault is not None:
+                    threading.Thread(target=fault, args=(cloud.pid,), daemon=True).start()
             sent_s = time.monotonic() - t0
             counts["sent"] = i
             end = time.monotonic() + 12.0  # the replies of the last queries (10 s timeout)
@@ -150,6 +169,7 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
             sampler.join()
             peak = _rss_mb(cloud.pid)
             alive = cloud.poll() is None
+            listener.undeclare()
         finally:
             from scmr_mesh.mesh.config import close_session
 
@@ -158,15 +178,20 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
         stop_peer(cloud, timeout=20)
     with lock:
         c = dict(counts)
+        drops = list(link_drops)
     c["none"] = c["sent"] - c["ok"] - c["busy"] - c["refused"] - c["timeout"]
+    c["link_drops"] = len(drops)
     res = {"case": tag, "rate_hz": rate_hz, "records_per_batch": records, "bounded": not extra,
            "duration_s": round(sent_s, 2), "sent_per_s": round(c["sent"] / max(sent_s, 1e-9), 1),
            "batch_bytes": len(payloads[0]), "answers": c,
            "rss_start_mb": round(base.get("VmRSS", 0.0), 1), "rss_peak_mb": round(peak.get("VmHWM", 0.0), 1),
-           "rss_sampled_max_mb": round(max(samples, default=0.0), 1), "cloud_alive": alive}
+           "rss_sampled_max_mb": round(max(samples, default=0.0), 1), "cloud_alive": alive,
+           "link_drops_at_s": drops, "lease_ms": lease_ms}
     res["rss_rise_mb"] = round(res["rss_peak_mb"] - res["rss_start_mb"], 1)
     say(f"{tag}: {c['sent']} batches ({res['sent_per_s']}/s) -> ok {c['ok']}, busy {c['busy']}, refused "
-        f"{c['refused']}, timeout {c['timeout']}, none {c['none']}; cloud RSS {res['rss_start_mb']} -> peak "
+        f"{c['refused']}, timeout {c['timeout']}, none {c['none']}"
+        + (f" (the link to the cloud dropped {len(drops)} time(s), at {drops} s)" if drops else "")
+        + f"; cloud RSS {res['rss_start_mb']} -> peak "
         f"{res['rss_peak_mb']} MB")
     return res
 
@@ -184,7 +209,8 @@ def cmd_bench_ingest(args) -> int:
             for rate in rates:
                 for extra in ([[], UNBOUNDED] if args.unbounded else [[]]):
                     cases.append(flood_case(rate_hz=rate, records=records, duration_s=args.duration, extra=extra,
-                                            workdir=Path(tmp), say=say, insecure=args.insecure))
+                                            workdir=Path(tmp), say=say, insecure=args.insecure,
+                                            lease_ms=args.lease_ms))
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
     bounded = [c for c in cases if c["bounded"]]
@@ -194,12 +220,12 @@ def cmd_bench_ingest(args) -> int:
            "bounded_rss_peak_mb_max": max((c["rss_peak_mb"] for c in bounded), default=None),
            "bounded_rss_rise_mb_max": max((c["rss_rise_mb"] for c in bounded), default=None),
            "unbounded_rss_rise_mb_max": max((c["rss_rise_mb"] for c in unbounded), default=None)}
-    print(f"{'case':<24}{'sent/s':>9}{'ok':>8}{'busy':>8}{'refused':>9}{'timeout':>9}{'RSS start':>11}{'peak':>8}"
-          f"{'rise':>8}")
+    print(f"{'case':<24}{'sent/s':>9}{'ok':>8}{'busy':>8}{'refused':>9}{'timeout':>9}{'none':>7}{'drops':>7}"
+          f"{'RSS start':>11}{'peak':>8}{'rise':>8}")
     for c in cases:
         a = c["answers"]
         print(f"{c['case']:<24}{c['sent_per_s']:>9}{a['ok']:>8}{a['busy']:>8}{a['refused']:>9}{a['timeout']:>9}"
-              f"{c['rss_start_mb']:>11}{c['rss_peak_mb']:>8}{c['rss_rise_mb']:>8}")
+              f"{a['none']:>7}{a['link_drops']:>7}{c['rss_start_mb']:>11}{c['rss_peak_mb']:>8}{c['rss_rise_mb']:>8}")
     print(f"bounded: peak RSS at most {out['bounded_rss_peak_mb_max']} MB (rise {out['bounded_rss_rise_mb_max']} MB)"
           + (f"; unbounded: rise up to {out['unbounded_rss_rise_mb_max']} MB" if unbounded else "")
           + f"; load {' '.join(load_before)} -> {' '.join(load_after)}")
@@ -208,4 +234,10 @@ def cmd_bench_ingest(args) -> int:
     dead = [c["case"] for c in cases if not c["cloud_alive"]]
     if dead:
         raise InputError(f"the cloud died under the flood in {', '.join(dead)}; see the case logs")
+    lost = [f"{c['case']} ({c['answers']['none']} queries, {c['answers']['link_drops']} link drop(s))"
+            for c in cases if c["answers"]["none"]]
+    if lost:
+        raise InputError(f"queries ended with no answer in {', '.join(lost)}: a link to the cloud dropped (a cloud "
+                         "stalled past its lease: rerun on a quieter machine or with a longer --lease-ms) or, with "
+                         "no drop, the cloud left them unanswered (a defect); see the case logs")
     return 0
