@@ -188,7 +188,8 @@ def test_a_stalled_cloud_s_link_drop_is_reported(tmp_path):
         finally:
             os.kill(pid, signal.SIGCONT)
 
-    res = flood_case(rate_hz=0, records=200, duration_s=3.0, extra=[], workdir=tmp_path, lease_ms=500, fault=stall)
+    res = flood_case(rate_hz=0, records=200, duration_s=2.0, extra=[], workdir=tmp_path, lease_ms=500, fault=stall,
+                     query_timeout_s=3.0)
     a = res["answers"]
     assert stalled and res["cloud_alive"], res
     assert a["link_drops"] >= 1 and a["none"] > 0, res

@@ -64,11 +64,13 @@ def _payloads(records: int, k: int = 8, *, key: Path | None = None) -> list[byte
 
 
 def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[str], workdir: Path,
-               say=lambda m: None, insecure: bool = False, lease_ms: int | None = None, fault=None) -> dict:
+               say=lambda m: None, insecure: bool = False, lease_ms: int | None = None, fault=None,
+               query_timeout_s: float = 10.0) -> dict:
     """One case: a fresh cloud flooded at ``rate_hz`` batches/s of ``records`` records for ``duration_s``.
 
     ``lease_ms``: the cloud's and the flooder's lease (default: scmr's).  ``fault``: called with the
     cloud's pid, on a thread of its own, when the flood starts (tests stall the cloud with it).
+    ``query_timeout_s``: each query's zenoh timeout (its ``Timeout`` answer).
     """
     import zenoh
 
@@ -102,7 +104,7 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
         session = open_session(sec.mesh("flood", connect=[f"tcp/127.0.0.1:{port}"], lease_ms=lease_ms))
         try:
             key = telemetry_key("cloud", "c1", "flood")
-            q = session.declare_querier(key, timeout=10.0)
+            q = session.declare_querier(key, timeout=query_timeout_s)
             wait_for(lambda: q.matching_status.matching, timeout=10, what="the cloud's telemetry queryable")
             base = _rss_mb(cloud.pid)
             t0 = time.monotonic()
@@ -124,7 +126,7 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
                         counts["ok"] += 1
                         return
                     raw = reply.err.payload.to_bytes()
-                    if raw == b"Timeout":  # zenoh's own: the cloud did not answer within 10 s
+                    if raw == b"Timeout":  # zenoh's own: the cloud did not answer in time
                         counts["timeout"] += 1
                         return
                     try:
@@ -152,13 +154,13 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
                     if delay_ns > 0:
                         time.sleep(delay_ns / 1e9)
                 session.get(key, handler=functools.partial(on_reply, i), payload=payloads[i % len(payloads)],
-                            timeout=10.0)
+                            timeout=query_timeout_s)
                 i += 1
                 if i == 1 and fault is not None:
                     threading.Thread(target=fault, args=(cloud.pid,), daemon=True).start()
             sent_s = time.monotonic() - t0
             counts["sent"] = i
-            end = time.monotonic() + 12.0  # the replies of the last queries (10 s timeout)
+            end = time.monotonic() + query_timeout_s + 2.0  # the last queries' answers, or their Timeout
             while time.monotonic() < end:
                 with lock:
                     answered = counts["ok"] + counts["busy"] + counts["refused"] + counts["timeout"]
