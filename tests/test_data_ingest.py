@@ -12,9 +12,7 @@ plus one real cloud process flooded at full speed.
 from __future__ import annotations
 
 import concurrent.futures
-import os
 import threading
-from pathlib import Path
 from types import SimpleNamespace
 
 import msgpack
@@ -171,27 +169,25 @@ def test_a_flooded_cloud_stays_within_bounded_memory(tmp_path):
 
 @pytest.mark.timeout(240)
 def test_a_stalled_cloud_s_link_drop_is_reported(tmp_path):
-    """A cloud stalled for 3 leases (SIGSTOP 1.5 s, lease 500 ms) mid-flood: its link drops and zenoh ends
-    the queries in flight with no reply and no Timeout; the bench shows the drop beside them."""
-    import signal
-    import time
+    """A cloud stopped for 3 leases (SIGSTOP 1.5 s, lease 500 ms) as a 300/s flood starts: its link drops,
+    zenoh ends the queries in flight with no reply, and the bench shows the drop beside them."""
+    import subprocess
 
     from scmr_mesh.bench.ingest import flood_case
 
-    stalled = []
+    stallers = []
 
-    def stall(pid: int) -> None:  # the fault is a duration, not a wait for a condition
-        os.kill(pid, signal.SIGSTOP)
-        try:
-            stalled.append(pid)
-            time.sleep(1.5)
-        finally:
-            os.kill(pid, signal.SIGCONT)
+    def stall(pid: int) -> None:  # timed by another process: a blocked get holds this one's threads
+        stallers.append(subprocess.Popen(["sh", "-c", f"kill -STOP {pid}; sleep 1.5; kill -CONT {pid}"]))
 
-    res = flood_case(rate_hz=0, records=200, duration_s=2.0, extra=[], workdir=tmp_path, lease_ms=500, fault=stall,
-                     query_timeout_s=3.0)
+    try:
+        res = flood_case(rate_hz=300, records=200, duration_s=2.0, extra=[], workdir=tmp_path, lease_ms=500,
+                         fault=stall, query_timeout_s=3.0)
+    finally:
+        for p in stallers:
+            p.wait(timeout=30)
     a = res["answers"]
-    assert stalled and res["cloud_alive"], res
+    assert stallers and stallers[0].returncode == 0 and res["cloud_alive"], res
     assert a["link_drops"] >= 1 and a["none"] > 0, res
 
 

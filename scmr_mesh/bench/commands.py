@@ -333,8 +333,9 @@ def add_ingest(bench: argparse._SubParsersAction) -> None:
         "ingest", help="a cloud's peak RSS under a telemetry flood at any rate (bounded ingest)",
         description="Flood a real cloud (stub pipeline, its own ODS) with telemetry batches from a stranger's "
                     "session at each rate for --duration s, a fresh cloud per case; report the answers (ok, "
-                    "busy, refused, none, and the link drops) and the cloud's RSS at the start and its peak (VmHWM); "
-                    "it exits 1 when a query had no answer at all.  With "
+                    "busy, refused, zenoh's timeout, none, and the link drops seen) and the cloud's RSS at the start "
+                    "and its peak (VmHWM); it exits 1 when the cloud died or a query had no answer at all (the "
+                    "case folders are then kept).  With "
                     "--unbounded every case also runs with the bounds lifted (the behaviour before them), "
                     "for the ratio.  docs/DATA.md has the figures.")
     b.add_argument("--rates", default="10,100,1000,0", metavar="LIST",

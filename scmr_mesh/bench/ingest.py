@@ -5,11 +5,12 @@ zenoh session with telemetry batches on ``scmr/data/cloud/<node>/telemetry/flood
 at several rates (batches per second; 0 = as fast as the sender can), for a few
 seconds per rate.  Each case starts a fresh cloud, samples its RSS (``/proc``,
 20 Hz) and reads its peak (``VmHWM``), and counts the answers: stored (ok),
-busy, refused (error) and none.  A query ends with none only when zenoh
-finalises it without a reply: the link that carried it closed (a cloud stalled
-past the lease, docs/ZENOH.md section 20).  The flooder watches its transports
-and reports the link drops beside the count; any query left unanswered makes
-the command exit 1.  With ``--unbounded`` each case also runs
+busy, refused (error), zenoh's timeout and none.  A query ends with none when
+zenoh finalises it without a reply: its link closed (a cloud stalled past the
+lease, docs/ZENOH.md section 20) or it was sent while no link to the cloud was
+up.  The flooder watches its transports and reports the link drops it saw
+beside the count; any query left unanswered makes the command exit 1 (and keeps
+the case folders, with the cloud's log, for a look).  With ``--unbounded`` each case also runs
 against a cloud whose bounds are lifted (``--ingest-queue 10000000
 --ingest-batch 100000``), the behaviour before the bounds, so the ratio is
 measured in the same run.
@@ -69,7 +70,8 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
     """One case: a fresh cloud flooded at ``rate_hz`` batches/s of ``records`` records for ``duration_s``.
 
     ``lease_ms``: the cloud's and the flooder's lease (default: scmr's).  ``fault``: called with the
-    cloud's pid, on a thread of its own, when the flood starts (tests stall the cloud with it).
+    cloud's pid, on a thread of its own, once the first query is sent (tests stall the cloud with it;
+    a blocked ``get`` holds this process's other threads, so time a fault from another process).
     ``query_timeout_s``: each query's zenoh timeout (its ``Timeout`` answer).
     """
     import zenoh
@@ -95,7 +97,8 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
     payloads = _payloads(records, key=None if sec.creds is None else sec.creds.directory / "flood" / "key.pem")
     counts = {"sent": 0, "ok": 0, "busy": 0, "refused": 0, "timeout": 0}
     lock = threading.Lock()
-    link_drops: list[float] = []  # when a transport to the cloud closed (monotonic, since the flood's start)
+    link_drops: list[float] = []  # when this process saw a transport to the cloud close (s since the flood's start;
+    # the callback can run late while a blocked get holds the interpreter)
     samples: list[float] = []
     try:
         wait_for(lambda: ready.exists() or cloud.poll() is not None, timeout=120, what="cloud ready")
@@ -192,7 +195,7 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
     res["rss_rise_mb"] = round(res["rss_peak_mb"] - res["rss_start_mb"], 1)
     say(f"{tag}: {c['sent']} batches ({res['sent_per_s']}/s) -> ok {c['ok']}, busy {c['busy']}, refused "
         f"{c['refused']}, timeout {c['timeout']}, none {c['none']}"
-        + (f" (the link to the cloud dropped {len(drops)} time(s), at {drops} s)" if drops else "")
+        + (f" (the link to the cloud dropped {len(drops)} time(s), seen at {drops} s)" if drops else "")
         + f"; cloud RSS {res['rss_start_mb']} -> peak "
         f"{res['rss_peak_mb']} MB")
     return res
@@ -206,13 +209,12 @@ def cmd_bench_ingest(args) -> int:
     with open("/proc/loadavg") as f:
         load_before = f.read().split()[:3]
     cases = []
-    with tempfile.TemporaryDirectory(prefix="scmr-bench-ingest-") as tmp:
-        for records in sizes:
-            for rate in rates:
-                for extra in ([[], UNBOUNDED] if args.unbounded else [[]]):
-                    cases.append(flood_case(rate_hz=rate, records=records, duration_s=args.duration, extra=extra,
-                                            workdir=Path(tmp), say=say, insecure=args.insecure,
-                                            lease_ms=args.lease_ms))
+    tmp = Path(tempfile.mkdtemp(prefix="scmr-bench-ingest-"))  # kept when a case fails: its logs are there
+    for records in sizes:
+        for rate in rates:
+            for extra in ([[], UNBOUNDED] if args.unbounded else [[]]):
+                cases.append(flood_case(rate_hz=rate, records=records, duration_s=args.duration, extra=extra,
+                                        workdir=tmp, say=say, insecure=args.insecure, lease_ms=args.lease_ms))
     with open("/proc/loadavg") as f:
         load_after = f.read().split()[:3]
     bounded = [c for c in cases if c["bounded"]]
@@ -235,11 +237,19 @@ def cmd_bench_ingest(args) -> int:
         Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
     dead = [c["case"] for c in cases if not c["cloud_alive"]]
     if dead:
-        raise InputError(f"the cloud died under the flood in {', '.join(dead)}; see the case logs")
-    lost = [f"{c['case']} ({c['answers']['none']} queries, {c['answers']['link_drops']} link drop(s))"
-            for c in cases if c["answers"]["none"]]
-    if lost:
-        raise InputError(f"queries ended with no answer in {', '.join(lost)}: a link to the cloud dropped (a cloud "
-                         "stalled past its lease: rerun on a quieter machine or with a longer --lease-ms) or, with "
-                         "no drop, the cloud left them unanswered (a defect); see the case logs")
+        raise InputError(f"the cloud died under the flood in {', '.join(dead)}; see its log in {tmp}/<case>.log")
+    problems = []
+    for c in cases:
+        a = c["answers"]
+        if a["none"] and a["link_drops"]:
+            problems.append(f"{c['case']}: {a['none']} queries had no answer and the link to the cloud dropped "
+                            f"{a['link_drops']} time(s) (a cloud stalled past its lease: rerun on a quieter machine "
+                            "or with a longer --lease-ms)")
+        elif a["none"]:
+            problems.append(f"{c['case']}: the cloud left {a['none']} queries unanswered with no link drop (a defect)")
+    if problems:
+        raise InputError(f"{'; '.join(problems)}; logs in {tmp}")
+    import shutil
+
+    shutil.rmtree(tmp, ignore_errors=True)
     return 0
