@@ -20,7 +20,7 @@ import logging
 import os
 import sys
 import traceback
-from typing import Sequence
+from typing import NoReturn, Sequence
 
 from scmr_mesh import __version__
 from scmr_mesh.cliargs import ScmrArgumentParser
@@ -176,3 +176,42 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":  # pragma: no cover
     sys.exit(main())
+
+
+def _exit_now(status: int) -> NoReturn:
+    """Leave the process as the interpreter would, minus its finalization.
+
+    Before 3.14, CPython ends a thread that takes the GIL once finalization has begun with
+    ``pthread_exit``; unwinding through zenoh's Rust frames (a callback thread, or a daemon thread
+    coming back from a blocking zenoh call) then aborts the process after its work is done:
+    "FATAL: exception not rethrown", exit status -6 (cpython gh-87135).  A robot that had served
+    and written everything died so in one run of the suite; a daemon thread in ``recv()`` on a
+    subscriber that still gets samples aborts 3 exits in 30 (docs/ZENOH.md section 21).  So this
+    does what finalization does first (join the non-daemon threads, run the ``atexit`` functions:
+    logging, executors and pools, the data tier's close), flushes the standard streams, and
+    leaves with ``os._exit``.
+    """
+    import atexit
+    import threading
+
+    try:
+        threading._shutdown()  # what Py_FinalizeEx runs first: join non-daemon threads, executors' hooks
+    except Exception:  # pragma: no cover - a thread that failed to join; the exit still happens
+        pass
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:
+            pass
+    os._exit(status)
+
+
+def run() -> NoReturn:
+    """The ``scmr`` program (console script and ``python -m scmr_mesh``): :func:`main`, then
+    :func:`_exit_now` with its status."""
+    try:
+        status = main()
+    except SystemExit as exc:  # (main returns its status; a stray exit keeps its code)
+        status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    _exit_now(status)
