@@ -174,9 +174,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
-
 
 def _exit_now(status: int) -> NoReturn:
     """Leave the process as the interpreter would, minus its finalization.
@@ -215,3 +212,7 @@ def run() -> NoReturn:
     except SystemExit as exc:  # (main returns its status; a stray exit keeps its code)
         status = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
     _exit_now(status)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    run()

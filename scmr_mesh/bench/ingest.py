@@ -148,7 +148,6 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
 
             sampler = threading.Thread(target=sample, daemon=True)
             sampler.start()
-            t0 = time.monotonic()
             t0_ns = time.monotonic_ns()
             i = 0
             while time.monotonic() - t0 < duration_s:
