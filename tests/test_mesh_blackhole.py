@@ -46,10 +46,11 @@ WINDOW_S = 4.0  # below zenoh's default 5 s wait_before_close
 PEER = r"""
 import json, subprocess, sys, time
 import zenoh
-from scmr_mesh.mesh.config import MeshConfig
+from scmr_mesh.mesh.config import _GUARDS, MeshConfig, open_session
 role, listen, connect, lease, cloud_addr, window = sys.argv[1:7]
-conf = MeshConfig(listen=[listen], connect=[c for c in connect.split(",") if c], lease_ms=int(lease)).build()
-with zenoh.open(conf) as s:
+mc = MeshConfig(listen=[listen], connect=[c for c in connect.split(",") if c], lease_ms=int(lease))
+# the session a robot really opens: scmr's zenoh runtime (4 RX / 2 TX workers) and the TCP link guard
+with open_session(mc) as s:
     if role != "robot":
         qa = s.declare_queryable(f"scmr/drivable/{role}/{role}", lambda q: q.reply(q.key_expr, b"ok"), complete=True)
         tok = s.liveliness().declare_token(f"scmr/alive/{role}/{role}")
@@ -67,6 +68,9 @@ with zenoh.open(conf) as s:
     for _ in range(5):  # warm both paths
         for q in (qc, ql):
             list(q.get(payload=b"x" * 200_000))
+    guard = _GUARDS.get(id(s))
+    while guard is not None and guard.applied < 2 and time.monotonic() < end:
+        time.sleep(0.01)  # both links' sockets carry TCP_USER_TIMEOUT before the cut
     subprocess.run(["ip", "route", "add", "blackhole", f"{cloud_addr}/32"], check=True)
     t_block = time.monotonic()
     list(qc.get(payload=b"y" * 8_000_000))  # fills the socket and zenoh's queue
@@ -81,7 +85,7 @@ with zenoh.open(conf) as s:
         time.sleep(0.05)
     dropped = [dst for t, kind, dst in events if t >= t_block and "DELETE" in kind and cloud_addr not in dst]
     print(json.dumps({"push_s": push_s, "first_leader_ok_s": first_ok, "attempts": attempts,
-                      "other_links_dropped": dropped}), flush=True)
+                      "other_links_dropped": dropped, "guarded": guard.applied if guard else 0}), flush=True)
 """
 
 
@@ -95,6 +99,7 @@ def test_blackholed_cloud_send_does_not_stall_the_leader_path(repo_root):
             env = dict(os.environ, PYTHONPATH=str(repo_root))
             env.pop("RUST_LOG", None)
             env.pop("SCMR_ZENOH_LOG", None)
+            env.pop("SCMR_TCP_USER_TIMEOUT_MS", None)  # the default guard, as a robot runs it
 
             def start(role: str, connect: list[str]) -> subprocess.Popen:
                 argv = ["ip", "netns", "exec", names[role], sys.executable, "-c", PEER, role, ep[role],
@@ -111,6 +116,9 @@ def test_blackholed_cloud_send_does_not_stall_the_leader_path(repo_root):
             out, err = robot.communicate(timeout=60)
             assert robot.returncode == 0, err[-2000:]
             res = json.loads(out.strip().splitlines()[-1])
+            # the robot ran with scmr's link guard on both links (without it a lingering close of the
+            # dead link can hold zenoh for 10 s: fc59's 10.15 s push, docs/ZENOH.md section 22)
+            assert res["guarded"] >= 2, res
             # the leader answered while the cloud was still silently gone ...
             assert res["first_leader_ok_s"] is not None, (
                 f"no leader answer within {WINDOW_S} s of the cloud's blackhole: {res}")
