@@ -44,3 +44,32 @@ def test_a_robot_enrolled_after_a_refusal_is_accepted_once_its_miss_expires(cred
     assert "no valid certificate" in v.check("robot2", digest, sig)  # the miss is remembered a while
     monkeypatch.setattr(RecordVerifier, "MISS_TTL_S", 0.0)
     assert v.check("robot2", digest, sig) is None  # before: refused until the cloud restarted
+
+
+def test_the_fleet_ca_is_checked_at_start_and_parsed_at_the_first_record(creds, tmp_path):
+    import shutil
+    import subprocess
+    import sys
+
+    from scmr_mesh.data.errors import TelemetryError
+
+    # a cloud's start does not import cryptography's x509 (35-45 ms of a restart); the first record does
+    code = ("import sys; from scmr_mesh.data.signing import RecordVerifier; RecordVerifier(sys.argv[1]); "
+            "print('cryptography.x509' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code, str(creds)], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", out
+    # a missing or empty CA still fails at start, in one line
+    with pytest.raises(TelemetryError, match="cannot load the fleet CA .*ca.pem"):
+        RecordVerifier(tmp_path)
+    (tmp_path / "ca.pem").write_text("not a certificate\n")
+    with pytest.raises(TelemetryError, match="no PEM certificate"):
+        RecordVerifier(tmp_path)
+    # a CA that looks like PEM but does not parse: every record is refused, saying why
+    bad = tmp_path / "bad"
+    shutil.copytree(creds, bad)
+    (bad / "ca.pem").write_text("-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n")
+    v = RecordVerifier(bad)
+    digest = hashlib.sha256(b"z").digest()
+    sig = RecordSigner(creds / "robot1" / "key.pem").sign(digest)
+    assert "cannot load the fleet CA" in v.check("robot1", digest, sig)
+    assert RecordVerifier(creds).check("robot1", digest, sig) is None

@@ -77,16 +77,35 @@ class RecordVerifier:
     """
 
     def __init__(self, credentials: str | Path) -> None:
-        x509 = _crypto()[0]
         self.directory = Path(credentials)
+        ca = self.directory / "ca.pem"
         try:
-            self._ca = x509.load_pem_x509_certificate((self.directory / "ca.pem").read_bytes())
-        except (OSError, ValueError) as exc:
-            raise TelemetryError(f"cannot load the fleet CA {self.directory / 'ca.pem'} ({exc}); make the "
-                                 "credentials with `scmr certs`") from None
+            self._ca_pem = ca.read_bytes()
+        except OSError as exc:
+            raise TelemetryError(f"cannot load the fleet CA {ca} ({exc}); make the credentials with "
+                                 "`scmr certs`") from None
+        if b"-----BEGIN CERTIFICATE-----" not in self._ca_pem:
+            raise TelemetryError(f"cannot load the fleet CA {ca} (no PEM certificate in it); make the "
+                                 "credentials with `scmr certs`")
+        # parsed at the first record, not here: importing cryptography's x509 costs a cloud's start
+        # 35-45 ms of CPU (a third of its restart-to-ready beyond the pipeline; docs/BENCHMARKS.md)
+        self._ca = None
+        self._ca_error: str | None = None
         self._keys: dict[str, tuple[object, datetime.datetime]] = {}
         self._misses: dict[str, float] = {}  # name -> when its lookup failed (monotonic s), oldest first
         self._lock = threading.Lock()
+
+    def _ca_cert(self):
+        """The fleet CA's certificate (parsed once), or None when it does not parse (:attr:`_ca_error`)."""
+        with self._lock:
+            if self._ca is None and self._ca_error is None:
+                x509 = _crypto()[0]
+                try:
+                    self._ca = x509.load_pem_x509_certificate(self._ca_pem)
+                except ValueError as exc:
+                    self._ca_error = (f"cannot load the fleet CA {self.directory / 'ca.pem'} ({exc}); make the "
+                                      "credentials with `scmr certs`")
+            return self._ca
 
     #: A name without a valid certificate is looked up again after this long (a robot enrolled
     #: later, a certificate renewed on disk); at most :attr:`MAX_MISSES` names are remembered.
@@ -130,10 +149,13 @@ class RecordVerifier:
 
     def _load(self, robot: str):
         x509, InvalidSignature, _, _, ec, _, NameOID = _crypto()
+        ca = self._ca_cert()
+        if ca is None:
+            return None, None
         path = self.directory / robot / "cert.pem"
         try:
             cert = x509.load_pem_x509_certificate(path.read_bytes())
-            self._ca.public_key().verify(cert.signature, cert.tbs_certificate_bytes,
+            ca.public_key().verify(cert.signature, cert.tbs_certificate_bytes,
                                          ec.ECDSA(cert.signature_hash_algorithm))
             cn = [a.value for a in cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)]
             now = datetime.datetime.now(datetime.timezone.utc)
@@ -149,7 +171,7 @@ class RecordVerifier:
             return f"record of {robot} is not signed"
         key = self._public_key(robot)
         if key is None:
-            return f"no valid certificate for {robot} under {self.directory}"
+            return self._ca_error or f"no valid certificate for {robot} under {self.directory}"
         _, InvalidSignature, hashes, _, ec, utils, _ = _crypto()
         try:
             key.verify(sig, digest, ec.ECDSA(utils.Prehashed(hashes.SHA256())))
