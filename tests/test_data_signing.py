@@ -46,30 +46,55 @@ def test_a_robot_enrolled_after_a_refusal_is_accepted_once_its_miss_expires(cred
     assert v.check("robot2", digest, sig) is None  # before: refused until the cloud restarted
 
 
-def test_the_fleet_ca_is_checked_at_start_and_parsed_at_the_first_record(creds, tmp_path):
+def test_the_fleet_ca_is_checked_at_start_and_parsed_later(creds, tmp_path, repo_root):
+    import os
     import shutil
     import subprocess
     import sys
 
     from scmr_mesh.data.errors import TelemetryError
 
-    # a cloud's start does not import cryptography's x509 (35-45 ms of a restart); the first record does
-    code = ("import sys; from scmr_mesh.data.signing import RecordVerifier; RecordVerifier(sys.argv[1]); "
-            "print('cryptography.x509' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code, str(creds)], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False", out
-    # a missing or empty CA still fails at start, in one line
+    # a cloud's start does not import cryptography's x509 (35-45 ms of a restart); warm() or a record does
+    code = ("import sys; from scmr_mesh.data.signing import RecordVerifier; v = RecordVerifier(sys.argv[1]); "
+            "a = 'cryptography.x509' in sys.modules; w = v.warm(); print(a, w, 'cryptography.x509' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code, str(creds)], capture_output=True, text=True, check=True,
+                         cwd=repo_root, env=dict(os.environ, PYTHONPATH=str(repo_root)))
+    assert out.stdout.split() == ["False", "None", "True"], out
+    # a missing CA, or one with no PEM certificate in it, still fails at start, in one line
     with pytest.raises(TelemetryError, match="cannot load the fleet CA .*ca.pem"):
         RecordVerifier(tmp_path)
     (tmp_path / "ca.pem").write_text("not a certificate\n")
     with pytest.raises(TelemetryError, match="no PEM certificate"):
         RecordVerifier(tmp_path)
-    # a CA that looks like PEM but does not parse: every record is refused, saying why
+    # a CA that looks like PEM but does not parse: warm() says why, and every record is refused saying so
     bad = tmp_path / "bad"
     shutil.copytree(creds, bad)
     (bad / "ca.pem").write_text("-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n")
     v = RecordVerifier(bad)
     digest = hashlib.sha256(b"z").digest()
     sig = RecordSigner(creds / "robot1" / "key.pem").sign(digest)
-    assert "cannot load the fleet CA" in v.check("robot1", digest, sig)
-    assert RecordVerifier(creds).check("robot1", digest, sig) is None
+    assert "cannot load the fleet CA" in v.warm()
+    for _ in range(2):  # the second record goes through the remembered miss
+        assert "cannot load the fleet CA" in v.check("robot1", digest, sig)
+    good = RecordVerifier(creds)
+    assert good.warm() is None and good.check("robot1", digest, sig) is None
+
+
+def test_a_cloud_says_at_ready_that_its_ca_does_not_load(creds, tmp_path, caplog):
+    import logging
+    import shutil
+
+    from scmr_mesh.mesh.data_cloud import CloudData
+
+    bad = tmp_path / "bad"
+    shutil.copytree(creds, bad)
+    (bad / "ca.pem").write_text("-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n")
+    data = CloudData("c1", tmp_path / "ods.sqlite", verifier=RecordVerifier(bad))
+    try:
+        with caplog.at_level(logging.ERROR, logger="scmr_mesh.mesh.data_cloud"):
+            data.after_ready()
+            data._checker.submit(lambda: None).result(timeout=30)  # the warm-up ran before this
+        assert any("cannot load the fleet CA" in r.getMessage() and "refused" in r.getMessage()
+                   for r in caplog.records), caplog.text
+    finally:
+        data.close()

@@ -84,20 +84,21 @@ class RecordVerifier:
         except OSError as exc:
             raise TelemetryError(f"cannot load the fleet CA {ca} ({exc}); make the credentials with "
                                  "`scmr certs`") from None
-        if b"-----BEGIN CERTIFICATE-----" not in self._ca_pem:
+        if b"-----BEGIN " not in self._ca_pem or b"CERTIFICATE-----" not in self._ca_pem:
             raise TelemetryError(f"cannot load the fleet CA {ca} (no PEM certificate in it); make the "
                                  "credentials with `scmr certs`")
-        # parsed at the first record, not here: importing cryptography's x509 costs a cloud's start
-        # 35-45 ms of CPU (a third of its restart-to-ready beyond the pipeline; docs/BENCHMARKS.md)
+        # parsed by warm() once the service is ready, or at the first record, not here: importing
+        # cryptography's x509 cost a cloud's start 35-45 ms of CPU (docs/BENCHMARKS.md)
         self._ca = None
         self._ca_error: str | None = None
+        self._ca_lock = threading.Lock()  # its own: the parse imports x509 and must not hold _lock
         self._keys: dict[str, tuple[object, datetime.datetime]] = {}
         self._misses: dict[str, float] = {}  # name -> when its lookup failed (monotonic s), oldest first
         self._lock = threading.Lock()
 
     def _ca_cert(self):
         """The fleet CA's certificate (parsed once), or None when it does not parse (:attr:`_ca_error`)."""
-        with self._lock:
+        with self._ca_lock:
             if self._ca is None and self._ca_error is None:
                 x509 = _crypto()[0]
                 try:
@@ -106,6 +107,11 @@ class RecordVerifier:
                     self._ca_error = (f"cannot load the fleet CA {self.directory / 'ca.pem'} ({exc}); make the "
                                       "credentials with `scmr certs`")
             return self._ca
+
+    def warm(self) -> str | None:
+        """Parse the fleet CA now (a service calls it once ready); why it does not load, or None."""
+        self._ca_cert()
+        return self._ca_error
 
     #: A name without a valid certificate is looked up again after this long (a robot enrolled
     #: later, a certificate renewed on disk); at most :attr:`MAX_MISSES` names are remembered.

@@ -169,6 +169,9 @@ def run_service(
                                  "startup": startup})
         log.info("%s %s ready (zid %s) %.0f ms after exec, %.0f ms of CPU%s", tier, node, session.info.zid(),
                  startup["wall_ms"], startup["cpu_ms"], ":\n" + clock.format() if verbose else "")
+        after_ready = getattr(getattr(svc, "data", None), "after_ready", None)
+        if callable(after_ready):  # work kept off the start-up (the data tier's CA parse)
+            after_ready()
         if robot_body is not None:
             rc = int(robot_body(session, stop.event) or 0)
         else:
