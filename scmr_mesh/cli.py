@@ -174,7 +174,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
-
 def _exit_now(status: int) -> NoReturn:
     """Leave the process as the interpreter would, minus its finalization.
 

@@ -49,6 +49,7 @@ PEER = r"""
 import json, subprocess, sys, threading, time
 import zenoh
 from scmr_mesh.mesh.config import _GUARDS, MeshConfig, open_session
+from scmr_mesh.mesh.testing import wait_for
 role, listen, connect, lease, cloud_addr, window = sys.argv[1:7]
 mc = MeshConfig(listen=[listen], connect=[c for c in connect.split(",") if c], lease_ms=int(lease))
 # the session a robot really opens: scmr's zenoh runtime (4 RX / 2 TX workers) and the TCP link guard
@@ -64,16 +65,16 @@ with open_session(mc) as s:
         lambda e: events.append((time.monotonic(), str(e.kind), str(e.link.dst))), history=False)
     qc = s.declare_querier("scmr/drivable/cloud/cloud", timeout=1.0)
     ql = s.declare_querier("scmr/drivable/leader/leader", timeout=1.0)
-    end = time.monotonic() + 20
-    while time.monotonic() < end and not (qc.matching_status.matching and ql.matching_status.matching):
-        time.sleep(0.05)
+    wait_for(lambda: qc.matching_status.matching and ql.matching_status.matching, timeout=20,
+             what="the cloud's and the leader's queryables")
     for _ in range(5):  # warm both paths
         for q in (qc, ql):
             list(q.get(payload=b"x" * 200_000))
     guard = _GUARDS.get(id(s))
-    t_guard = time.monotonic() + 5
-    while guard is not None and guard.applied < 2 and time.monotonic() < t_guard:
-        time.sleep(0.01)  # both links' sockets carry TCP_USER_TIMEOUT before the cut
+    try:  # both links' sockets carry TCP_USER_TIMEOUT before the cut
+        wait_for(lambda: guard is not None and guard.applied >= 2, timeout=5, interval=0.01, what="the link guard")
+    except TimeoutError:
+        pass  # reported below
     guarded = guard.applied if guard else 0
     if guarded < 2:
         print(json.dumps({"guarded": guarded}), flush=True)
@@ -87,10 +88,10 @@ with open_session(mc) as s:
         go.wait()
         while time.monotonic() - t_block < float(window):
             leader["attempts"] += 1
+            # each get waits for the leader's answer or its final (1 s timeout at most); no pause between
             if any(r.ok is not None for r in ql.get(payload=b"z" * 100_000)):
                 leader["first_ok_s"] = time.monotonic() - t_block
                 return
-            time.sleep(0.05)
 
     asker = threading.Thread(target=ask_leader, daemon=True)
     asker.start()

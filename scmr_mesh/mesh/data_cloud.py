@@ -72,7 +72,7 @@ class CloudData:
     def _warm_verifier(self) -> None:
         why = self.verifier.warm()
         if why:
-            log.error("cloud %s: %s; every telemetry record will be refused until it loads", self.node, why)
+            log.error("cloud %s: %s; every telemetry record will be refused until the cloud restarts with a CA that loads", self.node, why)
 
     def queryables(self) -> list[tuple[str, Callable]]:
         return [(telemetry_key("cloud", self.node), self._on_telemetry),
