@@ -242,7 +242,11 @@ def add_scale(bench: argparse._SubParsersAction) -> None:
     b.add_argument("--workers", type=ca.count("workers", hi=256), default=2, metavar="W",
                    help="worker processes per cloud node (default: %(default)s)")
     b.add_argument("--service-ms", type=ca.positive("milliseconds", hi=3600000), default=200.0, metavar="MS",
-                   help="fixed service time per request (default: %(default)s)")
+                   help="fixed service time per request (default: %(default)s; ignored with --pipeline)")
+    b.add_argument("--pipeline", action="store_true",
+                   help="the nodes run the real pipeline on synthetic scenes instead of the sleeping stub; "
+                        "the ideal at N nodes is N x the 1-node rate of the same run (needs N x W free cores "
+                        "beside the robots')")
     b.add_argument("--duration", type=ca.positive("seconds", hi=604800), default=None, metavar="S",
                    help="seconds each fleet runs (default: 14 with --quick, else 30)")
     b.add_argument("--json", type=ca.PathArg("out-file"), metavar="FILE", required=True, help="where to write the results")

@@ -37,8 +37,13 @@ What it does not show: the host has 2 cores, so the 32 robots, N nodes, the
 leader and PostgreSQL share them; per-request CPU (zenoh, msgpack, the
 telemetry queue's fsync, the store's commits) grows with served/s, and at
 N = 8 (80 requests/s ideal) the cores, not the tier, can become the limit.
-Nor does it show a real pipeline's CPU cost per frame (``scmr bench mesh``
-does), or a network between hosts (docs/DEPLOY.md, docs/SCENARIOS.md).
+Nor does it show a real pipeline's CPU cost per frame, unless ``--pipeline``
+is given: the nodes then run the real pipeline on the synthetic scenes (every
+kind, dealt round-robin), and the ideal at N nodes is N x the one-node rate
+measured in the same run (a host with fewer free cores than N x W workers plus
+the robots' share cannot show the tier's efficiency: measure it on a large
+host, docs/DEPLOY.md).  Nor a network between hosts (docs/DEPLOY.md,
+docs/SCENARIOS.md).
 """
 
 from __future__ import annotations
@@ -97,10 +102,12 @@ def _loadavg() -> list[float]:
 def _config(args, clouds: int, run_dir: Path, duration_s: float):
     from scmr_mesh.fleet.plan import FleetConfig
 
+    pipeline = getattr(args, "pipeline", False)
     return FleetConfig(
         robots=args.robots, clouds=clouds, ods_backend="postgresql", duration_s=duration_s, rate_hz=1000.0,
-        synthetic=["stub"], run_dir=run_dir, workers=args.workers, lease_ms=None,
-        server_args=("--process", FIXED, "--queue", "64"),
+        # --pipeline: every synthetic scene kind through the real pipeline; else the sleeping stub
+        synthetic=() if pipeline else ["stub"], run_dir=run_dir, workers=args.workers, lease_ms=None,
+        server_args=("--queue", "64") if pipeline else ("--process", FIXED, "--queue", "64"),
         robot_args=("--no-local-fallback", "--deadline-ms", "10000", "--quiet"),
         ready_timeout_s=120.0, insecure=getattr(args, "insecure", False),
     )
@@ -121,6 +128,8 @@ def run_scale(args: argparse.Namespace) -> dict[str, Any]:
         raise InputError(f"--duration must be at least {WARMUP_S + TAIL_S + 2:g} s, got {duration:g}")
     root = args.run_dir or default_run_dir(Path("runs")).with_name(
         "bench-scale-" + time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()))
+    pipeline = bool(getattr(args, "pipeline", False))
+    service = "the real pipeline" if pipeline else f"service {args.service_ms:g} ms"
     old_delay = os.environ.get("SCMR_STUB_DELAY_MS")
     os.environ["SCMR_STUB_DELAY_MS"] = f"{args.service_ms:g}"  # the cloud nodes inherit it
     t_start = time.monotonic()
@@ -128,14 +137,17 @@ def run_scale(args: argparse.Namespace) -> dict[str, Any]:
     try:
         for n in nodes:
             print(f"bench scale: {args.robots} robots, {n} cloud node(s) x {args.workers} workers, "
-                  f"service {args.service_ms:g} ms, {duration:g} s ...", file=sys.stderr, flush=True)
+                  f"{service}, {duration:g} s ...", file=sys.stderr, flush=True)
             rep = run_with_output(_config(args, n, root / f"clouds-{n}", duration), quiet=True)
             w = served_in_window(rep, duration_s=duration)
             w.update({"ror": rep["ror"], "requests": rep["requests"], "loadavg": _loadavg(),
-                      "ideal_per_s": round(n * args.workers * 1000.0 / args.service_ms, 2),
+                      # with the real pipeline the ideal is n x the 1-node rate measured here
+                      "ideal_per_s": (round(n * runs["1"]["served_per_s"], 2) if pipeline and "1" in runs
+                                      else None if pipeline else round(n * args.workers * 1000.0 / args.service_ms, 2)),
                       "run_dir": rep["run_dir"]})
             runs[str(n)] = w
-            print(f"  {n} node(s): {w['served_per_s']:.1f} served/s (ideal {w['ideal_per_s']:g}), by node "
+            ideal = "-" if w["ideal_per_s"] is None else f"{w['ideal_per_s']:g}"
+            print(f"  {n} node(s): {w['served_per_s']:.1f} served/s (ideal {ideal}), by node "
                   f"{w['by_node']}, load {w['loadavg'][0]:.1f}", file=sys.stderr, flush=True)
         print(f"bench scale: crash run, 4 cloud nodes, cloud0 SIGKILLed at {duration / 2:g} s ...",
               file=sys.stderr, flush=True)
@@ -166,7 +178,8 @@ def run_scale(args: argparse.Namespace) -> dict[str, Any]:
     }
     return {
         "ods_backend": "postgresql",
-        "robots": args.robots, "workers_per_node": args.workers, "service_ms": args.service_ms,
+        "robots": args.robots, "workers_per_node": args.workers,
+        "service": "pipeline" if pipeline else "fixed", "service_ms": None if pipeline else args.service_ms,
         "duration_s": duration, "window_s": [WARMUP_S, duration - TAIL_S], "quick": bool(args.quick),
         "served_per_s": {k: v["served_per_s"] for k, v in runs.items()},
         "efficiency": efficiency,
@@ -192,7 +205,8 @@ def cmd_bench_scale(args: argparse.Namespace) -> int:
     print(f"{'nodes':>6}{'served/s':>10}{'ideal':>8}{'efficiency':>12}{'load 1m':>9}  by node")
     for k, r in result["runs"].items():
         eff = result["efficiency"].get(k)
-        print(f"{k:>6}{r['served_per_s']:>10.1f}{r['ideal_per_s']:>8g}{'-' if eff is None else f'{eff:.3f}':>12}"
+        ideal = "-" if r["ideal_per_s"] is None else f"{r['ideal_per_s']:g}"
+        print(f"{k:>6}{r['served_per_s']:>10.1f}{ideal:>8}{'-' if eff is None else f'{eff:.3f}':>12}"
               f"{r['loadavg'][0]:>9.1f}  {r['by_node']}")
     c = result["crash"]
     t = c["telemetry"]
