@@ -297,3 +297,21 @@ def test_acks_overwrite_the_ack_file_in_place(tmp_path, monkeypatch):
         q.ack(4)
     with TelemetryQueue(tmp_path) as q:
         assert q.pending() == [] and q.next_seq == 5
+
+
+def test_a_queue_opened_and_never_used_reopens_without_an_error(tmp_path, caplog):
+    """Opening creates the head file empty; a robot stopped before its first record (a fleet that
+    never started) must not read as a damaged queue: 256 such errors hid a bench's real failure."""
+    with TelemetryQueue(tmp_path):
+        pass
+    assert (tmp_path / "head").read_text() == ""
+    with caplog.at_level("ERROR", logger="scmr_mesh.data.queue"):
+        with TelemetryQueue(tmp_path) as q:
+            assert q.next_seq == 1 and q.pending() == []
+        with TelemetryQueue(tmp_path, readonly=True) as q:
+            assert q.stats().lost_seqs == []
+    assert not [r for r in caplog.records if r.levelname == "ERROR"], caplog.text
+    (tmp_path / "head").write_text("x1")  # a damaged one is still reported
+    with caplog.at_level("ERROR", logger="scmr_mesh.data.queue"):
+        TelemetryQueue(tmp_path).close()
+    assert "not a seq" in caplog.text

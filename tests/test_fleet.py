@@ -295,6 +295,25 @@ def test_bench_scale_window_counts_cloud_answers_only(tmp_path):
     assert w["other"] == 2 and w["by_node"] == {"cloud0": 35, "cloud1": 35}
 
 
+def test_bench_scale_pipeline_runs_the_real_pipeline_on_every_scene_kind(tmp_path):
+    """``--pipeline``: no sleeping stub, no stub scenes; the robots' plans deal every synthetic kind."""
+    from scmr_mesh.bench.scale import FIXED, _config
+    from scmr_mesh.cli import build_parser
+    from scmr_mesh.fleet.plan import fleet_scenario
+
+    args = build_parser().parse_args(["bench", "scale", "--quick", "--json", str(tmp_path / "s.json")])
+    assert args.pipeline is False
+    stub = _config(args, 2, tmp_path / "a", 10.0)
+    assert FIXED in stub.server_args and list(stub.synthetic) == ["stub"]
+    args = build_parser().parse_args(["bench", "scale", "--pipeline", "--workers", "1", "--robots", "6",
+                                      "--json", str(tmp_path / "s.json")])
+    cfg = _config(args, 2, tmp_path / "b", 10.0)
+    assert FIXED not in cfg.server_args and "--process" not in cfg.server_args
+    assert cfg.server_args == ("--queue", "64") and cfg.workers == 1 and cfg.clouds == 2
+    kinds = {r.synthetic for r in fleet_scenario(cfg).robots}
+    assert "stub" not in kinds and len(kinds) > 1, kinds
+
+
 def test_the_runs_postgresql_is_restarted_when_it_dies_and_a_failed_start_is_retried():
     """FleetHooks supervises the run's PostgreSQL (issue 25 item 9), here with a stand-in server."""
     from types import SimpleNamespace

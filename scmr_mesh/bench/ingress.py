@@ -26,6 +26,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any, Sequence
 
+from scmr_mesh.bench import usable_cores
+
 
 #: Offered load of the ramp's steps, as fractions of the closed-loop capacity.
 RAMP = (0.5, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0, 1.1)
@@ -267,7 +269,7 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
             "closed_loop": {"frames_per_s": round(capacity, 1), "outcomes": dict(closed), "cpu_s": closed_cpu,
                             "cpu_ms_per_request": {k: round(v * 1e3 / max(1, closed["ok"]), 3)
                                                    for k, v in closed_cpu.items()}},
-            "steps": steps, **knee(capacity, steps), "cores": os.cpu_count(),
+            "steps": steps, **knee(capacity, steps), "cores": usable_cores(),
             "loadavg_at_end": list(os.getloadavg())}
 
 

@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from scmr_mesh.bench import usable_cores
 from scmr_mesh.bench.overload import run_overload
 from scmr_mesh.errors import InputError
 from scmr_mesh.fleet.commands import _config_from_args
@@ -218,7 +219,7 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
     from scmr_mesh.mesh.robot import frames_from_args
     from scmr_mesh.qos import metrics
 
-    workers = int(workers or os.cpu_count() or 1)
+    workers = int(workers or usable_cores())
     concurrency = int(concurrency or 2 * workers)
     run_dir.mkdir(parents=True, exist_ok=True)
     port = _free_ports(["cap"])["cap"]
@@ -271,7 +272,7 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
             t.join(timeout=15)
     wall, cpu = t1 - t0, cpu1 - cpu0
     return {
-        "workers": workers, "cores": os.cpu_count(), "concurrency": concurrency, "seconds": round(wall, 2),
+        "workers": workers, "cores": usable_cores(), "concurrency": concurrency, "seconds": round(wall, 2),
         "served": counts["ok"], "busy": counts["busy"], "other_errors": counts["other"],
         "frames_per_s": round(counts["ok"] / wall, 1),
         "service_cpu_s": round(cpu, 2),
@@ -388,7 +389,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         with CpuSampler(cfg.run_dir / "ready") as sampler:
             rep = run_with_output(cfg)
         t0 = int(rep["t0_unix_ns"])
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+        cores = usable_cores()
         cpu = cpu_per_request(sampler.to_json(), t0, t0 + int(rep["duration_s"] * 1e9), rep["requests"], cores)
         runs.append(dict(_run_entry(rep), robots_per_process=cfg.robots_per_process, cpu=cpu))
         t, a = rep["tor_ms"], runs[-1]["tor_admitted_ms"]
@@ -423,7 +424,7 @@ def cmd_bench_mesh(args: argparse.Namespace) -> int:
         "crash_hogs": hogs,
         "overload": overload,
         "targets": bench_targets(runs, crash, hogs, ingress),
-        "machine": {"cpus": os.cpu_count(), "loadavg_at_end": list(os.getloadavg())},
+        "machine": {"cpus": os.cpu_count(), "usable_cpus": usable_cores(), "loadavg_at_end": list(os.getloadavg())},
         "measured_unix_ns": time.time_ns(),
     }
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

@@ -56,6 +56,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from scmr_mesh.bench import usable_cores
 from scmr_mesh.errors import InputError
 
 #: Targets of issue 18.
@@ -186,7 +187,7 @@ def run_scale(args: argparse.Namespace) -> dict[str, Any]:
         "crash": crash,
         "runs": runs,
         "targets": targets,
-        "machine": {"cpus": os.cpu_count(), "loadavg_at_end": _loadavg()},
+        "machine": {"cpus": os.cpu_count(), "usable_cpus": usable_cores(), "loadavg_at_end": _loadavg()},
         "wall_s": round(time.monotonic() - t_start, 1),
         "measured_unix_ns": time.time_ns(),
     }

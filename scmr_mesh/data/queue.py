@@ -299,6 +299,8 @@ class TelemetryQueue:
             return 0
         except OSError as exc:
             raise QueueError(f"cannot read {str(f)!r}: {exc}") from None
+        if not text:  # created (the head at open) and never written: nothing handed out yet
+            return 0
         if not text.isdigit():
             log.error("queue %s: %s file holds %r, not a seq; %s", self.path, name, text[:40], consequence)
             return 0
