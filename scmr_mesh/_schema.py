@@ -38,7 +38,10 @@ class Unsupported(ValueError):
 
 # -------------------------------------------------- jsonschema's type rules
 def _is_number(x: Any) -> bool:
-    return isinstance(x, Number) and not isinstance(x, bool)
+    t = type(x)
+    if t is int or t is float:  # the wire's numbers, without the Number ABC's slow isinstance
+        return True
+    return t is not bool and isinstance(x, Number)
 
 
 def _is_integer(x: Any) -> bool:
@@ -125,11 +128,15 @@ def compile_check(schema: Any, *, strict: bool = False) -> Check:
     if "const" in schema:
         use("const")
         c = schema["const"]
-        checks.append(lambda x, c=c: equal(x, c))
+        # a string is equal only to the same string (equal() compares them with ==)
+        checks.append((lambda x, c=c: x == c) if isinstance(c, str) else (lambda x, c=c: equal(x, c)))
     if "enum" in schema:
         use("enum")
         values = list(schema["enum"])
-        checks.append(lambda x, v=values: any(equal(x, e) for e in v))
+        if values and all(isinstance(e, str) for e in values):  # the common case: a set lookup
+            checks.append(lambda x, v=frozenset(values): isinstance(x, str) and x in v)
+        else:
+            checks.append(lambda x, v=values: any(equal(x, e) for e in v))
     for kw, test in (("minimum", lambda x, b: x >= b), ("maximum", lambda x, b: x <= b),
                      ("exclusiveMinimum", lambda x, b: x > b), ("exclusiveMaximum", lambda x, b: x < b)):
         if kw in schema:
@@ -168,7 +175,14 @@ def compile_check(schema: Any, *, strict: bool = False) -> Check:
     if "required" in schema:
         use("required")
         req = tuple(schema["required"])
-        checks.append(lambda x, req=req: not isinstance(x, dict) or all(k in x for k in req))
+        def required(x, req=req):
+            if isinstance(x, dict):
+                for k in req:
+                    if k not in x:
+                        return False
+            return True
+
+        checks.append(required)
     if "properties" in schema or "additionalProperties" in schema:
         use("properties", "additionalProperties")
         props = {k: compile_check(s, strict=strict) for k, s in schema.get("properties", {}).items()}
@@ -227,4 +241,11 @@ def compile_check(schema: Any, *, strict: bool = False) -> Check:
         return lambda x: True
     if len(checks) == 1:
         return checks[0]
-    return lambda x, checks=tuple(checks): all(f(x) for f in checks)
+
+    def every(x, checks=tuple(checks)):  # a loop: a generator in all() costs more than the checks
+        for f in checks:
+            if not f(x):
+                return False
+        return True
+
+    return every

@@ -154,3 +154,33 @@ def test_drop_waits_out_a_receipt_being_sent_on_the_same_query():
     stuck = Borrowed(10**9)  # a reply that never ends: _drop gives up, bounded
     _drop(stuck)
     assert not stuck.dropped
+
+
+def test_error_replies_are_logged_once_a_second_per_code_with_the_count(service, caplog, monkeypatch):
+    """Under overload a log line per busy answer took a tenth of the service's interpreter: each code
+    is logged at INFO at most once per ERROR_LOG_PERIOD_S, with how many went to DEBUG meanwhile;
+    every reply is still sent and counted."""
+    import scmr_mesh.mesh.server as server
+
+    now = [1000.0]
+    monkeypatch.setattr(server.time, "monotonic", lambda: now[0])
+    service._error_log.clear()
+    req = wire.make_request("r1", 1, b"x", encoding="png")
+    queries = [FakeQuery() for _ in range(7)]
+    with service.state.lock:
+        refused0, errors0 = service.state.refused, service.state.errors
+    with caplog.at_level("DEBUG", logger="scmr_mesh.mesh.server"):
+        for q in queries[:5]:
+            service._reply_error(q, "busy", "full", req)
+        service._reply_error(queries[5], "expired", "late", req)  # another code has its own line
+        now[0] += server.ERROR_LOG_PERIOD_S
+        service._reply_error(queries[6], "busy", "full", req)
+    lines = [(r.levelname, r.getMessage()) for r in caplog.records if "error reply" in r.getMessage()]
+    info = [m for lvl, m in lines if lvl == "INFO"]
+    assert len(lines) == 7 and len(info) == 3, lines
+    assert "busy" in info[0] and "more" not in info[0]
+    assert "expired" in info[1]
+    assert "(4 more busy replies" in info[2], info[2]
+    wait_for(lambda: all(q.sent for q in queries), timeout=10, what="every error reply sent")
+    with service.state.lock:
+        assert service.state.refused - refused0 == 6 and service.state.errors - errors0 == 1
