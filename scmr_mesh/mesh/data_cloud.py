@@ -75,10 +75,15 @@ class CloudData:
             log.error("cloud %s: %s; every telemetry record will be refused until the cloud restarts with a CA that loads", self.node, why)
 
     def queryables(self) -> list[tuple[str, Callable]]:
-        return [(telemetry_key("cloud", self.node), self._on_telemetry),
-                (relay_key(self.node), self._on_relay),
-                (buffer_key("cloud", self.node), serve_buffer(self.buffer, "cloud", self.node)),
-                (sync_key(self.node), self._on_sync)]
+        return [(key, cb) for _, key, cb in self.named_queryables()]
+
+    def named_queryables(self) -> list[tuple[str, str, Callable]]:
+        """``(name, key, callback)``: ``telemetry`` and ``relay`` answer later (the store's ack, then
+        a drop), ``buffer`` and ``sync`` within the callback."""
+        cbs = {"telemetry": self._on_telemetry, "relay": self._on_relay,
+               "buffer": serve_buffer(self.buffer, "cloud", self.node), "sync": self._on_sync}
+        return [(name, key, cbs[name]) for name, key in cloud_queryable_keys(self.node)]
+
 
     def _on_telemetry(self, query) -> None:
         """A robot's own batch on ``.../telemetry/<robot>``: every record must be that robot's."""
@@ -276,3 +281,9 @@ class CloudData:
 
 
 # --------------------------------------------------------------------- leader
+
+
+def cloud_queryable_keys(node: str) -> list[tuple[str, str]]:
+    """``(name, key)`` of a cloud node's data queryables (:meth:`CloudData.named_queryables`)."""
+    return [("telemetry", telemetry_key("cloud", node)), ("relay", relay_key(node)),
+            ("buffer", buffer_key("cloud", node)), ("sync", sync_key(node))]

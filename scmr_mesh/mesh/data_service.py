@@ -59,11 +59,12 @@ from pathlib import Path
 from typing import Callable
 
 from scmr_mesh import cliargs as ca
+from scmr_mesh.data.errors import StoreError
 from scmr_mesh.data.ods import DEFAULT_FILENAME
 from scmr_mesh.errors import InputError
 
 from scmr_mesh.mesh.data_agent import TelemetryAgent, fetch_once  # noqa: F401 - re-exported
-from scmr_mesh.mesh.data_cloud import CloudData  # noqa: F401 - re-exported
+from scmr_mesh.mesh.data_cloud import CloudData, cloud_queryable_keys  # noqa: F401 - re-exported
 from scmr_mesh.mesh.data_common import (  # noqa: F401 - BATCH.. re-exported for importers
     BATCH,
     DATA_VERSION,
@@ -114,6 +115,10 @@ def add_arguments(parser, role: str) -> None:
                             "$SCMR_RUN_DIR/ods.sqlite, else RUN/ods.sqlite where RUN is the folder of "
                             "--ready-file (its parent when that folder is named 'ready'), else "
                             "runs/ods.sqlite")
+        g.add_argument("--data-in-process", action="store_true",
+                       help="run the data tier (telemetry store, signature checks, data buffer) in the "
+                            "cloud's own process; by default it runs in a process of its own, so the "
+                            "records do not share an interpreter with the frames (docs/DEPLOY.md)")
         g.add_argument("--data-params", type=ca.PathArg("in-file", what="a JSON file of buffer entries"), metavar="FILE",
                        help="JSON object of shared entries for the data buffer (keys like "
                             "'maps/site' or 'params/speed')")
@@ -159,7 +164,13 @@ def add_arguments(parser, role: str) -> None:
 
 
 def service_setup(args, tier: str) -> Callable:
-    """The ``setup`` hook for :func:`~scmr_mesh.mesh.peers.run_service`: installs the data tier."""
+    """The ``setup`` hook for :func:`~scmr_mesh.mesh.peers.run_service`: installs the data tier.
+
+    A cloud's data tier runs in a process of its own (:mod:`scmr_mesh.mesh.data_process`),
+    forked by the hook's ``prefork(node)`` before the service's workers and zenoh start, unless
+    ``--data-in-process``."""
+    if tier == "cloud" and not getattr(args, "data_in_process", False):
+        return _CloudDataProcessSetup(args)
 
     def setup(svc) -> None:
         if data_tier_off():
@@ -167,28 +178,7 @@ def service_setup(args, tier: str) -> Callable:
             return
         run_dir = _run_dir_from(args)
         if tier == "cloud":
-            from scmr_mesh.data.ods import default_db_path, store_target
-
-            if getattr(args, "ods", None):
-                path = store_target(args.ods)
-            elif os.environ.get("SCMR_ODS") or run_dir is None:
-                path = default_db_path()
-            else:
-                path = run_dir / DEFAULT_FILENAME
-            params = None
-            if getattr(args, "data_params", None):
-                try:
-                    params = json.loads(Path(args.data_params).read_text())
-                except (OSError, ValueError) as exc:
-                    raise InputError(f"--data-params {args.data_params}: not a readable JSON file ({exc})") from None
-                if not isinstance(params, dict):
-                    raise InputError(f"--data-params {args.data_params}: must hold a JSON object, "
-                                     f"got {type(params).__name__}")
-            data = CloudData(svc.node, path, params=params, gate=_gate(args), verifier=record_verifier(args),
-                             quota=_quota(args))
-            if run_dir is not None:
-                data.stats_path = run_dir / f"ingest-{svc.node}.json"
-            log.info("cloud %s: operational data store %s (%s)", svc.node, data.ods.name, data.ods.backend)
+            data = _cloud_data(args, svc.node, *_cloud_store(args, run_dir), run_dir, record_verifier(args))
         else:
             if not getattr(args, "sync_period", 1.0) > 0:
                 raise InputError(f"--sync-period must be > 0 s, got {args.sync_period}")
@@ -202,6 +192,74 @@ def service_setup(args, tier: str) -> Callable:
         atexit.register(data.close)
 
     return setup
+
+
+def _cloud_store(args, run_dir: Path | None) -> tuple[str | Path, dict | None]:
+    """The cloud's store target (``--ods``, ``$SCMR_ODS``, the run's, ``runs/``) and ``--data-params``."""
+    from scmr_mesh.data.ods import default_db_path, store_target
+
+    if getattr(args, "ods", None):
+        path = store_target(args.ods)
+    elif os.environ.get("SCMR_ODS") or run_dir is None:
+        path = default_db_path()
+    else:
+        path = run_dir / DEFAULT_FILENAME
+    params = None
+    if getattr(args, "data_params", None):
+        try:
+            params = json.loads(Path(args.data_params).read_text())
+        except (OSError, ValueError) as exc:
+            raise InputError(f"--data-params {args.data_params}: not a readable JSON file ({exc})") from None
+        if not isinstance(params, dict):
+            raise InputError(f"--data-params {args.data_params}: must hold a JSON object, "
+                             f"got {type(params).__name__}")
+    return path, params
+
+
+def _cloud_data(args, node: str, path, params, run_dir: Path | None, verifier) -> CloudData:
+    data = CloudData(node, path, params=params, gate=_gate(args), verifier=verifier, quota=_quota(args))
+    if run_dir is not None:
+        data.stats_path = run_dir / f"ingest-{node}.json"
+    log.info("cloud %s: operational data store %s (%s)", node, data.ods.name, data.ods.backend)
+    return data
+
+
+class _CloudDataProcessSetup:
+    """The cloud's data tier in its own process: ``prefork(node)`` checks the flags and forks the
+    child (which opens the store); the hook itself waits for the store and declares the queryables."""
+
+    def __init__(self, args) -> None:
+        self.args = args
+        self.proc = None
+
+    def prefork(self, node: str) -> None:
+        from scmr_mesh.mesh.data_process import DataProcess
+
+        if data_tier_off():
+            return
+        args = self.args
+        run_dir = _run_dir_from(args)
+        path, params = _cloud_store(args, run_dir)  # bad flags fail here, in the cloud, in one line
+        verifier = record_verifier(args)
+        _gate(args), _quota(args)
+        self.proc = DataProcess(node, lambda: _cloud_data(args, node, path, params, run_dir, verifier))
+        self.proc.start()
+        atexit.register(self.proc.close)
+
+    def __call__(self, svc) -> None:
+        from scmr_mesh.mesh.data_process import DataProcessError
+
+        if data_tier_off():
+            log.warning("cloud %s: data tier off (SCMR_DATA_TIER=off): telemetry is not stored", svc.node)
+            return
+        if self.proc is None:
+            raise RuntimeError("the cloud's data tier was not forked: run_service calls prefork(node) first")
+        try:
+            self.proc.wait_ready()
+        except DataProcessError as exc:
+            raise StoreError(str(exc)) from None
+        self.proc.attach(svc, cloud_queryable_keys(svc.node))
+        svc.data = self.proc
 
 
 def _gate(args) -> IngestGate:

@@ -96,4 +96,11 @@ def chain(*hooks: Callable[[Any], None] | None) -> Callable[[Any], None] | None:
         for h in live:
             h(service)
 
+    forks = [h.prefork for h in live if callable(getattr(h, "prefork", None))]
+    if forks:  # hooks that fork a process before the service's workers and zenoh start
+        def prefork(node: str) -> None:
+            for f in forks:
+                f(node)
+
+        setup.prefork = prefork
     return setup

@@ -150,6 +150,10 @@ def run_service(
     clock.mark("zenoh config")
     stop = stop or StopFlag().install()
     clear_ready(ready_file)
+    prefork = getattr(setup, "prefork", None)
+    if callable(prefork):  # the cloud's data process: forked while this is the only thread
+        prefork(node)
+        clock.mark("data process forked")
     # workers first: they are forked before zenoh starts any thread
     svc = Service(node, tier=tier, workers=workers, process=process or DEFAULT_PROCESS,
                   max_request_bytes=max_request_bytes or wire.MAX_REQUEST_BYTES,
@@ -184,6 +188,8 @@ def run_service(
         svc.shutdown()
         clear_ready(ready_file)
         stop.restore()
+    if getattr(getattr(svc, "data", None), "failed", False):
+        rc = rc or 1  # the cloud's data process died while it ran (logged at ERROR then)
     return rc
 
 
