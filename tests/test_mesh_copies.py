@@ -136,6 +136,7 @@ def _service(pool, *, workers: int = 1, max_inflight: int = 4) -> Service:
     svc.admission, svc.negotiator, svc.priority_cap, svc._capped = default_admission, None, None, set()
     svc.replier, svc.recent, svc.pool = Replier(1), RecentRequests(), pool
     svc.state.outstanding = pool.outstanding
+    svc._error_log, svc._error_log_lock = {}, threading.Lock()
     return svc
 
 
