@@ -17,16 +17,16 @@ one() {  # name robots
   local name=$1 n=$2 R=/tmp/$1/robots-$2 e=0
   echo "== $name: $n robots, load $(cut -d' ' -f1 /proc/loadavg), t+$(( $(date +%s) - T0 ))s"
   python3 -m scmr_mesh bench mesh --robots $n --duration ${DURATION:-10} --workers ${WORKERS:-12} --capacity-seconds 0 --ingress-seconds 0 \
-    --crash-runs 0 --overload-robots 0 --hogs 0 --json $OUT/$name.json --run-dir /tmp/$name > /tmp/$name.log 2>&1 &
+    --crash-runs 0 --overload-robots 0 --hogs 0 ${SERVER_ARGS:-} --json $OUT/$name.json --run-dir /tmp/$name > /tmp/$name.log 2>&1 &
   local B=$! s0=$(date +%s)
   while kill -0 $B 2>/dev/null; do sleep 0.5; e=$(( $(date +%s) - s0 ))
     grep -q "robots ready" /tmp/$name.log && break; [ $e -ge ${ABORT_S:-80} ] && break; done
   if grep -q "robots ready" /tmp/$name.log; then
     echo "robots ready line after ${e}s"; sleep 1
-    local cp=$(pgrep -f "ready/cloud.ready" | head -1)
-    snap $cp > /tmp/a; sleep 8; snap $cp > /tmp/b
-    echo "cloud pid $cp, CPU s per thread name over 8 s (threads):"
-    join /tmp/a /tmp/b | awk '{d=($5-$3)/100; if (d>0.05) printf "  %-16s %3d %6.2f\n", $1, $4, d}'
+    local pids=$(pgrep -f "ready/cloud.ready")  # the cloud, its data process, its workers
+    for p in $pids; do snap $p > /tmp/a.$p; done; sleep 8; for p in $pids; do snap $p > /tmp/b.$p; done
+    echo "cloud processes (pid: CPU s over 8 s by thread name, threads):"
+    for p in $pids; do echo "  $p: $(join /tmp/a.$p /tmp/b.$p | awk '{d=($5-$3)/100; if (d>0.05) printf "%s %d %.2f; ", $1, $4, d}')"; done
   else
     echo "NOT READY after ${e}s: $(ls $R/ready | wc -l) ready files"
     for f in $R/logs/swarm-*.log; do s=$(basename $f .log); [ -e $R/ready/$s.ready ] && continue

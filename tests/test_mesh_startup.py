@@ -17,7 +17,7 @@ from conftest import free_port
 from scmr_mesh.mesh.startup import StartupClock, exec_age_s, process_cpu_ms
 from scmr_mesh.mesh.testing import spawn_peer, stop_peer, wait_for
 
-PHASES = ["interpreter", "command line", "zenoh config", "pipeline imports", "kernels + warm-up run",
+PHASES = ["interpreter", "command line", "zenoh config", "data process forked", "pipeline imports", "kernels + warm-up run",
           "worker pool", "wire validators", "setup hooks", "zenoh session", "queryables", "warm-up query", "token"]
 
 

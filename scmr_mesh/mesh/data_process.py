@@ -1,10 +1,11 @@
 """The cloud's data tier in a process of its own (issue 23 item 2).
 
-Measured on the 16-core device (docs/BENCHMARKS.md, "Where the cloud's interpreter goes"): with
+Measured on the 16-core device (docs/BENCHMARKS.md, "256 robots on the 16-core device"): with
 128 robots at 5 Hz the cloud's Python threads used 0.89 of a core, one interpreter, for about 600
-answers a second, and ``py-spy --gil`` put about a third of that interpreter's time in the
-telemetry path (batch decode, signature checks, the store's writer, the acks).  The frame path
-and the telemetry path shared one interpreter lock, so the frames waited for the records.
+answers a second; ``py-spy record --gil`` of a cloud serving 32 robots (2-core box) put 28 % of
+the lock-holding samples in the telemetry path (batch decode, signature checks, the store's
+writer, the acks).  The frame path and the telemetry path shared one interpreter lock, so the
+frames waited for the records.
 
 So ``scmr cloud`` forks, before zenoh or any thread starts, one child that owns the
 :class:`~scmr_mesh.mesh.data_cloud.CloudData` (the operational data store, the signature checks,
