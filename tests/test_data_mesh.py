@@ -94,7 +94,8 @@ def _summary(tmp: Path, rid: str) -> dict:
     return json.loads((tmp / rid / "telemetry.json").read_text())
 
 
-def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path):
+@pytest.mark.parametrize("data_process", ["on", "off"])  # the cloud's data tier in its own process, or not
+def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path, data_process):
     from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
     from scmr_mesh.mesh.data_service import TelemetryAgent
     from scmr_mesh.mesh.robot import Robot, RobotOptions
@@ -103,7 +104,7 @@ def test_cloud_outage_loses_nothing_and_data_requests_fail_over(peers, tmp_path)
     ods_path = tmp_path / "ods.sqlite"
     params = tmp_path / "params.json"
     params.write_text(json.dumps({"params/speed_mps": 1.5, "maps/site": {"lanes": 2}}))
-    cloud_args = dict(extra=["--ods", str(ods_path), "--data-params", str(params)])
+    cloud_args = dict(extra=["--ods", str(ods_path), "--data-params", str(params), "--data-process", data_process])
     cloud = peers.service("cloud", "c1", pc, **cloud_args)
     peers.service("leader", "L", pl, connect=[_ep(pc)], extra=["--sync-period", "0.3"])
     r1 = peers.robot("r1", [_ep(pc), _ep(pl)], "--rate", "20", "--duration", "7", "--deadline-ms", "400",

@@ -165,3 +165,29 @@ os.kill(os.getpid(), signal.SIGKILL)
             return True
 
     wait_for(gone, timeout=10, what=f"data process {child} to die with its parent")
+
+
+def test_a_stalled_child_never_holds_zenoh_s_thread(tmp_path, monkeypatch):
+    """The queryable callbacks run on zenoh's thread, which also receives the frames: a child that
+    stops reading (SIGSTOP here) must cost busy answers for telemetry, never a blocked callback."""
+    import scmr_mesh.mesh.data_process as dproc
+
+    monkeypatch.setattr(dproc, "MAX_QUEUED", 4)
+    dp, svc = _start(tmp_path)
+    os.kill(dp.pid, signal.SIGSTOP)
+    try:
+        key = telemetry_key("cloud", NODE, "r1")
+        cb = svc.callbacks[dict(cloud_queryable_keys(NODE))["telemetry"]]
+        # 12 batches of 200 KB: the first fill the 64 KB pipe, 4 wait in the queue, the rest are refused
+        queries = [FakeQuery(key, _records("r1", 1) + b" " * 200_000) for _ in range(12)]
+        caller = threading.Thread(target=lambda: [cb(q) for q in queries])
+        caller.start()
+        caller.join(timeout=30)
+        assert not caller.is_alive(), "a queryable callback waited for the stalled child"
+        wait_for(lambda: any(q.done.is_set() for q in queries), timeout=10, what="a busy answer")
+        refused = [q for q in queries if q.done.is_set()]
+        assert all(q.replies[0][0] == "err" and q.replies[0][1]["busy"] for q in refused), refused[0].replies
+    finally:
+        os.kill(dp.pid, signal.SIGCONT)
+        dp.close()
+    assert all(q.done.is_set() for q in queries)  # every query answered (acked, or refused) by the end

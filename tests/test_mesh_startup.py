@@ -46,7 +46,7 @@ def test_cloud_reports_its_start_up_phases(tmp_path):
     ready = tmp_path / "c1.ready"
     log = tmp_path / "c1.log"
     p = spawn_peer(["cloud", "--insecure", "--node", "c1", "--listen", f"tcp/127.0.0.1:{free_port()}", "--workers", "2",
-                    "--ready-file", str(ready), "--verbose"], log_path=log)
+                    "--ready-file", str(ready), "--verbose", "--data-process", "on"], log_path=log)
     try:
         wait_for(lambda: ready.exists() or p.poll() is not None, timeout=120, what="cloud ready")
         assert p.poll() is None, log.read_text()

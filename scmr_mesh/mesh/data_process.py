@@ -18,8 +18,8 @@ Life cycle: the child has ``PR_SET_PDEATHSIG`` = SIGKILL, so it dies with a SIGK
 the in-process data tier did; it ignores SIGINT and SIGTERM and stops when the parent closes the
 pipe (then it writes its ingest stats).  If the child dies first, the parent logs it once at
 ERROR, answers every data query with an error (robots keep their records: nothing is lost),
-and the cloud exits with status 1 when it stops.  ``scmr cloud --data-in-process`` keeps the old
-layout (one process).
+and the cloud exits with status 1 when it stops.  ``scmr cloud --data-process off`` keeps the old
+layout (one process); ``auto``, the default, forks the child from 4 usable cores up.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from __future__ import annotations
 import itertools
 import logging
 import os
+import queue
 import signal
 import threading
 from typing import Any, Callable
@@ -39,6 +40,9 @@ log = logging.getLogger(__name__)
 ASYNC = frozenset({"telemetry", "relay"})
 #: how long the cloud waits for its data process to open the store (PostgreSQL may be slow)
 READY_TIMEOUT_S = 60.0
+#: queries waiting to go down the pipe; beyond it a data query is answered busy at once, so a
+#: stalled child never holds zenoh's callback thread (and with it the frames)
+MAX_QUEUED = 1024
 
 
 class DataProcessError(RuntimeError):
@@ -156,6 +160,7 @@ class DataProcess:
         self._send_lock = threading.Lock()
         self._pending: dict[int, list] = {}  # rid -> [query, [(kind, key, blob)...]]
         self._reader: threading.Thread | None = None
+        self._outq: queue.Queue = queue.Queue(MAX_QUEUED)
 
     # ------------------------------------------------------------ life cycle
     def start(self) -> None:
@@ -193,6 +198,7 @@ class DataProcess:
             svc.add_queryable(key, lambda q, name=name: self._on_query(name, q))
         self._reader = threading.Thread(target=self._read, name=f"scmr-data-{self.node}", daemon=True)
         self._reader.start()
+        threading.Thread(target=self._write, name=f"scmr-data-tx-{self.node}", daemon=True).start()
 
     def after_ready(self) -> None:  # the child warms its own verifier
         return None
@@ -202,11 +208,15 @@ class DataProcess:
         if self.proc is None or self._closing:
             return
         self._closing = True
-        try:
-            with self._send_lock:
-                self._conn.send(None)
-        except (OSError, ValueError):
+        try:  # the writer thread sends the stop after the queries already queued
+            self._outq.put(None, timeout=timeout)
+        except queue.Full:  # the child stopped reading: it is killed below
             pass
+        if self._reader is None:  # never attached: no writer thread
+            try:
+                self._conn.send(None)
+            except (OSError, ValueError):
+                pass
         self.proc.join(timeout)
         if self.proc.is_alive():
             log.warning("cloud %s: data process %s did not stop within %g s; killed", self.node, self.pid, timeout)
@@ -222,14 +232,31 @@ class DataProcess:
         rid = next(self._ids)
         with self._lock:
             self._pending[rid] = [query, []]
-        try:
-            msg = (rid, which, str(query.key_expr), _payload(query))
-            with self._send_lock:
-                self._conn.send(msg)
-        except (OSError, ValueError) as exc:
+        try:  # zenoh's callback thread never waits for the pipe
+            self._outq.put_nowait((rid, which, str(query.key_expr), _payload(query)))
+        except queue.Full:
             with self._lock:
                 self._pending.pop(rid, None)
-            self._refuse(query, f"cannot reach its data process ({exc})")
+            self._refuse(query, f"its data process has {MAX_QUEUED} queries waiting")
+
+    def _write(self) -> None:
+        while True:
+            msg = self._outq.get()
+            if msg is None:  # close(): after the queries queued before it, tell the child to stop
+                try:
+                    with self._send_lock:
+                        self._conn.send(None)
+                except (OSError, ValueError):
+                    pass
+                return
+            try:
+                with self._send_lock:
+                    self._conn.send(msg)
+            except (OSError, ValueError) as exc:
+                with self._lock:
+                    entry = self._pending.pop(msg[0], None)
+                if entry is not None:
+                    self._refuse(entry[0], f"cannot reach its data process ({exc})")
 
     def _refuse(self, query, why: str) -> None:
         _answer(query, {"error": f"cloud {self.node}: {why}; keep the records and retry", "busy": True,

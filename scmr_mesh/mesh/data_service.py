@@ -115,13 +115,19 @@ def add_arguments(parser, role: str) -> None:
                             "$SCMR_RUN_DIR/ods.sqlite, else RUN/ods.sqlite where RUN is the folder of "
                             "--ready-file (its parent when that folder is named 'ready'), else "
                             "runs/ods.sqlite")
-        g.add_argument("--data-in-process", action="store_true",
-                       help="run the data tier (telemetry store, signature checks, data buffer) in the "
-                            "cloud's own process; by default it runs in a process of its own, so the "
-                            "records do not share an interpreter with the frames (docs/DEPLOY.md)")
+        g.add_argument("--data-process", choices=("auto", "on", "off"), default="auto",
+                       help="run the data tier (telemetry store, signature checks, quotas, data buffer) in "
+                            "a process of its own, so the records do not share an interpreter with the "
+                            "frames: on, off, or auto (default): on when this process may use at least "
+                            f"{DATA_PROCESS_MIN_CORES} cores (on 2 cores the hand-off costs CPU that no "
+                            "spare core pays back; docs/DEPLOY.md)")
         g.add_argument("--data-params", type=ca.PathArg("in-file", what="a JSON file of buffer entries"), metavar="FILE",
                        help="JSON object of shared entries for the data buffer (keys like "
                             "'maps/site' or 'params/speed')")
+    if role == "leader":  # so one --server-arg (scmr up, scmr bench mesh) reaches cloud and leader alike
+        g.add_argument("--data-process", choices=("auto", "on", "off"), default="auto",
+                       help="accepted for the cloud's sake: a leader's data tier (its relay queue) always "
+                            "runs in its own process")
     if role in ("leader", "robot"):
         extra = "" if role == "leader" else "with --leader-capable: "
         g.add_argument("--sync-period", type=ca.positive("seconds", hi=3600, example="1"), default=1.0, metavar="S",
@@ -167,9 +173,9 @@ def service_setup(args, tier: str) -> Callable:
     """The ``setup`` hook for :func:`~scmr_mesh.mesh.peers.run_service`: installs the data tier.
 
     A cloud's data tier runs in a process of its own (:mod:`scmr_mesh.mesh.data_process`),
-    forked by the hook's ``prefork(node)`` before the service's workers and zenoh start, unless
-    ``--data-in-process``."""
-    if tier == "cloud" and not getattr(args, "data_in_process", False):
+    forked by the hook's ``prefork(node)`` before the service's workers and zenoh start, when
+    :func:`data_process_wanted` (``--data-process``)."""
+    if tier == "cloud" and data_process_wanted(getattr(args, "data_process", "auto")):
         return _CloudDataProcessSetup(args)
 
     def setup(svc) -> None:
@@ -192,6 +198,24 @@ def service_setup(args, tier: str) -> Callable:
         atexit.register(data.close)
 
     return setup
+
+
+#: ``--data-process auto`` forks the cloud's data process from this many usable cores up.  On the
+#: 2-core box, 16 robots at 5 Hz: the cloud's interpreter 1.05-1.11 s per 8 s with it against
+#: 1.39-1.43 s without, but 0.55-0.58 s more in the child, and no core to spare for it
+#: (docs/BENCHMARKS.md "256 robots on the 16-core device").
+DATA_PROCESS_MIN_CORES = 4
+
+
+def data_process_wanted(choice: str) -> bool:
+    """Whether a cloud runs its data tier in a process of its own (``--data-process``)."""
+    if choice in ("on", "off"):
+        return choice == "on"
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return cores >= DATA_PROCESS_MIN_CORES
 
 
 def _cloud_store(args, run_dir: Path | None) -> tuple[str | Path, dict | None]:
