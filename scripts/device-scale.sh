@@ -7,7 +7,7 @@
 #             PostgreSQL server this script unpacks (.devwheels/pgdev.tar.xz: Debian 12's PostgreSQL 15
 #             programs, the libraries they need in /opt/pglibs, wrappers in /opt/pgw/bin);
 #   mesh64p2  the 2-core target beside it: taskset -c 0,1, 64 robots, 2 workers.
-# Here, first: the wheels (DEVICE.md) and pgdev.tar.xz into .devwheels/; then run it with
+# Here, first: the wheels (DEVICE.md) and pgdev.tar.xz (scripts/device-pg-bundle.sh) into .devwheels/; then
 #   carry [".devwheels"], command "bash scripts/device-scale.sh".
 set -u
 cd "$(dirname "$0")/.."

@@ -169,25 +169,99 @@ os.kill(os.getpid(), signal.SIGKILL)
 
 def test_a_stalled_child_never_holds_zenoh_s_thread(tmp_path, monkeypatch):
     """The queryable callbacks run on zenoh's thread, which also receives the frames: a child that
-    stops reading (SIGSTOP here) must cost busy answers for telemetry, never a blocked callback."""
+    stops reading (SIGSTOP here) must cost busy answers for telemetry, never a blocked callback;
+    the batches taken before are stored and acked once it reads again."""
+    import socket
+
     import scmr_mesh.mesh.data_process as dproc
 
     monkeypatch.setattr(dproc, "MAX_QUEUED", 4)
     dp, svc = _start(tmp_path)
+    with socket.socket(fileno=os.dup(dp._conn.fileno())) as sock:  # a small pipe: 2 batches fill it
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
     os.kill(dp.pid, signal.SIGSTOP)
+    cb = svc.callbacks[dict(cloud_queryable_keys(NODE))["telemetry"]]
+    queries = []
+    for i in range(16):  # valid batches of one 3 KB record, one robot each (no quota in the way)
+        rec = TelemetryRecord(robot=f"r{i}", seq=1, t_unix_ns=time.time_ns(), results={"pad": "x" * 3000})
+        queries.append(FakeQuery(telemetry_key("cloud", NODE, f"r{i}"), encode_records([rec])))
     try:
-        key = telemetry_key("cloud", NODE, "r1")
-        cb = svc.callbacks[dict(cloud_queryable_keys(NODE))["telemetry"]]
-        # 12 batches of 200 KB: the first fill the 64 KB pipe, 4 wait in the queue, the rest are refused
-        queries = [FakeQuery(key, _records("r1", 1) + b" " * 200_000) for _ in range(12)]
         caller = threading.Thread(target=lambda: [cb(q) for q in queries])
         caller.start()
         caller.join(timeout=30)
         assert not caller.is_alive(), "a queryable callback waited for the stalled child"
-        wait_for(lambda: any(q.done.is_set() for q in queries), timeout=10, what="a busy answer")
         refused = [q for q in queries if q.done.is_set()]
+        assert refused, "nothing refused: the pipe and the queue took 16 batches of 3 KB"
         assert all(q.replies[0][0] == "err" and q.replies[0][1]["busy"] for q in refused), refused[0].replies
     finally:
         os.kill(dp.pid, signal.SIGCONT)
+    taken = [q for q in queries if q not in refused]
+    for q in taken:
+        assert q.done.wait(30), "a batch taken before the stall was never answered"
+        assert q.replies[0][0] == "ok" and q.replies[0][1]["stored"] == 1, q.replies
+    dp.close()
+
+
+def test_close_sends_the_acks_of_stored_batches_before_it_refuses_anything(tmp_path):
+    """close() waits for the child's last answers: a stored batch is acked, never answered
+    'stopping' (a hostile review found 33-80 of 200 refused with a slow reply thread)."""
+    class SlowReader:  # fault injection: the parent reads the child's answers 2 ms late each
+        def __init__(self, conn):
+            self.conn = conn
+
+        def recv(self):
+            msg = self.conn.recv()
+            time.sleep(0.002)
+            return msg
+
+        def __getattr__(self, name):
+            return getattr(self.conn, name)
+
+    store = tmp_path / "ods.sqlite"
+    dp = DataProcess(NODE, lambda: CloudData(NODE, store))
+    dp.start()
+    dp.wait_ready(30)
+    dp._conn = SlowReader(dp._conn)
+    svc = FakeService()
+    dp.attach(svc, cloud_queryable_keys(NODE))
+    cb = svc.callbacks[dict(cloud_queryable_keys(NODE))["telemetry"]]
+    queries = [FakeQuery(telemetry_key("cloud", NODE, f"r{i}"), _records(f"r{i}", 1)) for i in range(200)]
+    for q in queries:
+        cb(q)
+    dp.close()
+    assert all(q.done.is_set() for q in queries)
+    kinds = [q.replies[0][1].get("kind") for q in queries]
+    assert kinds.count("data_ack") == 200, [q.replies for q in queries if q.replies[0][1].get("kind") != "data_ack"][:3]
+    late = FakeQuery(telemetry_key("cloud", NODE, "r1"), _records("r1", 1))
+    cb(late)  # after close: refused at once, never left unanswered
+    assert late.done.is_set() and late.replies[0][0] == "err"
+
+
+def test_a_dead_child_calls_on_death_once(tmp_path):
+    died = []
+    dp = DataProcess(NODE, lambda: CloudData(NODE, tmp_path / "ods.sqlite"), on_death=lambda: died.append(1))
+    dp.start()
+    dp.wait_ready(30)
+    dp.attach(FakeService(), cloud_queryable_keys(NODE))
+    try:
+        os.kill(dp.pid, signal.SIGKILL)
+        wait_for(lambda: died, timeout=10, what="on_death")
+        assert died == [1] and dp.failed
+    finally:
         dp.close()
-    assert all(q.done.is_set() for q in queries)  # every query answered (acked, or refused) by the end
+
+
+def test_start_refuses_to_fork_from_another_thread(tmp_path):
+    """PDEATHSIG follows the forking thread: a child forked by a thread that ends would be killed."""
+    out = []
+
+    def start():
+        try:
+            DataProcess(NODE, lambda: CloudData(NODE, tmp_path / "ods.sqlite")).start()
+        except RuntimeError as exc:
+            out.append(str(exc))
+
+    t = threading.Thread(target=start)
+    t.start()
+    t.join(30)
+    assert out and "main thread" in out[0]

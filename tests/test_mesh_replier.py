@@ -163,7 +163,7 @@ def test_error_replies_are_logged_once_a_second_per_code_with_the_count(service,
     import scmr_mesh.mesh.server as server
 
     now = [1000.0]
-    monkeypatch.setattr(server.time, "monotonic", lambda: now[0])
+    monkeypatch.setattr(server, "_clock", lambda: now[0])
     service._error_log.clear()
     req = wire.make_request("r1", 1, b"x", encoding="png")
     queries = [FakeQuery() for _ in range(7)]
@@ -180,7 +180,7 @@ def test_error_replies_are_logged_once_a_second_per_code_with_the_count(service,
     assert len(lines) == 7 and len(info) == 3, lines
     assert "busy" in info[0] and "more" not in info[0]
     assert "expired" in info[1]
-    assert "(4 more busy replies" in info[2], info[2]
+    assert "(4 more busy replies since the last such line" in info[2], info[2]
     wait_for(lambda: all(q.sent for q in queries), timeout=10, what="every error reply sent")
     with service.state.lock:
         assert service.state.refused - refused0 == 6 and service.state.errors - errors0 == 1

@@ -15,10 +15,11 @@ pipe and send back, from the service's reply threads, what the child answered.  
 CloudData's own callbacks on a stand-in query (:class:`_PipeQuery`), unchanged.
 
 Life cycle: the child has ``PR_SET_PDEATHSIG`` = SIGKILL, so it dies with a SIGKILLed cloud, as
-the in-process data tier did; it ignores SIGINT and SIGTERM and stops when the parent closes the
-pipe (then it writes its ingest stats).  If the child dies first, the parent logs it once at
-ERROR, answers every data query with an error (robots keep their records: nothing is lost),
-and the cloud exits with status 1 when it stops.  ``scmr cloud --data-process off`` keeps the old
+the in-process data tier did (the pipe cannot tell it: the workers forked after it hold the
+parent's end too); it ignores SIGINT and SIGTERM and stops when the parent sends it the stop,
+after the queries queued before (then it writes its ingest stats).  If the child dies first, the
+parent logs it once at ERROR, answers every data query busy (robots keep their records: nothing
+is lost), and ``scmr cloud`` stops and exits 1, so a supervisor restarts it.  ``scmr cloud --data-process off`` keeps the old
 layout (one process); ``auto``, the default, forks the child from 4 usable cores up.
 """
 
@@ -36,6 +37,8 @@ from scmr_mesh.mesh.data_common import _answer, _drop, _payload
 
 log = logging.getLogger(__name__)
 
+#: threads sending the data tier's answers (apart from the frames' reply threads)
+DATA_REPLY_THREADS = 2
 #: queryables answered later (the store's ack, then ``drop``), not when their callback returns
 ASYNC = frozenset({"telemetry", "relay"})
 #: how long the cloud waits for its data process to open the store (PostgreSQL may be slow)
@@ -79,16 +82,21 @@ class _PipeQuery:
 
 
 def _die_with_parent() -> None:
+    """PR_SET_PDEATHSIG = SIGKILL: the child must not outlive a SIGKILLed cloud (it holds the store).
+    The pipe cannot tell it: the workers forked after it inherit the parent's end."""
     try:
         import ctypes
 
         libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
-    except Exception:  # not Linux: the closed pipe still ends the child
-        pass
+        if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:  # PR_SET_PDEATHSIG
+            raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
+    except Exception as exc:
+        log.warning("data process: cannot ask to die with the cloud (%s); if the cloud is killed, kill "
+                    "process %d too", exc, os.getpid())
 
 
-def _child_main(conn, make_data: Callable[[], Any], parent: int) -> None:
+def _child_main(conn, parent_end, make_data: Callable[[], Any], parent: int) -> None:
+    parent_end.close()  # only the parent reads and writes that end
     _die_with_parent()
     if os.getppid() != parent:  # the parent died before the prctl
         os._exit(0)
@@ -127,11 +135,15 @@ def _child_main(conn, make_data: Callable[[], Any], parent: int) -> None:
             continue
         if which not in ASYNC:
             q.drop()
+    status = 0
     try:
         data.close()  # the ingest stats file, the store
+    except Exception:
+        log.exception("data process: closing the store failed")
+        status = 1
     finally:
         conn.close()
-        os._exit(0)
+        os._exit(status)
 
 
 class DataProcess:
@@ -145,9 +157,13 @@ class DataProcess:
         ``() -> CloudData``, run in the child (it opens the store there).
     """
 
-    def __init__(self, node: str, make_data: Callable[[], Any]) -> None:
+    def __init__(self, node: str, make_data: Callable[[], Any], *,
+                 on_death: Callable[[], None] | None = None) -> None:
         self.node = node
         self._make_data = make_data
+        #: called once when the child dies while the cloud runs (``scmr cloud``: stop, then exit 1)
+        self._on_death = on_death
+        self._replier = None  # its own reply threads: an ack stuck on a dead link holds no frame reply
         self._conn = None
         self.proc = None
         self.pid: int | None = None
@@ -167,9 +183,13 @@ class DataProcess:
         """Fork the child; call before zenoh starts and before any thread (fork keeps only this one)."""
         import multiprocessing
 
+        if threading.current_thread() is not threading.main_thread():
+            # PDEATHSIG fires when the forking *thread* ends: a worker thread's end would kill the child
+            raise RuntimeError("DataProcess.start() must run on the main thread (scmr cloud forks it "
+                               "before any other thread starts)")
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_child_main, args=(child, self._make_data, os.getpid()),
+        self.proc = ctx.Process(target=_child_main, args=(child, self._conn, self._make_data, os.getpid()),
                                 name=f"scmr-data-{self.node}", daemon=False)
         self.proc.start()
         child.close()
@@ -193,7 +213,10 @@ class DataProcess:
 
     def attach(self, svc, keys: list[tuple[str, str]]) -> None:
         """Declare the data queryables ``[(name, key)]`` on ``svc`` and start reading the child's answers."""
+        from scmr_mesh.mesh.server import Replier
+
         self._svc = svc
+        self._replier = Replier(DATA_REPLY_THREADS)
         for name, key in keys:
             svc.add_queryable(key, lambda q, name=name: self._on_query(name, q))
         self._reader = threading.Thread(target=self._read, name=f"scmr-data-{self.node}", daemon=True)
@@ -222,12 +245,14 @@ class DataProcess:
             log.warning("cloud %s: data process %s did not stop within %g s; killed", self.node, self.pid, timeout)
             self.proc.kill()
             self.proc.join(5)
+        if self._reader is not None:  # the child's last answers (acks of stored batches) go out first
+            self._reader.join(timeout)
         self._fail_pending("the cloud is stopping")
 
     # ------------------------------------------------------------ queries
     def _on_query(self, which: str, query) -> None:
-        if self.failed:
-            self._refuse(query, "its data process is gone")
+        if self.failed or self._closing:
+            self._refuse(query, "its data process is gone" if self.failed else "the cloud is stopping")
             return
         rid = next(self._ids)
         with self._lock:
@@ -275,7 +300,7 @@ class DataProcess:
             if entry is None:
                 continue
             if kind == "done":
-                self._svc.replier.send(lambda q=entry[0], out=entry[1]: self._send(q, out))
+                self._replier.send(lambda q=entry[0], out=entry[1]: self._send(q, out))
             else:
                 entry[1].append(msg)
         if not self._closing:
@@ -285,6 +310,8 @@ class DataProcess:
                       "robots keep their records; the cloud exits 1 when it stops", self.node, self.pid,
                       self.proc.exitcode)
             self._fail_pending("its data process is gone")
+            if self._on_death is not None:
+                self._on_death()
 
     def _send(self, query, out: list) -> None:
         from scmr_mesh.mesh.data_common import _msgpack_encoding

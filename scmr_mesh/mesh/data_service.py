@@ -55,6 +55,7 @@ import atexit
 import json
 import logging
 import os
+import signal
 from pathlib import Path
 from typing import Callable
 
@@ -266,7 +267,9 @@ class _CloudDataProcessSetup:
         path, params = _cloud_store(args, run_dir)  # bad flags fail here, in the cloud, in one line
         verifier = record_verifier(args)
         _gate(args), _quota(args)
-        self.proc = DataProcess(node, lambda: _cloud_data(args, node, path, params, run_dir, verifier))
+        # a dead data process stops the cloud (it then exits 1), so a supervisor restarts both
+        self.proc = DataProcess(node, lambda: _cloud_data(args, node, path, params, run_dir, verifier),
+                                on_death=lambda: os.kill(os.getpid(), signal.SIGTERM))
         self.proc.start()
         atexit.register(self.proc.close)
 

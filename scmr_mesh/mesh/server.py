@@ -69,6 +69,8 @@ LOAD_PERIOD_S = 0.1
 REPLY_THREADS = 4
 #: error replies of one code are logged at INFO at most once per this many seconds (the rest at DEBUG)
 ERROR_LOG_PERIOD_S = 1.0
+#: the error log's clock (a test replaces this one, not ``time.monotonic`` itself)
+_clock = time.monotonic
 
 
 class Replier:
@@ -659,13 +661,13 @@ class Service:
         second held, the rest at DEBUG.  Under overload a line per busy answer cost the service
         about a tenth of its interpreter time (py-spy --gil, 32 robots on 2 cores), the very time
         it was short of; the counts stay exact in the state (``refused``, ``errors``)."""
-        now = time.monotonic()
+        now = _clock()
         with self._error_log_lock:
             since, n = self._error_log.get(code, (None, 0))
             first = since is None or now - since >= ERROR_LOG_PERIOD_S
             self._error_log[code] = (now, 0) if first else (since, n + 1)
         if first:
-            more = f" ({n} more {code} replies in the {ERROR_LOG_PERIOD_S:g} s before, at debug level)" if n else ""
+            more = f" ({n} more {code} replies since the last such line, at debug level)" if n else ""
             log.info("error reply %s to %s/%s: %s%s", code, msg["robot"], msg["seq"], message, more)
         else:
             log.debug("error reply %s to %s/%s: %s", code, msg["robot"], msg["seq"], message)
