@@ -307,8 +307,8 @@ class DataProcess:
             self.failed = True
             self.proc.join(1)
             log.error("cloud %s: its data process %s exited (status %s): telemetry is no longer stored here; "
-                      "robots keep their records; the cloud exits 1 when it stops", self.node, self.pid,
-                      self.proc.exitcode)
+                      "robots keep their records%s", self.node, self.pid,
+                      self.proc.exitcode, "; the cloud stops and exits 1" if self._on_death else "")
             self._fail_pending("its data process is gone")
             if self._on_death is not None:
                 self._on_death()
