@@ -248,6 +248,8 @@ class DataProcess:
         if self._reader is not None:  # the child's last answers (acks of stored batches) go out first
             self._reader.join(timeout)
         self._fail_pending("the cloud is stopping")
+        if self._replier is not None:  # and are sent before close returns (the process exits next)
+            self._replier.close(timeout)
 
     # ------------------------------------------------------------ queries
     def _on_query(self, which: str, query) -> None:
