@@ -180,6 +180,8 @@ def test_a_stalled_child_never_holds_zenoh_s_thread(tmp_path, monkeypatch):
     with socket.socket(fileno=os.dup(dp._conn.fileno())) as sock:  # a small pipe: 2 batches fill it
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
     os.kill(dp.pid, signal.SIGSTOP)
+    wait_for(lambda: Path(f"/proc/{dp.pid}/stat").read_text().split(") ")[1].startswith("T"), timeout=10,
+             what="the data process to stop")
     cb = svc.callbacks[dict(cloud_queryable_keys(NODE))["telemetry"]]
     queries = []
     for i in range(16):  # valid batches of one 3 KB record, one robot each (no quota in the way)
