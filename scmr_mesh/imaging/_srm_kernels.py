@@ -334,3 +334,50 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                         break
             p += 1
     return inside, mus, covs
+
+
+
+# OpenCV's INTER_AREA downscale in two passes over whole rows (contiguous, so they vectorize);
+# codec.area_resize transposes between them.  Each axis's weights are a CSR table (ptr, idx, w;
+# float32, codec._area_table): output line d is sum of w[j] * line idx[j], j in ptr[d]:ptr[d+1],
+# summed in OpenCV's order (across first, then down), float32, rounded half to even and clamped.
+@njit(cache=True, nogil=True)
+def area_rows_kernel(src, ptr, idx, w, out):
+    """``out[d] = sum_j w[j] * src[idx[j]]`` for uint8 rows, into float32 ``out``."""
+    n_out, length = out.shape
+    for d in range(n_out):
+        o = out[d]
+        j0 = ptr[d]
+        r = src[idx[j0]]
+        a = w[j0]
+        for i in range(length):
+            o[i] = np.float32(0.0) + np.float32(r[i]) * a
+        for j in range(j0 + 1, ptr[d + 1]):
+            r = src[idx[j]]
+            a = w[j]
+            for i in range(length):
+                o[i] += np.float32(r[i]) * a
+    return out
+
+
+@njit(cache=True, nogil=True)
+def area_round_kernel(src, ptr, idx, w, out):
+    """``out[d] = round(sum_j w[j] * src[idx[j]])`` for float32 rows, into uint8 ``out`` (clamped)."""
+    n_out, length = out.shape
+    acc = np.empty(length, np.float32)
+    for d in range(n_out):
+        j0 = ptr[d]
+        r = src[idx[j0]]
+        a = w[j0]
+        for i in range(length):
+            acc[i] = a * r[i]
+        for j in range(j0 + 1, ptr[d + 1]):
+            r = src[idx[j]]
+            a = w[j]
+            for i in range(length):
+                acc[i] += a * r[i]
+        o = out[d]
+        for i in range(length):
+            v = np.rint(acc[i])
+            o[i] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
+    return out

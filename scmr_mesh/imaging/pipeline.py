@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from scmr_mesh.errors import InputError
-from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
+from scmr_mesh.imaging.codec import FRAME_SHAPE, area_resize, as_rgb, resize_frame
 from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, abstain, classify, tone_curve
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
@@ -233,7 +233,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     ``edges`` empty, ``sparse`` the column fill and the upsampling to 300x225.
     """
     wh, ww = WORK_SHAPE
-    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    small = area_resize(frame, ww, wh)
     t2 = _clock()
     t["blur"] = t2 - t1
 
@@ -352,7 +352,7 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
     """
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
-    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    small = area_resize(frame, ww, wh)
     segs: dict = {}
     classified: dict = {}
     for params in params_list:
@@ -373,7 +373,7 @@ def working_frame(rgb: np.ndarray, params: RoadParams | None = None, *, q: float
     params = (params or DEFAULT_PARAMS).check()
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
-    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    small = area_resize(frame, ww, wh)
     seg = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=srm_q("best", q, params))
     return small, seg
 
