@@ -175,7 +175,7 @@ def bench_pipeline(
     import numba
 
     from scmr_mesh.errors import InputError
-    from scmr_mesh.imaging.codec import area_resize, decode_frame
+    from scmr_mesh.imaging.codec import decode_frame
     from scmr_mesh.imaging.pipeline import srm_q, segment_drivable, warm_up
     from scmr_mesh.imaging.road_model import WORK_SHAPE
     from scmr_mesh.imaging.srm import srm
@@ -234,7 +234,7 @@ def bench_pipeline(
         # half-size (area-downsampled) frame, thesis on the blurred 300x225 frame
         if mode == "best":
             wh, ww = WORK_SHAPE
-            ours_in = [area_resize(f, ww, wh) for f in ready]
+            ours_in = [cv2.resize(f, (ww, wh), interpolation=cv2.INTER_AREA) for f in ready]
         else:
             ours_in = [gaussian_blur_3x3(f) for f in ready]
         ref_srm(greys[0], q)

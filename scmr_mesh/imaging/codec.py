@@ -466,11 +466,15 @@ def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
 
     OpenCV's area resampling is fast only for integer factors; a fractional downscale such
     as the 320x240 of a JPEG decoded at 1/2 to the pipeline's 300x225 takes its generic path
-    (about 1 ms on one core of the 2-core development box).  A fractional downscale by less
-    than 3 runs here instead: OpenCV's weights and float32 sums in its order, over whole rows
-    (across on the transposed image, then down), so it vectorizes: about 0.35 ms for that
-    case, and the same bytes as OpenCV (``tests/test_imaging_codec.py`` compares them on the
-    road images and on random sizes).  Anything else goes to OpenCV.
+    (about 1 ms on one core of the 2-core development box).  A fractional downscale of a
+    3-channel image by less than 3 runs here instead: OpenCV's weights and float32 sums in
+    its order, over whole rows (across on the transposed image, then down), so it
+    vectorizes, and the same bytes as OpenCV (``tests/test_imaging_area.py`` compares them on
+    the road frames and on random sizes).  In a service's decode of a 640x480 JPEG it takes
+    about 0.4 ms off 3.0 (``scmr bench pipeline``, docs/BENCHMARKS.md); on the 300x225 frame
+    to best's 150x112 it gained nothing there (its 1 MB of scratch arrays falls out of the
+    cache between frames), so the pipeline keeps OpenCV for that step.  Anything else goes
+    to OpenCV.
 
     Parameters
     ----------
@@ -508,7 +512,7 @@ _AREA_SHAPES = 4
 def _area_buffers(h: int, w: int, c: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """This thread's scratch arrays for :func:`area_resize` of these sizes, kept for the next call.
 
-    Fresh ones per call (1.4 MB for 320x240 -> 300x225) tripled its time on real frames:
+    Fresh ones per call (about 2 MB for 320x240 -> 300x225) tripled its time on real frames:
     the allocator hands back new pages to fault in.  A service resizes two shapes per frame
     (the decoded frame to 300x225, that to the 150x112 working frame); at most
     :data:`_AREA_SHAPES` are kept per thread.

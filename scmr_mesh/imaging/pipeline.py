@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from scmr_mesh.errors import InputError
-from scmr_mesh.imaging.codec import FRAME_SHAPE, area_resize, as_rgb, resize_frame
+from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
 from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, abstain, classify, tone_curve
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
@@ -233,7 +233,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     ``edges`` empty, ``sparse`` the column fill and the upsampling to 300x225.
     """
     wh, ww = WORK_SHAPE
-    small = area_resize(frame, ww, wh)
+    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
     t2 = _clock()
     t["blur"] = t2 - t1
 
@@ -352,7 +352,7 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
     """
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
-    small = area_resize(frame, ww, wh)
+    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
     segs: dict = {}
     classified: dict = {}
     for params in params_list:
@@ -373,7 +373,7 @@ def working_frame(rgb: np.ndarray, params: RoadParams | None = None, *, q: float
     params = (params or DEFAULT_PARAMS).check()
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
-    small = area_resize(frame, ww, wh)
+    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
     seg = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=srm_q("best", q, params))
     return small, seg
 
@@ -432,9 +432,13 @@ def _otsu_class_image(channel_img: np.ndarray, window_channel: np.ndarray, thres
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) every numba kernel by running both modes once."""
-    img = np.zeros((*FRAME_SHAPE, 3), np.uint8)
-    img[FRAME_SHAPE[0] // 2 :] = 90
-    img[: FRAME_SHAPE[0] // 2] = 200
+    """Compile (or load from the cache) every numba kernel by running both modes once.
+
+    The frame starts at 320x240 (a 640x480 JPEG as a service decodes it), so its resize to
+    300x225 runs :func:`~scmr_mesh.imaging.codec.area_resize`'s kernels too.
+    """
+    img = np.zeros((240, 320, 3), np.uint8)
+    img[img.shape[0] // 2 :] = 90
+    img[: img.shape[0] // 2] = 200
     for mode in MODES:
         segment_drivable(img, mode=mode)
