@@ -3,7 +3,8 @@
 Public API (re-exported here, imported lazily so ``scmr --help`` stays fast)::
 
     decode_frame, load_frame, encode_jpeg,
-    decode_image, load_image, resize_frame, encode_png       codec
+    decode_image, load_image, resize_frame, area_resize,
+    encode_png                                                codec
     segment_drivable, DrivableResult, warm_up                 pipeline
     gaussian_blur_3x3, srm, roi, bottom_centre,
     dominant_channel, histogram, otsu_threshold,
@@ -28,6 +29,7 @@ _EXPORTS = {
     "MAX_PROGRESSIVE_PIXELS": "codec",
     "load_image": "codec",
     "resize_frame": "codec",
+    "area_resize": "codec",
     "encode_png": "codec",
     "encode_mask_png": "codec",
     "MAX_PIXELS": "codec",
@@ -68,6 +70,7 @@ if TYPE_CHECKING:  # pragma: no cover
         FRAME_SHAPE,
         MAX_PIXELS,
         MAX_PROGRESSIVE_PIXELS,
+        area_resize,
         decode_frame,
         decode_image,
         encode_jpeg,
