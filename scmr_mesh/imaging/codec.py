@@ -486,9 +486,10 @@ def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     -------
     (height, width, C) uint8
     """
+    if rgb.ndim != 3 or rgb.dtype != np.uint8 or rgb.shape[2] != 3:
+        return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
     h, w = rgb.shape[:2]
-    if (rgb.ndim != 3 or rgb.dtype != np.uint8 or rgb.shape[2] != 3
-            or not (0 < width <= w and 0 < height <= h)
+    if (not (0 < width <= w and 0 < height <= h)
             or (w % width == 0 and h % height == 0) or w >= 3 * width or h >= 3 * height):
         return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
     from scmr_mesh.imaging._aot import area_round_kernel, area_rows_kernel
@@ -513,9 +514,8 @@ def _area_buffers(h: int, w: int, c: int, width: int) -> tuple[np.ndarray, np.nd
     """This thread's scratch arrays for :func:`area_resize` of these sizes, kept for the next call.
 
     Fresh ones per call (about 2 MB for 320x240 -> 300x225) tripled its time on real frames:
-    the allocator hands back new pages to fault in.  A service resizes two shapes per frame
-    (the decoded frame to 300x225, that to the 150x112 working frame); at most
-    :data:`_AREA_SHAPES` are kept per thread.
+    the allocator hands back new pages to fault in.  A thread that meets frames of several
+    sizes (robots with different cameras) keeps the arrays of the last :data:`_AREA_SHAPES`.
     """
     cache = getattr(_area_local, "bufs", None)
     if cache is None:
