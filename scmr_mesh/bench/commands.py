@@ -534,7 +534,9 @@ def add_ros(bench: argparse._SubParsersAction) -> None:
                    help="seconds of frames per round (default 10)")
     b.add_argument("--rounds", type=ca.count("rounds", hi=100, example="3"), default=3, metavar="R",
                    help="rounds of a bridge block and an `scmr robot` block, alternating B R, R B, ... (default 3); "
-                        "added_vs_robot is the median of the rounds' paired differences")
+                        "added_vs_robot is the median of the rounds' paired differences; from 6 rounds the "
+                        "median gets a 95 %% distribution-free interval and the <= 2 ms target a verdict "
+                        "(met, not met or undecided), printed last")
     b.add_argument("--size", type=ca.parsed(_frame_size, what="WIDTHxHEIGHT in pixels", example="640x480"),
                    default="640x480", help="camera frame WxH (default: %(default)s)")
     b.add_argument("--process", default=None, metavar="MODULE:FUNC",
