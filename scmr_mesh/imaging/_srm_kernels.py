@@ -336,7 +336,6 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     return inside, mus, covs
 
 
-
 # OpenCV's INTER_AREA downscale in two passes over whole rows (contiguous, so they vectorize);
 # codec.area_resize transposes between them.  Each axis's weights are a CSR table (ptr, idx, w;
 # float32, codec._area_table): output line d is sum of w[j] * line idx[j], j in ptr[d]:ptr[d+1],
