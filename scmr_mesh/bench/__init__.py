@@ -7,12 +7,4 @@ the bare-Zenoh probes :mod:`~scmr_mesh.bench.probe` and
 reports medians, p99s and ratios measured in one run.
 """
 
-import os as _os
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (``taskset``/cgroup affinity), not the host's count."""
-    try:
-        return len(_os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return _os.cpu_count() or 1
+from scmr_mesh._cpu import usable_cores  # noqa: F401 - the benches' name for it

@@ -210,13 +210,11 @@ DATA_PROCESS_MIN_CORES = 4
 
 def data_process_wanted(choice: str) -> bool:
     """Whether a cloud runs its data tier in a process of its own (``--data-process``)."""
+    from scmr_mesh._cpu import usable_cores
+
     if choice in ("on", "off"):
         return choice == "on"
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        cores = os.cpu_count() or 1
-    return cores >= DATA_PROCESS_MIN_CORES
+    return usable_cores() >= DATA_PROCESS_MIN_CORES
 
 
 def _cloud_store(args, run_dir: Path | None) -> tuple[str | Path, dict | None]:

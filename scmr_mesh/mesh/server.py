@@ -451,12 +451,12 @@ class Service:
         budget_ms: float = DEFAULT_BUDGET_MS,
         clock=None,
     ) -> None:
-        import os
+        from scmr_mesh._cpu import usable_cores
 
         keys.check_name(node)
         if tier not in keys.TIERS:
             raise InputError(f"tier must be one of {keys.TIERS}, got {tier!r}")
-        workers = int(workers or os.cpu_count() or 1)
+        workers = int(workers or usable_cores())
         self.node = node
         self.tier = tier
         self.key = keys.drivable(tier, node)
