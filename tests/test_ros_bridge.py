@@ -231,6 +231,57 @@ def test_frames_arriving_faster_than_served_keep_only_the_newest():
     assert b._take(threading.Event(), 0).header.sec == 9
 
 
+def test_frames_replaced_in_the_slot_are_never_encoded_and_a_frame_that_cannot_be_made_is_counted(monkeypatch):
+    """The callback only parses: of three raw frames arriving while one waits, the two replaced are never
+    converted, reduced or JPEG-encoded (old code: every frame encoded in Zenoh's receive thread, so a 30 Hz
+    camera behind --rate 5 cost 30 encodes a second); the one taken is encoded once, and a frame whose
+    encoding fails is counted as rejected and never reaches the robot, the loop goes on."""
+    from types import SimpleNamespace
+
+    import scmr_mesh.imaging as imaging
+    from scmr_mesh.mesh.ros import RosBridge
+
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    encoded = []
+    real = imaging.encode_jpeg
+    monkeypatch.setattr(imaging, "encode_jpeg", lambda rgb, **kw: encoded.append(rgb.shape) or real(rgb, **kw))
+    served = []
+    robot = SimpleNamespace(id="r1", annotators=[])
+    b = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask")
+
+    def serve_one(p):
+        served.append(p.header.sec)
+        b.stats.served += 1
+        return {"ok": True, "seq": len(served)}
+
+    b.serve_one = serve_one
+    key = _key(ts, "/cam", IMAGE)
+
+    def sample(sec, hw=(480, 640)):
+        return SimpleNamespace(key_expr=key, payload=SimpleNamespace(to_bytes=lambda: _image(ts, sec, _scene(*hw))))
+
+    for sec in (1, 2, 3):
+        b._on_sample(sample(sec))
+    assert encoded == [] and b.stats.dropped == 2  # parsed and checked only
+    stop = threading.Event()
+    b.run(stop, count=1)
+    assert served == [3] and encoded == [(240, 320, 3)] and b.stats.rejected == {}
+
+    def broken(rgb):
+        raise MemoryError("no room for the reduced frame")
+
+    monkeypatch.setattr("scmr_mesh.mesh.ros.reduced_for_service", broken)
+    b._on_sample(sample(4))
+    t = threading.Thread(target=b.run, args=(stop,))
+    t.start()
+    try:
+        wait_for(lambda: b.stats.rejected == {"decode": 1}, timeout=10, what="the broken frame counted")
+    finally:
+        stop.set()
+        t.join(10)
+    assert served == [3] and encoded == [(240, 320, 3)] and b.stats.served == 1 and b._slot is None
+
+
 def test_a_reduced_frame_still_gets_a_mask_of_the_input_size_published_before_the_record(tmp_path):
     """A 640x480 rgb8 frame goes to the mesh as the 320x240 JPEG the service would decode it at;
     the mask comes back mono8 640x480 with the input's header, published before the robot writes

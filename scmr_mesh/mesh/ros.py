@@ -17,10 +17,13 @@ or ``--mcap``.  Liveliness tokens declare its node, its two
 publishers and its subscription, so ``ros2 node list`` / ``ros2 topic info`` see it.
 
 Frames that arrive while one is being served wait in a one-frame slot: a newer frame
-replaces the waiting one (dropped oldest-first, counted).  A sample that is not an image
-the bridge can segment is decoded in the subscriber callback, counted by reason
-(:class:`scmr_mesh.ros.wire.RosWireError`) and logged once per topic and reason; it never
-reaches the robot.
+replaces the waiting one (dropped oldest-first, counted).  The subscriber callback only
+checks a sample (its key's type hash, the CDR layout, the declared size: no pixel is read);
+a raw ``Image``'s pixels are converted, reduced and JPEG-encoded when the frame is taken to
+be served, so a frame replaced in the slot costs its parse and nothing more (a 30 Hz camera
+behind ``--rate 5`` used to have all 30 frames a second encoded).  A sample that is not an
+image the bridge can segment is counted by reason (:class:`scmr_mesh.ros.wire.RosWireError`)
+and logged once per topic and reason; it never reaches the robot.
 """
 
 from __future__ import annotations
@@ -53,8 +56,9 @@ class BridgeStats:
     overlays: int = 0
     publish_errors: int = 0
     rejected: dict[str, int] = field(default_factory=dict)
-    #: per served frame (the last 10000): ms from the sample's arrival to the frame ready to send
-    #: (CDR decode, RGB, reduction, JPEG), and from the robot's answer to the mask published
+    #: per served frame (the last 10000): ms spent making the frame ready to send (the callback's
+    #: parse, then RGB, reduction and JPEG when it is taken; its wait in the slot not counted), and
+    #: from the robot's answer to the mask published
     in_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
     out_ms: deque = field(default_factory=lambda: deque(maxlen=10000))
     #: and the wall time of Robot.request (its ToR plus its records, inbox and telemetry)
@@ -77,7 +81,8 @@ def _median(xs) -> float | None:
 @dataclass
 class _Pending:
     header: rw.Header
-    frame: Frame
+    #: None for a raw Image until :meth:`RosBridge._prepare` makes it from ``img``
+    frame: Frame | None
     height: int
     width: int
     in_ms: float = 0.0
@@ -87,6 +92,10 @@ class _Pending:
     t_answer: float | None = None
     out_ms: float | None = None
     mask: Any = None
+    #: a raw Image's parsed sample (its pixels a view of the payload) and topic, until prepared
+    img: Any = None
+    topic: str = ""
+    key: str = ""
 
 
 def reduced_for_service(rgb):
@@ -255,13 +264,14 @@ class RosBridge:
             log.error("ros: %s: sample rejected (%s): %s; further ones are counted, not logged", key, exc.reason, exc)
 
     def _on_sample(self, sample) -> None:
-        """Zenoh callback: decode (bounded), then put the frame in the slot, replacing one that waits."""
+        """Zenoh callback: check the sample (bounded, no pixel read), then put it in the slot, replacing
+        one that waits."""
         t0 = time.perf_counter()
         key = str(sample.key_expr)
         with self._cv:
             self.stats.received += 1
         try:
-            pending = self._decode(key, sample.payload.to_bytes())
+            pending = self._parse(key, sample.payload.to_bytes())
             pending.in_ms = (time.perf_counter() - t0) * 1e3
             pending.t_arrival = t0
         except rw.RosWireError as exc:
@@ -277,6 +287,13 @@ class RosBridge:
             self._cv.notify()
 
     def _decode(self, key: str, payload: bytes) -> _Pending:
+        """:meth:`_parse` and :meth:`_prepare` at once: the frame ready to serve, or raise :class:`RosWireError`."""
+        pending = self._parse(key, payload)
+        self._make_frame(pending)
+        return pending
+
+    def _parse(self, key: str, payload: bytes) -> _Pending:
+        """Check a sample and keep what serving it needs; a raw Image's pixels are not read here."""
         tk = rw.parse_topic_key(key)
         if tk.type_hash not in (rw.TYPE_HASHES[self.in_type], rw.HUMBLE_HASH):
             raise rw.RosWireError("type_hash", f"type hash {tk.type_hash} is not the {self.in_type} this bridge "
@@ -295,17 +312,39 @@ class RosBridge:
             frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind)
             return _Pending(msg.header, frame, height, width)
         img = rw.decode_image(payload)
-        rgb = rw.image_to_rgb(img)
+        return _Pending(img.header, None, img.height, img.width, img=img, topic=tk.topic, key=key)
+
+    def _make_frame(self, pending: _Pending) -> None:
+        """A raw Image's frame for the mesh: RGB, reduced (:func:`reduced_for_service`), JPEG or PNG."""
+        if pending.frame is not None:
+            return
         from scmr_mesh.imaging import encode_jpeg, encode_png
 
+        img = pending.img
+        rgb = rw.image_to_rgb(img)
         send = rgb if self.full_frames else reduced_for_service(rgb)
         if self.jpeg_quality:
             data, enc = encode_jpeg(send, quality=self.jpeg_quality), "jpeg"
         else:
             data, enc = encode_png(send), "png"
         # rgb: the full frame (the overlay, --mcap); data: what goes to the mesh
-        return _Pending(img.header, Frame(name=_frame_name(tk.topic, img.header), data=data, encoding=enc, rgb=rgb),
-                        img.height, img.width)
+        pending.frame = Frame(name=_frame_name(pending.topic, img.header), data=data, encoding=enc, rgb=rgb)
+        pending.img = None
+
+    def _prepare(self, pending: _Pending) -> bool:
+        """Make the frame of a pending sample taken from the slot; False (counted, logged once) if that fails."""
+        t0 = time.perf_counter()
+        key = pending.key
+        try:
+            self._make_frame(pending)
+        except rw.RosWireError as exc:
+            self._reject(key, exc)
+            return False
+        except Exception as exc:  # a frame that cannot be made is counted, never kills the serving loop
+            self._reject(key, rw.RosWireError("decode", f"{type(exc).__name__}: {exc}"))
+            return False
+        pending.in_ms += (time.perf_counter() - t0) * 1e3
+        return True
 
     # ------------------------------------------------------------ serving
     def _take(self, stop: threading.Event, timeout: float) -> _Pending | None:
@@ -337,6 +376,7 @@ class RosBridge:
         the answer; the overlay after the request returns, and only while something subscribes
         to it (a 640x480 overlay is 0.9 MB through the router and about 1.5 ms of CPU).
         """
+        self._make_frame(pending)  # taken by run() prepared already; raises if it cannot be made
         self._current = pending
         t_req = time.perf_counter()
         try:
@@ -395,7 +435,7 @@ class RosBridge:
                 if wait_ns > 0 and stop.wait(wait_ns / 1e9):
                     break
             pending = self._take(stop, 0.1)
-            if pending is None:
+            if pending is None or not self._prepare(pending):
                 continue
             now = time.monotonic_ns()
             if t0 is None:
