@@ -3,7 +3,7 @@
 Base layer (stdlib only).  A bad value gives one line on stderr naming the
 flag, the value, what is wrong and a value that works, and exit status 1::
 
-    scmr: error: --rate inf: not a finite number; give frames per second > 0 and <= 10000, e.g. --rate 5
+    scmr: error: --rate inf: not a finite number; give a number of frames per second > 0 and <= 10000, e.g. --rate 5
 
 Use the types with ``add_argument(..., type=...)``:
 

@@ -15,7 +15,7 @@ from scmr_mesh.errors import InputError
 DESCRIPTION = """\
 Query the operational data store (ODS): the SQLite file (or the PostgreSQL
 database several cloud nodes share) in which the cloud keeps every robot's
-telemetry (pose, battery, health, results summary), stored once per (robot, seq).
+telemetry (pose, battery, health, results summary), stored once per (robot, incarnation of its queue, seq).
 
   scmr ods --db runs/ods.sqlite counts
   scmr ods --db runs/ods.sqlite latest

@@ -2,8 +2,9 @@
 
 Same schema (:func:`scmr_mesh.data.ods.migrations` rendered for PostgreSQL),
 same methods and the same exactly-once rule as the SQLite store: a telemetry
-row is inserted with ``ON CONFLICT (robot, seq) DO NOTHING`` against the
-table's ``UNIQUE (robot, seq)``, so the same batch stored through two cloud
+row is inserted with ``ON CONFLICT (robot, inc, seq) DO NOTHING`` against the
+table's ``UNIQUE (robot, inc, seq)`` (``inc``: the incarnation of the robot's
+telemetry queue), so the same batch stored through two cloud
 nodes at once lands once and is counted once as duplicates.
 
 Concurrency between nodes: each insert transaction first locks the

@@ -184,9 +184,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser(
         "router", help="run a zenoh router linking sites (fleets across hosts)", formatter_class=fmt,
-        description="A zenoh router (a session in router mode).  Across hosts, run the robots and "
-                    "cloud nodes as clients of their site's router (--zmode client) and connect the "
-                    "routers to each other; see docs/ZENOH.md (router section).  Under --security the "
+        description="A zenoh router (a session in router mode).  Across hosts, run one router per "
+                    "site, connect each robot, leader and cloud node (peers, the default --zmode) to "
+                    "its own site's router and the routers to each other; see docs/DEPLOY.md "
+                    "(Routers and endpoints) and docs/ZENOH.md section 6.  Under --security the "
                     "router presents the certificate of --node (a router identity: scmr certs --peers "
                     "router0=router,...) and enforces the fleet's access rules on its links.",
         epilog=_PEER_EPILOG)
