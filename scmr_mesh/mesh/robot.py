@@ -221,6 +221,7 @@ class Robot:
         self._queriers: dict[str, Any] = {}
         self._born: dict[str, float] = {}  # querier key -> when it was declared (monotonic s)
         self._node_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender threads (_start)
+        self._outbox_writer = None  # the thread that writes frames to the outbox while their request is out
         self._session = None
         self._subs: list[Any] = []
         self._token = None
@@ -321,6 +322,9 @@ class Robot:
         """Undeclare everything this robot declared and close the records file."""
         for ex in self._node_threads.values():
             ex.shutdown(wait=False, cancel_futures=True)
+        if self._outbox_writer is not None:  # every write was waited for by its request; none is lost here
+            self._outbox_writer.shutdown(wait=True)
+            self._outbox_writer = None
         undeclare_all([self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub])
         self._subs, self._queriers, self._token = [], {}, None
         self._tele_pub = self._res_pub = None
@@ -884,16 +888,27 @@ class Robot:
         The steps: keep the frame in the outbox, route the request (placement,
         attempts, failover, local), make the record, deliver it (inbox,
         ``records.jsonl``, ``scmr/results/<robot>``, telemetry, observers).
+
+        The outbox write (about 0.18 ms for a 21 KB JPEG on ext4, more for a raw frame) runs
+        on a thread of its own while the request is out, so it no longer delays the send;
+        the request's delivery waits for it before it removes the file.
         """
-        outbox_file = self._to_outbox(seq, frame)
+        outbox_write = self._outbox_executor().submit(self._to_outbox, seq, frame)
         sent_ns = time.time_ns()
         t_start = time.perf_counter()
         req = self._request_message(seq, frame, sent_ns)
         trip = self._route(seq, frame, wire.encode(req), t_start, asked=wire.asked_of(req))
         tor_ms = (time.perf_counter() - t_start) * 1e3
         record = self._make_record(seq, frame, trip, sent_ns, time.time_ns(), tor_ms)
-        self._deliver(seq, frame, record, trip.winner, outbox_file)
+        self._deliver(seq, frame, record, trip.winner, outbox_write)
         return record
+
+    def _outbox_executor(self):
+        if self._outbox_writer is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._outbox_writer = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-outbox-{self.id}")
+        return self._outbox_writer
 
     # ------------------------------------------------ the steps of a request
     def _to_outbox(self, seq: int, frame: Frame) -> Path:
@@ -989,9 +1004,10 @@ class Robot:
             "mismatched": sum(int(a.get("mismatched", 0)) for a in trip.attempts),
         }
 
-    def _deliver(self, seq: int, frame: Frame, record: dict, winner: Reply | None, outbox_file: Path) -> None:
-        """The annotators (the ROS bridge publishes its mask there), the mask to the inbox, the record to its
-        file and topic, telemetry, then the observers."""
+    def _deliver(self, seq: int, frame: Frame, record: dict, winner: Reply | None, outbox_write) -> None:
+        """The annotators (the ROS bridge publishes its mask there), the mask to the inbox, the frame out of
+        the outbox (``outbox_write``: the future of its write, waited for here), the record to its file and
+        topic, telemetry, then the observers."""
         mask_png = winner.body["mask_png"] if winner is not None else None
         for fn in list(self.annotators):  # first: the ROS bridge publishes the mask from here
             try:
@@ -1006,7 +1022,7 @@ class Robot:
             except OSError as exc:
                 log.warning("inbox write failed: %s", exc)
         try:
-            outbox_file.unlink()
+            outbox_write.result().unlink()
         except OSError:
             pass
         self._records.write(json.dumps(record, separators=(",", ":")) + "\n")
