@@ -7,6 +7,7 @@ acknowledged segments.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from types import SimpleNamespace
 
 from scmr_mesh.data.queue import TelemetryQueue
@@ -23,10 +24,12 @@ def test_a_robot_keeps_only_its_newest_masks_over_many_frames(tmp_path):
     robot = Robot("r1", tmp_path / "r1", options=RobotOptions(keep_masks=20))
     robot.emit_telemetry = lambda message: None  # no session: the rest of a delivery is what we look at
     winner = SimpleNamespace(body={"mask_png": b"\x89PNG-mask"})
+    gone = Future()  # the outbox write's future, done: its file was never written
+    gone.set_result(tmp_path / "gone")
     for seq in range(1, 501):
         robot._deliver(seq, None, {"robot": "r1", "seq": seq, "ok": True, "tier": "cloud", "tor_ms": 1.0,
                                    "mismatched": 0},
-                       winner, tmp_path / "gone")
+                       winner, gone)
         assert len(_mask_names(robot.inbox)) == min(seq, 20)
     robot.close()
     assert _mask_names(robot.inbox) == [f"{s}.mask.png" for s in range(481, 501)]

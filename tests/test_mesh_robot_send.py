@@ -96,9 +96,9 @@ def test_the_outbox_write_does_not_delay_the_send_and_is_done_before_the_file_go
         routed.set()
         return real_route(*a, **kw)
 
-    def write(seq, frame):
+    def write(outbox_file, data):
         seen.append(routed.wait(10))  # old code: the write came first, so nothing was routed yet
-        return real_write(seq, frame)
+        return real_write(outbox_file, data)
 
     robot._route, robot._to_outbox = route, write
     try:
@@ -107,3 +107,50 @@ def test_the_outbox_write_does_not_delay_the_send_and_is_done_before_the_file_go
         robot.close()
     assert rec["ok"] and seen == [True]
     assert list((tmp_path / "r1" / "outbox").iterdir()) == []
+
+
+def _request_in_child(out_dir, conn):
+    from scmr_mesh.mesh.frames import Frame
+
+    robot = Robot("r2", out_dir, options=RobotOptions(process=STUB))
+    try:
+        rec = robot.request(1, Frame(name="f1", data=synthetic_png(), encoding="png"))
+        conn.send(rec["ok"] and not any((out_dir / "outbox").iterdir()))
+    finally:
+        robot.close()
+
+
+def test_a_forked_child_and_a_shutting_down_interpreter_still_write_the_outbox(tmp_path, monkeypatch):
+    """A child forked after the process's outbox thread started inherits the executor without its
+    thread: its requests got a write that never ran and waited forever; now the child makes its own.
+    And when no thread can be started (interpreter shutdown) the write runs in the request's thread."""
+    import multiprocessing
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    from scmr_mesh.mesh import robot as robot_mod
+    from scmr_mesh.mesh.frames import Frame
+
+    parent = Robot("r1", tmp_path / "r1", options=RobotOptions(process=STUB))
+    try:
+        assert parent.request(1, Frame(name="f1", data=synthetic_png(), encoding="png"))["ok"]
+        ctx = multiprocessing.get_context("fork")
+        ours, theirs = ctx.Pipe()
+        child = ctx.Process(target=_request_in_child, args=(tmp_path / "r2", theirs))
+        child.start()
+        got = ours.recv() if ours.poll(60) else "no answer in 60 s"
+        child.join(30)
+        assert got is True and child.exitcode == 0, (got, child.exitcode)
+
+        def refuse(self, *a, **kw):
+            raise RuntimeError("cannot schedule new futures after interpreter shutdown")
+
+        monkeypatch.setattr(ThreadPoolExecutor, "submit", refuse)
+        written = []
+        real = Robot._to_outbox
+        monkeypatch.setattr(Robot, "_to_outbox", staticmethod(lambda f, d: written.append(f.name) or real(f, d)))
+        assert parent.request(2, Frame(name="f2", data=synthetic_png(), encoding="png"))["ok"]
+        assert written == ["2.png"] and not any((tmp_path / "r1" / "outbox").iterdir())
+        assert robot_mod._OUTBOX[1] == __import__("os").getpid()
+    finally:
+        parent.close()

@@ -40,7 +40,8 @@ to a saturated node, and hedges and re-sends are rationed (a token bucket per ro
 
 Output (``--out DIR``)
 ----------------------
-* ``DIR/outbox/<seq>.<ext>``: frames waiting for an answer (removed when done).
+* ``DIR/outbox/<seq>.<ext>``: frames waiting for an answer (written while the request is
+  out, removed when done).
 * ``DIR/inbox/<seq>.mask.png``: the (225, 300) mask, 255 = drivable.
 * ``DIR/records.jsonl``: one JSON object per finished request, flushed per
   line: ``robot, seq, image, bytes_up, bytes_down, sent_unix_ns,
@@ -79,6 +80,7 @@ import itertools
 import json
 import logging
 import math
+import os
 import queue
 import threading
 import time
@@ -102,6 +104,32 @@ from scmr_mesh.mesh.frames import (  # noqa: F401 - re-exported: importers of th
 from scmr_mesh.mesh.liveview import FrameInfo, LiveView, Placement, Reachable, default_placement  # noqa: F401
 
 log = logging.getLogger(__name__)
+
+
+_OUTBOX_LOCK = threading.Lock()
+_OUTBOX: list = [None, 0]  # the process's outbox writer (a 1-thread executor) and the pid that made it
+
+
+def _outbox_submit(fn, *args):
+    """Run ``fn(*args)`` on the process's one outbox thread; a future of its result.
+
+    One thread for every robot of the process (a swarm holds up to 256), made on first use and
+    again in a forked child (a child inherits the executor but not its thread).  When no thread
+    can be started (the interpreter is shutting down), ``fn`` runs here and the future is done.
+    """
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    pid = os.getpid()
+    with _OUTBOX_LOCK:
+        if _OUTBOX[0] is None or _OUTBOX[1] != pid:
+            _OUTBOX[:] = [ThreadPoolExecutor(1, thread_name_prefix="scmr-outbox"), pid]
+        ex = _OUTBOX[0]
+    try:
+        return ex.submit(fn, *args)
+    except RuntimeError:  # "cannot schedule new futures after (interpreter) shutdown"
+        done: Future = Future()
+        done.set_result(fn(*args))
+        return done
 
 
 #: File suffix of a frame in the outbox, by encoding.
@@ -221,7 +249,6 @@ class Robot:
         self._queriers: dict[str, Any] = {}
         self._born: dict[str, float] = {}  # querier key -> when it was declared (monotonic s)
         self._node_threads: dict[tuple[str, str], Any] = {}  # (tier, node) -> its sender threads (_start)
-        self._outbox_writer = None  # the thread that writes frames to the outbox while their request is out
         self._session = None
         self._subs: list[Any] = []
         self._token = None
@@ -322,9 +349,6 @@ class Robot:
         """Undeclare everything this robot declared and close the records file."""
         for ex in self._node_threads.values():
             ex.shutdown(wait=False, cancel_futures=True)
-        if self._outbox_writer is not None:  # every write was waited for by its request; none is lost here
-            self._outbox_writer.shutdown(wait=True)
-            self._outbox_writer = None
         undeclare_all([self._token, *self._subs, *self._queriers.values(), self._tele_pub, self._res_pub])
         self._subs, self._queriers, self._token = [], {}, None
         self._tele_pub = self._res_pub = None
@@ -890,10 +914,11 @@ class Robot:
         ``records.jsonl``, ``scmr/results/<robot>``, telemetry, observers).
 
         The outbox write (about 0.18 ms for a 21 KB JPEG on ext4, more for a raw frame) runs
-        on a thread of its own while the request is out, so it no longer delays the send;
-        the request's delivery waits for it before it removes the file.
+        on the process's outbox thread (:func:`_outbox_submit`) while the request is out, so it
+        no longer delays the send; the request's delivery waits for it before it removes the file.
         """
-        outbox_write = self._outbox_executor().submit(self._to_outbox, seq, frame)
+        outbox_file = self.outbox / f"{seq}{FRAME_SUFFIX[frame.encoding]}"  # a bad encoding fails before the send
+        outbox_write = _outbox_submit(self._to_outbox, outbox_file, frame.data)
         sent_ns = time.time_ns()
         t_start = time.perf_counter()
         req = self._request_message(seq, frame, sent_ns)
@@ -903,19 +928,13 @@ class Robot:
         self._deliver(seq, frame, record, trip.winner, outbox_write)
         return record
 
-    def _outbox_executor(self):
-        if self._outbox_writer is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._outbox_writer = ThreadPoolExecutor(1, thread_name_prefix=f"scmr-outbox-{self.id}")
-        return self._outbox_writer
-
     # ------------------------------------------------ the steps of a request
-    def _to_outbox(self, seq: int, frame: Frame) -> Path:
-        outbox_file = self.outbox / f"{seq}{FRAME_SUFFIX[frame.encoding]}"
+    @staticmethod
+    def _to_outbox(outbox_file: Path, data: bytes) -> Path:
+        """Write a frame to the outbox; a failure is logged, never raised (the frame is being served)."""
         try:
-            outbox_file.write_bytes(frame.data)
-        except OSError as exc:
+            outbox_file.write_bytes(data)
+        except Exception as exc:  # a full disk, a removed folder: the request goes on without its outbox copy
             log.warning("outbox write failed: %s", exc)
         return outbox_file
 
