@@ -6,7 +6,9 @@ benchmarks, which report it beside their figures.
 A container limited with ``docker run --cpus 2`` (or a Kubernetes CPU limit) still sees every
 core of the host in its affinity: the limit is a cgroup quota, ``cpu.max`` in cgroup v2
 (``"200000 100000"``: 2 CPUs' time per period) or ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us``
-in cgroup v1.  The quota is rounded up to whole cores, so 1.5 CPUs count as 2.
+in cgroup v1.  The quota is rounded down to whole cores, at least 1 (as Go's automaxprocs
+does): 1.5 CPUs count as 1, so a node's workers never outnumber the CPU time it is given and
+are not throttled in bursts; the fraction left over goes to its ingress and zenoh's threads.
 """
 
 from __future__ import annotations
@@ -64,27 +66,30 @@ def quota_cores(root: Path = CGROUP_ROOT, proc_cgroup: str | None = None) -> flo
             quota, _, period = text.partition(" ")
             if quota != "max" and quota.isdigit() and period.isdigit() and int(period) > 0:
                 limits.append(int(quota) / int(period))
-    for mount in ("cpu", "cpu,cpuacct", "cpuacct,cpu"):  # cgroup v1: -1 means none
-        base = root / mount
-        if not base.is_dir():
-            continue
+    try:  # cgroup v1: the hierarchy the cpu controller is mounted in (cpu, cpu,cpuacct, cpuset,cpu,...)
+        v1_mounts = sorted(d for d in root.iterdir() if "cpu" in d.name.split(",") and d.is_dir())
+    except OSError:
+        v1_mounts = []
+    for base in v1_mounts[:1]:  # -1 means no quota
         for d in _ancestors(base, v1):
             quota, period = _read(d / "cpu.cfs_quota_us"), _read(d / "cpu.cfs_period_us")
             if quota and period and quota.lstrip("-").isdigit() and period.isdigit():
                 if int(quota) > 0 and int(period) > 0:
                     limits.append(int(quota) / int(period))
-        break
     return min(limits) if limits else None
 
 
 def usable_cores() -> int:
     """The cores this process may run on (``sched_getaffinity``, else ``os.cpu_count()``), capped by a
-    cgroup CPU quota rounded up; at least 1."""
+    cgroup CPU quota rounded down; at least 1.  Unreadable cgroup files count as no quota."""
     try:
         n = len(os.sched_getaffinity(0)) or 1
     except (AttributeError, OSError):
         n = os.cpu_count() or 1
-    q = quota_cores()
+    try:
+        q = quota_cores()
+    except (OSError, ValueError):  # a locked-down sandbox: EACCES on /sys/fs/cgroup
+        q = None
     if q is not None:
-        n = min(n, max(1, math.ceil(q - 1e-9)))
+        n = min(n, max(1, math.floor(q + 1e-9)))
     return n

@@ -82,12 +82,27 @@ def test_a_cgroup_v1_quota_and_minus_one_for_none(tmp_path):
     assert _cpu.quota_cores(tmp_path, "garbage\n\n") is None
 
 
-def test_usable_cores_is_capped_by_the_quota_rounded_up(monkeypatch):
+def test_a_cgroup_v1_cpu_controller_co_mounted_with_others(tmp_path):
+    proc = "5:cpuset,cpu,cpuacct:/job\n"
+    _files(tmp_path, {"cpuset/cpuset.cpus": "0-63", "cpuset,cpu,cpuacct/job/cpu.cfs_quota_us": "400000",
+                      "cpuset,cpu,cpuacct/job/cpu.cfs_period_us": "100000"})
+    assert _cpu.quota_cores(tmp_path, proc) == 4.0
+
+
+def test_usable_cores_is_capped_by_the_quota_rounded_down(monkeypatch):
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(64)))
-    monkeypatch.setattr(_cpu, "quota_cores", lambda: 1.5)
+    monkeypatch.setattr(_cpu, "quota_cores", lambda: 2.5)
     assert _cpu.usable_cores() == 2
     monkeypatch.setattr(_cpu, "quota_cores", lambda: 0.2)
     assert _cpu.usable_cores() == 1
+    monkeypatch.setattr(_cpu, "quota_cores", lambda: 3.0)
+    assert _cpu.usable_cores() == 3
+
+    def locked(*a):
+        raise PermissionError(13, "Permission denied", "/sys/fs/cgroup/cpu")
+
+    monkeypatch.setattr(_cpu, "quota_cores", locked)  # a sandbox that hides the cgroup files
+    assert _cpu.usable_cores() == 64
     monkeypatch.setattr(_cpu, "quota_cores", lambda: 128.0)  # a quota above the affinity changes nothing
     assert _cpu.usable_cores() == 64
     monkeypatch.setattr(_cpu, "quota_cores", lambda: None)

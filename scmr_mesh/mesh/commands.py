@@ -254,7 +254,7 @@ def _robot_command_args(p: argparse.ArgumentParser) -> None:
 def _service_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--node", required=True, help="node name (A-Z a-z 0-9 _ . -)")
     p.add_argument("--workers", type=ca.count("worker processes", hi=256), default=None, metavar="N",
-                   help="worker processes running the pipeline (default: the cores this process may use: its affinity (taskset), capped by a cgroup CPU quota such as docker --cpus)")
+                   help="worker processes running the pipeline (default: the cores this process may use: its affinity (taskset), capped by a cgroup CPU quota such as docker --cpus, rounded down)")
     p.add_argument("--mode", choices=("best", "thesis"), default=None,
                    help="default pipeline mode (requests carry their own; kept for symmetry with robots)")
     p.add_argument("--budget-ms", type=ca.positive("milliseconds", hi=3600000, example="60"), default=None,
