@@ -279,7 +279,13 @@ def test_frames_replaced_in_the_slot_are_never_encoded_and_a_frame_that_cannot_b
     finally:
         stop.set()
         t.join(10)
+    assert not t.is_alive()
     assert served == [3] and encoded == [(240, 320, 3)] and b.stats.served == 1 and b._slot is None
+    # a frame the encoder could not take (a side over JPEG's 65500 pixels) is refused on arrival:
+    # the frame waiting in the slot stays (it was replaced first, then lost at encoding)
+    b._on_sample(sample(5))
+    b._on_sample(sample(6, hw=(1, 70000)))
+    assert b.stats.rejected == {"decode": 1, "size": 1} and b._slot.header.sec == 5 and b.stats.dropped == 2
 
 
 def test_a_reduced_frame_still_gets_a_mask_of_the_input_size_published_before_the_record(tmp_path):

@@ -21,7 +21,10 @@ replaces the waiting one (dropped oldest-first, counted).  The subscriber callba
 checks a sample (its key's type hash, the CDR layout, the declared size: no pixel is read);
 a raw ``Image``'s pixels are converted, reduced and JPEG-encoded when the frame is taken to
 be served, so a frame replaced in the slot costs its parse and nothing more (a 30 Hz camera
-behind ``--rate 5`` used to have all 30 frames a second encoded).  A sample that is not an
+behind ``--rate 5`` used to have all 30 frames a second encoded).  The price: that work (about
+1 ms at 640x480) no longer overlaps the request before it, so a served frame's mask comes about
+1 ms later after its wait in the slot, and a bridge whose camera outpaces its answers serves up
+to prep / (ToR + prep) fewer frames a second (at a 30 Hz camera and ToR >= 33 ms: <= 3 %).  A sample that is not an
 image the bridge can segment is counted by reason (:class:`scmr_mesh.ros.wire.RosWireError`)
 and logged once per topic and reason; it never reaches the robot.
 """
@@ -170,6 +173,11 @@ class _Publisher:
         self.pub.undeclare()
 
 
+#: libjpeg's largest side (JPEG_MAX_DIMENSION): a raw frame that would be sent longer than this is refused
+#: when it arrives.
+JPEG_MAX_SIDE = 65500
+
+
 class RosBridge:
     """Serve a ROS 2 image topic through ``robot``; see the module docstring.
 
@@ -312,6 +320,15 @@ class RosBridge:
             frame = Frame(name=_frame_name(tk.topic, msg.header), data=msg.data, encoding=kind)
             return _Pending(msg.header, frame, height, width)
         img = rw.decode_image(payload)
+        if self.jpeg_quality:  # refused here, not after it has replaced the frame waiting in the slot
+            from scmr_mesh.imaging.codec import reduction_factor
+
+            r = 1 if self.full_frames else reduction_factor(img.width, img.height)
+            side = max(-(-img.width // r), -(-img.height // r))
+            if side > JPEG_MAX_SIDE:
+                raise rw.RosWireError("size", f"{img.width}x{img.height} would go to the mesh with a side of {side} "
+                                              f"pixels, more than JPEG's {JPEG_MAX_SIDE}; publish a frame of "
+                                              f"ordinary proportions (or run --jpeg-quality 0 for PNG)")
         return _Pending(img.header, None, img.height, img.width, img=img, topic=tk.topic, key=key)
 
     def _make_frame(self, pending: _Pending) -> None:
