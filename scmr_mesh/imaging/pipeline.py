@@ -39,6 +39,7 @@ from scmr_mesh.imaging.steps import (
     fill_columns,
     gaussian_blur_3x3,
     histogram,
+    otsu_of_counts,
     otsu_threshold,
     remove_sparse_pixels,
     roi,
@@ -243,11 +244,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     t["srm"] = t3 - t2
 
     # the thesis's bottom-centre cell of the 300x225 frame, read off the working labels
-    ry, rx = _cell_index()
-    window = palette[seg.labels[ry, rx]]
-    channel = dominant_channel(window)
-    hist = histogram(np.ascontiguousarray(window[:, :, channel]))
-    threshold = otsu_threshold(hist)
+    channel, hist, threshold = cell_otsu(seg.labels, palette)
     t4 = _clock()
     t["otsu"] = t4 - t3
     t["edges"] = 0.0
@@ -269,7 +266,8 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
             "frame": frame,
             "blur": full(small),
             "srm": srm_img,
-            "otsu": _otsu_class_image(srm_img[:, :, channel], window[:, :, channel], threshold),
+            "otsu": _otsu_class_image(srm_img[:, :, channel], palette[seg.labels[_cell_index()]][:, :, channel],
+                                      threshold),
             "histogram": hist,
             "edges": sobel_magnitude(grey),
             "channel": np.array(channel),
@@ -407,6 +405,37 @@ def _cell_index() -> tuple[np.ndarray, np.ndarray]:
         wh, ww = WORK_SHAPE
         _CELL_INDEX[:] = np.ix_(cr * wh // FRAME_SHAPE[0], cc * ww // FRAME_SHAPE[1])  # one store: thread-safe
     return _CELL_INDEX[0], _CELL_INDEX[1]
+
+
+def cell_otsu(labels: np.ndarray, palette: np.ndarray) -> tuple[int, np.ndarray, int]:
+    """The dominant channel, histogram and Otsu threshold of the 300x225 bottom-centre cell of an SRM result.
+
+    Every pixel of a region has its region's colour (``palette[label]``), so the cell is known
+    from how many of its pixels each region holds: its channel sums are ``counts @ palette``
+    and its histogram is ``counts`` binned by the regions' values.  Those are the same integers
+    as :func:`dominant_channel` and :func:`histogram` of the cell's pixels (``palette[labels]``
+    over the cell, then a channel of it), without making the 75x100x3 window: about 0.25 ms
+    less per frame, the stage's numpy overhead.
+
+    Parameters
+    ----------
+    labels : (112, 150) int
+        Region label of each working-frame pixel (``srm(...).labels``).
+    palette : (n, 3) uint8
+        Each region's colour.
+
+    Returns
+    -------
+    channel : int
+        0 (R), 1 (G) or 2 (B), ties to the first.
+    hist : (256,) int64
+    threshold : int
+    """
+    ry, rx = _cell_index()
+    counts = np.bincount(labels[ry, rx].ravel(), minlength=len(palette))
+    channel = int(np.argmax(counts @ palette.astype(np.int64)))
+    hist = np.bincount(palette[:, channel], weights=counts, minlength=256).astype(np.int64)
+    return channel, hist, otsu_of_counts(hist)
 
 
 def _inner_edges(edges: np.ndarray) -> np.ndarray:

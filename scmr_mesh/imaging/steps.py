@@ -163,22 +163,33 @@ def otsu_threshold(hist: np.ndarray) -> int:
     h = h.astype(np.int64)
     if np.any(h < 0):
         raise InputError("otsu_threshold needs non-negative counts, got a negative count")
-    total = int(h.sum())
-    if total == 0:
+    if int(h.sum()) == 0:
         raise InputError("otsu_threshold got an empty histogram (all counts zero)")
+    return otsu_of_counts(h)
+
+
+def otsu_of_counts(h: np.ndarray) -> int:
+    """:func:`otsu_threshold` of a 1-D int64 histogram with a count > 0, unchecked (the pipeline's own
+    histograms).
+
+    Computed over the occupied bins only: the class sums, and so the between-class variance,
+    change only at an occupied bin, so the lowest ``T`` of the best run of equal candidates is
+    an occupied bin, and the same integer sums give the same floating-point values there as the
+    scan of all bins.  A histogram of SRM regions has a few dozen occupied bins: 20 us instead
+    of 77 us for the 256-bin scan on this box.
+    """
     occupied = np.flatnonzero(h)
     if occupied.size == 1:
         return int(occupied[0])
-    levels = np.arange(h.size, dtype=np.int64)
-    n1 = np.cumsum(h)
-    s1 = np.cumsum(h * levels)
+    n = h[occupied]
+    n1 = np.cumsum(n)[:-1]  # the last occupied bin has nothing above it: not a split
+    s1 = np.cumsum(n * occupied)
+    total, sum_all = int(n1[-1] + n[-1]), int(s1[-1])
+    s1 = s1[:-1]
     n2 = total - n1
-    s2 = int(s1[-1]) - s1
-    valid = (n1 > 0) & (n2 > 0)
-    d = (s1 * n2 - s2 * n1).astype(np.float64)
-    denom = n1.astype(np.float64) * n2.astype(np.float64)
-    sigma_b = np.where(valid, d * d / np.where(valid, denom, 1.0), -1.0)
-    return int(np.argmax(sigma_b))
+    d = (s1 * n2 - (sum_all - s1) * n1).astype(np.float64)
+    sigma_b = d * d / (n1.astype(np.float64) * n2.astype(np.float64))
+    return int(occupied[int(np.argmax(sigma_b))])
 
 
 # --------------------------------------------------------------------- step 7
