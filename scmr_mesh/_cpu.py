@@ -70,12 +70,15 @@ def quota_cores(root: Path = CGROUP_ROOT, proc_cgroup: str | None = None) -> flo
         v1_mounts = sorted(d for d in root.iterdir() if "cpu" in d.name.split(",") and d.is_dir())
     except OSError:
         v1_mounts = []
-    for base in v1_mounts[:1]:  # -1 means no quota
+    for base in v1_mounts:  # the first hierarchy that has the files; -1 means no quota
+        if not (base / "cpu.cfs_period_us").is_file():
+            continue
         for d in _ancestors(base, v1):
             quota, period = _read(d / "cpu.cfs_quota_us"), _read(d / "cpu.cfs_period_us")
             if quota and period and quota.lstrip("-").isdigit() and period.isdigit():
                 if int(quota) > 0 and int(period) > 0:
                     limits.append(int(quota) / int(period))
+        break
     return min(limits) if limits else None
 
 

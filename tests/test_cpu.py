@@ -84,7 +84,10 @@ def test_a_cgroup_v1_quota_and_minus_one_for_none(tmp_path):
 
 def test_a_cgroup_v1_cpu_controller_co_mounted_with_others(tmp_path):
     proc = "5:cpuset,cpu,cpuacct:/job\n"
-    _files(tmp_path, {"cpuset/cpuset.cpus": "0-63", "cpuset,cpu,cpuacct/job/cpu.cfs_quota_us": "400000",
+    (tmp_path / "cpu").mkdir()  # an empty folder named like a hierarchy, sorted first: not mounted, passed over
+    _files(tmp_path, {"cpuset/cpuset.cpus": "0-63", "cpuset,cpu,cpuacct/cpu.cfs_quota_us": "-1",
+                      "cpuset,cpu,cpuacct/cpu.cfs_period_us": "100000",
+                      "cpuset,cpu,cpuacct/job/cpu.cfs_quota_us": "400000",
                       "cpuset,cpu,cpuacct/job/cpu.cfs_period_us": "100000"})
     assert _cpu.quota_cores(tmp_path, proc) == 4.0
 

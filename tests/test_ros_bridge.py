@@ -286,6 +286,9 @@ def test_frames_replaced_in_the_slot_are_never_encoded_and_a_frame_that_cannot_b
     b._on_sample(sample(5))
     b._on_sample(sample(6, hw=(1, 70000)))
     assert b.stats.rejected == {"decode": 1, "size": 1} and b._slot.header.sec == 5 and b.stats.dropped == 2
+    png = RosBridge(robot, None, domain=0, image_topic="/cam", mask_topic="/mask", jpeg_quality=0)
+    png._on_sample(sample(7, hw=(1, 70000)))  # PNG has no such limit: taken
+    assert png.stats.rejected == {} and png._slot.header.sec == 7
 
 
 def test_a_reduced_frame_still_gets_a_mask_of_the_input_size_published_before_the_record(tmp_path):

@@ -106,29 +106,53 @@ from scmr_mesh.mesh.liveview import FrameInfo, LiveView, Placement, Reachable, d
 log = logging.getLogger(__name__)
 
 
+#: Threads of the process's outbox writer, shared by all its robots (a swarm holds up to 256):
+#: a few, so one slow write does not hold every robot's delivery behind it.
+OUTBOX_THREADS = 4
 _OUTBOX_LOCK = threading.Lock()
-_OUTBOX: list = [None, 0]  # the process's outbox writer (a 1-thread executor) and the pid that made it
+_OUTBOX: list = [None]  # the process's outbox writer, made on first use
+
+
+def _outbox_reset_in_child() -> None:
+    """A forked child inherits the executor without its threads, and maybe the lock held: start afresh."""
+    global _OUTBOX_LOCK
+    _OUTBOX_LOCK = threading.Lock()
+    _OUTBOX[0] = None
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_outbox_reset_in_child)
 
 
 def _outbox_submit(fn, *args):
-    """Run ``fn(*args)`` on the process's one outbox thread; a future of its result.
+    """Run ``fn(*args)`` once, on the process's outbox threads; a future of its result.
 
-    One thread for every robot of the process (a swarm holds up to 256), made on first use and
-    again in a forked child (a child inherits the executor but not its thread).  When no thread
-    can be started (the interpreter is shutting down), ``fn`` runs here and the future is done.
+    When the executor refuses it (the interpreter is shutting down: "cannot schedule new
+    futures", or a thread limit: "can't start new thread", raised after the job was queued),
+    ``fn`` runs here and the future is done.  The job and that fallback share a flag under a
+    lock, so whichever comes first writes and the other does nothing: a queued job that a
+    thread picks up later never writes a frame that was already delivered and removed.
     """
     from concurrent.futures import Future, ThreadPoolExecutor
 
-    pid = os.getpid()
+    once, ran = threading.Lock(), [False]
+
+    def job():
+        with once:
+            if ran[0]:
+                return args[0] if args else None
+            ran[0] = True
+            return fn(*args)
+
     with _OUTBOX_LOCK:
-        if _OUTBOX[0] is None or _OUTBOX[1] != pid:
-            _OUTBOX[:] = [ThreadPoolExecutor(1, thread_name_prefix="scmr-outbox"), pid]
+        if _OUTBOX[0] is None:
+            _OUTBOX[0] = ThreadPoolExecutor(OUTBOX_THREADS, thread_name_prefix="scmr-outbox")
         ex = _OUTBOX[0]
     try:
-        return ex.submit(fn, *args)
-    except RuntimeError:  # "cannot schedule new futures after (interpreter) shutdown"
+        return ex.submit(job)
+    except RuntimeError:
         done: Future = Future()
-        done.set_result(fn(*args))
+        done.set_result(job())
         return done
 
 

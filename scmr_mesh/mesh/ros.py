@@ -215,6 +215,10 @@ class RosBridge:
         self.rate_hz = rate_hz
         self.jpeg_quality = jpeg_quality
         self.full_frames = full_frames
+        # imported here, not in Zenoh's receive thread at the first frame (the import loads OpenCV: 0.3 s)
+        from scmr_mesh.imaging.codec import reduction_factor
+
+        self._reduction_factor = reduction_factor
         self.node = node_name or ros_node_name(robot.id)
         self.stats = BridgeStats()
         self._cv = threading.Condition()
@@ -321,9 +325,7 @@ class RosBridge:
             return _Pending(msg.header, frame, height, width)
         img = rw.decode_image(payload)
         if self.jpeg_quality:  # refused here, not after it has replaced the frame waiting in the slot
-            from scmr_mesh.imaging.codec import reduction_factor
-
-            r = 1 if self.full_frames else reduction_factor(img.width, img.height)
+            r = 1 if self.full_frames else self._reduction_factor(img.width, img.height)
             side = max(-(-img.width // r), -(-img.height // r))
             if side > JPEG_MAX_SIDE:
                 raise rw.RosWireError("size", f"{img.width}x{img.height} would go to the mesh with a side of {side} "
