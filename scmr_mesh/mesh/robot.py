@@ -938,7 +938,7 @@ class Robot:
         ``records.jsonl``, ``scmr/results/<robot>``, telemetry, observers).
 
         The outbox write (about 0.18 ms for a 21 KB JPEG on ext4, more for a raw frame) runs
-        on the process's outbox thread (:func:`_outbox_submit`) while the request is out, so it
+        on the process's outbox threads (:func:`_outbox_submit`) while the request is out, so it
         no longer delays the send; the request's delivery waits for it before it removes the file.
         """
         outbox_file = self.outbox / f"{seq}{FRAME_SUFFIX[frame.encoding]}"  # a bad encoding fails before the send
