@@ -193,7 +193,14 @@ def test_a_fast_cloud_is_never_hedged_and_teaches_the_delay(tmp_path):
         assert all(r["tier"] == "cloud" and not r["hedged"] for r in recs)
         assert fakes["leader"].calls == 0
         assert len(robot._answer_times["cloud"]) == 7  # the first answer (one-off costs) is not learnt
-        assert robot.hedge_delay_ms("cloud") == 30.0  # learnt: fast answers, so the floor
+        # learnt: p95 of these answers + margin, at least the floor (fast answers: the floor on a quiet
+        # box; under CPU hogs their times, and so the delay, can be a little higher: that is the rule
+        # working, so the expectation comes from the recorded times, not from the wall clock)
+        from scmr_mesh.qos.hedge import DEFAULT_RULE, _quantile
+
+        times = list(robot._answer_times["cloud"].values())
+        learnt = max(DEFAULT_RULE.floor_ms, _quantile(times, DEFAULT_RULE.quantile) + DEFAULT_RULE.margin_ms)
+        assert robot.hedge_delay_ms("cloud") == learnt
         assert robot.hedge_delay_ms("leader") == 150.0  # no answers yet: the cold delay
     finally:
         robot.close()
