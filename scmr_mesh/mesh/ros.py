@@ -299,7 +299,7 @@ class RosBridge:
             self._cv.notify()
 
     def _decode(self, key: str, payload: bytes) -> _Pending:
-        """:meth:`_parse` and :meth:`_prepare` at once: the frame ready to serve, or raise :class:`RosWireError`."""
+        """:meth:`_parse` and :meth:`_make_frame` at once: the frame ready to serve, or raise :class:`RosWireError`."""
         pending = self._parse(key, payload)
         self._make_frame(pending)
         return pending
