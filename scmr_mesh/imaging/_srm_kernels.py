@@ -265,35 +265,23 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     for r in range(k):
         if slot[r] + 1 > s:
             s = slot[r] + 1
-    feats = np.empty((h * w, 4), np.float64)
+    # each pixel's features are made once, in the pass that needs them (a seed pixel's in pass 1,
+    # any other's in pass 2): no (h * w, 4) array to write and read back
+    f = np.empty(4, np.float64)
     m1 = np.zeros((s, 4), np.float64)
     m2 = np.zeros((s, 4, 4), np.float64)
     ns = np.zeros(s, np.float64)
-    p = 0
     for y in range(h):
         for x in range(w):
-            cr = img[y, x, 0]
-            cg = img[y, x, 1]
-            cb = img[y, x, 2]
-            f0 = lut[cr] - lut[cg]
-            f1 = lut[cb] - lut[cg]
-            f2 = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
-            gv = grad[y, x]
-            gi = 2047 if not gv < 2047.0 else (0 if not gv > 0.0 else np.int32(gv + 0.5))
-            f3 = tex[gi]
-            feats[p, 0] = f0
-            feats[p, 1] = f1
-            feats[p, 2] = f2
-            feats[p, 3] = f3
             j = slot[labels[y, x]]
             if j >= 0:
+                _pixel_features(img, grad, y, x, lut, lsum, tex, f)
                 ns[j] += 1.0
                 for a in range(4):
-                    fa = feats[p, a]
+                    fa = f[a]
                     m1[j, a] += fa
                     for b in range(a, 4):
-                        m2[j, a, b] += fa * feats[p, b]
-            p += 1
+                        m2[j, a, b] += fa * f[b]
     mus = np.zeros((s, 4), np.float64)
     covs = np.zeros((s, 4, 4), np.float64)
     icovs = np.zeros((s, 4, 4), np.float64)
@@ -315,14 +303,14 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
         icovs[j] = _inv4(covs[j])
     inside = np.zeros(k, np.int64)
     d = np.empty(4, np.float64)
-    p = 0
     for y in range(h):
         for x in range(w):
             r = labels[y, x]
-            if slot[r] < 0:
+            if slot[r] < 0 and s > 0:
+                _pixel_features(img, grad, y, x, lut, lsum, tex, f)
                 for j in range(s):
                     for a in range(4):
-                        d[a] = feats[p, a] - mus[j, a]
+                        d[a] = f[a] - mus[j, a]
                     q = 0.0
                     for a in range(4):
                         t = 0.0
@@ -332,8 +320,21 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                     if q <= limit:
                         inside[r] += 1
                         break
-            p += 1
     return inside, mus, covs
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pixel_features(img, grad, y, x, lut, lsum, tex, f):
+    """The road model's four features of pixel (y, x) into ``f`` (see :func:`road_share_kernel`)."""
+    cr = img[y, x, 0]
+    cg = img[y, x, 1]
+    cb = img[y, x, 2]
+    f[0] = lut[cr] - lut[cg]
+    f[1] = lut[cb] - lut[cg]
+    f[2] = lsum[np.int32(cr) + np.int32(cg) + np.int32(cb)]
+    gv = grad[y, x]
+    gi = 2047 if not gv < 2047.0 else (0 if not gv > 0.0 else np.int32(gv + 0.5))
+    f[3] = tex[gi]
 
 
 # OpenCV's INTER_AREA downscale in two passes over whole rows (contiguous, so they vectorize);
@@ -375,6 +376,43 @@ def area_round_kernel(src, ptr, idx, w, out):
             a = w[j]
             for i in range(length):
                 acc[i] += a * r[i]
+        o = out[d]
+        for i in range(length):
+            v = np.rint(acc[i])
+            o[i] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
+    return out
+
+
+
+
+# An exact 2:1 across (best's 300x225 -> 150x112) in one pass: OpenCV's two across terms are
+# halves of 8-bit values, so their float32 sum is exact (half the pair's integer sum); each source
+# row's sums are made in a row buffer where a down-sum needs them, so no whole-image scratch array
+# leaves the cache between frames.  ``src`` is (h, 2 * width * 3) uint8 RGB rows, ``out``
+# (height, width * 3); down, the weights and order of ``area_round_kernel``.
+@njit(cache=True, nogil=True)
+def area_half_kernel(src, ptr, idx, w, out):
+    """OpenCV's ``INTER_AREA`` for an exact 2:1 across and a fractional down, same bytes."""
+    n_out, length = out.shape
+    width = length // 3
+    acc = np.empty(length, np.float32)
+    buf = np.empty(length, np.float32)
+    half = np.float32(0.5)
+    for d in range(n_out):
+        for j in range(ptr[d], ptr[d + 1]):
+            r = src[idx[j]]
+            for x in range(width):
+                s = 6 * x
+                buf[3 * x] = np.float32(np.int32(r[s]) + np.int32(r[s + 3])) * half
+                buf[3 * x + 1] = np.float32(np.int32(r[s + 1]) + np.int32(r[s + 4])) * half
+                buf[3 * x + 2] = np.float32(np.int32(r[s + 2]) + np.int32(r[s + 5])) * half
+            a = w[j]
+            if j == ptr[d]:
+                for i in range(length):
+                    acc[i] = a * buf[i]
+            else:
+                for i in range(length):
+                    acc[i] += a * buf[i]
         o = out[d]
         for i in range(length):
             v = np.rint(acc[i])

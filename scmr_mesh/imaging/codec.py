@@ -471,10 +471,10 @@ def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     its order, over whole rows (across on the transposed image, then down), so it
     vectorizes, and the same bytes as OpenCV (``tests/test_imaging_area.py`` compares them on
     the road frames and on random sizes).  In a service's decode of a 640x480 JPEG it takes
-    about 0.4 ms off 3.0 (``scmr bench pipeline``, docs/BENCHMARKS.md); on the 300x225 frame
-    to best's 150x112 it gained nothing there (its 1 MB of scratch arrays falls out of the
-    cache between frames), so the pipeline keeps OpenCV for that step.  Anything else goes
-    to OpenCV.
+    about 0.4 ms off 3.0 (``scmr bench pipeline``, docs/BENCHMARKS.md).  An exact 2:1 across
+    with a fractional down on a small image (the 300x225 frame to best's 150x112) runs in one
+    pass instead, with row-sized buffers: the two-pass kernel's 1 MB of scratch arrays falls
+    out of the cache between frames there.  Anything else goes to OpenCV.
 
     Parameters
     ----------
@@ -492,6 +492,13 @@ def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     if (not (0 < width <= w and 0 < height <= h)
             or (w % width == 0 and h % height == 0) or w >= 3 * width or h >= 3 * height):
         return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+    if w == 2 * width and h * width * 3 <= _HALF_MAX_VALUES:
+        # an exact 2:1 across and a fractional down (best's 300x225 -> 150x112): one pass, row buffers
+        from scmr_mesh.imaging._aot import area_half_kernel
+
+        out = area_half_kernel(np.ascontiguousarray(rgb).reshape(h, w * 3), *_area_table(h, height),
+                               np.empty((height, width * 3), np.uint8))
+        return out.reshape(height, width, 3)
     from scmr_mesh.imaging._aot import area_round_kernel, area_rows_kernel
 
     c = rgb.shape[2]
@@ -504,6 +511,12 @@ def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
                             np.empty((height, width * c), np.uint8))
     return out.reshape(height, width, c)
 
+
+#: :func:`area_resize`'s one-pass kernel for an exact 2:1 across takes images up to this many output
+#: values per source row times rows (300x225 -> 150x112 is 101,250).  On best's frame it takes
+#: 0.19 ms against OpenCV's 0.41 (interleaved, one core of the 2-core development box); on larger
+#: images the two-pass kernels, whose inner loops run over whole rows, are at least as fast.
+_HALF_MAX_VALUES = 400_000
 
 _area_local = threading.local()
 #: Sizes of scratch arrays :func:`area_resize` keeps per thread.

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from scmr_mesh.errors import InputError
-from scmr_mesh.imaging.codec import FRAME_SHAPE, as_rgb, resize_frame
+from scmr_mesh.imaging.codec import FRAME_SHAPE, area_resize, as_rgb, resize_frame
 from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, abstain, classify, tone_curve
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
@@ -234,7 +234,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     ``edges`` empty, ``sparse`` the column fill and the upsampling to 300x225.
     """
     wh, ww = WORK_SHAPE
-    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    small = area_resize(frame, ww, wh)
     t2 = _clock()
     t["blur"] = t2 - t1
 
@@ -315,7 +315,8 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = column_fill(candidate, gap, lowest)
     up = cv2.resize(small_mask, (FRAME_SHAPE[1], FRAME_SHAPE[0]), interpolation=cv2.INTER_LINEAR)
-    return np.where(up >= 128, 255, 0).astype(np.uint8), confidence, abstained, t6, carried
+    # cv2.threshold: the bytes of np.where(up >= 128, 255, 0), 0.005 ms instead of 0.23
+    return cv2.threshold(up, 127, 255, cv2.THRESH_BINARY)[1], confidence, abstained, t6, carried
 
 
 def column_fill(candidate: np.ndarray, gap: int, lowest: bool) -> np.ndarray:
@@ -350,7 +351,7 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
     """
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
-    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    small = area_resize(frame, ww, wh)
     segs: dict = {}
     classified: dict = {}
     for params in params_list:
@@ -371,7 +372,7 @@ def working_frame(rgb: np.ndarray, params: RoadParams | None = None, *, q: float
     params = (params or DEFAULT_PARAMS).check()
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
-    small = cv2.resize(frame, (ww, wh), interpolation=cv2.INTER_AREA)
+    small = area_resize(frame, ww, wh)
     seg = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=srm_q("best", q, params))
     return small, seg
 
@@ -407,6 +408,20 @@ def _cell_index() -> tuple[np.ndarray, np.ndarray]:
     return _CELL_INDEX[0], _CELL_INDEX[1]
 
 
+_CELL_BLOCK: list = []
+
+
+def _cell_block() -> tuple[slice, slice, np.ndarray]:
+    """The working frame's block under the 300x225 bottom-centre cell, and how many cell pixels each of its pixels is."""
+    if not _CELL_BLOCK:
+        ry, rx = (a.ravel() for a in _cell_index())
+        y0, x0 = int(ry.min()), int(rx.min())
+        my, mx = np.bincount(ry - y0), np.bincount(rx - x0)
+        _CELL_BLOCK[:] = (slice(y0, y0 + my.size), slice(x0, x0 + mx.size),
+                          (my[:, None] * mx[None, :]).ravel().astype(np.float64))  # one store: thread-safe
+    return _CELL_BLOCK[0], _CELL_BLOCK[1], _CELL_BLOCK[2]
+
+
 def cell_otsu(labels: np.ndarray, palette: np.ndarray) -> tuple[int, np.ndarray, int]:
     """The dominant channel, histogram and Otsu threshold of the 300x225 bottom-centre cell of an SRM result.
 
@@ -431,8 +446,10 @@ def cell_otsu(labels: np.ndarray, palette: np.ndarray) -> tuple[int, np.ndarray,
     hist : (256,) int64
     threshold : int
     """
-    ry, rx = _cell_index()
-    counts = np.bincount(labels[ry, rx].ravel(), minlength=len(palette))
+    rows, cols, weights = _cell_block()
+    # the cell's pixels map to a block of working pixels, each repeated a fixed number of times:
+    # the counts are the block's, weighted (exact integers in float64); 0.01 ms instead of 0.03
+    counts = np.bincount(labels[rows, cols].ravel(), weights=weights, minlength=len(palette)).astype(np.int64)
     channel = int(np.argmax(counts @ palette.astype(np.int64)))
     hist = np.bincount(palette[:, channel], weights=counts, minlength=256).astype(np.int64)
     return channel, hist, otsu_of_counts(hist)
