@@ -193,4 +193,9 @@ def test_bench_pipeline_reference_ratios(tmp_path):
     ratios = doc["ratios"]
     assert ratios["total_over_reference_srm"] == pytest.approx(doc["median_ms"]["total"] / ref["srm_median_ms"], rel=0.01)
     assert ratios["srm_over_reference_srm"] == pytest.approx(doc["median_ms"]["srm"] / ref["srm_median_ms"], rel=0.01)
+    assert ratios["total_interleaved_over_reference_srm"] == pytest.approx(
+        ref["ours_total_interleaved_median_ms"] / ref["srm_median_ms"], rel=0.01)
+    assert ratios["total_over_reference_srm_paired"] > 0
     assert "ours / reference" in r.stdout
+    verdict = "met" if ratios["total_over_reference_srm_paired"] <= 0.5 else "not met"
+    assert f"the total target (<= 0.5) is {verdict} in this run" in r.stdout
