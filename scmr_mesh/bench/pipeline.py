@@ -245,6 +245,8 @@ def bench_pipeline(
         ours_total: list[float] = []
         for i in range(frames):
             j = i % len(sources)
+            # the pipeline first: it never follows our SRM of its own frame (whose caches it would find warm)
+            ours_total.append(segment_drivable(ready[j], mode=mode).timings_ms["total"])
             t0 = time.perf_counter()
             ref_srm(greys[j], q)
             t1 = time.perf_counter()
@@ -252,7 +254,6 @@ def bench_pipeline(
             t2 = time.perf_counter()
             theirs.append((t1 - t0) * 1000)
             ours.append((t2 - t1) * 1000)
-            ours_total.append(segment_drivable(ready[j], mode=mode).timings_ms["total"])
             if progress and (i % 20 == 0 or i == frames - 1):
                 progress(2 * frames + i + 1, total_runs)
         ref_med = float(np.median(theirs))
@@ -276,7 +277,9 @@ def bench_pipeline(
             "total_interleaved_over_reference_srm": round(float(np.median(ours_total)) / ref_med, 3),
             # the median over frames of (our total / the reference's SRM) of the same frame, timed together
             "total_over_reference_srm_paired": round(float(np.median(paired)), 3),
-            "targets": {"total_over_reference_srm": 0.5, "srm_over_reference_srm": 0.5},
+            # the total target is judged on the paired ratio (the printed verdict); the others are kept for history
+            "targets": {"total_over_reference_srm_paired": 0.5, "total_over_reference_srm": 0.5,
+                        "srm_over_reference_srm": 0.5},
         }
     out["load_average"] = _loadavg()
     return out

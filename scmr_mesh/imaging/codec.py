@@ -496,7 +496,10 @@ def area_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
         # an exact 2:1 across and a fractional down (best's 300x225 -> 150x112): one pass, row buffers
         from scmr_mesh.imaging._aot import area_half_kernel
 
-        out = area_half_kernel(np.ascontiguousarray(rgb).reshape(h, w * 3), *_area_table(h, height),
+        src = np.ascontiguousarray(rgb)
+        if not src.flags.writeable:  # the kernel's one signature takes writeable arrays (no second JIT)
+            src = src.copy()
+        out = area_half_kernel(src.reshape(h, w * 3), *_area_table(h, height),
                                np.empty((height, width * 3), np.uint8))
         return out.reshape(height, width, 3)
     from scmr_mesh.imaging._aot import area_round_kernel, area_rows_kernel
