@@ -366,23 +366,29 @@ def area_round_kernel(src, ptr, idx, w, out):
     n_out, length = out.shape
     acc = np.empty(length, np.float32)
     for d in range(n_out):
-        j0 = ptr[d]
-        r = src[idx[j0]]
-        a = w[j0]
-        for i in range(length):
-            acc[i] = a * r[i]
-        for j in range(j0 + 1, ptr[d + 1]):
-            r = src[idx[j]]
-            a = w[j]
-            for i in range(length):
-                acc[i] += a * r[i]
-        o = out[d]
-        for i in range(length):
-            v = np.rint(acc[i])
-            o[i] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
+        for j in range(ptr[d], ptr[d + 1]):
+            _down_term(acc, w[j], src[idx[j]], j == ptr[d])
+        _round_row(acc, out[d])
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _down_term(acc, a, r, first):
+    """One term of a down-sum, in OpenCV's order: ``acc = a * r`` (the first) or ``acc += a * r``."""
+    if first:
+        for i in range(acc.size):
+            acc[i] = a * r[i]
+    else:
+        for i in range(acc.size):
+            acc[i] += a * r[i]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _round_row(acc, o):
+    """``o = uint8(clamp(rint(acc), 0, 255))``: OpenCV's saturating round half to even."""
+    for i in range(acc.size):
+        v = np.rint(acc[i])
+        o[i] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
 
 
 # An exact 2:1 across (best's 300x225 -> 150x112) in one pass: OpenCV's two across terms are
@@ -406,15 +412,6 @@ def area_half_kernel(src, ptr, idx, w, out):
                 buf[3 * x] = np.float32(np.int32(r[s]) + np.int32(r[s + 3])) * half
                 buf[3 * x + 1] = np.float32(np.int32(r[s + 1]) + np.int32(r[s + 4])) * half
                 buf[3 * x + 2] = np.float32(np.int32(r[s + 2]) + np.int32(r[s + 5])) * half
-            a = w[j]
-            if j == ptr[d]:
-                for i in range(length):
-                    acc[i] = a * buf[i]
-            else:
-                for i in range(length):
-                    acc[i] += a * buf[i]
-        o = out[d]
-        for i in range(length):
-            v = np.rint(acc[i])
-            o[i] = np.uint8(min(max(v, np.float32(0.0)), np.float32(255.0)))
+            _down_term(acc, w[j], buf, j == ptr[d])
+        _round_row(acc, out[d])
     return out
