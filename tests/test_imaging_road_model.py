@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging import segment_drivable, srm
 from scmr_mesh.imaging._srm_kernels import road_share_kernel
-from scmr_mesh.imaging.evaluate import cross_validate, format_cv_table
+from scmr_mesh.imaging.evaluate import choose_combination, cross_validate, format_cv_table, synthetic_scores
 from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS
 from scmr_mesh.imaging.road_model import (
     FEATURE_OFFSET,
@@ -350,6 +350,13 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     ground contact, every region reaching the cell's lower half seeds the model, not the largest
     alone) raised the forest floor's cross-validated IoU from 0.730 to 0.757, above its prior
     (0.748), so every dataset now beats the prior; the code before fails that assertion.
+
+    Issue 27 (2026-11-28: every choice among the combinations that keep the synthetic scenes at
+    their floors, as the shipped defaults must): CamVid's fold had chosen ``shade`` 0, ``standing``
+    False, ``p`` 0.99 and ``frac`` 0.5 (0.804 on CamVid), constants that could not be shipped (the
+    synthetic tunnel falls below 0.85 under them); now every fold chooses the in-sample constants,
+    so the cross-validated means are 0.800 / 0.755 / precision 0.892 (were 0.783 / 0.751 / 0.878),
+    and the floors follow (0.795 / 0.75 / 0.885).  The code before fails the first and the last.
     """
     import json
 
@@ -361,17 +368,44 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     chosen = res["in_sample"]["params"]
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
     assert res["mean"]["in_sample_iou"] >= 0.79
-    assert res["mean"]["cv_iou"] >= 0.77
-    assert res["mean_of_datasets"]["cv_iou"] >= 0.745
+    assert res["mean"]["cv_iou"] >= 0.795
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.75
     assert res["per_dataset"]["orfd"]["cv_precision"] >= 0.85
     assert res["mean"]["in_sample_precision"] >= 0.88
-    assert res["mean"]["cv_precision"] >= 0.87
+    assert res["mean"]["cv_precision"] >= 0.885
     assert res["min_precision"] == 0.88
+    # every choice meets the synthetic scenes' floors, the shipped defaults' among them
+    syn = res["synthetic"]
+    assert syn["checked"] and 0 < syn["fit"] < res["combinations"]
+    choices = [RoadParams(**chosen)] + [RoadParams(**r["cv_params"]) for r in res["per_dataset"].values()]
+    assert synthetic_scores(choices)["fits"].all()
     for d, r in res["per_dataset"].items():
         assert r["cv_iou"] > r["bottom_half_iou"], d
     assert res["per_dataset"]["umich_forest_traversable"]["cv_iou"] >= 0.755   # 0.730 before
     table = format_cv_table(res)
     assert "CV IoU" in table and "rellis3d" in table and "prec" in table and "recall" in table
+
+
+def test_the_operating_point_chooses_among_the_allowed_combinations():
+    """:func:`choose_combination`: the best training IoU among the allowed combinations whose training
+    precision reaches the floor; the floor is dropped when no allowed combination reaches it, and
+    the allowed set when it is empty (then the floor applies to all)."""
+    iou = np.array([[0.9, 0.9, 0.1], [0.8, 0.8, 0.1], [0.7, 0.7, 0.9], [0.6, 0.6, 0.9]])
+    prec = np.array([[0.8, 0.8, 0.1], [0.9, 0.9, 0.1], [0.95, 0.95, 0.1], [0.99, 0.99, 0.99]])
+    train = np.array([True, True, False])   # the third image is the held-out one: never looked at
+    assert choose_combination(iou, prec, train, 0.0) == 0
+    assert choose_combination(iou, prec, train, 0.88) == 1
+    assert choose_combination(iou, prec, train, 0.88, np.array([True, False, True, True])) == 2
+    assert choose_combination(iou, prec, train, 0.97, np.array([True, True, True, False])) == 0   # none precise
+    assert choose_combination(iou, prec, train, 0.88, np.zeros(4, bool)) == 1   # nothing allowed: all are
+
+
+def test_a_combination_below_the_synthetic_floors_does_not_fit():
+    """:func:`synthetic_scores` on the shipped defaults and on constants that lower the synthetic tunnel
+    below its 0.85 (``frac`` 0.5, docs/ACCURACY.md 2026-11-28): the first fits, the second does not."""
+    res = synthetic_scores([DEFAULT_PARAMS, RoadParams(frac=0.5)])
+    assert res["fits"].tolist() == [True, False]
+    assert res["iou"]["tunnel"][1] < 0.85 <= res["iou"]["tunnel"][0]
 
 
 def test_the_feature_tables_are_built_once_when_threads_race(monkeypatch):
