@@ -148,6 +148,9 @@ def test_eval_sequences_leave_one_sequence_out(tmp_path, capsys):
     assert "add --sequences" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "d"), "--min-precision", "0.9"]) == 1
     assert "add one of them" in capsys.readouterr().err
+    for extra in ([], ["--sequences"]):
+        assert main(["eval", str(tmp_path / "d"), "--no-synthetic-floors", *extra]) == 1
+        assert "applies to --cv only" in capsys.readouterr().err
 
 
 def test_a_track_state_whose_covariance_is_not_a_covariance_is_refused():

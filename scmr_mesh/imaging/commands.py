@@ -62,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "them on the other datasets and score this one; prints cross-validated and in-sample "
                         "IoU, precision and recall and the bottom-half baseline per dataset; every choice is made "
                         "among the combinations that keep the synthetic scenes at their floors, as the shipped "
-                        "defaults must (about 30 s on the shared images, 2 cores)")
+                        "defaults must (about 25 s on the shared images, 2 cores)")
     p.add_argument("--sequences", action="store_true",
                    help="the road model carried across a robot's frames against the per-frame one: group the "
                         "labelled frames into drives (<dataset>_<sequence>_<frame> names, CamVid's, at 30 fps; or "
@@ -76,9 +76,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --cv or --sequences, the operating point: choose the best IoU among the combinations "
                         "whose mean precision on the training images is at least P (default 0.88; 0 = IoU alone)")
     p.add_argument("--no-synthetic-floors", dest="synthetic_floors", action="store_false",
-                   help="with --cv, let the choices ignore the synthetic scenes' floors (mean IoU >= 0.85 per kind, "
-                        "0.73 for the two kinds still below it, precision >= 0.85): the protocol before 2026-11-28, "
-                        "under which a fold could choose constants that could not be shipped")
+                   help="with --cv, let the choices ignore the synthetic scenes' floors (the table's last lines "
+                        "print them; scmr_mesh.imaging.evaluate.SYNTHETIC_*): the protocol before 2026-11-28, under "
+                        "which a fold could choose constants that could not be shipped")
     p.add_argument("--json", type=ca.PathArg("out-file", as_path=True), metavar="FILE", help="write the full result as JSON here")
     p.set_defaults(func=cmd_eval)
 
@@ -213,7 +213,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.cv and args.sequences:
         raise InputError("--cv and --sequences are two evaluations; give one of them")
     if not args.synthetic_floors and not args.cv:
-        raise InputError("--no-synthetic-floors changes how --cv chooses its constants; add --cv")
+        raise InputError("--no-synthetic-floors applies to --cv only (how its folds choose best's constants)")
     if args.sequences:
         if args.mode != "best":
             raise InputError(f"--sequences evaluates best's carried road model; thesis has none (got --mode {args.mode})")
