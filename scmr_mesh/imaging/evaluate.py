@@ -324,7 +324,8 @@ MIN_PRECISION = 0.88
 #: :func:`~scmr_mesh.imaging.synthetic.make_scene`, mean precision >= :data:`SYNTHETIC_PRECISION`
 #: and mean IoU >= :data:`SYNTHETIC_IOU_TARGET`, or, for the kinds still below that target, >= the
 #: floor each holds today (:data:`SYNTHETIC_KNOWN_BELOW`, measured 2026-11-27, seeds 0-7:
-#: structured road 0.746, desert 0.741; dirt road 0.899, tunnel 0.865, hallway 0.943).  ``tests/test_imaging_synthetic_truth.py`` holds the defaults to them, and
+#: structured road 0.746, desert 0.741; dirt road 0.899, tunnel 0.865, hallway 0.943).
+#: ``tests/test_imaging_synthetic_truth.py`` holds the defaults to them, and
 #: :func:`cross_validate` lets every fold choose only among the combinations that meet them.
 SYNTHETIC_SEEDS = range(8)
 SYNTHETIC_IOU_TARGET = 0.85
@@ -452,8 +453,9 @@ def cross_validate(
         "per_dataset": {d: {"n", "cv_iou", "cv_precision", "cv_recall", "cv_params",
         "in_sample_iou", "in_sample_precision", "in_sample_recall", "bottom_half_iou"}},
         "mean": {...same keys...}, "mean_of_datasets": {...}, "min_precision", "skipped",
-        "synthetic": {"floors": {kind: IoU}, "precision", "fit": count of the combinations
-        meeting them, "checked": bool}}``; means are over images (each image weighs the same)
+        "synthetic": {"checked": True, "target", "floors": {kind: IoU}, "precision", "fit": how
+        many combinations meet them, "in_sample": {kind: {"iou", "precision"}} of the in-sample
+        choice} or {"checked": False}}``; means are over images (each image weighs the same)
         and over datasets.
     """
     import itertools
@@ -479,6 +481,14 @@ def cross_validate(
     keys = list(grid)
     combos = [dict(zip(keys, vals)) for vals in itertools.product(*grid.values())]
     params_list = [RoadParams(**combo).check() for combo in combos]
+    # first, so a grid none of whose combinations could ship is refused before the long part
+    syn = synthetic_scores(params_list, progress=progress) if synthetic else None
+    allowed = syn["fits"] if syn is not None else None
+    if allowed is not None and not allowed.any():
+        below = ", ".join(f"{v} for {k}" for k, v in SYNTHETIC_KNOWN_BELOW.items())
+        raise InputError(f"none of the grid's {len(combos)} combinations keeps the synthetic scenes at their floors "
+                         f"(mean IoU >= {SYNTHETIC_IOU_TARGET} per kind, {below}; precision >= {SYNTHETIC_PRECISION}), "
+                         f"so no choice could ship; add --no-synthetic-floors to cross-validate without them")
     metrics = ("iou", "precision", "recall")
     scores = {m: np.zeros((len(combos), len(frames))) for m in metrics}
     for fi, (item, rgb, road, valid) in enumerate(frames):
@@ -491,13 +501,6 @@ def cross_validate(
     if progress:
         progress(len(frames), len(frames), "")
     half = np.array([score(bottom_half_mask(), road, valid)["iou"] for _i, _r, road, valid in frames])
-    syn = synthetic_scores(params_list, progress=progress) if synthetic else None
-    allowed = syn["fits"] if syn is not None else None
-    if allowed is not None and not allowed.any():
-        below = ", ".join(f"{v} for {k}" for k, v in SYNTHETIC_KNOWN_BELOW.items())
-        raise InputError(f"none of the grid's {len(combos)} combinations keeps the synthetic scenes at their floors "
-                         f"(mean IoU >= {SYNTHETIC_IOU_TARGET} per kind, {below}; precision >= {SYNTHETIC_PRECISION}), "
-                         f"so no choice could ship; add --no-synthetic-floors to cross-validate without them")
 
     def choose(train: np.ndarray) -> int:
         return choose_combination(scores["iou"], scores["precision"], train, min_precision, allowed)
