@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging import segment_drivable, srm
-from scmr_mesh.imaging._srm_kernels import road_share_kernel
+from scmr_mesh.imaging._srm_kernels import candidate_kernel, road_share_kernel
 from scmr_mesh.imaging.evaluate import (
     choose_combination,
     cross_validate,
@@ -21,15 +22,18 @@ from scmr_mesh.imaging.evaluate import (
     synthetic_floor,
     synthetic_scores,
 )
-from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS
+from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS, working_frame
 from scmr_mesh.imaging.road_model import (
     FEATURE_OFFSET,
     SHADE_DIRECTION,
     WORK_SHAPE,
     RoadParams,
+    _seeds_grounded,
     abstain,
+    candidate_regions,
     chi2_quantile,
     classify,
+    connected_to_seeds,
     feature_tables,
     below_the_horizon,
     open_ground,
@@ -90,12 +94,153 @@ def test_road_share_kernel_equals_the_numpy_slow_path(seed, h, w, k, shade, sunl
     slot = np.full(k, -1, np.int32)
     slot[seeds] = np.arange(seeds.size)
     limit = chi2_quantile(0.95, 4)
-    inside, mus, covs = road_share_kernel(labels, img, grad, slot, k, *feature_tables(FEATURE_OFFSET), 0.02**2, limit,
-                                          SHADE_DIRECTION, shade**2, math.log(sunlit + FEATURE_OFFSET))
+    tables = feature_tables(FEATURE_OFFSET)
+    inside, mus, covs, chroma, gmed = road_share_kernel(labels, img, grad, slot, k, *tables, 0.02**2, limit,
+                                                        SHADE_DIRECTION, shade**2, math.log(sunlit + FEATURE_OFFSET))
     want, wmus, wcovs = _slow_road_share(labels, img, grad, seeds, 0.02, limit, shade, sunlit)
     np.testing.assert_allclose(mus, wmus, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(covs, wcovs, rtol=1e-7, atol=1e-9)
     np.testing.assert_array_equal(inside, want)
+    # the weak join's inputs: each region's mean chromaticity, the seed pixels' median magnitude
+    f = img.astype(np.float64) + FEATURE_OFFSET
+    lab = labels.ravel()
+    for c, want_c in enumerate((np.log(f[..., 0] / f[..., 1]), np.log(f[..., 2] / f[..., 1]))):
+        np.testing.assert_allclose(chroma[:, c], np.bincount(lab, weights=want_c.ravel(), minlength=k)
+                                   / np.bincount(lab, minlength=k), rtol=1e-9, atol=1e-12)
+    assert gmed == np.median(grad[np.isin(labels, seeds)].astype(np.float64))
+
+
+def _region_labels(rng, h, w, n_colours, block):
+    """Random 4-connected regions (as SRM makes them): the 4-components of a blocky random image."""
+    small = rng.integers(0, n_colours, (max(1, h // block), max(1, w // block))).astype(np.uint8)
+    img = cv2.resize(small, (w, h), interpolation=cv2.INTER_NEAREST)
+    labels = np.zeros((h, w), np.int32)
+    n = 0
+    for c in range(n_colours):
+        m, comp = cv2.connectedComponents((img == c).astype(np.uint8), connectivity=4)
+        sel = comp > 0
+        labels[sel] = comp[sel] - 1 + n
+        n += m - 1
+    return labels, n
+
+
+def _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, chroma_lim, top_min, across):
+    """The weak-border join in plain numpy, on the region graph, iterated to its fixed point."""
+    k = road.size
+    f = img.astype(np.float64) + FEATURE_OFFSET
+    lab = labels.ravel()
+    n = np.bincount(lab, minlength=k)
+    chroma = np.stack([np.bincount(lab, weights=np.log(f[..., 0] / f[..., 1]).ravel(), minlength=k) / n,
+                       np.bincount(lab, weights=np.log(f[..., 2] / f[..., 1]).ravel(), minlength=k) / n], 1)
+    top = np.full(k, labels.shape[0])
+    np.minimum.at(top, lab, np.repeat(np.arange(labels.shape[0]), labels.shape[1]))
+    ok = np.zeros(k, bool)
+    for j in range(mus.shape[0]):
+        d = chroma - mus[j, :2]
+        ok |= np.einsum("ij,jk,ik->i", d, np.linalg.inv(covs[j, :2, :2]), d) <= chroma_lim**2
+    ok &= (top >= top_min) & ~road
+    g = grad.astype(np.float64)
+    a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
+    b = np.concatenate([labels[:, 1:].ravel(), labels[1:, :].ravel()])
+    gs = np.concatenate([(0.5 * (g[:, :-1] + g[:, 1:])).ravel(), (0.5 * (g[:-1, :] + g[1:, :])).ravel()])
+    vert = np.concatenate([np.zeros(labels[:, :-1].size), np.ones(labels[:-1, :].size)])
+    diff = a != b
+    lo, hi = np.minimum(a, b)[diff].astype(np.int64), np.maximum(a, b)[diff].astype(np.int64)
+    codes, inv = np.unique(lo * k + hi, return_inverse=True)
+    cnt = np.bincount(inv)
+    gmed = np.median(g[np.isin(labels, np.flatnonzero(start))]) if start.any() else 0.0
+    is_weak = (np.bincount(inv, weights=gs[diff]) <= weak * (gmed if gmed > 0 else 1.0) * cnt) & \
+              (np.bincount(inv, weights=vert[diff]) >= across * cnt)
+    pa, pb = codes // k, codes % k
+    inc = start.copy()
+    while True:
+        step = np.zeros(k, bool)
+        for x, y in ((pa, pb), (pb, pa)):
+            m = inc[x] & ~inc[y] & (road[y] | (ok[y] & is_weak))
+            step[y[m]] = True
+        if not step.any():
+            return inc, inc & ok
+        inc |= step
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), h=st.integers(2, 48), w=st.integers(2, 48), n_colours=st.integers(2, 40),
+       block=st.integers(1, 8), weak=st.sampled_from([0.0, 0.5, 1.0, 4.0]), across=st.sampled_from([0.0, 0.6, 1.0]),
+       connected=st.booleans())
+def test_candidate_kernel_equals_the_numpy_iteration(seed, h, w, n_colours, block, weak, across, connected):
+    """The region-graph search (open-addressing border table, CSR graph, one search) against the
+    join done the slow way: border strengths from ``np.unique``, rounds until nothing changes.
+    Labels that are not 4-connected regions (``connected`` False) have more pairs than a planar
+    graph and exercise the table's fallback size."""
+    rng = np.random.default_rng(seed)
+    if connected:
+        labels, k = _region_labels(rng, h, w, min(n_colours, 12), block)
+    else:
+        k = min(n_colours, h * w)
+        labels = rng.integers(0, k, (h, w)).astype(np.int32)
+        labels.flat[:k] = np.arange(k)
+    palette = rng.integers(0, 256, (k, 3))
+    img = np.clip(palette[labels] + rng.integers(-6, 7, (h, w, 3)), 0, 255).astype(np.uint8)
+    grad = (rng.random((h, w), dtype=np.float32) * 60).astype(np.float32)
+    grad[rng.random((h, w)) < 0.3] = 0.0
+    road = rng.random(k) < 0.4
+    start = np.zeros(k, bool)
+    start[rng.integers(0, k, 2)] = True
+    road |= start
+    slot = np.full(k, -1, np.int32)
+    slot[np.flatnonzero(start)] = np.arange(start.sum())
+    _i, mus, covs, chroma, gmed = road_share_kernel(labels, img, grad, slot, k, *feature_tables(FEATURE_OFFSET),
+                                                    0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.04, 4.0)
+    top_min = 0.4 * h
+    inc, added = candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, 2.0, top_min, across)
+    want_inc, want_added = _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, 2.0, top_min, across)
+    np.testing.assert_array_equal(inc, want_inc)
+    np.testing.assert_array_equal(added, want_added)
+    assert not (added & road).any()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10_000), h=st.integers(4, 60), w=st.integers(4, 60), n_colours=st.integers(2, 10),
+       block=st.integers(1, 6), share=st.floats(0.0, 1.0))
+def test_candidate_regions_without_the_join_are_connected_to_seeds(seed, h, w, n_colours, block, share):
+    """With ``weak`` 0 the region-graph search is :func:`connected_to_seeds` (cv2's components) on
+    SRM-like labels: the same candidate, pixel for pixel, with seeds chosen as the pipeline chooses them."""
+    rng = np.random.default_rng(seed)
+    labels, k = _region_labels(rng, h, w, n_colours, block)
+    seeds, _grounded = _seeds_grounded(labels, k, 0.1)
+    is_seed = np.zeros(k, bool)
+    is_seed[seeds] = True
+    road = (rng.random(k) < share) | is_seed
+    params = RoadParams(weak=0.0)
+    stats = (np.zeros((k, 2)), 0.0)
+    cand, joined = candidate_regions(road, is_seed, labels, np.zeros((h, w), np.float32), stats,
+                                     np.zeros((0, 4)), np.zeros((0, 4, 4)), params)
+    np.testing.assert_array_equal(cand, connected_to_seeds(road, labels, is_seed, params))
+    assert not joined.any()
+    horizon = dataclasses.replace(params, horizon=0.5)
+    cand, _ = candidate_regions(road, is_seed, labels, np.zeros((h, w), np.float32), stats,
+                                np.zeros((0, 4)), np.zeros((0, 4, 4)), horizon)
+    np.testing.assert_array_equal(cand, connected_to_seeds(road, labels, is_seed, horizon))
+
+
+def test_the_weak_join_under_a_horizon_stays_below_it():
+    rgb, _ = make_scene("structured_road", seed=2)
+    joined = []
+    for params in (RoadParams(horizon=0.5), RoadParams(horizon=0.5, weak=50.0)):
+        small, seg = working_frame(rgb, params)
+        cand, info = classify(small, seg, params)
+        assert not cand[: int(0.5 * cand.shape[0])].any()
+        assert cand.any()
+        assert not (info["weak_joined"] & (info["road_share"] >= params.frac)).any()
+        joined.append(int(info["weak_joined"].sum()))
+    assert joined[0] < joined[1]  # the rounds under a horizon do join
+
+
+def test_the_weak_join_is_off_at_zero_and_checked():
+    assert RoadParams(weak=0.0).check().weak == 0.0
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="weak must be"):
+            RoadParams(weak=bad).check()
 
 
 def test_two_colour_road_analytic():

@@ -258,7 +258,10 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     inside some seed's ellipsoid ``(x - mu)^T C^-1 (x - mu) <= limit`` (pixels of a seed
     region are not tested; the caller takes seeds as road).
 
-    Returns ``inside`` (k,) int64, ``mus`` (s, 4) and ``covs`` (s, 4, 4) float64.
+    Returns ``inside`` (k,) int64, ``mus`` (s, 4) and ``covs`` (s, 4, 4) float64, and for the
+    weak-border join (:func:`candidate_kernel`) ``chroma`` (k, 2) float64, each region's mean
+    ``log(fR/fG)`` and ``log(fB/fG)`` (computed only when there is a seed), and ``gmed``, the
+    median Sobel magnitude of the seed pixels (0 when there are none).
     """
     h, w = labels.shape
     s = 0
@@ -268,6 +271,10 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     # each pixel's features are made once, in the pass that needs them (a seed pixel's in pass 1,
     # any other's in pass 2): no (h * w, 4) array to write and read back
     f = np.empty(4, np.float64)
+    chroma = np.zeros((k, 2), np.float64)
+    npx = np.zeros(k, np.float64)
+    gvals = np.empty(h * w, np.float64)
+    nseed = 0
     m1 = np.zeros((s, 4), np.float64)
     m2 = np.zeros((s, 4, 4), np.float64)
     ns = np.zeros(s, np.float64)
@@ -277,6 +284,12 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
             if j >= 0:
                 _pixel_features(img, grad, y, x, lut, lsum, tex, f)
                 ns[j] += 1.0
+                r = labels[y, x]
+                chroma[r, 0] += f[0]
+                chroma[r, 1] += f[1]
+                npx[r] += 1.0
+                gvals[nseed] = grad[y, x]
+                nseed += 1
                 for a in range(4):
                     fa = f[a]
                     m1[j, a] += fa
@@ -308,6 +321,9 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
             r = labels[y, x]
             if slot[r] < 0 and s > 0:
                 _pixel_features(img, grad, y, x, lut, lsum, tex, f)
+                chroma[r, 0] += f[0]
+                chroma[r, 1] += f[1]
+                npx[r] += 1.0
                 for j in range(s):
                     for a in range(4):
                         d[a] = f[a] - mus[j, a]
@@ -320,7 +336,149 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                     if q <= limit:
                         inside[r] += 1
                         break
-    return inside, mus, covs
+    for r in range(k):
+        if npx[r] > 0:
+            chroma[r, 0] /= npx[r]
+            chroma[r, 1] /= npx[r]
+    gmed = np.median(gvals[:nseed]) if nseed > 0 else 0.0
+    return inside, mus, covs, chroma, gmed
+
+
+@njit(cache=True, nogil=True)
+def _border_table(labels, grad, k, size, top):
+    """Per pair of 4-adjacent regions (key ``lo * k + hi``, open addressing, -1 = empty): the sum
+    over their neighbouring pixel pairs of the two pixels' mean ``grad``, their number and how
+    many are vertical neighbours.  ``full`` is True (and the table incomplete) when more than
+    three quarters of the ``size`` slots would be used.  Fills ``top`` (k,), each region's top
+    row, on the way (for :func:`candidate_kernel`)."""
+    h, w = labels.shape
+    mask = size - 1
+    keys = np.full(size, -1, np.int64)
+    gsum = np.zeros(size, np.float64)
+    cnt = np.zeros(size, np.int64)
+    vcnt = np.zeros(size, np.int64)
+    used = 0
+    for y in range(h):
+        for x in range(w):
+            r = labels[y, x]
+            if top[r] > y:
+                top[r] = y
+            g = np.float64(grad[y, x])
+            for dy in range(2):
+                yy = y + dy
+                xx = x + 1 - dy
+                if yy >= h or xx >= w:
+                    continue
+                o = labels[yy, xx]
+                if o == r:
+                    continue
+                code = np.int64(min(r, o)) * k + max(r, o)
+                t = ((code * 2654435761) >> 7) & mask
+                while keys[t] != -1 and keys[t] != code:
+                    t = (t + 1) & mask
+                if keys[t] == -1:
+                    used += 1
+                    if 4 * used > 3 * size:
+                        return keys, gsum, cnt, vcnt, True
+                    keys[t] = code
+                gsum[t] += 0.5 * (g + np.float64(grad[yy, xx]))
+                cnt[t] += 1
+                vcnt[t] += dy
+    return keys, gsum, cnt, vcnt, False
+
+
+@njit(cache=True, nogil=True)
+def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, chroma_lim, top_min, across):
+    """The road model's candidate regions: a search over the region graph from ``start``.
+
+    Returns ``(inc, added)``, (k,) bool each.  From the ``start`` regions, the search takes every
+    ``road`` region it reaches over any border (4-adjacent regions, :func:`_border_table`): the
+    road-like regions 4-connected to the start, what ``connected_to_seeds`` finds with
+    ``cv2.connectedComponents``.  With ``weak`` > 0 it also takes every region that may join
+    (``ok``) reached over a weak border, and that region passes the search on: ``added`` names them.
+    A region may join when it is not ``road``, its mean chromaticity ``chroma`` lies within
+    ``chroma_lim`` (Mahalanobis, the chromatic 2x2 block of ``covs``) of some seed's ``mus`` and its
+    top row is at least ``top_min`` (``chroma`` and ``gmed`` come from :func:`road_share_kernel`).
+    A border is weak when its mean pixel-pair magnitude is at most ``weak`` x ``gmed`` (1 when
+    ``gmed`` is 0) and at least ``across`` of its pixel pairs are vertical neighbours (it runs
+    across the frame).  ``inc`` is every region the search took, ``start`` included.
+    """
+    h, w = labels.shape
+    size = 64
+    # a partition of the grid into 4-connected regions has a planar adjacency graph (a minor of
+    # the grid): at most 3k - 6 pairs, so the table stays under half full; other labels fall back
+    while size < 6 * k + 16:
+        size *= 2
+    top = np.full(k, h, np.int64)
+    keys, gsum, cnt, vcnt, full = _border_table(labels, grad, k, size, top)
+    if full:
+        size = 64
+        while size < 4 * h * w + 16:
+            size *= 2
+        keys, gsum, cnt, vcnt, full = _border_table(labels, grad, k, size, top)
+    s = mus.shape[0]
+    ok = np.zeros(k, np.bool_)
+    lim2 = chroma_lim * chroma_lim
+    if weak > 0.0:
+        for r in range(k):
+            if top[r] >= top_min and not road[r]:
+                for j in range(s):
+                    c00 = covs[j, 0, 0]
+                    c01 = covs[j, 0, 1]
+                    c11 = covs[j, 1, 1]
+                    det = c00 * c11 - c01 * c01
+                    if not det > 0.0:
+                        continue
+                    dr = chroma[r, 0] - mus[j, 0]
+                    db = chroma[r, 1] - mus[j, 1]
+                    if (c11 * dr * dr - 2.0 * c01 * dr * db + c00 * db * db) / det <= lim2:
+                        ok[r] = True
+                        break
+    limit = weak * (gmed if gmed > 0.0 else 1.0)
+    # the region graph as CSR: every pair in both directions, flagged weak or not
+    deg = np.zeros(k + 1, np.int64)
+    for t in range(size):
+        c = keys[t]
+        if c >= 0:
+            deg[c // k + 1] += 1
+            deg[c % k + 1] += 1
+    for r in range(k):
+        deg[r + 1] += deg[r]
+    nbr = np.empty(deg[k], np.int64)
+    wk = np.empty(deg[k], np.bool_)
+    fill = deg[:k].copy()
+    for t in range(size):
+        c = keys[t]
+        if c >= 0:
+            a = c // k
+            b = c % k
+            weak_t = gsum[t] <= limit * cnt[t] and vcnt[t] >= across * cnt[t]
+            nbr[fill[a]] = b
+            wk[fill[a]] = weak_t
+            fill[a] += 1
+            nbr[fill[b]] = a
+            wk[fill[b]] = weak_t
+            fill[b] += 1
+    inc = np.zeros(k, np.bool_)
+    stack = np.empty(k, np.int64)
+    top_s = 0
+    for r in range(k):
+        if start[r]:
+            inc[r] = True
+            stack[top_s] = r
+            top_s += 1
+    added = np.zeros(k, np.bool_)
+    while top_s > 0:
+        top_s -= 1
+        r = stack[top_s]
+        for e in range(deg[r], deg[r + 1]):
+            o = nbr[e]
+            if not inc[o] and (road[o] or (ok[o] and wk[e])):
+                inc[o] = True
+                added[o] = ok[o] and not road[o]
+                stack[top_s] = o
+                top_s += 1
+    return inc, added
 
 
 @njit(cache=True, nogil=True, inline="always")

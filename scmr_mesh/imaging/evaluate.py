@@ -309,6 +309,8 @@ CV_GRID: dict[str, tuple] = {
     "cap": (0.5,),
     "standing": (False, True),
     "lateral": (0.0, 0.25),
+    # the weak-border join (issue 27, 2026-11-28): 0 = off; the folds choose 0, 4 and 6
+    "weak": (0.0, 4.0, 6.0),
 }
 
 #: The operating point: cross-validation chooses, among the combinations whose mean precision on

@@ -104,6 +104,11 @@ class RoadParams:
         its centroid lies outside ``[lateral, 1 - lateral]`` of the frame's width and it reaches
         above the cell: it is a verge, pavement or field running beside the road, not the
         surface ahead (see :func:`seed_regions`; 0 = off).
+    weak : float
+        The weak-border join (see :func:`candidate_regions`): a region that does not look like
+        a seed joins the candidate across a border running across the frame whose mean Sobel
+        magnitude is at most ``weak`` x the seed pixels' median, when its chromaticity is a
+        seed's (a shadow's edge, a change of texture or a faint seam in one surface; 0 = off).
     """
 
     gamma: float = 1.0
@@ -123,6 +128,7 @@ class RoadParams:
     standing: bool = True
     front: float = 0.97
     lateral: float = 0.25
+    weak: float = 4.0
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -157,6 +163,9 @@ class RoadParams:
             raise InputError(f"front must be a share of the width in [0, 1], got {self.front}")
         if not 0 <= self.lateral < 0.5:
             raise InputError(f"lateral must be a share of the width in [0, 0.5), got {self.lateral}")
+        if not (0 <= self.weak and math.isfinite(self.weak)):
+            raise InputError(f"weak must be a finite multiple of the seed's median edge strength >= 0 "
+                             f"(0 = off), got {self.weak}")
         return self
 
     def as_dict(self) -> dict:
@@ -342,21 +351,88 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     limit = _CHI2.get(params.p)
     if limit is None:
         limit = _CHI2[params.p] = chi2_quantile(params.p, N_FEATURES)
-    inside, _mus, _covs = road_share_kernel(labels, small, grad, slot, int(k), *_tables(),
-                                            float(params.noise) ** 2, float(limit), SHADE_DIRECTION,
-                                            float(params.shade) ** 2,
-                                            math.log(params.sunlit + FEATURE_OFFSET))
+    inside, mus, covs, chroma, gmed = road_share_kernel(labels, small, grad, slot, int(k), *_tables(),
+                                                        float(params.noise) ** 2, float(limit),
+                                                        SHADE_DIRECTION, float(params.shade) ** 2,
+                                                        math.log(params.sunlit + FEATURE_OFFSET))
     share = inside / np.maximum(seg.sizes, 1)
     road = share >= params.frac
     road[seeds] = True
-    cand = connected_to_seeds(road, labels, slot >= 0, params)
+    cand, joined = candidate_regions(road, slot >= 0, labels, grad, (chroma, gmed), mus, covs, params)
     seed_grey = float("nan")
     if params.dim > 0:
         seed_px = np.take(slot, labels) >= 0
         seed_grey = float(grey.astype(np.float32)[seed_px].mean()) if seed_px.any() else 0.0
     return cand, {"seeds": seeds, "road_regions": int(road.sum()), "road_share": share,
                   "seed_grey": seed_grey, "grounded": grounded, "labels": labels,
-                  "sizes": seg.sizes, "grad": grad}
+                  "sizes": seg.sizes, "grad": grad, "weak_joined": joined}
+
+
+#: :func:`candidate_regions`'s weak-border join has a fixed geometry (chosen on the synthetic scenes and by eye in the
+#: prototype of 2026-11-28, not by the cross-validation; docs/ACCURACY.md): a joining region's
+#: mean chromaticity within this Mahalanobis distance of a seed's (the seed Gaussian's chromatic
+#: block, brightness free: a shadow's edge changes brightness, not hue) ...
+WEAK_CHROMA = 2.0
+#: ... its top row below this share of the height (the join never reaches the sky) ...
+WEAK_TOP = 0.4
+#: ... across a border with at least this share of its neighbour pairs vertical (it runs across
+#: the frame, like the far edge of a shadow or a seam in the surface ahead; a border running up
+#: the frame is a kerb or a verge's edge) ...
+WEAK_ACROSS = 0.6
+
+
+def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray, grad: np.ndarray,
+                      stats: tuple, mus: np.ndarray, covs: np.ndarray,
+                      params: RoadParams) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate road of :func:`classify`, with the weak-border join: ``(candidate, joined)``.
+
+    Without the join (``params.weak`` 0) the candidate is :func:`connected_to_seeds`'s: the
+    road-like regions 4-connected to a seed region.  It is found by a search over the region
+    graph (``candidate_kernel``, the same masks; the graph is needed for the join anyway).
+
+    The weak-border join (issue 27's recall cue): a region that is not road-like joins when it is
+    4-adjacent to the candidate across a border whose strength (the mean over its neighbouring
+    pixel pairs of their mean Sobel magnitude) is at most ``params.weak`` x the median magnitude
+    of the seed pixels, with at least :data:`WEAK_ACROSS` of those pairs vertical neighbours, and
+    when its mean chromaticity lies within :data:`WEAK_CHROMA` of a seed's (the chromatic block of
+    the seed's Gaussian) and its top row below :data:`WEAK_TOP` of the height.  The road-like
+    regions that a joined region connects to the candidate join too, and so on to the fixed
+    point.  The road's far part in the shade of a tree, or past a change of surface texture, has
+    the seed's hue but not its brightness or texture, so the per-pixel test misses it; the border
+    it shares with the road is weak, while a verge's, a wall's or a car's is an edge.  (The
+    numpy prototype of 2026-11-28 iterated :func:`connected_to_seeds` up to 10 times; the search
+    gives the same masks on the 60 images and the 40 synthetic scenes at ``weak`` 4 and 6.)
+
+    ``road`` and ``is_seed`` are per region; ``stats`` is ``road_share_kernel``'s
+    ``(chroma, gmed)``; ``joined`` (k,) bool names the regions the weak borders added (not the
+    road-like ones they connected).  With ``params.horizon`` > 0 (a cut through regions) the
+    candidate is :func:`connected_to_seeds`'s, grown by rounds of the join until one adds nothing.
+    """
+    from scmr_mesh.imaging._aot import candidate_kernel
+
+    chroma, gmed = stats
+    h = labels.shape[0]
+    k = road.size
+
+    def search(start, passable):
+        return candidate_kernel(labels, grad, start, passable, int(k), chroma, float(gmed), mus, covs,
+                                float(params.weak), WEAK_CHROMA, WEAK_TOP * h, WEAK_ACROSS)
+
+    if params.horizon <= 0:
+        inc, joined = search(is_seed, road)
+        return np.take(inc.view(np.uint8), labels), joined
+    # a horizon cuts regions, so connectivity is the pixels' (connected_to_seeds), and the join
+    # runs in rounds: each round's search passes only through the candidate
+    cand = connected_to_seeds(road, labels, is_seed, params)
+    grown = road.copy()
+    while params.weak > 0:
+        in_c = np.bincount(labels[cand > 0], minlength=k) > 0
+        new = search(in_c, in_c)[1] & ~grown
+        if not new.any():
+            break
+        grown |= new
+        cand = connected_to_seeds(grown, labels, is_seed, params)
+    return cand, grown & ~road
 
 
 def connected_to_seeds(road: np.ndarray, labels: np.ndarray, is_seed: np.ndarray, params: RoadParams,

@@ -227,6 +227,7 @@ def tracked_candidate(small: np.ndarray, seg, params: RoadParams, track: RoadTra
             carried = "agree"
             if tparams.extend:
                 road = (info["road_share"] >= params.frac) | (t_share >= params.frac)
+                road |= info["weak_joined"]  # what the weak-border join added
                 is_seed = np.zeros(k, bool)
                 is_seed[info["seeds"]] = True
                 road[is_seed] = True
