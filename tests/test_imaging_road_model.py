@@ -510,6 +510,12 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     in-sample constants (only they are left), so the cross-validated means are the in-sample ones,
     0.800 / 0.755 / precision 0.892 (were 0.783 / 0.751 / 0.878), and the floors follow (0.795 /
     0.75 / 0.885).  The code before fails the first and the last.
+
+    Issue 27 (2026-11-28, later: the weak-border join, ``weak`` 0 / 4 / 6 in the grid, all three
+    meeting the synthetic floors at ``frac`` 0.3): the folds now choose differently (``weak`` 0, 4
+    or 6), so the cross-validation again says something beyond the in-sample figure: 0.804 over
+    images (the target, 0.80), 0.757 over datasets, precision 0.887; in-sample 0.815.  The code
+    before fails the in-sample floor (0.800) and the fold choices' variety.
     """
     import json
 
@@ -520,9 +526,11 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert sum(r["n"] for r in res["per_dataset"].values()) == len(items) >= 60
     chosen = res["in_sample"]["params"]
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
-    assert res["mean"]["in_sample_iou"] >= 0.79
-    assert res["mean"]["cv_iou"] >= 0.795
-    assert res["mean_of_datasets"]["cv_iou"] >= 0.75
+    assert res["mean"]["in_sample_iou"] >= 0.81
+    assert res["mean"]["cv_iou"] >= 0.80
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.755
+    # the folds do not all have the in-sample constants left to choose
+    assert len({tuple(sorted(r["cv_params"].items())) for r in res["per_dataset"].values()}) >= 2
     assert res["per_dataset"]["orfd"]["cv_precision"] >= 0.85
     assert res["mean"]["in_sample_precision"] >= 0.88
     assert res["mean"]["cv_precision"] >= 0.885
