@@ -329,14 +329,16 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
     Returns
     -------
     candidate : (h, w) uint8
-        1 = road-like and 4-connected to a seed region.
+        1 = road-like and 4-connected to a seed region, or joined to those over weak borders
+        (:func:`candidate_regions`).
     info : dict
         ``seeds`` (region labels), ``road_regions`` (count), ``road_share`` (per region,
         the share of its pixels inside a seed ellipsoid), ``seed_grey`` (mean grey level of
         the seed pixels; NaN unless ``params.dim`` > 0), ``grounded`` (False when no region
         had both the share and ground contact, so the cell's fragments were taken instead), and for
         :func:`abstain` ``labels``, ``sizes`` (pixels per region) and ``grad`` (Sobel magnitude
-        of the grey working frame, for :func:`open_ground`'s sky test).
+        of the grey working frame, for :func:`open_ground`'s sky test), and ``weak_joined``
+        ((k,) bool, the regions the weak-border join added; all False when ``params.weak`` is 0).
     """
     from scmr_mesh.imaging._aot import road_share_kernel
 
@@ -401,10 +403,12 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
     the seed's hue but not its brightness or texture, so the per-pixel test misses it; the border
     it shares with the road is weak, while a verge's, a wall's or a car's is an edge.  (The
     numpy prototype of 2026-11-28 iterated :func:`connected_to_seeds` up to 10 times; the search
-    gives the same masks on the 60 images and the 40 synthetic scenes at ``weak`` 4 and 6.)
+    gives the same masks on the 60 images and the 40 synthetic scenes at ``weak`` 4 and 6, measured
+    on 2026-11-28 against the prototype, which is not in the repository.)
 
     ``road`` and ``is_seed`` are per region; ``stats`` is ``road_share_kernel``'s
-    ``(chroma, gmed)``; ``joined`` (k,) bool names the regions the weak borders added (not the
+    ``(chroma, gmed)`` (when the seed pixels' median magnitude is 0, a flat synthetic seed, the
+    limit is ``weak`` Sobel units); ``joined`` (k,) bool names the regions the weak borders added (not the
     road-like ones they connected).  With ``params.horizon`` > 0 (a cut through regions) the
     candidate is :func:`connected_to_seeds`'s, grown by rounds of the join until one adds nothing.
     """
@@ -432,7 +436,9 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
             break
         grown |= new
         cand = connected_to_seeds(grown, labels, is_seed, params)
-    return cand, grown & ~road
+    # a region joined above the horizon only is cut with the rows: it is not in the candidate
+    in_c = np.bincount(labels[cand > 0], minlength=k) > 0
+    return cand, grown & ~road & in_c
 
 
 def connected_to_seeds(road: np.ndarray, labels: np.ndarray, is_seed: np.ndarray, params: RoadParams,
