@@ -69,12 +69,16 @@ def _slow_road_share(labels, img, grad, seeds, noise, limit, shade=0.0, sunlit=0
         xs = x[lab == s]
         mu = xs.mean(0)
         cov = (np.cov(xs.T) if len(xs) > 4 else np.zeros((4, 4))) + noise**2 * np.eye(4)
+        d = x - mu
+        q = np.einsum("ki,ij,kj->k", d, np.linalg.inv(cov), d)
         if mu[2] >= math.log(sunlit + FEATURE_OFFSET):
             cov = cov + shade**2 * np.outer(SHADE_DIRECTION, SHADE_DIRECTION)
+            # shade only darkens: the shade term counts on the shaded side of a sunlit seed only
+            shaded = np.einsum("ki,ij,kj->k", d, np.linalg.inv(cov), d)
+            q = np.where(d @ SHADE_DIRECTION < 0, q, shaded)
         mus.append(mu)
         covs.append(cov)
-        d = x - mu
-        hit |= np.einsum("ki,ij,kj->k", d, np.linalg.inv(cov), d) <= limit
+        hit |= q <= limit
     hit &= ~np.isin(lab, seeds)
     return np.bincount(lab, weights=hit, minlength=k), np.array(mus), np.array(covs)
 
@@ -108,6 +112,47 @@ def test_road_share_kernel_equals_the_numpy_slow_path(seed, h, w, k, shade, sunl
         np.testing.assert_allclose(chroma[:, c], np.bincount(lab, weights=want_c.ravel(), minlength=k)
                                    / np.bincount(lab, minlength=k), rtol=1e-9, atol=1e-12)
     assert gmed == np.median(grad[np.isin(labels, seeds)].astype(np.float64))
+
+
+def _rgb_of_features(a, b, c):
+    """The RGB (uint8) whose features are log R/G = a, log B/G = b, log brightness = c (offsets included)."""
+    g = 3.0 * math.exp(c) / (math.exp(a) + 1.0 + math.exp(b))
+    return np.rint(np.array([g * math.exp(a), g, g * math.exp(b)]) - FEATURE_OFFSET).astype(np.uint8)
+
+
+@pytest.mark.parametrize("grey_seed", [True, False])
+def test_the_shade_term_counts_on_the_shaded_side_only(grey_seed):
+    """Analytic: a flat sunlit seed, a region moved t along SHADE_DIRECTION (its shade) and one moved
+    t against it (brighter and warmer, "more sun").  With the shade term (sd 0.2) the shade is inside
+    the ellipsoid and the sunnier region is not (shade only darkens); a seed below ``sunlit`` gets no
+    shade term, so neither is; and the carried model (RoadTrack) draws the same line."""
+    from scmr_mesh.imaging.road_track import RoadTrack
+
+    seed_rgb = np.array([150, 140, 125], np.uint8)
+    f = np.log(seed_rgb.astype(np.float64) + FEATURE_OFFSET)
+    m = np.array([f[0] - f[1], f[2] - f[1], math.log(seed_rgb.astype(np.float64).sum() / 3 + FEATURE_OFFSET), 0.0])
+    t = 0.3   # 1.5 sd of the shade term, 15 sd of the noise term
+    shade_rgb = _rgb_of_features(*(m + t * SHADE_DIRECTION)[:3])
+    sun_rgb = _rgb_of_features(*(m - t * SHADE_DIRECTION)[:3])
+    img = np.empty((12, 10, 3), np.uint8)
+    labels = np.zeros((12, 10), np.int32)
+    img[:4], img[4:8], img[8:] = seed_rgb, shade_rgb, sun_rgb
+    labels[4:8], labels[8:] = 1, 2
+    grad = np.zeros((12, 10), np.float32)
+    slot = np.array([0, -1, -1], np.int32)
+    sunlit = 100.0 if grey_seed else 200.0   # the seed's grey level is about 140
+    inside, mus, covs, _c, _g = road_share_kernel(labels, img, grad, slot, 3, *feature_tables(FEATURE_OFFSET),
+                                                  0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.2**2,
+                                                  math.log(sunlit + FEATURE_OFFSET))
+    want = [0, 40, 0] if grey_seed else [0, 0, 0]
+    assert inside.tolist() == want
+    want_slow, _m, _v = _slow_road_share(labels, img, grad, [0], 0.02, chi2_quantile(0.9, 4), 0.2, sunlit)
+    assert want_slow.tolist() == want
+    track = RoadTrack()
+    track.mean, track.cov = mus[0], np.zeros((4, 4))
+    params = RoadParams(shade=0.2, sunlit=sunlit)
+    feats = np.array([m + t * SHADE_DIRECTION, m - t * SHADE_DIRECTION])
+    assert track.inside(feats, 0.9, params).tolist() == ([True, False] if grey_seed else [False, False])
 
 
 def _region_labels(rng, h, w, n_colours, block):
@@ -547,6 +592,12 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     or 6), so the cross-validation again says something beyond the in-sample figure: 0.804 over
     images (the target, 0.80), 0.757 over datasets, precision 0.887; in-sample 0.815.  The code
     before fails the in-sample floor (0.800) and the fold choices' variety.
+
+    Issue 27 (2026-11-28, evening: the shade term one-sided, shade only darkens): a warm, bright
+    verge or pavement no longer passes as the road "in more sun".  The campus sidewalk's fold goes
+    0.737 -> 0.804, the mean over datasets 0.757 -> 0.765, over images 0.804 -> 0.806 (precision
+    0.887 -> 0.884: CamVid loses 0.008); the in-sample choice is now ``weak`` 6.  The code before
+    fails the campus's and the datasets' floors.
     """
     import json
 
@@ -559,12 +610,13 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
     assert res["mean"]["in_sample_iou"] >= 0.81
     assert res["mean"]["cv_iou"] >= 0.80
-    assert res["mean_of_datasets"]["cv_iou"] >= 0.755
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.76
+    assert res["per_dataset"]["umich_campus_sidewalk"]["cv_iou"] >= 0.78   # 0.737 with the symmetric shade term
     # the folds do not all have the in-sample constants left to choose
     assert len({tuple(sorted(r["cv_params"].items())) for r in res["per_dataset"].values()}) >= 2
     assert res["per_dataset"]["orfd"]["cv_precision"] >= 0.85
     assert res["mean"]["in_sample_precision"] >= 0.88
-    assert res["mean"]["cv_precision"] >= 0.885
+    assert res["mean"]["cv_precision"] >= 0.88
     assert res["min_precision"] == 0.88
     # every choice meets the synthetic scenes' floors, the shipped defaults' among them
     syn = res["synthetic"]

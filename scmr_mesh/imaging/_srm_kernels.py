@@ -256,7 +256,10 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     the direction in which shade moves a surface's features) for a seed whose mean log
     brightness is at least ``shade_from`` (a sunlit seed).  Pass 2 counts, per region, the pixels
     inside some seed's ellipsoid ``(x - mu)^T C^-1 (x - mu) <= limit`` (pixels of a seed
-    region are not tested; the caller takes seeds as road).
+    region are not tested; the caller takes seeds as road).  The shade term is one-sided: a
+    pixel on the sunny side of a sunlit seed (``(x - mu) . v < 0``: brighter, warmer) is tested
+    against the covariance without it, since shade only darkens (issue 27: a warm, bright verge
+    beside a sunlit road passed as the road "in more sun").
 
     Returns ``inside`` (k,) int64, ``mus`` (s, 4) and ``covs`` (s, 4, 4) float64, and for the
     weak-border join (:func:`candidate_kernel`) ``chroma`` (k, 2) float64, each region's mean
@@ -298,6 +301,8 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     mus = np.zeros((s, 4), np.float64)
     covs = np.zeros((s, 4, 4), np.float64)
     icovs = np.zeros((s, 4, 4), np.float64)
+    pcovs = np.zeros((s, 4, 4), np.float64)   # a sunlit seed's inverse without the shade term
+    sunny = np.zeros(s, np.bool_)
     for j in range(s):
         n = ns[j]
         if n > 0:
@@ -310,7 +315,10 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                 covs[j, b, a] = c
         for a in range(4):
             covs[j, a, a] += noise2
-            if mus[j, 2] >= shade_from:
+        pcovs[j] = _inv4(covs[j])
+        if mus[j, 2] >= shade_from:
+            sunny[j] = True
+            for a in range(4):
                 for b in range(4):
                     covs[j, a, b] += shade2 * shade_dir[a] * shade_dir[b]
         icovs[j] = _inv4(covs[j])
@@ -325,13 +333,17 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                 chroma[r, 1] += f[1]
                 npx[r] += 1.0
                 for j in range(s):
+                    along = 0.0
                     for a in range(4):
                         d[a] = f[a] - mus[j, a]
+                        along += d[a] * shade_dir[a]
+                    # shade only darkens: past a sunlit seed on the sunny side, no shade term
+                    ic = pcovs[j] if sunny[j] and along < 0.0 else icovs[j]
                     q = 0.0
                     for a in range(4):
                         t = 0.0
                         for b in range(4):
-                            t += icovs[j, a, b] * d[b]
+                            t += ic[a, b] * d[b]
                         q += d[a] * t
                     if q <= limit:
                         inside[r] += 1

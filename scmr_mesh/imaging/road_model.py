@@ -17,7 +17,8 @@ Steps, on the frame area-downsampled to 150x112 (:data:`WORK_SHAPE`):
    covariance of its pixels) over four pixel features: ``log(R/G)``, ``log(B/G)``
    (Alvarez et al.'s illuminant-invariant idea), log-brightness and log texture
    (Sobel magnitude).  A sunlit seed's Gaussian is widened along
-   :data:`SHADE_DIRECTION`, so the same surface in shade still matches.
+   :data:`SHADE_DIRECTION` on its shaded side only, so the same surface in shade still
+   matches while a brighter, warmer verge does not pass as the road "in more sun".
 4. **Classification.**  A region is road-like when at least ``frac`` of its pixels lie
    inside the ``p``-quantile chi-square(4) ellipsoid of some seed.
 5. **Geometry.**  Only road-like regions 4-connected to a seed stay; the caller's column
@@ -71,8 +72,10 @@ class RoadParams:
     noise : float
         Isotropic standard deviation added to every seed covariance (feature units).
     shade : float
-        Standard deviation (feature units) added to every seed Gaussian along
+        Standard deviation (feature units) added to a sunlit seed's Gaussian along
         :data:`SHADE_DIRECTION`, so the road in shade and in sun is one surface (0 = off).
+        It counts on the shaded side only (a pixel darker and bluer than the seed along that
+        direction): shade only darkens, so a brighter, warmer region is tested without it.
     sunlit : float
         A seed whose mean grey level is at least this is taken to be in sunlight and gets
         the shade term; a darker seed (overcast, dusk, a tunnel) does not.
@@ -128,7 +131,7 @@ class RoadParams:
     standing: bool = True
     front: float = 0.97
     lateral: float = 0.25
-    weak: float = 4.0
+    weak: float = 6.0
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:

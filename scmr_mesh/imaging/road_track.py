@@ -159,15 +159,18 @@ class RoadTrack:
         self.frames += 1
 
     def inside(self, feats: np.ndarray, p: float, params: RoadParams) -> np.ndarray:
-        """Which rows of ``feats`` lie inside the track's ``p`` ellipsoid (noise and shade terms as a seed's)."""
+        """Which rows of ``feats`` lie inside the track's ``p`` ellipsoid (noise and shade terms as a
+        seed's in ``road_share_kernel``: the shade term of a sunlit track only on the shaded side)."""
         cov = self.cov + params.noise ** 2 * np.eye(N_FEATURES)
-        if self.mean[2] >= math.log(params.sunlit + FEATURE_OFFSET):
-            cov = cov + params.shade ** 2 * np.outer(SHADE_DIRECTION, SHADE_DIRECTION)
         limit = _LIMITS.get(p)
         if limit is None:
             limit = _LIMITS[p] = chi2_quantile(p, N_FEATURES)
         d = feats - self.mean
-        return ((d @ np.linalg.inv(cov)) * d).sum(axis=1) <= limit
+        q = ((d @ np.linalg.inv(cov)) * d).sum(axis=1)
+        if self.mean[2] >= math.log(params.sunlit + FEATURE_OFFSET):
+            shaded = cov + params.shade ** 2 * np.outer(SHADE_DIRECTION, SHADE_DIRECTION)
+            q = np.where(d @ SHADE_DIRECTION < 0, q, ((d @ np.linalg.inv(shaded)) * d).sum(axis=1))
+        return q <= limit
 
     def to_dict(self) -> dict:
         """A JSON-able copy of the state."""
