@@ -406,8 +406,9 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
     the seed's hue but not its brightness or texture, so the per-pixel test misses it; the border
     it shares with the road is weak, while a verge's, a wall's or a car's is an edge.  (The
     numpy prototype of 2026-11-28 iterated :func:`connected_to_seeds` up to 10 times; the search
-    gives the same masks on the 60 images and the 40 synthetic scenes at ``weak`` 4 and 6, measured
-    on 2026-11-28 against the prototype, which is not in the repository.)
+    gave the same masks on the 60 images and the 40 synthetic scenes at ``weak`` 4 and 6, with the
+    symmetric shade term of then, measured on 2026-11-28 against the prototype, which is not in
+    the repository.)
 
     ``road`` and ``is_seed`` are per region; ``stats`` is ``road_share_kernel``'s
     ``(chroma, gmed)`` (when the seed pixels' median magnitude is 0, a flat synthetic seed, the
