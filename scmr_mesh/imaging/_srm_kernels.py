@@ -257,9 +257,13 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     brightness is at least ``shade_from`` (a sunlit seed).  Pass 2 counts, per region, the pixels
     inside some seed's ellipsoid ``(x - mu)^T C^-1 (x - mu) <= limit`` (pixels of a seed
     region are not tested; the caller takes seeds as road).  The shade term is one-sided: a
-    pixel on the sunny side of a sunlit seed (``(x - mu) . v < 0``: brighter, warmer) is tested
-    against the covariance without it, since shade only darkens (issue 27: a warm, bright verge
-    beside a sunlit road passed as the road "in more sun").
+    pixel on the sunny side of a sunlit seed is tested against the covariance ``C0`` without it,
+    since shade only darkens (issue 27: a warm, bright verge beside a sunlit road passed as the
+    road "in more sun").  The side is the sign of ``v^T C0^-1 (x - mu)``, the pixel's most likely
+    amount of shade given the seed's own spread (negative: sunnier than the seed); on that
+    boundary both tests give the same distance, so the rule is continuous.  The distance without
+    the term is the one with it plus ``shade2 (v^T C0^-1 d)^2 / (1 + shade2 v^T C0^-1 v)``
+    (Sherman-Morrison), so the sunny side costs a multiply, not a second quadratic form.
 
     Returns ``inside`` (k,) int64, ``mus`` (s, 4) and ``covs`` (s, 4, 4) float64, and for the
     weak-border join (:func:`candidate_kernel`) ``chroma`` (k, 2) float64, each region's mean
@@ -301,8 +305,9 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     mus = np.zeros((s, 4), np.float64)
     covs = np.zeros((s, 4, 4), np.float64)
     icovs = np.zeros((s, 4, 4), np.float64)
-    pcovs = np.zeros((s, 4, 4), np.float64)   # a sunlit seed's inverse without the shade term
     sunny = np.zeros(s, np.bool_)
+    wv = np.zeros((s, 4), np.float64)      # C0^-1 v, C0 the covariance without the shade term
+    gain = np.zeros(s, np.float64)         # shade2 / (1 + shade2 v^T C0^-1 v)
     for j in range(s):
         n = ns[j]
         if n > 0:
@@ -315,9 +320,15 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                 covs[j, b, a] = c
         for a in range(4):
             covs[j, a, a] += noise2
-        pcovs[j] = _inv4(covs[j])
         if mus[j, 2] >= shade_from:
             sunny[j] = True
+            plain = _inv4(covs[j])
+            vw = 0.0
+            for a in range(4):
+                for b in range(4):
+                    wv[j, a] += plain[a, b] * shade_dir[b]
+                vw += shade_dir[a] * wv[j, a]
+            gain[j] = shade2 / (1.0 + shade2 * vw)
             for a in range(4):
                 for b in range(4):
                     covs[j, a, b] += shade2 * shade_dir[a] * shade_dir[b]
@@ -336,15 +347,17 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                     along = 0.0
                     for a in range(4):
                         d[a] = f[a] - mus[j, a]
-                        along += d[a] * shade_dir[a]
-                    # shade only darkens: past a sunlit seed on the sunny side, no shade term
-                    ic = pcovs[j] if sunny[j] and along < 0.0 else icovs[j]
+                        along += d[a] * wv[j, a]
                     q = 0.0
                     for a in range(4):
                         t = 0.0
                         for b in range(4):
-                            t += ic[a, b] * d[b]
+                            t += icovs[j, a, b] * d[b]
                         q += d[a] * t
+                    if sunny[j] and along < 0.0:
+                        # shade only darkens: on the sunny side the distance without the shade
+                        # term, q0 = q + gain * along^2 (Sherman-Morrison)
+                        q += gain[j] * along * along
                     if q <= limit:
                         inside[r] += 1
                         break

@@ -18,11 +18,12 @@ Steps, on the frame area-downsampled to 150x112 (:data:`WORK_SHAPE`):
    (Alvarez et al.'s illuminant-invariant idea), log-brightness and log texture
    (Sobel magnitude).  A sunlit seed's Gaussian is widened along
    :data:`SHADE_DIRECTION` on its shaded side only, so the same surface in shade still
-   matches while a brighter, warmer verge does not pass as the road "in more sun".
+   matches while a brighter, warmer verge does not pass the pixel test as the road "in more
+   sun" (the weak-border join's chromaticity test keeps the symmetric term).
 4. **Classification.**  A region is road-like when at least ``frac`` of its pixels lie
    inside the ``p``-quantile chi-square(4) ellipsoid of some seed.
-5. **Geometry.**  Only road-like regions 4-connected to a seed stay; the caller's column
-   fill bridges lane markings.
+5. **Geometry.**  Only road-like regions 4-connected to a seed stay, grown over weak borders
+   (:func:`candidate_regions`); the caller's column fill bridges lane markings.
 
 References
 ----------
@@ -74,11 +75,13 @@ class RoadParams:
     shade : float
         Standard deviation (feature units) added to a sunlit seed's Gaussian along
         :data:`SHADE_DIRECTION`, so the road in shade and in sun is one surface (0 = off).
-        It counts on the shaded side only (a pixel darker and bluer than the seed along that
-        direction): shade only darkens, so a brighter, warmer region is tested without it.
+        It counts on the shaded side only (``v^T C0^-1 (x - mu) >= 0``, ``C0`` the covariance
+        without it: the pixel's most likely amount of shade): shade only darkens, so a brighter,
+        warmer pixel is tested without it (continuous: both distances agree on that boundary).
     sunlit : float
-        A seed whose mean grey level is at least this is taken to be in sunlight and gets
-        the shade term; a darker seed (overcast, dusk, a tunnel) does not.
+        A seed whose mean log brightness is at least ``log(sunlit + 10)`` (about: whose mean
+        grey level is at least this) is taken to be in sunlight and gets the shade term; a
+        darker seed (overcast, dusk, a tunnel) does not.
     horizon : float
         Rows above this fraction of the height are never drivable (0 = no prior).
     gap : int

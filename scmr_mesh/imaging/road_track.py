@@ -166,10 +166,11 @@ class RoadTrack:
         if limit is None:
             limit = _LIMITS[p] = chi2_quantile(p, N_FEATURES)
         d = feats - self.mean
-        q = ((d @ np.linalg.inv(cov)) * d).sum(axis=1)
+        inv = np.linalg.inv(cov)
+        q = ((d @ inv) * d).sum(axis=1)
         if self.mean[2] >= math.log(params.sunlit + FEATURE_OFFSET):
             shaded = cov + params.shade ** 2 * np.outer(SHADE_DIRECTION, SHADE_DIRECTION)
-            q = np.where(d @ SHADE_DIRECTION < 0, q, ((d @ np.linalg.inv(shaded)) * d).sum(axis=1))
+            q = np.where(d @ (inv @ SHADE_DIRECTION) < 0, q, ((d @ np.linalg.inv(shaded)) * d).sum(axis=1))
         return q <= limit
 
     def to_dict(self) -> dict:
