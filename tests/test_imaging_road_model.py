@@ -127,7 +127,11 @@ def test_the_shade_term_counts_on_the_shaded_side_only(grey_seed):
     """Analytic: a flat sunlit seed, a region moved t along SHADE_DIRECTION (its shade) and one moved
     t against it (brighter and warmer, "more sun").  With the shade term (sd 0.2) the shade is inside
     the ellipsoid and the sunnier region is not (shade only darkens); a seed below ``sunlit`` gets no
-    shade term, so neither is; and the carried model (RoadTrack) draws the same line."""
+    shade term, so neither is; and the carried model (RoadTrack) draws the same line.  A region a
+    little sunnier than the seed (0.045 against the shade direction, distance about 5 of the limit
+    7.8 without the term) is inside either way: the sunny side is the seed's own Gaussian, for a
+    sunlit seed and a dim one alike (a kernel that penalised a dim seed's sunny side, found by the
+    review, fails here)."""
     from scmr_mesh.imaging.road_track import RoadTrack
 
     seed_rgb = np.array([150, 140, 125], np.uint8)
@@ -136,25 +140,26 @@ def test_the_shade_term_counts_on_the_shaded_side_only(grey_seed):
     t = 0.3   # 1.5 sd of the shade term, 15 sd of the noise term
     shade_rgb = _rgb_of_features(*(m + t * SHADE_DIRECTION)[:3])
     sun_rgb = _rgb_of_features(*(m - t * SHADE_DIRECTION)[:3])
-    img = np.empty((12, 10, 3), np.uint8)
-    labels = np.zeros((12, 10), np.int32)
-    img[:4], img[4:8], img[8:] = seed_rgb, shade_rgb, sun_rgb
-    labels[4:8], labels[8:] = 1, 2
-    grad = np.zeros((12, 10), np.float32)
-    slot = np.array([0, -1, -1], np.int32)
+    near_rgb = _rgb_of_features(*(m - 0.045 * SHADE_DIRECTION)[:3])
+    img = np.empty((16, 10, 3), np.uint8)
+    labels = np.zeros((16, 10), np.int32)
+    img[:4], img[4:8], img[8:12], img[12:] = seed_rgb, shade_rgb, sun_rgb, near_rgb
+    labels[4:8], labels[8:12], labels[12:] = 1, 2, 3
+    grad = np.zeros((16, 10), np.float32)
+    slot = np.array([0, -1, -1, -1], np.int32)
     sunlit = 100.0 if grey_seed else 200.0   # the seed's grey level is about 140
-    inside, mus, covs, _c, _g = road_share_kernel(labels, img, grad, slot, 3, *feature_tables(FEATURE_OFFSET),
+    inside, mus, covs, _c, _g = road_share_kernel(labels, img, grad, slot, 4, *feature_tables(FEATURE_OFFSET),
                                                   0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.2**2,
                                                   math.log(sunlit + FEATURE_OFFSET))
-    want = [0, 40, 0] if grey_seed else [0, 0, 0]
+    want = [0, 40, 0, 40] if grey_seed else [0, 0, 0, 40]
     assert inside.tolist() == want
     want_slow, _m, _v = _slow_road_share(labels, img, grad, [0], 0.02, chi2_quantile(0.9, 4), 0.2, sunlit)
     assert want_slow.tolist() == want
     track = RoadTrack()
     track.mean, track.cov = mus[0], np.zeros((4, 4))
     params = RoadParams(shade=0.2, sunlit=sunlit)
-    feats = np.array([m + t * SHADE_DIRECTION, m - t * SHADE_DIRECTION])
-    assert track.inside(feats, 0.9, params).tolist() == ([True, False] if grey_seed else [False, False])
+    feats = np.array([m + t * SHADE_DIRECTION, m - t * SHADE_DIRECTION, m - 0.045 * SHADE_DIRECTION])
+    assert track.inside(feats, 0.9, params).tolist() == ([True, False, True] if grey_seed else [False, False, True])
 
 
 @settings(max_examples=60, deadline=None)
@@ -636,8 +641,8 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     Issue 27 (2026-11-28, evening: the shade term one-sided, shade only darkens): a warm, bright
     verge or pavement no longer passes as the road "in more sun".  The campus sidewalk's fold goes
     0.737 -> 0.803, the mean over datasets 0.757 -> 0.765, over images 0.804 -> 0.806; the
-    in-sample choice is now ``weak`` 6.  Precision over images falls 0.887 -> 0.8846 (CamVid
-    loses 0.008), so its floor here was lowered from 0.885 to 0.88 (the operating point's own
+    in-sample choice is now ``weak`` 6.  Precision over images falls 0.887 -> 0.8846 (CamVid's
+    IoU loses 0.008, its precision 0.007), so its floor here was lowered from 0.885 to 0.88 (the operating point's own
     floor on the training images).  The code before fails the campus's and the datasets' floors.
     """
     import json
