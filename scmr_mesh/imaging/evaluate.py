@@ -309,7 +309,8 @@ CV_GRID: dict[str, tuple] = {
     "cap": (0.5,),
     "standing": (False, True),
     "lateral": (0.0, 0.25),
-    # the weak-border join (issue 27, 2026-11-28): 0 = off; the folds choose 0, 4 and 6
+    # the weak-border join (issue 27, 2026-11-28): 0 = off; with the one-sided shade term the folds
+    # choose 4 (the campus sidewalk) and 6 (the others); before it, 0 / 4 / 6
     "weak": (0.0, 4.0, 6.0),
 }
 
