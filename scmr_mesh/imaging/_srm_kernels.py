@@ -278,7 +278,7 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     # each pixel's features are made once, in the pass that needs them (a seed pixel's in pass 1,
     # any other's in pass 2): no (h * w, 4) array to write and read back
     f = np.empty(4, np.float64)
-    chroma = np.zeros((k, 2), np.float64)
+    chroma = np.zeros((k, 3), np.float64)
     npx = np.zeros(k, np.float64)
     gvals = np.empty(h * w, np.float64)
     nseed = 0
@@ -294,6 +294,7 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                 r = labels[y, x]
                 chroma[r, 0] += f[0]
                 chroma[r, 1] += f[1]
+                chroma[r, 2] += f[2]
                 npx[r] += 1.0
                 gvals[nseed] = grad[y, x]
                 nseed += 1
@@ -342,6 +343,7 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
                 _pixel_features(img, grad, y, x, lut, lsum, tex, f)
                 chroma[r, 0] += f[0]
                 chroma[r, 1] += f[1]
+                chroma[r, 2] += f[2]
                 npx[r] += 1.0
                 for j in range(s):
                     along = 0.0
@@ -365,6 +367,7 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
         if npx[r] > 0:
             chroma[r, 0] /= npx[r]
             chroma[r, 1] /= npx[r]
+            chroma[r, 2] /= npx[r]
     gmed = np.median(gvals[:nseed]) if nseed > 0 else 0.0
     return inside, mus, covs, chroma, gmed
 
@@ -413,7 +416,8 @@ def _border_table(labels, grad, k, size, top):
 
 
 @njit(cache=True, nogil=True)
-def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, chroma_lim, top_min, across):
+def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, chroma_lim, top_min, across,
+                     shade_dir, shade_from):
     """The road model's candidate regions: a search over the region graph from ``start``.
 
     Returns ``(inc, added)``, (k,) bool each.  From the ``start`` regions, the search takes every
@@ -459,6 +463,16 @@ def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak
                     if (c11 * dr * dr - 2.0 * c01 * dr * db + c00 * db * db) / det <= lim2:
                         ok[r] = True
                         break
+                    lift = chroma[r, 2] - mus[j, 2]
+                    if mus[j, 2] < shade_from and lift > 0.0 and shade_dir[2] < 0.0:
+                        # a shaded seed, a brighter region: the seed's surface in the sun?  Its
+                        # chromaticity less the shift that much sun brings (``sun`` < 0 along v)
+                        sun = lift / shade_dir[2]
+                        dr -= sun * shade_dir[0]
+                        db -= sun * shade_dir[1]
+                        if (c11 * dr * dr - 2.0 * c01 * dr * db + c00 * db * db) / det <= lim2:
+                            ok[r] = True
+                            break
     limit = weak * (gmed if gmed > 0.0 else 1.0)
     # the region graph as CSR: every pair in both directions, flagged weak or not
     deg = np.zeros(k + 1, np.int64)

@@ -427,7 +427,8 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
 
     def search(start, passable):
         return candidate_kernel(labels, grad, start, passable, int(k), chroma, float(gmed), mus, covs,
-                                float(params.weak), WEAK_CHROMA, WEAK_TOP * h, WEAK_ACROSS)
+                                float(params.weak), WEAK_CHROMA, WEAK_TOP * h, WEAK_ACROSS,
+                                SHADE_DIRECTION, math.log(params.sunlit + FEATURE_OFFSET))
 
     if params.horizon <= 0:
         inc, joined = search(is_seed, road)
