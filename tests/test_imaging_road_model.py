@@ -107,10 +107,11 @@ def test_road_share_kernel_equals_the_numpy_slow_path(seed, h, w, k, shade, sunl
     np.testing.assert_allclose(mus, wmus, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(covs, wcovs, rtol=1e-7, atol=1e-9)
     np.testing.assert_array_equal(inside, want)
-    # the weak join's inputs: each region's mean chromaticity, the seed pixels' median magnitude
+    # the weak join's inputs: each region's mean chromaticity and log brightness, the seed pixels' median magnitude
     f = img.astype(np.float64) + FEATURE_OFFSET
     lab = labels.ravel()
-    for c, want_c in enumerate((np.log(f[..., 0] / f[..., 1]), np.log(f[..., 2] / f[..., 1]))):
+    for c, want_c in enumerate((np.log(f[..., 0] / f[..., 1]), np.log(f[..., 2] / f[..., 1]),
+                                np.log(f.sum(axis=2) / 3.0))):
         np.testing.assert_allclose(chroma[:, c], np.bincount(lab, weights=want_c.ravel(), minlength=k)
                                    / np.bincount(lab, minlength=k), rtol=1e-9, atol=1e-12)
     assert gmed == np.median(grad[np.isin(labels, seeds)].astype(np.float64))
@@ -120,6 +121,47 @@ def _rgb_of_features(a, b, c):
     """The RGB (uint8) whose features are log R/G = a, log B/G = b, log brightness = c (offsets included)."""
     g = 3.0 * math.exp(c) / (math.exp(a) + 1.0 + math.exp(b))
     return np.rint(np.array([g * math.exp(a), g, g * math.exp(b)]) - FEATURE_OFFSET).astype(np.uint8)
+
+
+def test_a_shaded_seed_joins_its_road_in_the_sun():
+    """Analytic: a flat shaded seed with two brighter regions above it across a weak border.  One is
+    the seed's surface in the sun (features moved 0.8 against SHADE_DIRECTION: brighter, less blue),
+    the other is as much brighter with its chromaticity moved the other way (bluer still).  The
+    join's plain test (chromaticity within 2 sd of the seed's) takes neither; the shaded seed's sun
+    test takes the first only; a seed counted as sunlit (``shade_from`` below it) gets no sun
+    test, so neither joins; and the per-pixel test (road_share_kernel) takes neither."""
+    seed_rgb = np.array([60, 66, 78], np.uint8)
+    ff = seed_rgb.astype(np.float64) + FEATURE_OFFSET
+    seed_f = np.array([math.log(ff[0] / ff[1]), math.log(ff[2] / ff[1]), math.log(ff.sum() / 3)])
+    sun = seed_f - 0.8 * SHADE_DIRECTION[:3]
+    wrong = seed_f.copy()
+    wrong[2] = sun[2]
+    wrong[:2] += 0.8 * SHADE_DIRECTION[:2]
+    labels = np.full((30, 20), 3, np.int32)
+    labels[10:20, :10] = 1
+    labels[10:20, 10:] = 2
+    labels[20:] = 0
+    img = np.zeros((30, 20, 3), np.uint8)
+    img[labels == 0] = seed_rgb
+    img[labels == 1] = _rgb_of_features(*sun)
+    img[labels == 2] = _rgb_of_features(*wrong)
+    img[labels == 3] = (120, 160, 220)
+    grad = np.zeros((30, 20), np.float32)
+    slot = np.array([0, -1, -1, -1], np.int32)
+    shaded = math.log(120 + FEATURE_OFFSET)   # the seed (grey ~68) is below it
+    inside, mus, covs, chroma, gmed = road_share_kernel(labels, img, grad, slot, 4, *feature_tables(FEATURE_OFFSET),
+                                                        0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.04,
+                                                        shaded)
+    assert inside.tolist() == [0, 0, 0, 0]
+    start = np.array([True, False, False, False])
+    road = start.copy()
+    args = (labels, grad, start, road, 4, chroma, gmed, mus, covs, 4.0, 2.0, 9.0, 0.6, SHADE_DIRECTION)
+    inc, added = candidate_kernel(*args, shaded)
+    assert inc.tolist() == [True, True, False, False] and added.tolist() == [False, True, False, False]
+    inc, added = candidate_kernel(*args, -1e9)
+    assert inc.tolist() == [True, False, False, False]
+    want_inc, want_added = _weak_join_reference(labels, img, grad, start, road, mus, covs, 4.0, 2.0, 9.0, 0.6, shaded)
+    assert want_inc.tolist() == [True, True, False, False] and want_added.tolist() == [False, True, False, False]
 
 
 @pytest.mark.parametrize("grey_seed", [True, False])
@@ -214,20 +256,37 @@ def _region_labels(rng, h, w, n_colours, block):
     return labels, n
 
 
-def _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, chroma_lim, top_min, across):
-    """The weak-border join in plain numpy, on the region graph, iterated to its fixed point."""
-    k = road.size
+def _region_means(labels, img, k):
+    """Each region's mean features log R/G, log B/G, log brightness (the join's ``chroma``, (k, 3))."""
     f = img.astype(np.float64) + FEATURE_OFFSET
     lab = labels.ravel()
     n = np.bincount(lab, minlength=k)
-    chroma = np.stack([np.bincount(lab, weights=np.log(f[..., 0] / f[..., 1]).ravel(), minlength=k) / n,
-                       np.bincount(lab, weights=np.log(f[..., 2] / f[..., 1]).ravel(), minlength=k) / n], 1)
+    feats = (np.log(f[..., 0] / f[..., 1]), np.log(f[..., 2] / f[..., 1]), np.log(f.sum(axis=2) / 3.0))
+    return np.stack([np.bincount(lab, weights=x.ravel(), minlength=k) / n for x in feats], 1)
+
+
+def _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, chroma_lim, top_min, across,
+                         shade_from):
+    """The weak-border join in plain numpy, on the region graph, iterated to its fixed point.
+
+    A region may join a seed when its mean chromaticity is within ``chroma_lim`` of the seed's, or,
+    for a seed below ``shade_from`` (shaded) and a brighter region, when its chromaticity less the
+    shift of that much sun (``t v``, ``t`` = brightness lift / ``v[2]``, negative) is."""
+    k = road.size
+    lab = labels.ravel()
+    means = _region_means(labels, img, k)
+    chroma = means[:, :2]
     top = np.full(k, labels.shape[0])
     np.minimum.at(top, lab, np.repeat(np.arange(labels.shape[0]), labels.shape[1]))
     ok = np.zeros(k, bool)
     for j in range(mus.shape[0]):
+        inv = np.linalg.inv(covs[j, :2, :2])
         d = chroma - mus[j, :2]
-        ok |= np.einsum("ij,jk,ik->i", d, np.linalg.inv(covs[j, :2, :2]), d) <= chroma_lim**2
+        ok |= np.einsum("ij,jk,ik->i", d, inv, d) <= chroma_lim**2
+        lift = means[:, 2] - mus[j, 2]
+        if mus[j, 2] < shade_from:
+            d = d - (lift / SHADE_DIRECTION[2])[:, None] * SHADE_DIRECTION[None, :2]
+            ok |= (lift > 0) & (np.einsum("ij,jk,ik->i", d, inv, d) <= chroma_lim**2)
     ok &= (top >= top_min) & ~road & (weak > 0)   # weak 0 = off (a border of zero magnitude is not weak)
     g = grad.astype(np.float64)
     a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
@@ -256,19 +315,27 @@ def _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, chroma
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), h=st.integers(2, 48), w=st.integers(2, 48), n_colours=st.integers(2, 40),
        block=st.integers(1, 8), weak=st.sampled_from([0.0, 0.5, 1.0, 4.0]), across=st.sampled_from([0.0, 0.6, 1.0]),
-       connected=st.booleans(), one_hue=st.booleans())
-# draws where the join adds 22, 16 and 6 regions
-@example(seed=2591, h=40, w=10, n_colours=11, block=2, weak=4.0, across=1.0, connected=True, one_hue=True)
-@example(seed=7720, h=22, w=20, n_colours=12, block=1, weak=1.0, across=1.0, connected=True, one_hue=True)
-@example(seed=3430, h=39, w=11, n_colours=17, block=2, weak=0.5, across=0.6, connected=True, one_hue=True)
-def test_candidate_kernel_equals_the_numpy_iteration(seed, h, w, n_colours, block, weak, across, connected, one_hue):
+       connected=st.booleans(), one_hue=st.booleans(), along_shade=st.booleans())
+# draws where the join adds 22, 16 and 6 regions; then two where the shaded seed's sun test adds 1 of 1 and 16 of 26
+@example(seed=2591, h=40, w=10, n_colours=11, block=2, weak=4.0, across=1.0, connected=True, one_hue=True,
+         along_shade=False)
+@example(seed=7720, h=22, w=20, n_colours=12, block=1, weak=1.0, across=1.0, connected=True, one_hue=True,
+         along_shade=False)
+@example(seed=3430, h=39, w=11, n_colours=17, block=2, weak=0.5, across=0.6, connected=True, one_hue=True,
+         along_shade=False)
+@example(seed=3, h=40, w=13, n_colours=5, block=1, weak=1.0, across=0.6, connected=True, one_hue=True, along_shade=True)
+@example(seed=6, h=26, w=30, n_colours=8, block=2, weak=4.0, across=0.0, connected=True, one_hue=True, along_shade=True)
+def test_candidate_kernel_equals_the_numpy_iteration(seed, h, w, n_colours, block, weak, across, connected, one_hue,
+                                                     along_shade):
     """The region-graph search (open-addressing border table, CSR graph, one search) against the
     join done the slow way: border strengths from ``np.unique``, rounds until nothing changes.
     Labels that are not 4-connected regions (``connected`` False) have more pairs than a planar
     graph and exercise the table's fallback size.  With ``one_hue`` the regions differ in
     brightness only, so most pass the chromaticity test and the join runs in about a quarter of
     the draws (random palettes almost never pass it: a review found the join in 2 of 300 such
-    draws); the explicit examples join."""
+    draws); the explicit examples join.  With ``along_shade`` as well the regions are one surface
+    under more or less shade (features moved along SHADE_DIRECTION) and the seeds are shaded, so
+    the join's second test (a shaded seed's road in the sun) is the one that decides."""
     rng = np.random.default_rng(seed)
     if connected or one_hue:   # scattered labels almost never pass the top-row test: one hue, regions
         labels, k = _region_labels(rng, h, w, min(n_colours, 12), block)
@@ -276,7 +343,16 @@ def test_candidate_kernel_equals_the_numpy_iteration(seed, h, w, n_colours, bloc
         k = min(n_colours, h * w)
         labels = rng.integers(0, k, (h, w)).astype(np.int32)
         labels.flat[:k] = np.arange(k)
-    if one_hue:
+    shade_from = 4.0
+    if one_hue and along_shade:
+        # one surface, each region under its own amount of shade t (t < 0: sunnier), seeds shaded
+        base = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.5, 0.2), rng.uniform(3.0, 3.8)])
+        feats = base[None, :] + rng.uniform(-1.2, 0.3, (k, 1)) * SHADE_DIRECTION[None, :3]
+        g = 3.0 * np.exp(feats[:, 2]) / (np.exp(feats[:, 0]) + 1.0 + np.exp(feats[:, 1]))
+        palette = np.clip(np.rint(np.stack([g * np.exp(feats[:, 0]), g, g * np.exp(feats[:, 1])], 1)
+                                  - FEATURE_OFFSET), 0, 255)
+        shade_from = 4.2
+    elif one_hue:
         # one chromaticity (the features' channels are c + FEATURE_OFFSET), brightness free
         base = rng.integers(40, 200, 3)[None, :] + FEATURE_OFFSET
         palette = np.rint(base * rng.uniform(0.6, 1.25, (k, 1)) - FEATURE_OFFSET)
@@ -292,10 +368,13 @@ def test_candidate_kernel_equals_the_numpy_iteration(seed, h, w, n_colours, bloc
     slot = np.full(k, -1, np.int32)
     slot[np.flatnonzero(start)] = np.arange(start.sum())
     _i, mus, covs, chroma, gmed = road_share_kernel(labels, img, grad, slot, k, *feature_tables(FEATURE_OFFSET),
-                                                    0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.04, 4.0)
+                                                    0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.04,
+                                                    shade_from)
     top_min = 0.4 * h
-    inc, added = candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, 2.0, top_min, across)
-    want_inc, want_added = _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, 2.0, top_min, across)
+    inc, added = candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, 2.0, top_min, across,
+                                  SHADE_DIRECTION, shade_from)
+    want_inc, want_added = _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, 2.0, top_min, across,
+                                                shade_from)
     np.testing.assert_array_equal(inc, want_inc)
     np.testing.assert_array_equal(added, want_added)
     assert not (added & road).any()

@@ -266,8 +266,8 @@ def road_share_kernel(labels, img, grad, slot, k, lut, lsum, tex, noise2, limit,
     (Sherman-Morrison), so the sunny side costs a multiply, not a second quadratic form.
 
     Returns ``inside`` (k,) int64, ``mus`` (s, 4) and ``covs`` (s, 4, 4) float64, and for the
-    weak-border join (:func:`candidate_kernel`) ``chroma`` (k, 2) float64, each region's mean
-    ``log(fR/fG)`` and ``log(fB/fG)`` (computed only when there is a seed), and ``gmed``, the
+    weak-border join (:func:`candidate_kernel`) ``chroma`` (k, 3) float64, each region's mean
+    ``log(fR/fG)``, ``log(fB/fG)`` and log brightness (computed only when there is a seed), and ``gmed``, the
     median Sobel magnitude of the seed pixels (0 when there are none).
     """
     h, w = labels.shape
@@ -428,6 +428,9 @@ def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak
     A region may join when it is not ``road``, its mean chromaticity ``chroma`` lies within
     ``chroma_lim`` (Mahalanobis, the chromatic 2x2 block of ``covs``) of some seed's ``mus`` and its
     top row is at least ``top_min`` (``chroma`` and ``gmed`` come from :func:`road_share_kernel`).
+    For a shaded seed (``mus[j, 2] < shade_from``) and a brighter region, the chromaticity tested
+    may also be the region's less ``t * shade_dir[:2]``, ``t = lift / shade_dir[2]`` (the seed's
+    surface in that much more sun).
     A border is weak when its mean pixel-pair magnitude is at most ``weak`` x ``gmed`` (1 when
     ``gmed`` is 0) and at least ``across`` of its pixel pairs are vertical neighbours (it runs
     across the frame).  ``inc`` is every region the search took, ``start`` included.
