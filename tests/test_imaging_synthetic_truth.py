@@ -9,8 +9,8 @@ one is fixed and when one gets worse):
 * ``structured_road``: a grey gravel verge of the asphalt's colour is taken for road (seeds 1,
   2, 4; the chromaticity differs by about 2 standard deviations of the road's, inside the
   seed's ellipsoid), and the road's edges in the lens's dark corners are lost (seeds 1, 6).
-  (Seed 0's far road, in the sun beyond the shaded seed, joins since the join's sun test for
-  shaded seeds: 0.57 -> 0.90, floor 0.73 -> 0.80);
+  (Seed 0's far road, in the sun beyond the shaded seed, joins since the join's shade-line
+  test for seeds below ``sunlit``: 0.57 -> 0.90, floor 0.73 -> 0.80);
 * ``desert``: since the open-ground test (sand reaching the horizon under a smooth sky is not a
   leak, :func:`scmr_mesh.imaging.road_model.open_ground`) it is no longer shrunk to the rows
   below ``cap`` (0.639 before), and the bands standing above the horizon go; left: hills that

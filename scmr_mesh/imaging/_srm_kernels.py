@@ -428,9 +428,10 @@ def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak
     A region may join when it is not ``road``, its mean chromaticity ``chroma`` lies within
     ``chroma_lim`` (Mahalanobis, the chromatic 2x2 block of ``covs``) of some seed's ``mus`` and its
     top row is at least ``top_min`` (``chroma`` and ``gmed`` come from :func:`road_share_kernel`).
-    For a shaded seed (``mus[j, 2] < shade_from``) and a brighter region, the chromaticity tested
-    may also be the region's less ``t * shade_dir[:2]``, ``t = lift / shade_dir[2]`` (the seed's
-    surface in that much more sun).
+    For a seed without the shade term (``mus[j, 2] < shade_from``: in shade, or a dark surface in
+    the sun), the chromaticity tested may also be the region's less ``t * shade_dir[:2]``,
+    ``t = lift / shade_dir[2]`` with ``lift`` the region's mean log brightness less the seed's:
+    the seed's surface under that much more sun (``t`` < 0) or shade (``t`` > 0).
     A border is weak when its mean pixel-pair magnitude is at most ``weak`` x ``gmed`` (1 when
     ``gmed`` is 0) and at least ``across`` of its pixel pairs are vertical neighbours (it runs
     across the frame).  ``inc`` is every region the search took, ``start`` included.
@@ -467,12 +468,13 @@ def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak
                         ok[r] = True
                         break
                     lift = chroma[r, 2] - mus[j, 2]
-                    if mus[j, 2] < shade_from and lift > 0.0 and shade_dir[2] < 0.0:
-                        # a shaded seed, a brighter region: the seed's surface in the sun?  Its
-                        # chromaticity less the shift that much sun brings (``sun`` < 0 along v)
-                        sun = lift / shade_dir[2]
-                        dr -= sun * shade_dir[0]
-                        db -= sun * shade_dir[1]
+                    if mus[j, 2] < shade_from and lift != 0.0 and shade_dir[2] < 0.0:
+                        # a seed without the shade term: is the region its surface under more
+                        # sun (amount < 0 along v) or more shade (> 0)?  Its chromaticity less
+                        # the shift that amount brings
+                        amount = lift / shade_dir[2]
+                        dr -= amount * shade_dir[0]
+                        db -= amount * shade_dir[1]
                         if (c11 * dr * dr - 2.0 * c01 * dr * db + c00 * db * db) / det <= lim2:
                             ok[r] = True
                             break

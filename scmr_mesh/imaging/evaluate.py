@@ -327,8 +327,8 @@ MIN_PRECISION = 0.88
 #: :func:`~scmr_mesh.imaging.synthetic.make_scene`, mean precision >= :data:`SYNTHETIC_PRECISION`
 #: and mean IoU >= :data:`SYNTHETIC_IOU_TARGET`, or, for the kinds still below that target, >= the
 #: floor each holds today (:data:`SYNTHETIC_KNOWN_BELOW`, measured 2026-11-28 with the defaults, seeds
-#: 0-7: structured road 0.814 since a shaded seed joins its road in the sun (0.773 before), desert
-#: 0.767; dirt road 0.899, tunnel 0.864, hallway 0.954).
+#: 0-7: structured road 0.814 since the join's shade-line test for seeds below ``sunlit`` (0.773
+#: before), desert 0.767; dirt road 0.967 (0.899 before), tunnel 0.865, hallway 0.954).
 #: ``tests/test_imaging_synthetic_truth.py`` holds the defaults to them, and
 #: :func:`cross_validate` lets every fold choose only among the combinations that meet them.
 SYNTHETIC_SEEDS = range(8)

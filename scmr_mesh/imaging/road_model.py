@@ -23,9 +23,9 @@ Steps, on the frame area-downsampled to 150x112 (:data:`WORK_SHAPE`):
 4. **Classification.**  A region is road-like when at least ``frac`` of its pixels lie
    inside the ``p``-quantile chi-square(4) ellipsoid of some seed.
 5. **Geometry.**  Only road-like regions 4-connected to a seed stay, grown over weak borders
-   (:func:`candidate_regions`: a region of a seed's chromaticity, or, beyond a shaded seed, of
-   the chromaticity that seed's surface has in the sun); the caller's column fill bridges lane
-   markings.
+   (:func:`candidate_regions`: a region of a seed's chromaticity, or, beside a seed below
+   ``sunlit``, of the chromaticity that seed's surface has under more sun or shade); the
+   caller's column fill bridges lane markings.
 
 References
 ----------
@@ -116,8 +116,8 @@ class RoadParams:
         The weak-border join (see :func:`candidate_regions`): a region that does not look like
         a seed joins the candidate across a border running across the frame whose mean Sobel
         magnitude is at most ``weak`` x the seed pixels' median, when its chromaticity is a
-        seed's, or, brighter than a shaded seed, the seed's in the sun (a shadow's edge, a
-        change of texture or a faint seam in one surface; 0 = off).
+        seed's, or, beside a seed below ``sunlit``, the seed's under more sun or shade (a
+        shadow's edge, a change of texture or a faint seam in one surface; 0 = off).
     """
 
     gamma: float = 1.0
@@ -406,14 +406,17 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
     pixel pairs of their mean Sobel magnitude) is at most ``params.weak`` x the median magnitude
     of the seed pixels, with at least :data:`WEAK_ACROSS` of those pairs vertical neighbours, and
     when its mean chromaticity lies within :data:`WEAK_CHROMA` of a seed's (the chromatic block of
-    the seed's Gaussian) and its top row below :data:`WEAK_TOP` of the height.  Beyond a shaded
-    seed (mean log brightness below ``log(sunlit + offset)``) a brighter region may also be the
-    seed's surface in the sun, which is less blue than in shade: then the test is on its
-    chromaticity less the shift :data:`SHADE_DIRECTION` gives for its lift in brightness
-    (``t v``, ``t = lift / v[2]``, negative), against the same block.  (Issue 27: the synthetic
-    structured road's seed 0 sits in a cast shadow and lost the sunlit road beyond it, 0.57; it
-    is 0.90 now.  Widening a shaded seed's chromatic block by the shade term instead, in every
-    direction, let CamVid 0016E5_02160's pale pavement join: 0.888 -> 0.782.)  The road-like
+    the seed's Gaussian) and its top row below :data:`WEAK_TOP` of the height.  A seed below
+    ``sunlit`` (mean log brightness under ``log(sunlit + offset)``; its Gaussian has no shade
+    term) is in shade or is a dark surface in the sun, and the same surface under more sun is
+    less blue, under more shade bluer, not only brighter or darker: so a region may also pass on
+    its chromaticity less the shift :data:`SHADE_DIRECTION` gives for its change in brightness
+    (``t v``, ``t = lift / v[2]``, ``lift`` its mean log brightness less the seed's), against the
+    same block.  (Issue 27: the synthetic structured road's seed 0 sits in a cast shadow and lost
+    the sunlit road beyond it, 0.57 -> 0.90; the dirt road's seed 4, grey 78 in the sun, lost
+    the road beyond a shadow band, 0.43 -> 0.98.  Widening such a seed's chromatic block by the
+    shade term instead, which frees the chromaticity along v whatever the brightness, let CamVid
+    0016E5_02160's pale pavement join: 0.888 -> 0.782.)  The road-like
     regions that a joined region connects to the candidate join too, and so on to the fixed
     point.  The road's far part in the shade of a tree, or past a change of surface texture, has
     the seed's hue but not its brightness or texture, so the per-pixel test misses it; the border
