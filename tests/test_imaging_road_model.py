@@ -25,6 +25,7 @@ from scmr_mesh.imaging.evaluate import (
 from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS, working_frame
 from scmr_mesh.imaging.road_model import (
     FEATURE_OFFSET,
+    FULL_SHADE,
     SHADE_DIRECTION,
     WORK_SHAPE,
     RoadParams,
@@ -128,9 +129,10 @@ def test_a_seed_below_sunlit_joins_its_surface_under_more_sun_or_shade():
     is the seed's surface under more sun (features moved 0.8 against SHADE_DIRECTION: brighter,
     less blue), one under more shade (0.5 along it: darker, bluer), and one as bright as the first
     with its chromaticity moved the other way (bluer still).  The join's plain test (chromaticity
-    within 2 sd of the seed's) takes none; the shade-line test takes the first two only; a seed
-    counted as sunlit (``shade_from`` below it) gets no shade-line test, so none joins; and the
-    per-pixel test (road_share_kernel) takes none."""
+    within 2 sd of the seed's) takes none; the shade-line test takes the first two only; with
+    ``shade_from`` below the seed's brightness the gate closes and none joins (only the gate: the
+    covariances stay those of a seed below ``sunlit``); and the per-pixel test (road_share_kernel)
+    takes none."""
     seed_rgb = np.array([60, 66, 78], np.uint8)
     ff = seed_rgb.astype(np.float64) + FEATURE_OFFSET
     seed_f = np.array([math.log(ff[0] / ff[1]), math.log(ff[2] / ff[1]), math.log(ff.sum() / 3)])
@@ -160,12 +162,42 @@ def test_a_seed_below_sunlit_joins_its_surface_under_more_sun_or_shade():
     road = start.copy()
     args = (labels, grad, start, road, 5, chroma, gmed, mus, covs, 4.0, 2.0, 9.0, 0.6, SHADE_DIRECTION)
     joined = [True, True, False, True, False]
-    inc, added = candidate_kernel(*args, dim)
+    inc, added = candidate_kernel(*args, dim, FULL_SHADE)
     assert inc.tolist() == joined and added.tolist() == [False, True, False, True, False]
-    inc, added = candidate_kernel(*args, -1e9)
+    inc, added = candidate_kernel(*args, -1e9, FULL_SHADE)   # the gate: a seed counted as sunlit
     assert inc.tolist() == [True, False, False, False, False]
     want_inc, _ = _weak_join_reference(labels, img, grad, start, road, mus, covs, 4.0, 2.0, 9.0, 0.6, dim)
     assert want_inc.tolist() == joined
+
+
+def test_the_shade_line_reaches_one_full_shadow_only():
+    """Analytic: a bright seed below ``shade_from`` (grey ~205) and two darker regions on its shade
+    line, 0.9 and 1.6 full-shadow units (:data:`FULL_SHADE` ~1.28) along SHADE_DIRECTION.  The
+    first joins; the second is deeper in shade than shade makes anything and does not; with the
+    bound lifted both join (so the second's colours are on the line, within rounding)."""
+    seed_rgb = np.array([200, 205, 215], np.uint8)
+    ff = seed_rgb.astype(np.float64) + FEATURE_OFFSET
+    seed_f = np.array([math.log(ff[0] / ff[1]), math.log(ff[2] / ff[1]), math.log(ff.sum() / 3)])
+    labels = np.full((30, 20), 3, np.int32)
+    labels[10:20, :10] = 1
+    labels[10:20, 10:] = 2
+    labels[20:] = 0
+    img = np.zeros((30, 20, 3), np.uint8)
+    img[labels == 0] = seed_rgb
+    img[labels == 1] = _rgb_of_features(*(seed_f + 0.9 * FULL_SHADE * SHADE_DIRECTION[:3]))
+    img[labels == 2] = _rgb_of_features(*(seed_f + 1.6 * FULL_SHADE * SHADE_DIRECTION[:3]))
+    img[labels == 3] = (120, 160, 220)
+    grad = np.zeros((30, 20), np.float32)
+    slot = np.array([0, -1, -1, -1], np.int32)
+    dim = math.log(250 + FEATURE_OFFSET)
+    _i, mus, covs, chroma, gmed = road_share_kernel(labels, img, grad, slot, 4, *feature_tables(FEATURE_OFFSET),
+                                                    0.02**2, chi2_quantile(0.9, 4), SHADE_DIRECTION, 0.04, dim)
+    start = np.array([True, False, False, False])
+    args = (labels, grad, start, start.copy(), 4, chroma, gmed, mus, covs, 4.0, 2.0, 9.0, 0.6, SHADE_DIRECTION, dim)
+    assert candidate_kernel(*args, FULL_SHADE)[0].tolist() == [True, True, False, False]
+    assert candidate_kernel(*args, 1e9)[0].tolist() == [True, True, True, False]
+    want, _ = _weak_join_reference(labels, img, grad, start, start.copy(), mus, covs, 4.0, 2.0, 9.0, 0.6, dim)
+    assert want.tolist() == [True, True, False, False]
 
 
 @pytest.mark.parametrize("grey_seed", [True, False])
@@ -270,12 +302,12 @@ def _region_means(labels, img, k):
 
 
 def _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, chroma_lim, top_min, across,
-                         shade_from):
+                         shade_from, full_shade=FULL_SHADE):
     """The weak-border join in plain numpy, on the region graph, iterated to its fixed point.
 
     A region may join a seed when its mean chromaticity is within ``chroma_lim`` of the seed's, or,
     for a seed below ``shade_from``, when its chromaticity less the shift of that much more sun or
-    shade (``t v``, ``t`` = its change in log brightness / ``v[2]``) is."""
+    shade (``t v``, ``t`` = its change in log brightness / ``v[2]``, ``|t| <= full_shade``) is."""
     k = road.size
     lab = labels.ravel()
     means = _region_means(labels, img, k)
@@ -289,8 +321,9 @@ def _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, chroma
         ok |= np.einsum("ij,jk,ik->i", d, inv, d) <= chroma_lim**2
         lift = means[:, 2] - mus[j, 2]
         if mus[j, 2] < shade_from:
-            d = d - (lift / SHADE_DIRECTION[2])[:, None] * SHADE_DIRECTION[None, :2]
-            ok |= (lift != 0) & (np.einsum("ij,jk,ik->i", d, inv, d) <= chroma_lim**2)
+            t = lift / SHADE_DIRECTION[2]
+            d = d - t[:, None] * SHADE_DIRECTION[None, :2]
+            ok |= (lift != 0) & (np.abs(t) <= full_shade) & (np.einsum("ij,jk,ik->i", d, inv, d) <= chroma_lim**2)
     ok &= (top >= top_min) & ~road & (weak > 0)   # weak 0 = off (a border of zero magnitude is not weak)
     g = grad.astype(np.float64)
     a = np.concatenate([labels[:, :-1].ravel(), labels[:-1, :].ravel()])
@@ -376,7 +409,7 @@ def test_candidate_kernel_equals_the_numpy_iteration(seed, h, w, n_colours, bloc
                                                     shade_from)
     top_min = 0.4 * h
     inc, added = candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, 2.0, top_min, across,
-                                  SHADE_DIRECTION, shade_from)
+                                  SHADE_DIRECTION, shade_from, FULL_SHADE)
     want_inc, want_added = _weak_join_reference(labels, img, grad, start, road, mus, covs, weak, 2.0, top_min, across,
                                                 shade_from)
     np.testing.assert_array_equal(inc, want_inc)
@@ -397,7 +430,7 @@ def test_candidate_regions_without_the_join_are_connected_to_seeds(seed, h, w, n
     is_seed[seeds] = True
     road = (rng.random(k) < share) | is_seed
     params = RoadParams(weak=0.0)
-    stats = (np.zeros((k, 2)), 0.0)
+    stats = (np.zeros((k, 3)), 0.0)
     cand, joined = candidate_regions(road, is_seed, labels, np.zeros((h, w), np.float32), stats,
                                      np.zeros((0, 4)), np.zeros((0, 4, 4)), params)
     np.testing.assert_array_equal(cand, connected_to_seeds(road, labels, is_seed, params))
@@ -430,7 +463,7 @@ def test_a_region_joined_above_the_horizon_only_is_not_reported_joined():
     labels[5] = 1
     labels[6:] = 2
     road = np.array([False, False, True])
-    stats = (np.zeros((3, 2)), 0.0)
+    stats = (np.zeros((3, 3)), 0.0)
     mus, covs = np.zeros((1, 4)), np.eye(4)[None] * 0.01
     for horizon, want in ((0.5, [False, False, False]), (0.0, [False, True, False])):
         params = RoadParams(horizon=horizon, weak=4.0)

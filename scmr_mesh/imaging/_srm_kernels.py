@@ -417,7 +417,7 @@ def _border_table(labels, grad, k, size, top):
 
 @njit(cache=True, nogil=True)
 def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak, chroma_lim, top_min, across,
-                     shade_dir, shade_from):
+                     shade_dir, shade_from, full_shade):
     """The road model's candidate regions: a search over the region graph from ``start``.
 
     Returns ``(inc, added)``, (k,) bool each.  From the ``start`` regions, the search takes every
@@ -431,7 +431,8 @@ def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak
     For a seed without the shade term (``mus[j, 2] < shade_from``: in shade, or a dark surface in
     the sun), the chromaticity tested may also be the region's less ``t * shade_dir[:2]``,
     ``t = lift / shade_dir[2]`` with ``lift`` the region's mean log brightness less the seed's:
-    the seed's surface under that much more sun (``t`` < 0) or shade (``t`` > 0).
+    the seed's surface under that much more sun (``t`` < 0) or shade (``t`` > 0), for
+    ``|t| <= full_shade`` (one full shadow).
     A border is weak when its mean pixel-pair magnitude is at most ``weak`` x ``gmed`` (1 when
     ``gmed`` is 0) and at least ``across`` of its pixel pairs are vertical neighbours (it runs
     across the frame).  ``inc`` is every region the search took, ``start`` included.
@@ -473,6 +474,8 @@ def candidate_kernel(labels, grad, start, road, k, chroma, gmed, mus, covs, weak
                         # sun (amount < 0 along v) or more shade (> 0)?  Its chromaticity less
                         # the shift that amount brings
                         amount = lift / shade_dir[2]
+                        if abs(amount) > full_shade:
+                            continue
                         dr -= amount * shade_dir[0]
                         db -= amount * shade_dir[1]
                         if (c11 * dr * dr - 2.0 * c01 * dr * db + c00 * db * db) / det <= lim2:

@@ -83,7 +83,8 @@ class RoadParams:
     sunlit : float
         A seed whose mean log brightness is at least ``log(sunlit + 10)`` (about: whose mean
         grey level is at least this) is taken to be in sunlight and gets the shade term; a
-        darker seed (overcast, dusk, a tunnel) does not.
+        darker seed (overcast, dusk, a tunnel, a dark surface in the sun) does not, and gets the
+        weak-border join's shade line instead (:func:`candidate_regions`).
     horizon : float
         Rows above this fraction of the height are never drivable (0 = no prior).
     gap : int
@@ -192,6 +193,9 @@ N_FEATURES = 4
 #: and log brightness falls by about 1.2 (Finlayson et al.'s illuminant direction; Alvarez and
 #: Lopez use the same idea for shadow-invariant road detection).  Texture does not change.
 SHADE_DIRECTION = np.array([-0.18, 0.41, -1.2, 0.0]) / math.sqrt(0.18**2 + 0.41**2 + 1.2**2)
+#: How far along :data:`SHADE_DIRECTION` that full shadow moves the features (about 1.28): the
+#: weak-border join's shade line (:func:`candidate_regions`) reaches no further either way.
+FULL_SHADE = math.sqrt(0.18**2 + 0.41**2 + 1.2**2)
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -382,7 +386,8 @@ def classify(small: np.ndarray, seg, params: RoadParams) -> tuple[np.ndarray, di
 #: :func:`candidate_regions`'s weak-border join has a fixed geometry (chosen on the synthetic scenes and by eye in the
 #: prototype of 2026-11-28, not by the cross-validation; docs/ACCURACY.md): a joining region's
 #: mean chromaticity within this Mahalanobis distance of a seed's (the seed Gaussian's chromatic
-#: block, brightness free: a shadow's edge changes brightness, not hue) ...
+#: block, brightness free: a soft shadow's edge or a haze gradient changes brightness more than
+#: hue; beside a seed below ``sunlit`` the shade line also allows the hue shift of shade) ...
 WEAK_CHROMA = 2.0
 #: ... its top row below this share of the height (the join never reaches the sky) ...
 WEAK_TOP = 0.4
@@ -411,8 +416,12 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
     term) is in shade or is a dark surface in the sun, and the same surface under more sun is
     less blue, under more shade bluer, not only brighter or darker: so a region may also pass on
     its chromaticity less the shift :data:`SHADE_DIRECTION` gives for its change in brightness
-    (``t v``, ``t = lift / v[2]``, ``lift`` its mean log brightness less the seed's), against the
-    same block.  (Issue 27: the synthetic structured road's seed 0 sits in a cast shadow and lost
+    (``t v``, ``t = lift / v[2]``, ``lift`` its mean log brightness less the seed's, ``|t|`` at
+    most :data:`FULL_SHADE`: one full shadow), against the same block.  This is colour's own
+    ambiguity, not a proof: a grey surface in shade and a sand-coloured one in the sun lie on
+    one such line (a grey-60 seed and a (220, 190, 130) region, a review's case), so only the
+    border's gates (weak, across the frame, below :data:`WEAK_TOP`) keep such a region out.
+    (Issue 27: the synthetic structured road's seed 0 sits in a cast shadow and lost
     the sunlit road beyond it, 0.57 -> 0.90; the dirt road's seed 4, grey 78 in the sun, lost
     the road beyond a shadow band, 0.43 -> 0.98.  Widening such a seed's chromatic block by the
     shade term instead, which frees the chromaticity along v whatever the brightness, let CamVid
@@ -427,7 +436,8 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
     the repository.)
 
     ``road`` and ``is_seed`` are per region; ``stats`` is ``road_share_kernel``'s
-    ``(chroma, gmed)`` (``chroma`` (k, 3): each region's mean log R/G, log B/G, log brightness) (when the seed pixels' median magnitude is 0, a flat synthetic seed, the
+    ``(chroma, gmed)`` (``chroma`` (k, 3): each region's mean log R/G, log B/G and log
+    brightness) (when the seed pixels' median magnitude is 0, a flat synthetic seed, the
     limit is ``weak`` Sobel units); ``joined`` (k,) bool names the regions the weak borders added (not the
     road-like ones they connected).  With ``params.horizon`` > 0 (a cut through regions) the
     candidate is :func:`connected_to_seeds`'s, grown by rounds of the join until one adds nothing.
@@ -437,11 +447,13 @@ def candidate_regions(road: np.ndarray, is_seed: np.ndarray, labels: np.ndarray,
     chroma, gmed = stats
     h = labels.shape[0]
     k = road.size
+    if chroma.shape != (k, 3):   # the kernel reads three columns unchecked
+        raise ValueError(f"region means must be ({k}, 3), got {chroma.shape}")
 
     def search(start, passable):
         return candidate_kernel(labels, grad, start, passable, int(k), chroma, float(gmed), mus, covs,
                                 float(params.weak), WEAK_CHROMA, WEAK_TOP * h, WEAK_ACROSS,
-                                SHADE_DIRECTION, math.log(params.sunlit + FEATURE_OFFSET))
+                                SHADE_DIRECTION, math.log(params.sunlit + FEATURE_OFFSET), FULL_SHADE)
 
     if params.horizon <= 0:
         inc, joined = search(is_seed, road)
