@@ -187,15 +187,16 @@ class RoadParams:
 FEATURE_OFFSET = 10.0
 N_FEATURES = 4
 
+#: How far a full shadow moves a grey surface's features (the length of the move that
+#: :data:`SHADE_DIRECTION` is the unit vector of, about 1.28): the weak-border join's shade line
+#: (:func:`candidate_regions`) reaches no further either way.
+FULL_SHADE = math.sqrt(0.18**2 + 0.41**2 + 1.2**2)
 #: How shade moves a surface's features (log R/G, log B/G, log brightness, texture), as a unit
 #: vector: in the shadow of a clear sky's sun a grey surface keeps about 0.25 / 0.3 / 0.45 of
 #: its red / green / blue light (skylight only), so log R/G falls by 0.18, log B/G rises by 0.41
 #: and log brightness falls by about 1.2 (Finlayson et al.'s illuminant direction; Alvarez and
 #: Lopez use the same idea for shadow-invariant road detection).  Texture does not change.
-SHADE_DIRECTION = np.array([-0.18, 0.41, -1.2, 0.0]) / math.sqrt(0.18**2 + 0.41**2 + 1.2**2)
-#: How far along :data:`SHADE_DIRECTION` that full shadow moves the features (about 1.28): the
-#: weak-border join's shade line (:func:`candidate_regions`) reaches no further either way.
-FULL_SHADE = math.sqrt(0.18**2 + 0.41**2 + 1.2**2)
+SHADE_DIRECTION = np.array([-0.18, 0.41, -1.2, 0.0]) / FULL_SHADE
 
 
 def chi2_quantile(p: float, dof: int) -> float:
