@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -128,6 +129,81 @@ def test_eval_skips_an_unreadable_item_and_scores_the_rest(tmp_path, roads_dir, 
     assert [s["image"] for s in doc["skipped"]] == ["broken.png"]
 
 
+def _block_where(free: np.ndarray, h: int, w: int, margin: int = 8) -> tuple[int, int]:
+    """The top-left corner of the first h x w block wholly inside ``free``, ``margin`` px from the frame's edge."""
+    H, W = free.shape
+    for y in range(margin, H - h - margin):
+        for x in range(margin, W - w - margin):
+            if free[y:y + h, x:x + w].all():
+                return y, x
+    raise AssertionError("no such block")
+
+
+def test_eval_reports_obstacles_painted_drivable(tmp_path, roads_dir, capsys):
+    """A "person" block wholly inside the predicted road is all green, a "vehicle" block wholly
+    outside none; counted on the pixels 2 px inside each label; the bottom-half baseline alike."""
+    from scmr_mesh.imaging import encode_png, load_image, segment_drivable
+    from scmr_mesh.imaging.evaluate import OBSTACLE_MARGIN
+
+    img_path = sorted((roads_dir / "images").glob("orfd*"))[0]
+    pred = segment_drivable(load_image(img_path)).mask > 0
+    truth = np.where(pred, 3, 0).astype(np.uint8)
+    py, px = _block_where(pred, 12, 10)
+    vy, vx = _block_where(~pred, 14, 11)
+    truth[py:py + 12, px:px + 10] = 9
+    truth[vy:vy + 14, vx:vx + 11] = 8
+    (tmp_path / "m.png").write_bytes(encode_png(truth))
+    item = {"image": str(img_path), "mask": "m.png", "mask_mode": "gray", "road": [3]}
+    _write_manifest(tmp_path / "own", [{**item, "mask": str(tmp_path / "m.png"), "dataset": "x",
+                                        "obstacles": {"person": [9], "vehicle": [8]}}])
+    _write_manifest(tmp_path / "known", [{**item, "mask": str(tmp_path / "m.png"), "dataset": "camvid"}])
+    _write_manifest(tmp_path / "off", [{**item, "mask": str(tmp_path / "m.png"), "dataset": "camvid", "obstacles": {}}])
+
+    m = OBSTACLE_MARGIN
+    person_inner = (12 - 2 * m) * (10 - 2 * m)
+    vehicle_inner = (14 - 2 * m) * (11 - 2 * m)
+    rows = np.arange(225)
+    half = lambda y0, hh: int(np.count_nonzero(rows[y0 + m:y0 + hh - m] >= 112))  # noqa: E731
+    out = tmp_path / "eval.json"
+    for folder in ("own", "known"):
+        assert main(["eval", str(tmp_path / folder), "--json", str(out)]) == 0
+        doc = json.loads(out.read_text())
+        ds = "x" if folder == "own" else "camvid"
+        best = doc["obstacles"]["best"][ds]
+        assert best["person"] == {"inner": person_inner, "green": person_inner, "share": 1.0, "frames": 1, "hit": 1}
+        assert best["vehicle"] == {"inner": vehicle_inner, "green": 0, "share": 0.0, "frames": 1, "hit": 0}
+        assert doc["images"][0]["obstacles"]["person"] == [person_inner, person_inner]
+        bottom = doc["obstacles"]["bottom_half"][ds]
+        assert bottom["person"]["green"] == half(py, 12) * (10 - 2 * m)
+        assert bottom["vehicle"]["green"] == half(vy, 14) * (11 - 2 * m)
+        table = capsys.readouterr().out
+        assert "obstacles painted drivable" in table
+        assert re.search(rf"^{ds}\s+person\s+1\.000 \(\s*1/\s*1\)", table, re.M)
+    assert set(best) == {"person", "cyclist", "vehicle", "pole"}   # camvid's classes; none shows a cyclist
+    assert best["cyclist"]["frames"] == 0
+    assert main(["eval", str(tmp_path / "off"), "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["obstacles"]["best"] == {}
+    assert "obstacles painted drivable" not in capsys.readouterr().out
+
+
+def test_obstacle_green_leaves_the_label_edge_and_keeps_the_frame_edge():
+    """Pixels within OBSTACLE_MARGIN of the label's edge are not counted; the frame's edge is not a
+    label edge (a car cut by the frame keeps its pixels there); ignored pixels are left out."""
+    from scmr_mesh.imaging.evaluate import OBSTACLE_MARGIN, obstacle_green
+
+    m = OBSTACLE_MARGIN
+    car = np.zeros((40, 50), bool)
+    car[30:, 10:30] = True                  # cut by the bottom edge
+    pred = np.full((40, 50), 255, np.uint8)
+    assert obstacle_green(pred, car) == ((10 - m) * (20 - 2 * m),) * 2
+    valid = np.ones((40, 50), bool)
+    valid[38:] = False
+    assert obstacle_green(np.zeros_like(pred), car, valid) == ((8 - m) * (20 - 2 * m), 0)
+    thin = np.zeros((40, 50), bool)
+    thin[5:35, 20:20 + 2 * m] = True        # narrower than the margin's two sides: nothing inside
+    assert obstacle_green(pred, thin) == (0, 0)
+
+
 @pytest.mark.parametrize(
     "text, match",
     [
@@ -135,6 +211,10 @@ def test_eval_skips_an_unreadable_item_and_scores_the_rest(tmp_path, roads_dir, 
         ('{"items": []}', "non-empty 'items'"),
         ('{"items": [{"image": "a.png"}]}', "missing field 'mask'"),
         ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "mask_mode": "hsv"}]}', "mask_mode"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": [9]}]}', "bad 'obstacles'"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": {"person": [[9, 9, 9]]}}]}',
+         "bad 'obstacles'"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": {"": [9]}}]}', "non-empty string"),
     ],
 )
 def test_eval_invalid_manifest(tmp_path, capsys, text, match):

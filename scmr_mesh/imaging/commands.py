@@ -52,7 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Score the pipeline on a folder holding manifest.json (format of shared/data/roads). "
             "Every image is scored at 300x225 (masks resized with nearest neighbour; 'ignore' "
             "pixels left out), against the baselines 'bottom half is road' and the thesis mode.  "
-            "Prints a table and writes JSON."
+            "Where the masks label obstacles (people, cyclists, vehicles, poles: CamVid, RELLIS-3D, "
+            "UMich, or a manifest's 'obstacles' field) the table ends with how much of them each mask "
+            "paints drivable.  Prints a table and writes JSON."
         ),
     )
     p.add_argument("folder", type=ca.PathArg("in-dir", as_path=True, what="a folder with manifest.json, images/ and masks/", example="../shared/data/roads"), metavar="DIR", help="folder with manifest.json, images/ and masks/")

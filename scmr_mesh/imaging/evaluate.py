@@ -4,9 +4,12 @@ The data folder holds a ``manifest.json`` in the ``scmr-roads-manifest/1``
 format (see ``../shared/data/roads/manifest.json``): a list of items with
 ``image``, ``mask``, ``dataset``, ``mask_mode`` (``"gray"`` or ``"rgb"``, RGB
 colours in RGB order), ``road`` (values that are road) and ``ignore``
-(values left out of scoring).  Every image is scored at 300x225: the
-prediction is made at that size and the ground truth is resized with
-nearest-neighbour interpolation.
+(values left out of scoring), and optionally ``obstacles`` (an object naming
+classes such as ``"person"`` with the mask values that hold them, for the
+report of obstacles painted drivable; without it the shared datasets' own
+label encodings are used, :data:`KNOWN_OBSTACLES`).  Every image is scored at
+300x225: the prediction is made at that size and the ground truth is resized
+with nearest-neighbour interpolation.
 """
 
 from __future__ import annotations
@@ -38,6 +41,44 @@ class Item:
     mask_mode: str
     road: tuple
     ignore: tuple
+    #: ``((name, values), ...)``: the obstacle classes of this item's mask (may be empty)
+    obstacles: tuple = ()
+
+
+#: The obstacle classes the report of obstacles painted drivable names (issue 27: a robot drives
+#: where the mask is green; green on a person is the costliest error the pipeline can make).
+OBSTACLE_CLASSES = ("person", "cyclist", "vehicle", "pole")
+
+_UMICH_OBSTACLES = {  # id masks (all three channels the class id) and colour masks (RGB), SOURCES.md
+    "person": [[8, 8, 8], [157, 199, 194]],
+    "cyclist": [[9, 9, 9], [237, 61, 55]],   # the repo's class "bike"
+    "vehicle": [[7, 7, 7], [20, 99, 143]],
+    "pole": [[5, 5, 5], [237, 9, 28]],
+}
+
+#: The obstacle classes of the shared datasets' label encodings, by ``(dataset, mask_mode)``
+#: (``../shared/data/roads/SOURCES.md``): CamVid's SegNet classes (2 Pole, 8 Car, 9 Pedestrian,
+#: 10 Bicyclist), RELLIS-3D's ontology (5 pole, 8 vehicle, 17 person), UMich-CURLY's classes
+#: (5 pole, 7 vehicle, 8 human, 9 bike).  KITTI's and ORFD's masks here are binary: no classes.
+#: An item's own ``obstacles`` field replaces these (``{}`` turns the report off for it).
+KNOWN_OBSTACLES: dict[tuple[str, str], dict[str, list]] = {
+    ("camvid", "gray"): {"person": [9], "cyclist": [10], "vehicle": [8], "pole": [2]},
+    ("rellis3d", "gray"): {"person": [17], "vehicle": [8], "pole": [5]},
+    ("umich_campus_sidewalk", "rgb"): _UMICH_OBSTACLES,
+    ("umich_forest_traversable", "rgb"): _UMICH_OBSTACLES,
+}
+
+
+def _obstacles(it: dict, mode: str, dataset: str) -> tuple:
+    spec = it["obstacles"] if "obstacles" in it else KNOWN_OBSTACLES.get((dataset, mode), {})
+    if not isinstance(spec, dict):
+        raise TypeError(f"expected an object of class name -> list of mask values, got {type(spec).__name__}")
+    out = []
+    for name, vals in spec.items():
+        if not (isinstance(name, str) and name):
+            raise ValueError(f"a class name must be a non-empty string, got {name!r}")
+        out.append((name, _values(vals, mode)))
+    return tuple(out)
 
 
 def load_manifest(folder: str | Path) -> list[Item]:
@@ -82,14 +123,20 @@ def load_manifest(folder: str | Path) -> list[Item]:
             raise ConfigError(f"{where}: bad road/ignore values ({exc})") from None
         if not road:
             raise ConfigError(f"{where}: 'road' lists no values")
+        dataset = str(it.get("dataset", "default"))
+        try:
+            obstacles = _obstacles(it, mode, dataset)
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"{where}: bad 'obstacles' ({exc}); expected e.g. {{\"person\": [9]}}") from None
         out.append(
             Item(
                 image=folder / str(it["image"]),
                 mask=folder / str(it["mask"]),
-                dataset=str(it.get("dataset", "default")),
+                dataset=dataset,
                 mask_mode=mode,
                 road=road,
                 ignore=ignore,
+                obstacles=obstacles,
             )
         )
     return out
@@ -132,19 +179,54 @@ def truth_at_frame(item: Item) -> tuple[np.ndarray, np.ndarray]:
     valid : (225, 300) bool
         False where the mask holds an ``ignore`` value.
     """
+    road, valid, _ = labels_at_frame(item, obstacles=False)
+    return road, valid
+
+
+def labels_at_frame(item: Item, *, obstacles: bool = True) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """:func:`truth_at_frame`'s ``(road, valid)`` and each of the item's obstacle classes at 300x225.
+
+    The third value maps each name of ``item.obstacles`` to a (225, 300) bool mask (empty
+    with ``obstacles`` False or an item without obstacle classes).
+    """
     m = _read_mask(item)
     m = cv2.resize(m, (FRAME_WIDTH, FRAME_HEIGHT), interpolation=cv2.INTER_NEAREST)
-    if item.mask_mode == "gray":
-        road = np.isin(m, item.road)
-        ignore = np.isin(m, item.ignore) if item.ignore else np.zeros(m.shape, bool)
-    else:
-        road = np.zeros(m.shape[:2], bool)
-        ignore = np.zeros(m.shape[:2], bool)
-        for c in item.road:
-            road |= np.all(m == np.array(c, np.uint8), axis=2)
-        for c in item.ignore:
-            ignore |= np.all(m == np.array(c, np.uint8), axis=2)
-    return road, ~ignore
+
+    def where(values: tuple) -> np.ndarray:
+        if item.mask_mode == "gray":
+            return np.isin(m, values) if values else np.zeros(m.shape, bool)
+        hit = np.zeros(m.shape[:2], bool)
+        for c in values:
+            hit |= np.all(m == np.array(c, np.uint8), axis=2)
+        return hit
+
+    classes = {name: where(values) for name, values in item.obstacles} if obstacles else {}
+    return where(item.road), ~where(item.ignore), classes
+
+
+#: Obstacles painted drivable are counted on the pixels at least this far (at 300x225) inside their
+#: label: the labels' own edges and the road model's 150x112 working frame disagree by about that
+#: much, and an edge pixel of a car beside the road is not the car painted drivable.
+OBSTACLE_MARGIN = 2
+#: A frame counts as a hit for a class when at least this many of that class's inner pixels are
+#: green (a 3x3-pixel patch at 300x225: a wheel, a leg).
+OBSTACLE_HIT_PX = 10
+
+
+def obstacle_green(pred: np.ndarray, obstacle: np.ndarray, valid: np.ndarray | None = None) -> tuple[int, int]:
+    """``(inner, green)``: an obstacle class's pixels at least :data:`OBSTACLE_MARGIN` inside its
+    label (the frame's edge is not the label's edge), and how many of them ``pred`` paints drivable.
+
+    >>> car = np.zeros((20, 20), bool); car[5:15, 5:15] = True
+    >>> pred = np.zeros((20, 20), np.uint8); pred[10:] = 255
+    >>> obstacle_green(pred, car)      # a 6x6 inner block, its lower 3 rows green
+    (36, 18)
+    """
+    k = 2 * OBSTACLE_MARGIN + 1
+    inner = cv2.erode(np.asarray(obstacle, np.uint8), np.ones((k, k), np.uint8)) > 0
+    if valid is not None:
+        inner &= valid
+    return int(np.count_nonzero(inner)), int(np.count_nonzero(inner & (np.asarray(pred) != 0)))
 
 
 def score(pred: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None) -> dict[str, float]:
@@ -212,7 +294,10 @@ def evaluate(
         ``{"mode", "images": [{"image", "dataset", "iou", "f1", "precision",
         "recall"}], "mean": {...}, "per_dataset": {name: {...}}, "baselines":
         {"bottom_half": {...mean...}, "thesis": {...mean...}}}``; each baseline
-        also carries its ``per_dataset`` means.
+        also carries its ``per_dataset`` means.  ``"obstacles"``: for ``mode`` and each
+        baseline, per dataset and obstacle class (:func:`obstacle_totals`), the inner pixels
+        of the class painted drivable; each image row of ``mode`` carries its own
+        ``"obstacles": {class: [inner, green]}``.
     """
     from scmr_mesh.imaging.pipeline import segment_drivable
 
@@ -227,15 +312,18 @@ def evaluate(
             progress(i, len(items), item.image.name)
         try:
             rgb = load_frame(item.image)
-            road, valid = truth_at_frame(item)
+            road, valid, classes = labels_at_frame(item)
         except ScmrError as exc:  # one unreadable pair must not sink the whole evaluation
             skipped.append({"image": item.image.name, "error": str(exc)})
             continue
-        res = segment_drivable(rgb, mode=mode)
-        rows.append({"image": item.image.name, "dataset": item.dataset, **score(res.mask, road, valid)})
+
+        def row(pred: np.ndarray) -> dict:
+            return {"image": item.image.name, "dataset": item.dataset, **score(pred, road, valid),
+                    "obstacles": {c: list(obstacle_green(pred, m, valid)) for c, m in classes.items()}}
+
+        rows.append(row(segment_drivable(rgb, mode=mode).mask))
         for o in others:
-            pred = bottom_half_mask() if o == "bottom_half" else segment_drivable(rgb, mode=o).mask
-            base_rows[o].append({"image": item.image.name, "dataset": item.dataset, **score(pred, road, valid)})
+            base_rows[o].append(row(bottom_half_mask() if o == "bottom_half" else segment_drivable(rgb, mode=o).mask))
     if progress:
         progress(len(items), len(items), "")
     if not rows:
@@ -250,8 +338,50 @@ def evaluate(
         "mean": _mean(rows),
         "per_dataset": _per_dataset(rows),
         "baselines": {o: {**_mean(r), "per_dataset": _per_dataset(r)} for o, r in base_rows.items()},
+        "obstacles": {mode: obstacle_totals(rows), **{o: obstacle_totals(r) for o, r in base_rows.items()}},
     }
+    for r in base_rows.values():   # the baselines' per-image counts are in their totals
+        for b in r:
+            b.pop("obstacles")
     return out
+
+
+def obstacle_totals(rows: list[dict]) -> dict[str, dict[str, dict]]:
+    """Per dataset and obstacle class, summed over the image rows that label the class.
+
+    Each entry: ``inner`` (the class's pixels at least :data:`OBSTACLE_MARGIN` inside its label),
+    ``green`` (how many of those the mask paints drivable), ``share`` (green / inner; 0.0 when
+    inner is 0), ``frames`` (images with inner pixels of the class) and ``hit`` (images with at
+    least :data:`OBSTACLE_HIT_PX` of them green).  Datasets without obstacle classes are left out.
+    """
+    out: dict[str, dict[str, dict]] = {}
+    for r in rows:
+        for name, (inner, green) in r.get("obstacles", {}).items():
+            e = out.setdefault(r["dataset"], {}).setdefault(name, {"inner": 0, "green": 0, "frames": 0, "hit": 0})
+            e["inner"] += inner
+            e["green"] += green
+            e["frames"] += inner > 0
+            e["hit"] += green >= OBSTACLE_HIT_PX
+    for per in out.values():
+        for e in per.values():
+            e["share"] = e["green"] / e["inner"] if e["inner"] else 0.0
+    return {d: dict(sorted(per.items(), key=lambda kv: _class_order(kv[0]))) for d, per in sorted(out.items())}
+
+
+def _sum_over_datasets(per: dict[str, dict[str, dict]]) -> dict[str, dict]:
+    out: dict[str, dict] = {}
+    for classes in per.values():
+        for c, e in classes.items():
+            t = out.setdefault(c, {"inner": 0, "green": 0, "frames": 0, "hit": 0})
+            for k in t:
+                t[k] += e[k]
+    for t in out.values():
+        t["share"] = t["green"] / t["inner"] if t["inner"] else 0.0
+    return out
+
+
+def _class_order(name: str) -> tuple:
+    return (OBSTACLE_CLASSES.index(name), "") if name in OBSTACLE_CLASSES else (len(OBSTACLE_CLASSES), name)
 
 
 def _per_dataset(rows: list[dict]) -> dict[str, dict[str, float]]:
@@ -285,7 +415,31 @@ def format_table(result: dict) -> str:
         pd, mean = res["per_dataset"], res["mean"] if "mean" in res else res
         vals = " ".join(f"{pd[n]['precision']:5.3f}/{pd[n]['recall']:5.3f}" if n in pd else f"{'-':>11s}" for n in names)
         lines.append(f"{name:22s} {vals} {mean['precision']:5.3f}/{mean['recall']:5.3f}")
+    lines.extend(format_obstacles(result.get("obstacles", {})))
     return "\n".join(lines)
+
+
+def format_obstacles(obstacles: dict) -> list[str]:
+    """The table lines of :func:`evaluate`'s ``"obstacles"`` (none when no dataset labels obstacles)."""
+    modes = list(obstacles)
+    # a class no frame of a dataset shows has nothing to say; "all" sums a class over the datasets
+    pairs = sorted({(d, c) for m in modes for d, per in obstacles[m].items() for c, e in per.items() if e["frames"]},
+                   key=lambda dc: (dc[0], _class_order(dc[1])))
+    if not pairs:
+        return []
+    obstacles = {m: {**per, "(all)": _sum_over_datasets(per)} for m, per in obstacles.items()}
+    pairs += sorted({("(all)", c) for _, c in pairs}, key=lambda dc: _class_order(dc[1]))
+    lines = ["", f"obstacles painted drivable: share of their pixels >= {OBSTACLE_MARGIN} px inside the label "
+                 f"(frames with >= {OBSTACLE_HIT_PX} such pixels green / frames showing the class)",
+             f"{'dataset':22s} {'class':8s} " + " ".join(f"{m[:18]:>18s}" for m in modes) + f" {'inner px':>9s}"]
+    for d, c in pairs:
+        cells, inner = [], 0
+        for m in modes:
+            e = obstacles[m].get(d, {}).get(c)
+            cells.append(f"{e['share']:7.3f} ({e['hit']:3d}/{e['frames']:3d})" if e else f"{'-':>18s}")
+            inner = e["inner"] if e else inner
+        lines.append(f"{d[:22]:22s} {c[:8]:8s} " + " ".join(f"{x:>18s}" for x in cells) + f" {inner:9d}")
+    return lines
 
 
 #: The values :func:`cross_validate` chooses ``best``'s constants from (every combination).
