@@ -129,12 +129,13 @@ def test_eval_skips_an_unreadable_item_and_scores_the_rest(tmp_path, roads_dir, 
     assert [s["image"] for s in doc["skipped"]] == ["broken.png"]
 
 
-def _block_where(free: np.ndarray, h: int, w: int, margin: int = 8) -> tuple[int, int]:
-    """The top-left corner of the first h x w block wholly inside ``free``, ``margin`` px from the frame's edge."""
+def _block_where(free: np.ndarray, h: int, w: int, rows: range, margin: int = 8) -> tuple[int, int]:
+    """The top-left corner of the first h x w block wholly inside ``free`` whose top row is in
+    ``rows``, ``margin`` px from the frame's edge."""
     H, W = free.shape
-    for y in range(margin, H - h - margin):
+    for y in rows:
         for x in range(margin, W - w - margin):
-            if free[y:y + h, x:x + w].all():
+            if margin <= y <= H - h - margin and free[y:y + h, x:x + w].all():
                 return y, x
     raise AssertionError("no such block")
 
@@ -148,8 +149,9 @@ def test_eval_reports_obstacles_painted_drivable(tmp_path, roads_dir, capsys):
     img_path = sorted((roads_dir / "images").glob("orfd*"))[0]
     pred = segment_drivable(load_image(img_path)).mask > 0
     truth = np.where(pred, 3, 0).astype(np.uint8)
-    py, px = _block_where(pred, 12, 10)
-    vy, vx = _block_where(~pred, 14, 11)
+    # both blocks straddle row 112, where the bottom-half baseline starts: its counts are partial
+    py, px = _block_where(pred, 12, 10, range(103, 110))
+    vy, vx = _block_where(~pred, 14, 11, range(101, 110))
     truth[py:py + 12, px:px + 10] = 9
     truth[vy:vy + 14, vx:vx + 11] = 8
     (tmp_path / "m.png").write_bytes(encode_png(truth))
@@ -164,18 +166,23 @@ def test_eval_reports_obstacles_painted_drivable(tmp_path, roads_dir, capsys):
     vehicle_inner = (14 - 2 * m) * (11 - 2 * m)
     rows = np.arange(225)
     half = lambda y0, hh: int(np.count_nonzero(rows[y0 + m:y0 + hh - m] >= 112))  # noqa: E731
+    assert 0 < half(py, 12) < 12 - 2 * m and 0 < half(vy, 14) < 14 - 2 * m
     out = tmp_path / "eval.json"
     for folder in ("own", "known"):
         assert main(["eval", str(tmp_path / folder), "--json", str(out)]) == 0
         doc = json.loads(out.read_text())
         ds = "x" if folder == "own" else "camvid"
         best = doc["obstacles"]["best"][ds]
-        assert best["person"] == {"inner": person_inner, "green": person_inner, "share": 1.0, "frames": 1, "hit": 1}
-        assert best["vehicle"] == {"inner": vehicle_inner, "green": 0, "share": 0.0, "frames": 1, "hit": 0}
-        assert doc["images"][0]["obstacles"]["person"] == [person_inner, person_inner]
+        assert best["person"] == {"labelled": 120, "labelled_frames": 1, "inner": person_inner,
+                                  "green": person_inner, "share": 1.0, "frames": 1, "hit": 1}
+        assert best["vehicle"] == {"labelled": 154, "labelled_frames": 1, "inner": vehicle_inner,
+                                   "green": 0, "share": 0.0, "frames": 1, "hit": 0}
+        assert doc["images"][0]["obstacles"]["person"] == [120, person_inner, person_inner]
         bottom = doc["obstacles"]["bottom_half"][ds]
-        assert bottom["person"]["green"] == half(py, 12) * (10 - 2 * m)
-        assert bottom["vehicle"]["green"] == half(vy, 14) * (11 - 2 * m)
+        green = {"person": half(py, 12) * (10 - 2 * m), "vehicle": half(vy, 14) * (11 - 2 * m)}
+        for c in green:
+            assert bottom[c]["green"] == green[c] and bottom[c]["hit"] == int(green[c] >= 10)
+        assert doc["obstacles"]["thesis"][ds]["person"]["inner"] == person_inner
         table = capsys.readouterr().out
         assert "obstacles painted drivable" in table
         assert re.search(rf"^{ds}\s+person\s+1\.000 \(\s*1/\s*1\)", table, re.M)
@@ -202,6 +209,10 @@ def test_obstacle_green_leaves_the_label_edge_and_keeps_the_frame_edge():
     thin = np.zeros((40, 50), bool)
     thin[5:35, 20:20 + 2 * m] = True        # narrower than the margin's two sides: nothing inside
     assert obstacle_green(pred, thin) == (0, 0)
+    notched = np.zeros((40, 50), bool)
+    notched[5:15, 5:15] = True
+    notched[5, 5] = False                   # the margin is square: the inner pixel diagonal to it goes too
+    assert obstacle_green(pred, notched) == ((10 - 2 * m) ** 2 - 1,) * 2
 
 
 @pytest.mark.parametrize(
@@ -215,6 +226,14 @@ def test_obstacle_green_leaves_the_label_edge_and_keeps_the_frame_edge():
         ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": {"person": [[9, 9, 9]]}}]}',
          "bad 'obstacles'"),
         ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": {"": [9]}}]}', "non-empty string"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": {"person": [3]}}]}',
+         "lists the road value 3"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [3], "obstacles": {"person": [8.9]}}]}',
+         "integers 0-255, got 8.9"),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [[1, 1, 1]], "mask_mode": "rgb", '
+         '"obstacles": {"person": [[300, 0, 0]]}}]}', 'got 300); expected e.g. {"person": [[157, 199, 194]]}'),
+        ('{"items": [{"image": "a.png", "mask": "b.png", "road": [[-1, 0, 0]], "mask_mode": "rgb"}]}',
+         "integers 0-255, got -1"),
     ],
 )
 def test_eval_invalid_manifest(tmp_path, capsys, text, match):

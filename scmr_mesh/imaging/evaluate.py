@@ -69,7 +69,7 @@ KNOWN_OBSTACLES: dict[tuple[str, str], dict[str, list]] = {
 }
 
 
-def _obstacles(it: dict, mode: str, dataset: str) -> tuple:
+def _obstacles(it: dict, mode: str, dataset: str, road: tuple) -> tuple:
     spec = it["obstacles"] if "obstacles" in it else KNOWN_OBSTACLES.get((dataset, mode), {})
     if not isinstance(spec, dict):
         raise TypeError(f"expected an object of class name -> list of mask values, got {type(spec).__name__}")
@@ -77,7 +77,12 @@ def _obstacles(it: dict, mode: str, dataset: str) -> tuple:
     for name, vals in spec.items():
         if not (isinstance(name, str) and name):
             raise ValueError(f"a class name must be a non-empty string, got {name!r}")
-        out.append((name, _values(vals, mode)))
+        values = _values(vals, mode)
+        both = [v for v in values if v in road]
+        if both:
+            raise ValueError(f"class {name!r} lists the road value {list(both[0]) if mode == 'rgb' else both[0]}; "
+                             "a pixel is road or an obstacle, not both")
+        out.append((name, values))
     return tuple(out)
 
 
@@ -125,9 +130,10 @@ def load_manifest(folder: str | Path) -> list[Item]:
             raise ConfigError(f"{where}: 'road' lists no values")
         dataset = str(it.get("dataset", "default"))
         try:
-            obstacles = _obstacles(it, mode, dataset)
+            obstacles = _obstacles(it, mode, dataset, road)
         except (TypeError, ValueError) as exc:
-            raise ConfigError(f"{where}: bad 'obstacles' ({exc}); expected e.g. {{\"person\": [9]}}") from None
+            example = '{"person": [9]}' if mode == "gray" else '{"person": [[157, 199, 194]]}'
+            raise ConfigError(f"{where}: bad 'obstacles' ({exc}); expected e.g. {example}") from None
         out.append(
             Item(
                 image=folder / str(it["image"]),
@@ -143,15 +149,23 @@ def load_manifest(folder: str | Path) -> list[Item]:
 
 
 def _values(vals, mode: str) -> tuple:
+    """A manifest's list of mask values: integers 0-255 (``gray``) or ``[R, G, B]`` lists of them."""
     if not isinstance(vals, list):
         raise TypeError(f"expected a list, got {type(vals).__name__}")
+
+    def byte(v) -> int:
+        # masks are read as 8 bits a channel: any other value would match nothing, silently
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 255:
+            raise ValueError(f"mask values are integers 0-255, got {v!r}")
+        return v
+
     if mode == "gray":
-        return tuple(int(v) for v in vals)
+        return tuple(byte(v) for v in vals)
     out = []
     for v in vals:
         if not (isinstance(v, list) and len(v) == 3):
             raise ValueError(f"rgb values must be [R, G, B] lists, got {v!r}")
-        out.append(tuple(int(c) for c in v))
+        out.append(tuple(byte(c) for c in v))
     return tuple(out)
 
 
@@ -209,7 +223,7 @@ def labels_at_frame(item: Item, *, obstacles: bool = True) -> tuple[np.ndarray, 
 #: much, and an edge pixel of a car beside the road is not the car painted drivable.
 OBSTACLE_MARGIN = 2
 #: A frame counts as a hit for a class when at least this many of that class's inner pixels are
-#: green (a 3x3-pixel patch at 300x225: a wheel, a leg).
+#: green (a patch of about 3x4 pixels at 300x225: a wheel, a leg).
 OBSTACLE_HIT_PX = 10
 
 
@@ -297,7 +311,7 @@ def evaluate(
         also carries its ``per_dataset`` means.  ``"obstacles"``: for ``mode`` and each
         baseline, per dataset and obstacle class (:func:`obstacle_totals`), the inner pixels
         of the class painted drivable; each image row of ``mode`` carries its own
-        ``"obstacles": {class: [inner, green]}``.
+        ``"obstacles": {class: [labelled, inner, green]}``.
     """
     from scmr_mesh.imaging.pipeline import segment_drivable
 
@@ -317,9 +331,11 @@ def evaluate(
             skipped.append({"image": item.image.name, "error": str(exc)})
             continue
 
+        labelled = {c: int(np.count_nonzero(m & valid)) for c, m in classes.items()}
+
         def row(pred: np.ndarray) -> dict:
             return {"image": item.image.name, "dataset": item.dataset, **score(pred, road, valid),
-                    "obstacles": {c: list(obstacle_green(pred, m, valid)) for c, m in classes.items()}}
+                    "obstacles": {c: [labelled[c], *obstacle_green(pred, m, valid)] for c, m in classes.items()}}
 
         rows.append(row(segment_drivable(rgb, mode=mode).mask))
         for o in others:
@@ -349,15 +365,30 @@ def evaluate(
 def obstacle_totals(rows: list[dict]) -> dict[str, dict[str, dict]]:
     """Per dataset and obstacle class, summed over the image rows that label the class.
 
-    Each entry: ``inner`` (the class's pixels at least :data:`OBSTACLE_MARGIN` inside its label),
-    ``green`` (how many of those the mask paints drivable), ``share`` (green / inner; 0.0 when
-    inner is 0), ``frames`` (images with inner pixels of the class) and ``hit`` (images with at
-    least :data:`OBSTACLE_HIT_PX` of them green).  Datasets without obstacle classes are left out.
+    Each row's ``"obstacles"`` maps a class to ``[labelled, inner, green]``.  Each entry:
+    ``labelled`` (the class's scored pixels) and ``labelled_frames`` (images with any), ``inner``
+    (those at least :data:`OBSTACLE_MARGIN` inside the label: a class thinner than
+    ``2 * OBSTACLE_MARGIN + 1`` pixels, a far pole or person, has none), ``green`` (how many inner
+    pixels the mask paints drivable), ``share`` (green / inner; 0.0 when inner is 0), ``frames``
+    (images with inner pixels of the class) and ``hit`` (images with at least
+    :data:`OBSTACLE_HIT_PX` of them green).  Datasets without obstacle classes are left out.
+
+    >>> rows = [{"dataset": "a", "obstacles": {"person": [80, 50, 10]}},
+    ...         {"dataset": "a", "obstacles": {"person": [60, 40, 9]}},
+    ...         {"dataset": "b", "obstacles": {"person": [3, 0, 0]}}]
+    >>> t = obstacle_totals(rows)
+    >>> t["a"]["person"] == {"labelled": 140, "labelled_frames": 2, "inner": 90, "green": 19,
+    ...                      "frames": 2, "hit": 1, "share": 19 / 90}
+    True
+    >>> t["b"]["person"]["frames"], t["b"]["person"]["labelled_frames"], t["b"]["person"]["share"]
+    (0, 1, 0.0)
     """
     out: dict[str, dict[str, dict]] = {}
     for r in rows:
-        for name, (inner, green) in r.get("obstacles", {}).items():
-            e = out.setdefault(r["dataset"], {}).setdefault(name, {"inner": 0, "green": 0, "frames": 0, "hit": 0})
+        for name, (labelled, inner, green) in r.get("obstacles", {}).items():
+            e = out.setdefault(r["dataset"], {}).setdefault(name, dict.fromkeys(_COUNTS, 0))
+            e["labelled"] += labelled
+            e["labelled_frames"] += labelled > 0
             e["inner"] += inner
             e["green"] += green
             e["frames"] += inner > 0
@@ -368,12 +399,16 @@ def obstacle_totals(rows: list[dict]) -> dict[str, dict[str, dict]]:
     return {d: dict(sorted(per.items(), key=lambda kv: _class_order(kv[0]))) for d, per in sorted(out.items())}
 
 
+_COUNTS = ("labelled", "labelled_frames", "inner", "green", "frames", "hit")
+
+
 def _sum_over_datasets(per: dict[str, dict[str, dict]]) -> dict[str, dict]:
+    """Per class, :func:`obstacle_totals`' entries summed over the datasets."""
     out: dict[str, dict] = {}
     for classes in per.values():
         for c, e in classes.items():
-            t = out.setdefault(c, {"inner": 0, "green": 0, "frames": 0, "hit": 0})
-            for k in t:
+            t = out.setdefault(c, dict.fromkeys(_COUNTS, 0))
+            for k in _COUNTS:
                 t[k] += e[k]
     for t in out.values():
         t["share"] = t["green"] / t["inner"] if t["inner"] else 0.0
@@ -420,25 +455,38 @@ def format_table(result: dict) -> str:
 
 
 def format_obstacles(obstacles: dict) -> list[str]:
-    """The table lines of :func:`evaluate`'s ``"obstacles"`` (none when no dataset labels obstacles)."""
+    """The table lines of :func:`evaluate`'s ``"obstacles"`` (none when no dataset labels obstacles).
+
+    >>> e = {"labelled": 140, "labelled_frames": 2, "inner": 90, "green": 19, "frames": 2, "hit": 1,
+    ...      "share": 19 / 90}
+    >>> lines = format_obstacles({"best": {"a": {"person": e}, "b": {"person": e}}})
+    >>> [" ".join(x.split()) for x in lines[-3:]]
+    ['a person 0.211 ( 1/ 2) 90 / 140', 'b person 0.211 ( 1/ 2) 90 / 140', '(all) person 0.211 ( 2/ 4) 180 / 280']
+    """
     modes = list(obstacles)
-    # a class no frame of a dataset shows has nothing to say; "all" sums a class over the datasets
+    # a class no frame of a dataset shows inside its margin has nothing to say; "(all)" sums a
+    # class over the datasets
     pairs = sorted({(d, c) for m in modes for d, per in obstacles[m].items() for c, e in per.items() if e["frames"]},
                    key=lambda dc: (dc[0], _class_order(dc[1])))
     if not pairs:
         return []
     obstacles = {m: {**per, "(all)": _sum_over_datasets(per)} for m, per in obstacles.items()}
     pairs += sorted({("(all)", c) for _, c in pairs}, key=lambda dc: _class_order(dc[1]))
+    dw = max(len("dataset"), *(len(d) for d, _ in pairs))
+    cw = max(len("class"), *(len(c) for _, c in pairs))
     lines = ["", f"obstacles painted drivable: share of their pixels >= {OBSTACLE_MARGIN} px inside the label "
-                 f"(frames with >= {OBSTACLE_HIT_PX} such pixels green / frames showing the class)",
-             f"{'dataset':22s} {'class':8s} " + " ".join(f"{m[:18]:>18s}" for m in modes) + f" {'inner px':>9s}"]
+                 f"(frames with >= {OBSTACLE_HIT_PX} such pixels green / frames with such pixels); "
+                 "thinner parts are not counted (last column: inner / labelled pixels)",
+             f"{'dataset':{dw}s} {'class':{cw}s} " + " ".join(f"{m[:16]:>16s}" for m in modes)
+             + f" {'inner / labelled':>20s}"]
     for d, c in pairs:
-        cells, inner = [], 0
+        cells, cover = [], ""
         for m in modes:
             e = obstacles[m].get(d, {}).get(c)
-            cells.append(f"{e['share']:7.3f} ({e['hit']:3d}/{e['frames']:3d})" if e else f"{'-':>18s}")
-            inner = e["inner"] if e else inner
-        lines.append(f"{d[:22]:22s} {c[:8]:8s} " + " ".join(f"{x:>18s}" for x in cells) + f" {inner:9d}")
+            cells.append(f"{e['share']:5.3f} ({e['hit']:2d}/{e['frames']:2d})" if e else "-")
+            if e:
+                cover = f"{e['inner']} / {e['labelled']}"
+        lines.append(f"{d:{dw}s} {c:{cw}s} " + " ".join(f"{x:>16s}" for x in cells) + f" {cover:>20s}")
     return lines
 
 
