@@ -236,11 +236,18 @@ def obstacle_green(pred: np.ndarray, obstacle: np.ndarray, valid: np.ndarray | N
     >>> obstacle_green(pred, car)      # a 6x6 inner block, its lower 3 rows green
     (36, 18)
     """
+    inner = obstacle_inner(obstacle, valid)
+    return int(np.count_nonzero(inner)), int(np.count_nonzero(inner & (np.asarray(pred) != 0)))
+
+
+def obstacle_inner(obstacle: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """The (valid) pixels of an obstacle class at least :data:`OBSTACLE_MARGIN` inside its label
+    (:func:`obstacle_green`'s, made once per frame for every mask scored on it)."""
     k = 2 * OBSTACLE_MARGIN + 1
     inner = cv2.erode(np.asarray(obstacle, np.uint8), np.ones((k, k), np.uint8)) > 0
     if valid is not None:
         inner &= valid
-    return int(np.count_nonzero(inner)), int(np.count_nonzero(inner & (np.asarray(pred) != 0)))
+    return inner
 
 
 def score(pred: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None) -> dict[str, float]:
@@ -331,11 +338,14 @@ def evaluate(
             skipped.append({"image": item.image.name, "error": str(exc)})
             continue
 
-        labelled = {c: int(np.count_nonzero(m & valid)) for c, m in classes.items()}
+        # per class: labelled pixels, and the inner ones (the erosion once, not once per mask)
+        inner = {c: (int(np.count_nonzero(m & valid)), obstacle_inner(m, valid)) for c, m in classes.items()}
 
         def row(pred: np.ndarray) -> dict:
+            green = pred != 0
             return {"image": item.image.name, "dataset": item.dataset, **score(pred, road, valid),
-                    "obstacles": {c: [labelled[c], *obstacle_green(pred, m, valid)] for c, m in classes.items()}}
+                    "obstacles": {c: [n, int(np.count_nonzero(i)), int(np.count_nonzero(i & green))]
+                                  for c, (n, i) in inner.items()}}
 
         rows.append(row(segment_drivable(rgb, mode=mode).mask))
         for o in others:
@@ -394,9 +404,14 @@ def obstacle_totals(rows: list[dict]) -> dict[str, dict[str, dict]]:
             e["frames"] += inner > 0
             e["hit"] += green >= OBSTACLE_HIT_PX
     for per in out.values():
-        for e in per.values():
-            e["share"] = e["green"] / e["inner"] if e["inner"] else 0.0
+        _add_shares(per)
     return {d: dict(sorted(per.items(), key=lambda kv: _class_order(kv[0]))) for d, per in sorted(out.items())}
+
+
+def _add_shares(classes: dict[str, dict]) -> dict[str, dict]:
+    for e in classes.values():
+        e["share"] = e["green"] / e["inner"] if e["inner"] else 0.0
+    return classes
 
 
 _COUNTS = ("labelled", "labelled_frames", "inner", "green", "frames", "hit")
@@ -410,9 +425,7 @@ def _sum_over_datasets(per: dict[str, dict[str, dict]]) -> dict[str, dict]:
             t = out.setdefault(c, dict.fromkeys(_COUNTS, 0))
             for k in _COUNTS:
                 t[k] += e[k]
-    for t in out.values():
-        t["share"] = t["green"] / t["inner"] if t["inner"] else 0.0
-    return out
+    return _add_shares(out)
 
 
 def _class_order(name: str) -> tuple:
