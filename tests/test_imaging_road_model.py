@@ -17,6 +17,7 @@ from scmr_mesh.imaging._srm_kernels import candidate_kernel, road_share_kernel
 from scmr_mesh.imaging.evaluate import (
     choose_combination,
     cross_validate,
+    evaluate,
     format_cv_table,
     synthetic_fits,
     synthetic_floor,
@@ -790,6 +791,16 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert res["per_dataset"]["umich_forest_traversable"]["cv_iou"] >= 0.755   # 0.730 before
     table = format_cv_table(res)
     assert "CV IoU" in table and "rellis3d" in table and "prec" in table and "recall" in table
+    # the obstacles painted drivable: under the in-sample choice they are what `scmr eval` reports for
+    # the shipped defaults (another path: segment_drivable frame by frame), under the folds' choices
+    # each dataset's figures are its fold's
+    ob = res["obstacles"]
+    assert ob["in-sample"] == evaluate(roads_dir, baselines=False)["obstacles"]["best"]
+    assert ob["in-sample"]["camvid"]["vehicle"]["green"] > 0 and "kitti_road" not in ob["in-sample"]
+    for d, r in res["per_dataset"].items():
+        if r["cv_params"] == chosen and d in ob["in-sample"]:
+            assert ob["cross-validated"][d] == ob["in-sample"][d], d
+    assert "obstacles painted drivable" in table and "cross-validated" in table.split("obstacles painted")[1]
 
 
 def test_the_operating_point_chooses_among_the_allowed_combinations():
@@ -833,6 +844,10 @@ def test_the_cross_validation_without_the_synthetic_floors_is_the_old_protocol(r
     camvid = RoadParams(**res["per_dataset"]["camvid"]["cv_params"])
     assert camvid != DEFAULT_PARAMS and not synthetic_scores([camvid])["fits"][0]
     assert res["mean"]["cv_iou"] < res["mean"]["in_sample_iou"]
+    # CamVid's obstacles are those of its fold's choice, not of the in-sample one
+    ob = res["obstacles"]
+    cv_car, in_car = ob["cross-validated"]["camvid"]["vehicle"], ob["in-sample"]["camvid"]["vehicle"]
+    assert cv_car["inner"] == in_car["inner"] and cv_car["green"] < in_car["green"]   # 4,597 and 6,796 px
     with pytest.raises(InputError, match="no-synthetic-floors"):
         cross_validate(roads_dir, grid={"frac": (0.5,)})
 

@@ -110,10 +110,13 @@ def _sequence_folder(folder):
         img, truth = make_scene("dirt_road", seed=seed)
         for i, frame in enumerate((30, 60, 90)):
             im, tr = (img, truth) if i < 2 else _obstacle(img, truth)[:2]
+            if i == 2:
+                tr = np.where(_obstacle(img, truth)[2], 128, tr).astype(np.uint8)   # the box, labelled as a vehicle
             name = f"synth_{seq}_{frame:05d}.png"
             (folder / "images" / name).write_bytes(encode_png(im))
             (folder / "images" / ("m" + name)).write_bytes(encode_png(tr))
-            items.append({"image": f"images/{name}", "mask": f"images/m{name}", "dataset": "synth", "road": [255]})
+            items.append({"image": f"images/{name}", "mask": f"images/m{name}", "dataset": "synth", "road": [255],
+                          "obstacles": {"vehicle": [128]}})
     items.append({"image": "images/synth_A_00030.png", "mask": "images/msynth_A_00030.png", "dataset": "single",
                   "road": [255]})  # another dataset's single frame: in no sequence
     (folder / "manifest.json").write_text(json.dumps({"format": "scmr-roads-manifest/1", "items": items}))
@@ -137,11 +140,25 @@ def test_eval_sequences_leave_one_sequence_out(tmp_path, capsys):
         assert r["carried_status"] == {"cold": 1, "agree": 1, "replaced": 1}
         assert r["images"][2]["carried_iou"] > r["images"][2]["per_frame_iou"] + 0.3
         assert r["carried"]["precision"] > r["per_frame"]["precision"]
+        # the box on the road (labelled a vehicle): the per-frame model's seed, painted green whole;
+        # the carried model keeps all of it red
+        pf, cv = res["obstacles"]["per-frame"][name]["vehicle"], res["obstacles"]["carried (CV)"][name]["vehicle"]
+        assert (pf["frames"], pf["hit"], pf["share"]) == (1, 1, 1.0) and pf["inner"] > 0.9 * pf["labelled"]
+        assert (cv["frames"], cv["hit"], cv["green"]) == (1, 0, 0) and cv["inner"] == pf["inner"]
+    # --occlude 2: the box pasted over each drive's second frame is the class "occluder"
+    occ = cross_validate_sequences(tmp_path / "d", grid=grid, occlude=2)["obstacles"]
+    for name in ("synth/A", "synth/B"):
+        assert occ["per-frame"][name]["occluder"]["hit"] == 1 and occ["carried (CV)"][name]["occluder"]["green"] == 0
+        assert occ["per-frame"][name]["vehicle"] == res["obstacles"]["per-frame"][name]["vehicle"]
     out = tmp_path / "seq.json"
     assert main(["eval", str(tmp_path / "d"), "--sequences", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert set(doc["sequences"]) == {"synth/A", "synth/B"} and "per_frame" in doc["mean"]
-    assert "carried (CV)" in capsys.readouterr().out
+    assert doc["obstacles"]["carried (CV)"]["synth/A"]["vehicle"]["hit"] == 0
+    printed = capsys.readouterr().out
+    assert "carried (CV)" in printed
+    assert [" ".join(x.split()) for x in printed.splitlines() if x.startswith("(all)")] == [
+        f"(all) vehicle 1.000 ( 2/ 2) 0.000 ( 0/ 2) {2 * pf['inner']} / {2 * pf['labelled']}"]
     assert main(["eval", str(tmp_path / "d"), "--sequences", "--mode", "thesis"]) == 1
     assert "thesis has none" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "d"), "--occlude", "3"]) == 1

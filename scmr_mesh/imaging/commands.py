@@ -54,7 +54,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "pixels left out), against the baselines 'bottom half is road' and the thesis mode.  "
             "Where the masks label obstacles (people, cyclists, vehicles, poles: CamVid, RELLIS-3D, "
             "UMich, or a manifest's 'obstacles' field) the table ends with how much of them each mask "
-            "paints drivable.  Prints a table and writes JSON."
+            "paints drivable (with --cv under the folds' and the in-sample choices, with --sequences per "
+            "drive for the per-frame and the carried model).  Prints a table and writes JSON."
         ),
     )
     p.add_argument("folder", type=ca.PathArg("in-dir", as_path=True, what="a folder with manifest.json, images/ and masks/", example="../shared/data/roads"), metavar="DIR", help="folder with manifest.json, images/ and masks/")

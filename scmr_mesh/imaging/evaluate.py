@@ -467,7 +467,7 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
-def format_obstacles(obstacles: dict) -> list[str]:
+def format_obstacles(obstacles: dict, *, group: str = "dataset") -> list[str]:
     """The table lines of :func:`evaluate`'s ``"obstacles"`` (none when no dataset labels obstacles).
 
     >>> e = {"labelled": 140, "labelled_frames": 2, "inner": 90, "green": 19, "frames": 2, "hit": 1,
@@ -485,12 +485,12 @@ def format_obstacles(obstacles: dict) -> list[str]:
         return []
     obstacles = {m: {**per, "(all)": _sum_over_datasets(per)} for m, per in obstacles.items()}
     pairs += sorted({("(all)", c) for _, c in pairs}, key=lambda dc: _class_order(dc[1]))
-    dw = max(len("dataset"), *(len(d) for d, _ in pairs))
+    dw = max(len(group), *(len(d) for d, _ in pairs))
     cw = max(len("class"), *(len(c) for _, c in pairs))
     lines = ["", f"obstacles painted drivable: share of their pixels >= {OBSTACLE_MARGIN} px inside the label "
                  f"(frames with >= {OBSTACLE_HIT_PX} such pixels green / frames with such pixels); "
                  "thinner parts are not counted (last column: inner / labelled pixels)",
-             f"{'dataset':{dw}s} {'class':{cw}s} " + " ".join(f"{m[:16]:>16s}" for m in modes)
+             f"{group:{dw}s} {'class':{cw}s} " + " ".join(f"{m[:16]:>16s}" for m in modes)
              + f" {'inner / labelled':>20s}"]
     for d, c in pairs:
         cells, cover = [], ""
@@ -674,8 +674,10 @@ def cross_validate(
         "mean": {...same keys...}, "mean_of_datasets": {...}, "min_precision", "skipped",
         "synthetic": {"checked": True, "target", "floors": {kind: IoU}, "precision", "fit": how
         many combinations meet them, "in_sample": {kind: {"iou", "precision"}} of the in-sample
-        choice} or {"checked": False}}``; means are over images (each image weighs the same)
-        and over datasets.
+        choice} or {"checked": False}, "obstacles": {"cross-validated": ..., "in-sample": ...}}``
+        (:func:`obstacle_totals` of each frame's mask under its fold's choice and under the
+        in-sample one: the obstacles painted drivable; they do not enter the choice); means are
+        over images (each image weighs the same) and over datasets.
     """
     import itertools
 
@@ -686,11 +688,16 @@ def cross_validate(
     grid = _checked_grid(grid or CV_GRID, RoadParams, min_precision, what="cross-validation grid")
     items = load_manifest(folder)
     frames, skipped = [], []
+    inners = []   # per frame, class -> (labelled pixels, inner pixels): the obstacles painted drivable
     for item in items:
         try:
-            frames.append((item, _load(item.image), *truth_at_frame(item)))
+            rgb = _load(item.image)
+            road, valid, classes = labels_at_frame(item)
         except ScmrError as exc:
             skipped.append({"image": item.image.name, "error": str(exc)})
+            continue
+        frames.append((item, rgb, road, valid))
+        inners.append({c: (int(np.count_nonzero(m & valid)), obstacle_inner(m, valid)) for c, m in classes.items()})
     if not frames:
         raise InputError(f"{folder}: none of the {len(items)} manifest item(s) could be read")
     datasets = np.array([f[0].dataset for f in frames])
@@ -710,6 +717,7 @@ def cross_validate(
                          f"so no choice could ship; add --no-synthetic-floors to cross-validate without them")
     metrics = ("iou", "precision", "recall")
     scores = {m: np.zeros((len(combos), len(frames))) for m in metrics}
+    green = [{c: np.zeros(len(combos), np.int64) for c in inn} for inn in inners]   # per frame and class
     for fi, (item, rgb, road, valid) in enumerate(frames):
         if progress:
             progress(fi, len(frames), item.image.name)
@@ -717,6 +725,8 @@ def cross_validate(
             s = score(mask, road, valid)
             for m in metrics:
                 scores[m][ci, fi] = s[m]
+            for c, (_n, inner) in inners[fi].items():
+                green[fi][c][ci] = np.count_nonzero(inner & (mask != 0))
     if progress:
         progress(len(frames), len(frames), "")
     half = np.array([score(bottom_half_mask(), road, valid)["iou"] for _i, _r, road, valid in frames])
@@ -727,9 +737,11 @@ def cross_validate(
     best_all = choose(np.ones(len(frames), bool))
     cv = {m: np.zeros(len(frames)) for m in metrics}
     per = {}
+    chosen = np.full(len(frames), best_all)   # each frame's fold's choice
     for d in names:
         held = datasets == d
         ci = choose(~held)
+        chosen[held] = ci
         for m in metrics:
             cv[m][held] = scores[m][ci, held]
         per[d] = {
@@ -739,6 +751,11 @@ def cross_validate(
             **{f"in_sample_{m}": float(scores[m][best_all, held].mean()) for m in metrics},
             "bottom_half_iou": float(half[held].mean()),
         }
+    def obstacle_rows(pick: np.ndarray) -> list[dict]:
+        return [{"dataset": str(datasets[fi]),
+                 "obstacles": {c: [n, int(np.count_nonzero(inner)), int(green[fi][c][pick[fi]])]
+                               for c, (n, inner) in inners[fi].items()}} for fi in range(len(frames))]
+
     keys_out = [f"cv_{m}" for m in metrics] + [f"in_sample_{m}" for m in metrics] + ["bottom_half_iou"]
     mean = {**{f"cv_{m}": float(cv[m].mean()) for m in metrics},
             **{f"in_sample_{m}": float(scores[m][best_all].mean()) for m in metrics},
@@ -751,6 +768,9 @@ def cross_validate(
         "per_dataset": per,
         "mean": mean,
         "mean_of_datasets": {k: float(np.mean([per[d][k] for d in names])) for k in keys_out},
+        # the obstacles painted drivable under each frame's fold's choice and under the in-sample one
+        "obstacles": {"cross-validated": obstacle_totals(obstacle_rows(chosen)),
+                      "in-sample": obstacle_totals(obstacle_rows(np.full(len(frames), best_all)))},
         "skipped": skipped,
         "synthetic": {"checked": False} if syn is None else {
             "checked": True,
@@ -793,6 +813,7 @@ def format_cv_table(result: dict) -> str:
     else:
         lines.append("  (the synthetic scenes' floors not checked: --no-synthetic-floors)")
     lines.append(f"in-sample constants (chosen on all images, {result['combinations']} combinations): {chosen}")
+    lines.extend(format_obstacles(result.get("obstacles", {})))
     return "\n".join(lines)
 
 
@@ -886,7 +907,12 @@ def cross_validate_sequences(
         ``{"grid", "combinations", "min_precision", "fps", "sequences": {name: {"n", "frames",
         "gaps_s", "per_frame": {iou, precision, recall}, "carried": {...}, "params",
         "carried_status": {status: count}, "images": [...]}}, "mean": {"per_frame", "carried"},
-        "mean_of_sequences": {...}, "in_sample": {"params", "mean_iou"}, "skipped"}``.
+        "mean_of_sequences": {...}, "in_sample": {"params", "mean_iou"}, "skipped", "obstacles":
+        {"per-frame": ..., "carried (CV)": ...}}`` (``obstacles``: :func:`obstacle_totals` per
+        sequence, the carried model under each sequence's fold's choice; with ``occlude`` the
+        pasted box is the class ``"occluder"`` and hides the classes under it; each image row
+        carries its own as ``"per_frame_obstacles"`` and ``"carried_obstacles"``, ``{class:
+        [labelled, inner, green]}``).
     """
     import itertools
 
@@ -915,37 +941,56 @@ def cross_validate_sequences(
     done = 0
     for name, frames in seqs.items():
         work, names, times = [], [], []
+        inner: list[dict] = []   # per frame, class -> (labelled pixels, inner pixels)
         for t, item in frames:
             if progress:
                 progress(done, total, item.image.name)
             done += 1
             try:
                 rgb = _load(item.image)
-                road, valid = truth_at_frame(item)
+                road, valid, classes = labels_at_frame(item)
             except ScmrError as exc:
                 skipped.append({"image": item.image.name, "error": str(exc)})
                 continue
             if occlude and (len(work) + 1) % occlude == 0:
                 rgb, road = occluder(rgb, road)
+                box = np.zeros(road.shape, bool)
+                box[OCCLUDER[0], OCCLUDER[1]] = True
+                # what the box hides is not seen; the box itself is the obstacle ahead
+                classes = {**{c: m & ~box for c, m in classes.items()}, "occluder": box}
             work.append((*working_frame(rgb, params), road, valid))
+            inner.append({c: (int(np.count_nonzero(m & valid)), obstacle_inner(m, valid)) for c, m in classes.items()})
             names.append(item.image.name)
             times.append(t)
         if len(work) < 2:
             continue
-        per_frame = np.array([[score(best_mask_from(s, g, params)[0], r, v)[m] for m in metrics]
-                              for s, g, r, v in work])
+
+        def green(mask: np.ndarray, fi: int) -> dict[str, list[int]]:   # obstacle_totals' row entries
+            return {c: [n, int(np.count_nonzero(i)), int(np.count_nonzero(i & (mask != 0)))]
+                    for c, (n, i) in inner[fi].items()}
+
+        per_frame, pf_obstacles = [], []
+        for fi, (s, g, r, v) in enumerate(work):
+            mask = best_mask_from(s, g, params)[0]
+            sc = score(mask, r, v)
+            per_frame.append([sc[m] for m in metrics])
+            pf_obstacles.append(green(mask, fi))
+        per_frame = np.array(per_frame)
         carried = np.zeros((len(combos), len(work), len(metrics)))
-        status = []
+        status, cv_obstacles = [], []
         for ci, tp in enumerate(tparams):
             track = RoadTrack()
-            st = []
+            st, ob = [], []
             for fi, ((s, g, r, v), t) in enumerate(zip(work, times)):
                 mask, _c, _a, how = best_mask_from(s, g, params, track=track, track_params=tp, t=t)
                 sc = score(mask, r, v)
                 carried[ci, fi] = [sc[m] for m in metrics]
                 st.append(how)
+                ob.append(green(mask, fi))
             status.append(st)
-        runs[name] = {"names": names, "times": times, "per_frame": per_frame, "carried": carried, "status": status}
+            cv_obstacles.append(ob)
+        runs[name] = {"names": names, "times": times, "per_frame": per_frame, "carried": carried, "status": status,
+                      "obstacles": (pf_obstacles, cv_obstacles)}
     if progress:
         progress(total, total, "")
     if len(runs) < 2:
@@ -960,8 +1005,12 @@ def cross_validate_sequences(
         return {m: float(a[:, i].mean()) for i, m in enumerate(metrics)}
 
     out_seq, all_pf, all_cv = {}, [], []
+    ob_rows: dict[str, list[dict]] = {"per-frame": [], "carried (CV)": []}
     for name, run in runs.items():
         ci = choose([n for n in runs if n != name])
+        pf_ob, cv_ob = run["obstacles"]
+        ob_rows["per-frame"] += [{"dataset": name, "obstacles": o} for o in pf_ob]
+        ob_rows["carried (CV)"] += [{"dataset": name, "obstacles": o} for o in cv_ob[ci]]
         counts: dict[str, int] = {}
         for how in run["status"][ci]:
             counts[how] = counts.get(how, 0) + 1
@@ -976,7 +1025,8 @@ def cross_validate_sequences(
             "carried_status": counts,
             "images": [{"image": n, "t_s": run["times"][fi], "carried_status": run["status"][ci][fi],
                         **{f"per_frame_{m}": float(run["per_frame"][fi, i]) for i, m in enumerate(metrics)},
-                        **{f"carried_{m}": float(run["carried"][ci, fi, i]) for i, m in enumerate(metrics)}}
+                        **{f"carried_{m}": float(run["carried"][ci, fi, i]) for i, m in enumerate(metrics)},
+                        "per_frame_obstacles": pf_ob[fi], "carried_obstacles": cv_ob[ci][fi]}
                        for fi, n in enumerate(run["names"])],
         }
         all_pf.append(run["per_frame"])
@@ -995,6 +1045,8 @@ def cross_validate_sequences(
                               for k in ("per_frame", "carried")},
         "in_sample": {"params": combos[best_all],
                       "mean_iou": float(np.concatenate([runs[n]["carried"][best_all, :, 0] for n in runs]).mean())},
+        # per sequence and class, the obstacles painted drivable (they do not enter the choice)
+        "obstacles": {k: obstacle_totals(r) for k, r in ob_rows.items()},
         "skipped": skipped,
     }
 
@@ -1025,4 +1077,5 @@ def format_sequences_table(result: dict) -> str:
     lines.append(f"operating point: the highest IoU among combinations with mean precision >= "
                  f"{result['min_precision']:.2f} on the training sequences; in-sample choice "
                  f"({result['combinations']} combinations): {chosen}")
+    lines.extend(format_obstacles(result.get("obstacles", {}), group="sequence"))
     return "\n".join(lines)
