@@ -74,7 +74,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "and recall per sequence for both (about 20 s on the shared images, 2 cores)")
     p.add_argument("--occlude", type=ca.Number(lo=0, hi=1000, integer=True, what="frame period", example="3"), default=0,
                    metavar="K", help="with --sequences, a stress test: paste a box over the bottom-centre cell of every "
-                                     "K-th frame of each drive (image and truth; the seed is then not road); 0 = off")
+                                     "K-th frame of each drive (image and truth; the seed is then not road; the obstacle table counts "
+                                     "the box as the class 'occluder'); 0 = off")
     p.add_argument("--min-precision", type=ca.Number(lo=0, hi=1, what="precision", example="0.88"), default=None, metavar="P",
                    help="with --cv or --sequences, the operating point: choose the best IoU among the combinations "
                         "whose mean precision on the training images is at least P (default 0.88; 0 = IoU alone)")
