@@ -250,6 +250,23 @@ def obstacle_inner(obstacle: np.ndarray, valid: np.ndarray | None = None) -> np.
     return inner
 
 
+def obstacle_classes(classes: dict[str, np.ndarray], valid: np.ndarray) -> dict[str, tuple[int, int, np.ndarray]]:
+    """Per obstacle class of a frame: its labelled (valid) pixels, its inner pixels and their mask
+    (:func:`obstacle_inner`), made once per frame for every mask scored on it."""
+    out = {}
+    for c, m in classes.items():
+        inner = obstacle_inner(m, valid)
+        out[c] = (int(np.count_nonzero(m & valid)), int(np.count_nonzero(inner)), inner)
+    return out
+
+
+def obstacle_row(classes: dict[str, tuple[int, int, np.ndarray]], pred: np.ndarray) -> dict[str, list[int]]:
+    """A mask's ``{class: [labelled, inner, green]}`` (the row entries :func:`obstacle_totals` sums)
+    over a frame's :func:`obstacle_classes`."""
+    green = np.asarray(pred) != 0
+    return {c: [n, ni, int(np.count_nonzero(inner & green))] for c, (n, ni, inner) in classes.items()}
+
+
 def score(pred: np.ndarray, truth: np.ndarray, valid: np.ndarray | None = None) -> dict[str, float]:
     """IoU, F1, precision and recall of a predicted mask over the valid pixels.
 
@@ -338,14 +355,11 @@ def evaluate(
             skipped.append({"image": item.image.name, "error": str(exc)})
             continue
 
-        # per class: labelled pixels, and the inner ones (the erosion once, not once per mask)
-        inner = {c: (int(np.count_nonzero(m & valid)), obstacle_inner(m, valid)) for c, m in classes.items()}
+        inner = obstacle_classes(classes, valid)   # the erosion once, not once per mask
 
         def row(pred: np.ndarray) -> dict:
-            green = pred != 0
             return {"image": item.image.name, "dataset": item.dataset, **score(pred, road, valid),
-                    "obstacles": {c: [n, int(np.count_nonzero(i)), int(np.count_nonzero(i & green))]
-                                  for c, (n, i) in inner.items()}}
+                    "obstacles": obstacle_row(inner, pred)}
 
         rows.append(row(segment_drivable(rgb, mode=mode).mask))
         for o in others:
@@ -688,7 +702,7 @@ def cross_validate(
     grid = _checked_grid(grid or CV_GRID, RoadParams, min_precision, what="cross-validation grid")
     items = load_manifest(folder)
     frames, skipped = [], []
-    inners = []   # per frame, class -> (labelled pixels, inner pixels): the obstacles painted drivable
+    inners = []   # per frame, its obstacle_classes: the obstacles painted drivable
     for item in items:
         try:
             rgb = _load(item.image)
@@ -697,7 +711,7 @@ def cross_validate(
             skipped.append({"image": item.image.name, "error": str(exc)})
             continue
         frames.append((item, rgb, road, valid))
-        inners.append({c: (int(np.count_nonzero(m & valid)), obstacle_inner(m, valid)) for c, m in classes.items()})
+        inners.append(obstacle_classes(classes, valid))
     if not frames:
         raise InputError(f"{folder}: none of the {len(items)} manifest item(s) could be read")
     datasets = np.array([f[0].dataset for f in frames])
@@ -725,8 +739,8 @@ def cross_validate(
             s = score(mask, road, valid)
             for m in metrics:
                 scores[m][ci, fi] = s[m]
-            for c, (_n, inner) in inners[fi].items():
-                green[fi][c][ci] = np.count_nonzero(inner & (mask != 0))
+            for c, g in obstacle_row(inners[fi], mask).items():
+                green[fi][c][ci] = g[2]
     if progress:
         progress(len(frames), len(frames), "")
     half = np.array([score(bottom_half_mask(), road, valid)["iou"] for _i, _r, road, valid in frames])
@@ -753,8 +767,8 @@ def cross_validate(
         }
     def obstacle_rows(pick: np.ndarray) -> list[dict]:
         return [{"dataset": str(datasets[fi]),
-                 "obstacles": {c: [n, int(np.count_nonzero(inner)), int(green[fi][c][pick[fi]])]
-                               for c, (n, inner) in inners[fi].items()}} for fi in range(len(frames))]
+                 "obstacles": {c: [n, ni, int(green[fi][c][pick[fi]])] for c, (n, ni, _i) in inners[fi].items()}}
+                for fi in range(len(frames))]
 
     keys_out = [f"cv_{m}" for m in metrics] + [f"in_sample_{m}" for m in metrics] + ["bottom_half_iou"]
     mean = {**{f"cv_{m}": float(cv[m].mean()) for m in metrics},
@@ -872,6 +886,13 @@ def sequences(items: list[Item], raw: list[dict] | None = None) -> dict[str, lis
 OCCLUDER = (slice(150, 225), slice(95, 205), (150, 40, 40))
 
 
+def occluder_box(shape: tuple) -> np.ndarray:
+    """Where :func:`occluder` pastes :data:`OCCLUDER` in a frame of ``shape`` (h, w): a bool mask."""
+    box = np.zeros(shape[:2], bool)
+    box[OCCLUDER[0], OCCLUDER[1]] = True
+    return box
+
+
 def occluder(rgb: np.ndarray, road: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A 300x225 frame and its truth with :data:`OCCLUDER` pasted over the bottom-centre cell (copies)."""
     rows, cols, colour = OCCLUDER
@@ -941,7 +962,7 @@ def cross_validate_sequences(
     done = 0
     for name, frames in seqs.items():
         work, names, times = [], [], []
-        inner: list[dict] = []   # per frame, class -> (labelled pixels, inner pixels)
+        inner: list[dict] = []   # per frame, its obstacle_classes
         for t, item in frames:
             if progress:
                 progress(done, total, item.image.name)
@@ -954,27 +975,22 @@ def cross_validate_sequences(
                 continue
             if occlude and (len(work) + 1) % occlude == 0:
                 rgb, road = occluder(rgb, road)
-                box = np.zeros(road.shape, bool)
-                box[OCCLUDER[0], OCCLUDER[1]] = True
+                box = occluder_box(road.shape)
                 # what the box hides is not seen; the box itself is the obstacle ahead
                 classes = {**{c: m & ~box for c, m in classes.items()}, "occluder": box}
             work.append((*working_frame(rgb, params), road, valid))
-            inner.append({c: (int(np.count_nonzero(m & valid)), obstacle_inner(m, valid)) for c, m in classes.items()})
+            inner.append(obstacle_classes(classes, valid))
             names.append(item.image.name)
             times.append(t)
         if len(work) < 2:
             continue
-
-        def green(mask: np.ndarray, fi: int) -> dict[str, list[int]]:   # obstacle_totals' row entries
-            return {c: [n, int(np.count_nonzero(i)), int(np.count_nonzero(i & (mask != 0)))]
-                    for c, (n, i) in inner[fi].items()}
 
         per_frame, pf_obstacles = [], []
         for fi, (s, g, r, v) in enumerate(work):
             mask = best_mask_from(s, g, params)[0]
             sc = score(mask, r, v)
             per_frame.append([sc[m] for m in metrics])
-            pf_obstacles.append(green(mask, fi))
+            pf_obstacles.append(obstacle_row(inner[fi], mask))
         per_frame = np.array(per_frame)
         carried = np.zeros((len(combos), len(work), len(metrics)))
         status, cv_obstacles = [], []
@@ -986,7 +1002,7 @@ def cross_validate_sequences(
                 sc = score(mask, r, v)
                 carried[ci, fi] = [sc[m] for m in metrics]
                 st.append(how)
-                ob.append(green(mask, fi))
+                ob.append(obstacle_row(inner[fi], mask))
             status.append(st)
             cv_obstacles.append(ob)
         runs[name] = {"names": names, "times": times, "per_frame": per_frame, "carried": carried, "status": status,
