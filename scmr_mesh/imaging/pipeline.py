@@ -31,7 +31,15 @@ import numpy as np
 
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging.codec import FRAME_SHAPE, area_resize, as_rgb, resize_frame
-from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, abstain, classify, tone_curve
+from scmr_mesh.imaging.road_model import (
+    WORK_SHAPE,
+    RoadParams,
+    abstain,
+    classify,
+    cut_at_boundaries,
+    straight_edges,
+    tone_curve,
+)
 from scmr_mesh.imaging.srm import srm
 from scmr_mesh.imaging.steps import (
     bottom_centre,
@@ -279,16 +287,18 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
 #: :class:`RoadParams` fields read only after :func:`classify` (by :func:`_best_mask` and :func:`abstain`):
 #: :func:`best_masks` classifies once for all params that differ only in these.  A new field is
 #: left out of this list, so it keys the classification (slower, never wrong).
-AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap")
+AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap", "boundary")
 
 
 def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
-               classified: tuple[np.ndarray, dict] | None = None):
+               classified: tuple[np.ndarray, dict] | None = None, edges: dict | None = None):
     """The road model on SRM regions of the working frame.
 
     Returns mask (225, 300), confidence, abstained, the clock after classify, and ``carried``
     (None without ``carry = (track, track_params, t)``).  ``classified``: :func:`classify`'s
     result for these params, shared between calls (copied here, never changed), else computed.
+    ``edges``: a cache of this frame's :func:`~scmr_mesh.imaging.road_model.straight_edges` by
+    ``boundary``, shared between calls (filled here).
     """
     def opening(candidate: np.ndarray) -> np.ndarray:
         if params.opening > 1:
@@ -311,6 +321,13 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
         candidate, confidence, abstained, carried = tracked_candidate(small, seg, params, track, tparams, t, opening,
                                                                       flags)
         lowest = flags["open_ground"]
+    if params.boundary > 0:
+        lines = None
+        if edges is not None:
+            lines = edges.get(params.boundary)
+            if lines is None:
+                lines = edges[params.boundary] = straight_edges(small, params.boundary)
+        candidate = cut_at_boundaries(candidate, small, params.boundary, lines)[0]
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = column_fill(candidate, gap, lowest)
@@ -354,6 +371,7 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
     small = area_resize(frame, ww, wh)
     segs: dict = {}
     classified: dict = {}
+    edges: dict = {}
     for params in params_list:
         params = params.check()
         key = (srm_q("best", q, params), params.gamma)
@@ -363,7 +381,8 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
                                                     for f in AFTER_CLASSIFY}))
         if ckey not in classified:
             classified[ckey] = classify(small, segs[key], params)
-        mask, confidence, abstained, _t, _c = _best_mask(small, segs[key], params, classified=classified[ckey])
+        mask, confidence, abstained, _t, _c = _best_mask(small, segs[key], params, classified=classified[ckey],
+                                                         edges=edges)
         yield mask, confidence, abstained
 
 

@@ -119,6 +119,11 @@ class RoadParams:
         magnitude is at most ``weak`` x the seed pixels' median, when its chromaticity is a
         seed's, or, beside a seed below ``sunlit``, the seed's under more sun or shade (a
         shadow's edge, a change of texture or a faint seam in one surface; 0 = off).
+    boundary : float
+        Cut the candidate along the road's boundaries (see :func:`cut_at_boundaries`): a straight
+        edge at least this share of the height long, running up the frame through the candidate
+        between two surfaces of different material (a kerb, a verge's edge line, a wall's foot);
+        only the robot's side stays (0 = off).
     """
 
     gamma: float = 1.0
@@ -139,6 +144,7 @@ class RoadParams:
     front: float = 0.97
     lateral: float = 0.25
     weak: float = 6.0
+    boundary: float = 0.3
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -176,6 +182,8 @@ class RoadParams:
         if not (0 <= self.weak and math.isfinite(self.weak)):
             raise InputError(f"weak must be a finite multiple of the seed's median edge strength >= 0 "
                              f"(0 = off), got {self.weak}")
+        if not 0 <= self.boundary < 1:
+            raise InputError(f"boundary must be a share of the height in [0, 1) (0 = off), got {self.boundary}")
         return self
 
     def as_dict(self) -> dict:
@@ -710,3 +718,162 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
         keep[0] = 0
         sure[row:] = np.take(keep, comp)
     return sure, confidence, reason
+
+
+#: :func:`cut_at_boundaries`' fixed geometry (chosen on the synthetic scenes and the edges of a few
+#: shared frames by eye in the prototype of 2026-11-29, not by the cross-validation, which chooses
+#: only ``boundary``; docs/ACCURACY.md): Canny's hysteresis thresholds on the grey working frame ...
+BOUNDARY_CANNY = (30, 60)
+#: ... a straight edge's angle from the horizontal, in degrees (a road's edge seen in perspective
+#: runs up the frame; a shadow's far edge or a car's bottom runs across it, a pole or a trunk
+#: stands upright) ...
+BOUNDARY_ANGLES = (15.0, 75.0)
+#: ... the longest gap (working pixels) inside one straight edge ...
+BOUNDARY_GAP = 2
+#: ... the share of the edge's pixels within 2 px of the candidate (the edge runs through it) ...
+BOUNDARY_INSIDE = 0.8
+#: ... the distances (working pixels) of the strips sampled on each side of the edge ...
+BOUNDARY_SIDES = (2, 3, 4, 5, 6)
+#: ... at least this many candidate pixels in each side's strips ...
+BOUNDARY_MIN_SIDE = 10
+#: ... the two sides' mean chromaticities (R, G, B over their sum) at least this far apart (L1):
+#: two materials, not the asphalt on both sides of a painted lane line ...
+BOUNDARY_CHROMA = 0.02
+#: ... and their mean features (log R/G, log B/G, log brightness) at least this far apart once
+#: the move along :data:`SHADE_DIRECTION` is taken out (a shadow's edge up the frame moves them
+#: along it: one surface in sun and shade) ...
+BOUNDARY_MATERIAL = 0.015
+#: ... and one edge never cuts more than this share of the candidate (the robot's side is the
+#: larger: a boundary bounds the road, it does not halve it).
+BOUNDARY_MAX_CUT = 0.5
+
+
+def _side_features(pixels: np.ndarray) -> np.ndarray:
+    """Mean ``log R/G``, ``log B/G`` and log brightness of (n, 3) RGB pixels (the road model's features)."""
+    f = np.log(pixels + FEATURE_OFFSET)
+    return np.array([(f[:, 0] - f[:, 1]).mean(), (f[:, 2] - f[:, 1]).mean(),
+                     np.log(pixels.sum(axis=1) / 3.0 + FEATURE_OFFSET).mean()])
+
+
+def straight_edges(small: np.ndarray, length: float) -> np.ndarray:
+    """The straight edges of a working frame, (n, 4) int ``x1, y1, x2, y2`` (working pixels).
+
+    Canny (:data:`BOUNDARY_CANNY`) on the grey frame, then OpenCV's probabilistic Hough transform
+    (fixed seed: the same frame gives the same edges): at least ``length`` of the height along x
+    or y, gaps up to :data:`BOUNDARY_GAP`.  They depend on the frame alone, so a caller scoring
+    many constants on one frame computes them once (:func:`~scmr_mesh.imaging.pipeline.best_masks`).
+    """
+    h = small.shape[0]
+    grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
+    edges = cv2.Canny(grey, *BOUNDARY_CANNY)
+    lines = cv2.HoughLinesP(edges, 1, np.pi / 180, threshold=int(length * h * 0.6),
+                            minLineLength=int(length * h), maxLineGap=BOUNDARY_GAP)
+    return np.zeros((0, 4), int) if lines is None else lines.reshape(-1, 4).astype(int)
+
+
+def boundary_lines(candidate: np.ndarray, small: np.ndarray, length: float,
+                   edges: np.ndarray | None = None) -> list[dict]:
+    """The straight edges :func:`cut_at_boundaries` may cut along, before the cut-size test.
+
+    Returns, per edge of :func:`straight_edges` (``edges``, computed when not given) whose angle
+    lies in :data:`BOUNDARY_ANGLES` and which runs through the candidate
+    (:data:`BOUNDARY_INSIDE`), a dict: ``line`` (x1, y1, x2, y2), ``chroma`` (the L1 distance of
+    the two sides' mean chromaticities), ``material`` (the distance of their mean features with
+    the shade move taken out) and ``boundary`` (both at least their floors).
+    """
+    h, w = candidate.shape
+    if edges is None:
+        edges = straight_edges(small, length)
+    if not len(edges):
+        return []
+    near = cv2.dilate(candidate, np.ones((5, 5), np.uint8)) > 0
+    shade = SHADE_DIRECTION[:3] / np.linalg.norm(SHADE_DIRECTION[:3])
+    out = []
+    for x1, y1, x2, y2 in edges:
+        angle = math.degrees(math.atan2(abs(y2 - y1), abs(x2 - x1)))
+        if not BOUNDARY_ANGLES[0] <= angle <= BOUNDARY_ANGLES[1]:
+            continue
+        n = max(abs(x2 - x1), abs(y2 - y1)) + 1
+        px = np.rint(np.linspace(x1, x2, n)).astype(int)
+        py = np.rint(np.linspace(y1, y2, n)).astype(int)
+        if near[py, px].mean() < BOUNDARY_INSIDE:
+            continue
+        nx, ny = -(y2 - y1), x2 - x1
+        norm = math.hypot(nx, ny)
+        nx, ny = nx / norm, ny / norm
+        sides = []
+        for sign in (1, -1):
+            vals = []
+            for d in BOUNDARY_SIDES:
+                qx = np.rint(px + sign * d * nx).astype(int)
+                qy = np.rint(py + sign * d * ny).astype(int)
+                ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
+                qx, qy = qx[ok], qy[ok]
+                ok = candidate[qy, qx] > 0
+                vals.append(small[qy[ok], qx[ok]].astype(np.float64))
+            sides.append(np.concatenate(vals))
+        if min(len(sides[0]), len(sides[1])) < BOUNDARY_MIN_SIDE:
+            continue
+        c0, c1 = sides[0].mean(axis=0), sides[1].mean(axis=0)
+        chroma = float(np.abs(c0 / max(c0.sum(), 1e-9) - c1 / max(c1.sum(), 1e-9)).sum())
+        dv = _side_features(sides[0]) - _side_features(sides[1])
+        material = float(np.linalg.norm(dv - dv.dot(shade) * shade))
+        out.append({"line": (int(x1), int(y1), int(x2), int(y2)), "chroma": chroma, "material": material,
+                    "boundary": chroma >= BOUNDARY_CHROMA and material >= BOUNDARY_MATERIAL})
+    return out
+
+
+_GRIDS: dict = {}
+
+
+def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
+                      edges: np.ndarray | None = None) -> tuple[np.ndarray, list[tuple]]:
+    """Cut the candidate along the road's boundaries; keep the robot's side.
+
+    Two surfaces of much the same colour, the asphalt and a pavement, a verge or a tunnel's wall,
+    can pass one road model (one SRM region, or regions joined), and the column fill then paints
+    the pavement green up to the buildings.  Between them runs a long straight edge up the frame
+    in perspective: a kerb, a painted edge line, a wall's foot.  Each edge of
+    :func:`boundary_lines` with two different materials on its sides (``boundary``) cuts the
+    candidate: what lies on the far side of its line (extended across the frame) from the
+    bottom-centre pixel, the robot, is dropped, unless that is more than :data:`BOUNDARY_MAX_CUT`
+    of the candidate.  A painted lane line has asphalt on both sides and a shadow's edge one
+    surface in sun and shade, so neither cuts.  After a cut only the pieces touching the
+    bottom-centre cell (the bottom quarter of the height, the middle quarter of the width) stay.
+
+    ``edges``: :func:`straight_edges` of ``small`` for ``length``, computed when not given.
+    Returns the candidate (uint8, 0/1; the input unchanged when nothing was cut) and the lines cut along.
+    """
+    h, w = candidate.shape
+    if length <= 0 or not candidate.any():
+        return candidate, []
+    grid = _GRIDS.get((h, w))
+    if grid is None:
+        grid = _GRIDS[(h, w)] = np.mgrid[0:h, 0:w]
+    yy, xx = grid
+    sx, sy = w / 2.0, h - 1.0
+    out = candidate.copy()
+    total = int(np.count_nonzero(candidate))
+    used = []
+    for found in boundary_lines(candidate, small, length, edges):
+        if not found["boundary"]:
+            continue
+        x1, y1, x2, y2 = found["line"]
+        s0 = (x2 - x1) * (sy - y1) - (y2 - y1) * (sx - x1)
+        if s0 == 0:
+            continue
+        cross = (x2 - x1) * (yy - y1) - (y2 - y1) * (xx - x1)
+        far = (np.sign(cross) != np.sign(s0)) & (out > 0)
+        n_far = int(np.count_nonzero(far))
+        if n_far == 0 or n_far > BOUNDARY_MAX_CUT * total:
+            continue
+        out[far] = 0
+        used.append(found["line"])
+    if not used:
+        return candidate, []
+    n, comp = cv2.connectedComponents(out.astype(np.uint8), connectivity=4)
+    cell = comp[int(0.75 * h):, int(w / 2 - w / 8):int(w / 2 + w / 8)]
+    keep = np.zeros(n, np.uint8)
+    keep[np.unique(cell)] = 1
+    keep[0] = 0
+    return np.take(keep, comp), used
