@@ -763,6 +763,14 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     in-sample choice is now ``weak`` 6.  Precision over images falls 0.887 -> 0.8846 (CamVid's
     IoU loses 0.008, its precision 0.007), so its floor here was lowered from 0.885 to 0.88 (the operating point's own
     floor on the training images).  The code before fails the campus's and the datasets' floors.
+
+    Issue 27 (2026-11-29: the cut along the road's boundaries, ``boundary`` 0 / 0.3 in the grid):
+    a straight edge up the frame between two materials (a kerb, a verge's edge line, a wall's
+    foot) cuts the candidate.  CamVid 0.828 -> 0.846 (precision 0.883 -> 0.909), KITTI road
+    0.618 -> 0.638; over images 0.807 -> 0.829, over datasets 0.765 -> 0.786, precision 0.885 ->
+    0.901.  Every fold now chooses the in-sample constants (56 of the 768 combinations meet the
+    synthetic floors, so each fold had a choice), so the cross-validated figures equal the
+    in-sample ones.  The code before fails CamVid's and the datasets' floors.
     """
     import json
 
@@ -773,19 +781,18 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert sum(r["n"] for r in res["per_dataset"].values()) == len(items) >= 60
     chosen = res["in_sample"]["params"]
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
-    assert res["mean"]["in_sample_iou"] >= 0.81
-    assert res["mean"]["cv_iou"] >= 0.80
-    assert res["mean_of_datasets"]["cv_iou"] >= 0.76
+    assert res["mean"]["in_sample_iou"] >= 0.825
+    assert res["mean"]["cv_iou"] >= 0.825
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.78   # 0.765 before the cut along the boundaries
+    assert res["per_dataset"]["camvid"]["cv_iou"] >= 0.84   # 0.828 before it
     assert res["per_dataset"]["umich_campus_sidewalk"]["cv_iou"] >= 0.78   # 0.737 with the symmetric shade term
-    # the folds do not all have the in-sample constants left to choose
-    assert len({tuple(sorted(r["cv_params"].items())) for r in res["per_dataset"].values()}) >= 2
     assert res["per_dataset"]["orfd"]["cv_precision"] >= 0.85
-    assert res["mean"]["in_sample_precision"] >= 0.88
-    assert res["mean"]["cv_precision"] >= 0.88
+    assert res["mean"]["in_sample_precision"] >= 0.895
+    assert res["mean"]["cv_precision"] >= 0.895
     assert res["min_precision"] == 0.88
     # every choice meets the synthetic scenes' floors, the shipped defaults' among them
     syn = res["synthetic"]
-    assert syn["checked"] and 0 < syn["fit"] < res["combinations"]
+    assert syn["checked"] and 2 <= syn["fit"] < res["combinations"]   # the folds choose among several
     choices = [RoadParams(**chosen)] + [RoadParams(**r["cv_params"]) for r in res["per_dataset"].values()]
     assert synthetic_scores(choices)["fits"].all()
     for d, r in res["per_dataset"].items():

@@ -620,3 +620,140 @@ def area_half_kernel(src, ptr, idx, w, out):
             _down_term(acc, w[j], buf, j == ptr[d])
         _round_row(acc, out[d])
     return out
+
+
+@njit(cache=True, nogil=True)
+def boundary_sides_kernel(lines, candidate, small, sides, offset):
+    """Per straight edge ``x1, y1, x2, y2`` of ``lines`` (n, 4) int64: what :func:`boundary_lines` tests.
+
+    The edge's pixels are ``rint`` of ``n = max(|dx|, |dy|) + 1`` points evenly spaced from one
+    end to the other (numpy's ``linspace``).  Returns (n, 9) float64: the share of those pixels
+    with a candidate pixel in their 5x5 neighbourhood (column 0); then for each side (the unit
+    normal ``(-(y2 - y1), x2 - x1) / norm``, then its opposite; columns 1-4 and 5-8) the count of
+    candidate pixels at the distances ``sides`` (float64) along it and their mean ``log R/G``,
+    ``log B/G`` and log brightness (``log(v + offset)``, brightness ``log((R + G + B) / 3 +
+    offset)``); columns 9-11 and 12-14 the two sides' mean R, G, B.  A side with no pixels has
+    means 0.  Returns (n, 15) float64.
+    """
+    n_lines = lines.shape[0]
+    h, w = candidate.shape
+    out = np.zeros((n_lines, 15), np.float64)
+    for li in range(n_lines):
+        x1 = lines[li, 0]
+        y1 = lines[li, 1]
+        x2 = lines[li, 2]
+        y2 = lines[li, 3]
+        n = max(abs(x2 - x1), abs(y2 - y1)) + 1
+        if n < 2:
+            continue
+        stepx = (x2 - x1) / (n - 1)
+        stepy = (y2 - y1) / (n - 1)
+        px = np.empty(n, np.int64)
+        py = np.empty(n, np.int64)
+        inside = 0
+        for i in range(n):
+            if i == n - 1:
+                px[i] = x2
+                py[i] = y2
+            else:
+                px[i] = int(np.rint(i * stepx + x1))
+                py[i] = int(np.rint(i * stepy + y1))
+            hit = False
+            for yy in range(max(py[i] - 2, 0), min(py[i] + 3, h)):
+                for xx in range(max(px[i] - 2, 0), min(px[i] + 3, w)):
+                    if candidate[yy, xx] != 0:
+                        hit = True
+                        break
+                if hit:
+                    break
+            if hit:
+                inside += 1
+        out[li, 0] = inside / n
+        nx = -(y2 - y1)
+        ny = x2 - x1
+        norm = math.sqrt(float(nx * nx + ny * ny))
+        fx = nx / norm
+        fy = ny / norm
+        for k in range(2):
+            sign = 1.0 if k == 0 else -1.0
+            cnt = 0
+            s_rg = 0.0
+            s_bg = 0.0
+            s_l = 0.0
+            s_r = 0.0
+            s_g = 0.0
+            s_b = 0.0
+            for di in range(sides.size):
+                d = sides[di]
+                for i in range(n):
+                    qx = int(np.rint(px[i] + sign * d * fx))
+                    qy = int(np.rint(py[i] + sign * d * fy))
+                    if qx < 0 or qx >= w or qy < 0 or qy >= h or candidate[qy, qx] == 0:
+                        continue
+                    r = float(small[qy, qx, 0])
+                    g = float(small[qy, qx, 1])
+                    b = float(small[qy, qx, 2])
+                    lg = math.log(g + offset)
+                    s_rg += math.log(r + offset) - lg
+                    s_bg += math.log(b + offset) - lg
+                    s_l += math.log((r + g + b) / 3.0 + offset)
+                    s_r += r
+                    s_g += g
+                    s_b += b
+                    cnt += 1
+            c = 1 + 4 * k
+            out[li, c] = cnt
+            if cnt:
+                out[li, c + 1] = s_rg / cnt
+                out[li, c + 2] = s_bg / cnt
+                out[li, c + 3] = s_l / cnt
+                out[li, 9 + 3 * k] = s_r / cnt
+                out[li, 10 + 3 * k] = s_g / cnt
+                out[li, 11 + 3 * k] = s_b / cnt
+    return out
+
+
+@njit(cache=True, nogil=True)
+def boundary_cut_kernel(candidate, lines, max_cut):
+    """Cut ``candidate`` (uint8) along each of ``lines`` (n, 4) int64 in turn: the pixels on the far
+    side of the line through it (or on it) from the bottom-centre pixel ``(w / 2, h - 1)`` go,
+    unless that is none or more than ``max_cut`` of the candidate's pixels.  Returns the cut
+    candidate and (n,) uint8: 1 where the line cut."""
+    h, w = candidate.shape
+    out = candidate.copy()
+    total = 0
+    for y in range(h):
+        for x in range(w):
+            if candidate[y, x] != 0:
+                total += 1
+    used = np.zeros(lines.shape[0], np.uint8)
+    sx = w / 2.0
+    sy = h - 1.0
+    for li in range(lines.shape[0]):
+        x1 = lines[li, 0]
+        y1 = lines[li, 1]
+        x2 = lines[li, 2]
+        y2 = lines[li, 3]
+        s0 = (x2 - x1) * (sy - y1) - (y2 - y1) * (sx - x1)
+        if s0 == 0:
+            continue
+        s0_pos = s0 > 0
+        n_far = 0
+        for y in range(h):
+            for x in range(w):
+                if out[y, x] == 0:
+                    continue
+                cr = (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1)
+                if cr == 0 or (cr > 0) != s0_pos:
+                    n_far += 1
+        if n_far == 0 or n_far > max_cut * total:
+            continue
+        for y in range(h):
+            for x in range(w):
+                if out[y, x] == 0:
+                    continue
+                cr = (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1)
+                if cr == 0 or (cr > 0) != s0_pos:
+                    out[y, x] = 0
+        used[li] = 1
+    return out, used

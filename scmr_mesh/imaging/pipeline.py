@@ -298,7 +298,7 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
     (None without ``carry = (track, track_params, t)``).  ``classified``: :func:`classify`'s
     result for these params, shared between calls (copied here, never changed), else computed.
     ``edges``: a cache of this frame's :func:`~scmr_mesh.imaging.road_model.straight_edges` by
-    ``boundary``, shared between calls (filled here).
+    ``boundary`` and candidate, shared between calls (filled here).
     """
     def opening(candidate: np.ndarray) -> np.ndarray:
         if params.opening > 1:
@@ -323,10 +323,11 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
         lowest = flags["open_ground"]
     if params.boundary > 0:
         lines = None
-        if edges is not None:
-            lines = edges.get(params.boundary)
+        if edges is not None:   # the same candidate under other constants: the same edges
+            key = (params.boundary, candidate.tobytes())
+            lines = edges.get(key)
             if lines is None:
-                lines = edges[params.boundary] = straight_edges(small, params.boundary)
+                lines = edges[key] = straight_edges(small, candidate, params.boundary)
         candidate = cut_at_boundaries(candidate, small, params.boundary, lines)[0]
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
@@ -507,3 +508,12 @@ def warm_up() -> None:
     img[: img.shape[0] // 2] = 200
     for mode in MODES:
         segment_drivable(img, mode=mode)
+    # the boundary cut's kernels: a grey ground whose right part, beyond a diagonal, is brighter and redder
+    # (whether segment_drivable reaches them depends on the frame, so they are called here)
+    wh, ww = WORK_SHAPE
+    small = np.full((wh, ww, 3), 90, np.uint8)
+    yy, xx = np.mgrid[0:wh, 0:ww]
+    small[xx > ww // 2 + 20 + (wh - 1 - yy)] = (200, 150, 120)
+    candidate = np.zeros((wh, ww), np.uint8)
+    candidate[wh // 3:] = 1
+    cut_at_boundaries(candidate, small, DEFAULT_PARAMS.boundary or 0.3)

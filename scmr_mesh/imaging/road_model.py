@@ -723,11 +723,13 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
 #: :func:`cut_at_boundaries`' fixed geometry (chosen on the synthetic scenes and the edges of a few
 #: shared frames by eye in the prototype of 2026-11-29, not by the cross-validation, which chooses
 #: only ``boundary``; docs/ACCURACY.md): Canny's hysteresis thresholds on the grey working frame ...
-BOUNDARY_CANNY = (30, 60)
+BOUNDARY_CANNY = (75, 150)
 #: ... a straight edge's angle from the horizontal, in degrees (a road's edge seen in perspective
 #: runs up the frame; a shadow's far edge or a car's bottom runs across it, a pole or a trunk
 #: stands upright) ...
 BOUNDARY_ANGLES = (15.0, 75.0)
+#: ... the Hough transform's angle step, in degrees ...
+BOUNDARY_THETA = 2.0
 #: ... the longest gap (working pixels) inside one straight edge ...
 BOUNDARY_GAP = 2
 #: ... the share of the edge's pixels within 2 px of the candidate (the edge runs through it) ...
@@ -748,25 +750,23 @@ BOUNDARY_MATERIAL = 0.015
 BOUNDARY_MAX_CUT = 0.5
 
 
-def _side_features(pixels: np.ndarray) -> np.ndarray:
-    """Mean ``log R/G``, ``log B/G`` and log brightness of (n, 3) RGB pixels (the road model's features)."""
-    f = np.log(pixels + FEATURE_OFFSET)
-    return np.array([(f[:, 0] - f[:, 1]).mean(), (f[:, 2] - f[:, 1]).mean(),
-                     np.log(pixels.sum(axis=1) / 3.0 + FEATURE_OFFSET).mean()])
+def straight_edges(small: np.ndarray, candidate: np.ndarray, length: float) -> np.ndarray:
+    """The straight edges of a working frame below the candidate's top, (n, 4) int ``x1, y1, x2, y2``.
 
-
-def straight_edges(small: np.ndarray, length: float) -> np.ndarray:
-    """The straight edges of a working frame, (n, 4) int ``x1, y1, x2, y2`` (working pixels).
-
-    Canny (:data:`BOUNDARY_CANNY`) on the grey frame, then OpenCV's probabilistic Hough transform
-    (fixed seed: the same frame gives the same edges): at least ``length`` of the height along x
-    or y, gaps up to :data:`BOUNDARY_GAP`.  They depend on the frame alone, so a caller scoring
-    many constants on one frame computes them once (:func:`~scmr_mesh.imaging.pipeline.best_masks`).
+    Canny (:data:`BOUNDARY_CANNY`) on the grey frame, its edges from 2 rows above the candidate's
+    top row down (a boundary runs through the candidate; the rows above are up to half the work), then
+    OpenCV's probabilistic Hough transform at :data:`BOUNDARY_THETA` (a fixed seed: the same
+    input gives the same edges): at least ``length`` of the height along x or y, gaps up to
+    :data:`BOUNDARY_GAP`, at least 0.6 x that length of votes.
     """
     h = small.shape[0]
+    rows = np.flatnonzero(candidate.any(axis=1))
+    if not rows.size:
+        return np.zeros((0, 4), int)
     grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)
     edges = cv2.Canny(grey, *BOUNDARY_CANNY)
-    lines = cv2.HoughLinesP(edges, 1, np.pi / 180, threshold=int(length * h * 0.6),
+    edges[:max(int(rows[0]) - 2, 0)] = 0
+    lines = cv2.HoughLinesP(edges, 1, math.radians(BOUNDARY_THETA), threshold=int(length * h * 0.6),
                             minLineLength=int(length * h), maxLineGap=BOUNDARY_GAP)
     return np.zeros((0, 4), int) if lines is None else lines.reshape(-1, 4).astype(int)
 
@@ -777,53 +777,43 @@ def boundary_lines(candidate: np.ndarray, small: np.ndarray, length: float,
 
     Returns, per edge of :func:`straight_edges` (``edges``, computed when not given) whose angle
     lies in :data:`BOUNDARY_ANGLES` and which runs through the candidate
-    (:data:`BOUNDARY_INSIDE`), a dict: ``line`` (x1, y1, x2, y2), ``chroma`` (the L1 distance of
-    the two sides' mean chromaticities), ``material`` (the distance of their mean features with
-    the shade move taken out) and ``boundary`` (both at least their floors).
+    (:data:`BOUNDARY_INSIDE` of its pixels within 2 px of it), with at least
+    :data:`BOUNDARY_MIN_SIDE` candidate pixels in each side's strips (:data:`BOUNDARY_SIDES`), a
+    dict: ``line`` (x1, y1, x2, y2), ``chroma`` (the L1 distance of the two sides' mean
+    chromaticities), ``material`` (the distance of their mean features with the move along
+    :data:`SHADE_DIRECTION` taken out) and ``boundary`` (both at least their floors).
     """
-    h, w = candidate.shape
+    from scmr_mesh.imaging._aot import boundary_sides_kernel
+
     if edges is None:
-        edges = straight_edges(small, length)
+        edges = straight_edges(small, candidate, length)
     if not len(edges):
         return []
-    near = cv2.dilate(candidate, np.ones((5, 5), np.uint8)) > 0
+    dx = np.abs(edges[:, 2] - edges[:, 0])
+    dy = np.abs(edges[:, 3] - edges[:, 1])
+    angle = np.degrees(np.arctan2(dy, dx))
+    keep = (angle >= BOUNDARY_ANGLES[0]) & (angle <= BOUNDARY_ANGLES[1])
+    if not keep.any():
+        return []
+    lines = np.ascontiguousarray(edges[keep], dtype=np.int64)
+    m = boundary_sides_kernel(lines, np.ascontiguousarray(candidate, dtype=np.uint8), np.ascontiguousarray(small),
+                              _SIDE_D,
+                              float(FEATURE_OFFSET))
     shade = SHADE_DIRECTION[:3] / np.linalg.norm(SHADE_DIRECTION[:3])
     out = []
-    for x1, y1, x2, y2 in edges:
-        angle = math.degrees(math.atan2(abs(y2 - y1), abs(x2 - x1)))
-        if not BOUNDARY_ANGLES[0] <= angle <= BOUNDARY_ANGLES[1]:
+    for line, row in zip(lines, m):
+        if row[0] < BOUNDARY_INSIDE or min(row[1], row[5]) < BOUNDARY_MIN_SIDE:
             continue
-        n = max(abs(x2 - x1), abs(y2 - y1)) + 1
-        px = np.rint(np.linspace(x1, x2, n)).astype(int)
-        py = np.rint(np.linspace(y1, y2, n)).astype(int)
-        if near[py, px].mean() < BOUNDARY_INSIDE:
-            continue
-        nx, ny = -(y2 - y1), x2 - x1
-        norm = math.hypot(nx, ny)
-        nx, ny = nx / norm, ny / norm
-        sides = []
-        for sign in (1, -1):
-            vals = []
-            for d in BOUNDARY_SIDES:
-                qx = np.rint(px + sign * d * nx).astype(int)
-                qy = np.rint(py + sign * d * ny).astype(int)
-                ok = (qx >= 0) & (qx < w) & (qy >= 0) & (qy < h)
-                qx, qy = qx[ok], qy[ok]
-                ok = candidate[qy, qx] > 0
-                vals.append(small[qy[ok], qx[ok]].astype(np.float64))
-            sides.append(np.concatenate(vals))
-        if min(len(sides[0]), len(sides[1])) < BOUNDARY_MIN_SIDE:
-            continue
-        c0, c1 = sides[0].mean(axis=0), sides[1].mean(axis=0)
+        c0, c1 = row[9:12], row[12:15]
         chroma = float(np.abs(c0 / max(c0.sum(), 1e-9) - c1 / max(c1.sum(), 1e-9)).sum())
-        dv = _side_features(sides[0]) - _side_features(sides[1])
+        dv = row[2:5] - row[6:9]
         material = float(np.linalg.norm(dv - dv.dot(shade) * shade))
-        out.append({"line": (int(x1), int(y1), int(x2), int(y2)), "chroma": chroma, "material": material,
+        out.append({"line": tuple(int(v) for v in line), "chroma": chroma, "material": material,
                     "boundary": chroma >= BOUNDARY_CHROMA and material >= BOUNDARY_MATERIAL})
     return out
 
 
-_GRIDS: dict = {}
+_SIDE_D = np.array(BOUNDARY_SIDES, np.float64)
 
 
 def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
@@ -844,34 +834,20 @@ def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
     ``edges``: :func:`straight_edges` of ``small`` for ``length``, computed when not given.
     Returns the candidate (uint8, 0/1; the input unchanged when nothing was cut) and the lines cut along.
     """
+    from scmr_mesh.imaging._aot import boundary_cut_kernel
+
     h, w = candidate.shape
     if length <= 0 or not candidate.any():
         return candidate, []
-    grid = _GRIDS.get((h, w))
-    if grid is None:
-        grid = _GRIDS[(h, w)] = np.mgrid[0:h, 0:w]
-    yy, xx = grid
-    sx, sy = w / 2.0, h - 1.0
-    out = candidate.copy()
-    total = int(np.count_nonzero(candidate))
-    used = []
-    for found in boundary_lines(candidate, small, length, edges):
-        if not found["boundary"]:
-            continue
-        x1, y1, x2, y2 = found["line"]
-        s0 = (x2 - x1) * (sy - y1) - (y2 - y1) * (sx - x1)
-        if s0 == 0:
-            continue
-        cross = (x2 - x1) * (yy - y1) - (y2 - y1) * (xx - x1)
-        far = (np.sign(cross) != np.sign(s0)) & (out > 0)
-        n_far = int(np.count_nonzero(far))
-        if n_far == 0 or n_far > BOUNDARY_MAX_CUT * total:
-            continue
-        out[far] = 0
-        used.append(found["line"])
+    found = [f["line"] for f in boundary_lines(candidate, small, length, edges) if f["boundary"]]
+    if not found:
+        return candidate, []
+    cut, did = boundary_cut_kernel(np.ascontiguousarray(candidate, dtype=np.uint8),
+                                   np.array(found, np.int64), float(BOUNDARY_MAX_CUT))
+    used = [line for line, d in zip(found, did) if d]
     if not used:
         return candidate, []
-    n, comp = cv2.connectedComponents(out.astype(np.uint8), connectivity=4)
+    n, comp = cv2.connectedComponents(cut, connectivity=4)
     cell = comp[int(0.75 * h):, int(w / 2 - w / 8):int(w / 2 + w / 8)]
     keep = np.zeros(n, np.uint8)
     keep[np.unique(cell)] = 1
