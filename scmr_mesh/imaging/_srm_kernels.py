@@ -633,7 +633,7 @@ def boundary_sides_kernel(lines, candidate, small, sides, offset):
     candidate pixels at the distances ``sides`` (float64) along it and their mean ``log R/G``,
     ``log B/G`` and log brightness (``log(v + offset)``, brightness ``log((R + G + B) / 3 +
     offset)``); columns 9-11 and 12-14 the two sides' mean R, G, B.  A side with no pixels has
-    means 0.  Returns (n, 15) float64.
+    means 0.  Returns (n, 15) float64 (zeros for a line of one pixel).
     """
     n_lines = lines.shape[0]
     h, w = candidate.shape

@@ -508,12 +508,18 @@ def warm_up() -> None:
     img[: img.shape[0] // 2] = 200
     for mode in MODES:
         segment_drivable(img, mode=mode)
-    # the boundary cut's kernels: a grey ground whose right part, beyond a diagonal, is brighter and redder
-    # (whether segment_drivable reaches them depends on the frame, so they are called here)
+    # the boundary cut's kernels, called directly (whether a frame reaches them depends on it):
+    # a grey ground whose right part, beyond a diagonal, is brighter and redder
+    from scmr_mesh.imaging._aot import boundary_cut_kernel, boundary_sides_kernel
+    from scmr_mesh.imaging.road_model import BOUNDARY_SIDES, FEATURE_OFFSET
+
     wh, ww = WORK_SHAPE
     small = np.full((wh, ww, 3), 90, np.uint8)
     yy, xx = np.mgrid[0:wh, 0:ww]
     small[xx > ww // 2 + 20 + (wh - 1 - yy)] = (200, 150, 120)
     candidate = np.zeros((wh, ww), np.uint8)
     candidate[wh // 3:] = 1
+    line = np.array([[95, 111, 149, 57]], np.int64)
+    boundary_sides_kernel(line, candidate, small, np.array(BOUNDARY_SIDES, np.float64), float(FEATURE_OFFSET))
+    boundary_cut_kernel(candidate, line, 0.5)
     cut_at_boundaries(candidate, small, DEFAULT_PARAMS.boundary or 0.3)

@@ -121,7 +121,8 @@ class RoadParams:
         shadow's edge, a change of texture or a faint seam in one surface; 0 = off).
     boundary : float
         Cut the candidate along the road's boundaries (see :func:`cut_at_boundaries`): a straight
-        edge at least this share of the height long, running up the frame through the candidate
+        edge spanning at least this share of the height along x or y (at least
+        :data:`BOUNDARY_MIN_LENGTH`), running up the frame through the candidate
         between two surfaces of different material (a kerb, a verge's edge line, a wall's foot);
         only the robot's side stays (0 = off).
     """
@@ -182,8 +183,9 @@ class RoadParams:
         if not (0 <= self.weak and math.isfinite(self.weak)):
             raise InputError(f"weak must be a finite multiple of the seed's median edge strength >= 0 "
                              f"(0 = off), got {self.weak}")
-        if not 0 <= self.boundary < 1:
-            raise InputError(f"boundary must be a share of the height in [0, 1) (0 = off), got {self.boundary}")
+        if not (self.boundary == 0 or BOUNDARY_MIN_LENGTH <= self.boundary < 1):
+            raise InputError(f"boundary must be 0 (off) or a share of the height in [{BOUNDARY_MIN_LENGTH}, 1) "
+                             f"(shorter edges are texture, not kerbs), got {self.boundary}")
         return self
 
     def as_dict(self) -> dict:
@@ -720,6 +722,9 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     return sure, confidence, reason
 
 
+#: The shortest ``boundary`` accepted (a share of the height; below it the Hough transform's vote
+#: threshold falls to a few pixels and texture makes edges).
+BOUNDARY_MIN_LENGTH = 0.1
 #: :func:`cut_at_boundaries`' fixed geometry (chosen on the synthetic scenes and the edges of a few
 #: shared frames by eye in the prototype of 2026-11-29, not by the cross-validation, which chooses
 #: only ``boundary``; docs/ACCURACY.md): Canny's hysteresis thresholds on the grey working frame ...
@@ -828,28 +833,39 @@ def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
     candidate: what lies on the far side of its line (extended across the frame) from the
     bottom-centre pixel, the robot, is dropped, unless that is more than :data:`BOUNDARY_MAX_CUT`
     of the candidate.  A painted lane line has asphalt on both sides and a shadow's edge one
-    surface in sun and shade, so neither cuts.  After a cut only the pieces touching the
-    bottom-centre cell (the bottom quarter of the height, the middle quarter of the width) stay.
+    surface in sun and shade, so neither cuts.  What the cuts detach from the bottom-centre cell
+    (the bottom quarter of the height, the middle quarter of the width) goes too; pieces that
+    were apart from it before the cut stay.
 
     ``edges``: :func:`straight_edges` of ``small`` for ``length``, computed when not given.
-    Returns the candidate (uint8, 0/1; the input unchanged when nothing was cut) and the lines cut along.
+    Returns the candidate (the input itself when nothing was cut, else uint8 0/1) and the lines cut along.
     """
     from scmr_mesh.imaging._aot import boundary_cut_kernel
 
     h, w = candidate.shape
     if length <= 0 or not candidate.any():
         return candidate, []
-    found = [f["line"] for f in boundary_lines(candidate, small, length, edges) if f["boundary"]]
+    cand = (candidate != 0).astype(np.uint8)
+    found = [f["line"] for f in boundary_lines(cand, small, length, edges) if f["boundary"]]
     if not found:
         return candidate, []
-    cut, did = boundary_cut_kernel(np.ascontiguousarray(candidate, dtype=np.uint8),
-                                   np.array(found, np.int64), float(BOUNDARY_MAX_CUT))
+    cut, did = boundary_cut_kernel(cand, np.array(found, np.int64), float(BOUNDARY_MAX_CUT))
     used = [line for line, d in zip(found, did) if d]
     if not used:
         return candidate, []
+    # what the cuts detached from the robot's side goes too: the pieces of the cut candidate
+    # that no longer touch the bottom-centre cell but were connected to it before the cut.
+    # Pieces already apart from it stay, as they do in a frame without a cut (the carried
+    # model's candidate may not touch the cell at all: a box over it).
+    cell = (slice(int(0.75 * h), None), slice(int(w / 2 - w / 8), int(w / 2 + w / 8)))
+    n0, comp0 = cv2.connectedComponents(cand, connectivity=4)
+    robot0 = np.zeros(n0, bool)
+    robot0[np.unique(comp0[cell])] = True
+    robot0[0] = False
     n, comp = cv2.connectedComponents(cut, connectivity=4)
-    cell = comp[int(0.75 * h):, int(w / 2 - w / 8):int(w / 2 + w / 8)]
-    keep = np.zeros(n, np.uint8)
-    keep[np.unique(cell)] = 1
-    keep[0] = 0
-    return np.take(keep, comp), used
+    robot = np.zeros(n, bool)
+    robot[np.unique(comp[cell])] = True
+    robot[0] = False
+    detached = (cut > 0) & ~np.take(robot, comp) & np.take(robot0, comp0)
+    cut[detached] = 0
+    return cut, used
