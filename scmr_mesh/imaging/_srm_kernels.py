@@ -714,6 +714,14 @@ def boundary_sides_kernel(lines, candidate, small, sides, offset):
 
 
 @njit(cache=True, nogil=True)
+def _far_side(x1, y1, x2, y2, x, y, s0_pos):
+    # pixel (x, y) on the line through (x1, y1)-(x2, y2), or on the side whose cross product's
+    # sign is not the robot's (s0_pos)
+    cr = (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1)
+    return cr == 0 or (cr > 0) != s0_pos
+
+
+@njit(cache=True, nogil=True)
 def boundary_cut_kernel(candidate, lines, max_cut):
     """Cut ``candidate`` (uint8) along each of ``lines`` (n, 4) int64 in turn: the pixels on the far
     side of the line through it (or on it) from the bottom-centre pixel ``(w / 2, h - 1)`` go,
@@ -741,19 +749,13 @@ def boundary_cut_kernel(candidate, lines, max_cut):
         n_far = 0
         for y in range(h):
             for x in range(w):
-                if out[y, x] == 0:
-                    continue
-                cr = (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1)
-                if cr == 0 or (cr > 0) != s0_pos:
+                if out[y, x] != 0 and _far_side(x1, y1, x2, y2, x, y, s0_pos):
                     n_far += 1
         if n_far == 0 or n_far > max_cut * total:
             continue
         for y in range(h):
             for x in range(w):
-                if out[y, x] == 0:
-                    continue
-                cr = (x2 - x1) * (y - y1) - (y2 - y1) * (x - x1)
-                if cr == 0 or (cr > 0) != s0_pos:
+                if out[y, x] != 0 and _far_side(x1, y1, x2, y2, x, y, s0_pos):
                     out[y, x] = 0
         used[li] = 1
     return out, used

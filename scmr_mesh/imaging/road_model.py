@@ -834,15 +834,13 @@ def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
     bottom-centre pixel, the robot, is dropped, unless that is more than :data:`BOUNDARY_MAX_CUT`
     of the candidate.  A painted lane line has asphalt on both sides and a shadow's edge one
     surface in sun and shade, so neither cuts.  What the cuts detach from the bottom-centre cell
-    (the bottom quarter of the height, the middle quarter of the width) goes too; pieces that
-    were apart from it before the cut stay.
+    the seeds come from goes too; pieces that were apart from it before the cut stay.
 
     ``edges``: :func:`straight_edges` of ``small`` for ``length``, computed when not given.
     Returns the candidate (the input itself when nothing was cut, else uint8 0/1) and the lines cut along.
     """
     from scmr_mesh.imaging._aot import boundary_cut_kernel
 
-    h, w = candidate.shape
     if length <= 0 or not candidate.any():
         return candidate, []
     cand = (candidate != 0).astype(np.uint8)
@@ -854,18 +852,21 @@ def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
     if not used:
         return candidate, []
     # what the cuts detached from the robot's side goes too: the pieces of the cut candidate
-    # that no longer touch the bottom-centre cell but were connected to it before the cut.
+    # that no longer touch the seeds' bottom-centre cell but were connected to it before the cut.
     # Pieces already apart from it stay, as they do in a frame without a cut (the carried
     # model's candidate may not touch the cell at all: a box over it).
-    cell = (slice(int(0.75 * h), None), slice(int(w / 2 - w / 8), int(w / 2 + w / 8)))
-    n0, comp0 = cv2.connectedComponents(cand, connectivity=4)
-    robot0 = np.zeros(n0, bool)
-    robot0[np.unique(comp0[cell])] = True
-    robot0[0] = False
-    n, comp = cv2.connectedComponents(cut, connectivity=4)
-    robot = np.zeros(n, bool)
-    robot[np.unique(comp[cell])] = True
-    robot[0] = False
+    comp0, robot0 = _touching_the_cell(cand)
+    comp, robot = _touching_the_cell(cut)
     detached = (cut > 0) & ~np.take(robot, comp) & np.take(robot0, comp0)
     cut[detached] = 0
     return cut, used
+
+
+def _touching_the_cell(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``mask``'s 4-connected components and, per component, whether it reaches the bottom-centre
+    cell the seeds come from (:func:`~scmr_mesh.imaging.steps.bottom_centre` of the lower half)."""
+    n, comp = cv2.connectedComponents(mask, connectivity=4)
+    reaches = np.zeros(n, bool)
+    reaches[np.unique(bottom_centre(roi(comp)))] = True
+    reaches[0] = False
+    return comp, reaches
