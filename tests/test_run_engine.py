@@ -123,6 +123,16 @@ def test_free_ports_are_distinct():
     assert len(set(ports.values())) == 20
 
 
+def test_free_ports_lie_outside_the_ephemeral_range():
+    """A robot's port once went to a link proxy's ``bind(0)`` or an outgoing connection before the
+    robot bound it (both draw from the ephemeral range): the ports are picked outside it."""
+    from scmr_mesh.scenario.loopback import _ephemeral_range
+
+    lo, hi = _ephemeral_range()
+    ports = free_ports([f"p{i}" for i in range(50)]).values()
+    assert all(not lo <= p <= hi for p in ports)
+
+
 def test_a_fault_record_is_frozen_and_reads_like_its_json():
     f = FaultRecord("crash", "cloud0,cloud1", start_unix_ns=10, end_unix_ns=20, tier="cloud",
                     killed=["cloud", "cloud1"], restarted=["cloud", "cloud1"], label="crash cloud,cloud1 @1s")
