@@ -126,7 +126,7 @@ def test_free_ports_are_distinct():
 def test_free_ports_lie_outside_the_ephemeral_range():
     """A robot's port once went to a link proxy's ``bind(0)`` or an outgoing connection before the
     robot bound it (both draw from the ephemeral range): the ports are picked outside it."""
-    from scmr_mesh.scenario.loopback import _ephemeral_range
+    from scmr_mesh.ports import _ephemeral_range
 
     lo, hi = _ephemeral_range()
     ports = free_ports([f"p{i}" for i in range(50)]).values()
