@@ -7,11 +7,18 @@ ephemeral range, where only another process picking at random can collide.
 
 from __future__ import annotations
 
+import collections
 import random
 import socket
+import threading
 from typing import Sequence
 
-__all__ = ["free_ports"]
+__all__ = ["free_port", "free_ports"]
+
+# The ports this process handed out lately: two picks in a row (``free_port(), free_port()``)
+# must not return the same port before either is bound.
+_ISSUED: collections.deque[int] = collections.deque(maxlen=4096)
+_LOCK = threading.Lock()
 
 
 def _ephemeral_range() -> tuple[int, int]:
@@ -37,12 +44,14 @@ def free_ports(names: Sequence[str], host: str = "127.0.0.1") -> dict[str, int]:
     pool = range(10000, lo) if lo - 10000 >= 1000 else range(hi + 1, 65536)
     rng = random.SystemRandom()
     socks, ports = [], {}
+    with _LOCK:
+        recent = set(_ISSUED)
     try:
         for n in names:
             s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             for _ in range(1000):
                 port = rng.choice(pool)
-                if port in ports.values():
+                if port in ports.values() or port in recent:
                     continue
                 try:
                     s.bind((host, port))
@@ -56,4 +65,11 @@ def free_ports(names: Sequence[str], host: str = "127.0.0.1") -> dict[str, int]:
     finally:
         for s in socks:
             s.close()
+    with _LOCK:
+        _ISSUED.extend(ports.values())
     return ports
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """One free TCP port on ``host``, outside the ephemeral range; see :func:`free_ports`."""
+    return free_ports(["port"], host)["port"]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import itertools
 import os
 import re
-import socket
 import subprocess
 from contextlib import contextmanager
 from pathlib import Path
@@ -40,10 +39,10 @@ def roads_dir() -> Path:
 
 
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that is free right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A TCP port on 127.0.0.1 that is free right now, outside the ephemeral range (scmr_mesh.ports)."""
+    from scmr_mesh.ports import free_port as pick
+
+    return pick()
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import re
-import socket
 import sqlite3
 import subprocess
 import sys
@@ -53,9 +52,9 @@ session.close()
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    from scmr_mesh.ports import free_port
+
+    return free_port()
 
 
 @pytest.mark.timeout(180)

@@ -4,7 +4,8 @@ Layers, lowest first; a module may import its own layer and the ones below:
 
 =========  ==================================================================
 base       ``errors``, ``_lazy``, ``_schema``, ``wire``, ``keys``, ``cliargs`` (shared argparse types),
-           ``vocab`` (the control vocabulary: tiers and other enums), ``_cpu`` (the usable cores)
+           ``vocab`` (the control vocabulary: tiers and other enums), ``_cpu`` (the usable cores),
+           ``ports`` (free loopback ports outside the ephemeral range)
 core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, ``ros/``, and the
            pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``, ``scenario/radio.py``
 mesh       ``mesh/``: every Zenoh import of the running system
@@ -41,7 +42,7 @@ def layer(rel: Path) -> str:
         stem = rel.stem
         if stem in ("cli", "__main__"):
             return "cli"
-        if stem in ("errors", "_lazy", "_schema", "wire", "keys", "cliargs", "vocab", "_cpu", "__init__"):
+        if stem in ("errors", "_lazy", "_schema", "wire", "keys", "cliargs", "vocab", "_cpu", "ports", "__init__"):
             return "base"
         raise AssertionError(f"top-level module {rel} has no layer; add it to tests/test_layers.py")
     top = parts[0]

@@ -245,6 +245,27 @@ def test_serve_starts_a_web_viewer_that_peers_reach_and_stops_it(isolated_env):
     assert proc.poll() is not None  # the server does not outlive the command
 
 
+def test_serve_waits_for_the_web_port_before_it_prints_the_url(isolated_env, tmp_path, monkeypatch):
+    """rerun opens its gRPC port before its web port: the sink waits for both, so the URL it prints
+    answers.  A fake rerun that opens only the gRPC port and exits once probed is refused."""
+    from conftest import free_port
+
+    fake = tmp_path / "rerun"
+    fake.write_text(
+        f"#!{sys.executable}\n"
+        "import socket, sys\n"
+        "port = int(sys.argv[sys.argv.index('--port') + 1])\n"
+        "s = socket.socket(); s.bind(('127.0.0.1', port)); s.listen(4)\n"
+        "s.accept()\n"
+        "sys.stderr.write('web viewer failed to start\\n'); sys.exit(3)\n"
+    )
+    fake.chmod(0o755)
+    monkeypatch.setenv("RERUN_CLI_PATH", str(fake))
+    web = free_port()
+    with pytest.raises(viz.ViewerError, match=rf"exited with status 3 before listening on port {web}.*web viewer failed"):
+        viz.FleetViz(viz.RerunOptions("serve"), robots=["r0"], port=free_port(), web_port=web)
+
+
 def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):
     from conftest import free_port
 

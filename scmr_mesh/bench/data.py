@@ -128,13 +128,11 @@ def _bench_pair(store: Path, node: str, robot: str):
     """A cloud session serving :class:`CloudData` ``node`` (ODS at ``store``) and a
     robot session linked to it over ``tcp/127.0.0.1``, in this process; yields
     ``(cloud, robot_session)`` once the robot sees ``robot``'s telemetry queryable."""
-    import socket
+    from scmr_mesh.ports import free_port
 
     from scmr_mesh.mesh.config import MeshConfig, close_session, open_session
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     from scmr_mesh.data.quota import Quota
 

@@ -80,11 +80,9 @@ def flood_case(*, rate_hz: float, records: int, duration_s: float, extra: list[s
     from scmr_mesh.mesh.data_service import telemetry_key
     from scmr_mesh.mesh.testing import STUB, spawn_peer, stop_peer, wait_for
 
-    import socket
+    from scmr_mesh.ports import free_port
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     tag = f"{int(rate_hz)}hz-{records}r{'-unbounded' if extra else ''}"
     ready = workdir / f"{tag}.ready"
     from scmr_mesh.bench.secure import bench_security

@@ -146,7 +146,7 @@ def measure_ingress(*, workers: int = 8, delay_ms: float = 20.0, step_s: float =
     from scmr_mesh.mesh.robot import frames_from_args
     from scmr_mesh.mesh.testing import FIXED, wait_for
     from scmr_mesh.qos.schedule import due_ns
-    from scmr_mesh.scenario.loopback import free_ports
+    from scmr_mesh.ports import free_ports
 
     say = progress or (lambda m: None)
     run_dir = Path(run_dir)

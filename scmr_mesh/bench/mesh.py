@@ -214,7 +214,7 @@ def measure_capacity(*, workers: int | None, seconds: float, run_dir: Path, conc
     import zenoh  # noqa: F401  (bench layer: the client side)
 
     from scmr_mesh import wire
-    from scmr_mesh.scenario.loopback import free_ports as _free_ports
+    from scmr_mesh.ports import free_ports as _free_ports
     from scmr_mesh.imaging.synthetic import SCENE_KINDS
     from scmr_mesh.mesh.robot import frames_from_args
     from scmr_mesh.qos import metrics

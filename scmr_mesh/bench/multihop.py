@@ -48,7 +48,7 @@ class Routers:
     """Router processes on loopback; ``links`` says whom each connects to."""
 
     def __init__(self, names: list[str], links: dict[str, list[str]], tmp: Path, *, lease_ms: int) -> None:
-        from scmr_mesh.scenario.loopback import free_ports
+        from scmr_mesh.ports import free_ports
 
         self.ports = free_ports(names)
         self.tmp = tmp

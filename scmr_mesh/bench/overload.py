@@ -191,7 +191,7 @@ def run_overload(
     MeshError
         A peer failed to start.
     """
-    import socket
+    from scmr_mesh.ports import free_port
 
     from scmr_mesh.mesh.testing import (
         SLOW,
@@ -213,9 +213,7 @@ def run_overload(
         )
     say = progress or (lambda m: None)
     run_dir.mkdir(parents=True, exist_ok=True)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
+    port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     ready = run_dir / "cloud.ready"
     priorities = {f"ovl{k}": 10 * (k % levels) for k in range(robots)}

@@ -118,9 +118,9 @@ def _spawn_server(port: int, *, lease: int, busy: int = 0, no_shm: bool = False,
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    from scmr_mesh.ports import free_port
+
+    return free_port()
 
 
 class Proxy:

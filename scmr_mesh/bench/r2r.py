@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import statistics
 import sys
 import tempfile
@@ -34,12 +33,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 from scmr_mesh.errors import InputError
+from scmr_mesh.ports import free_port
 
 
 def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_port()
 
 
 def _stats(xs: list[float]) -> dict[str, Any]:

@@ -33,7 +33,7 @@ def bench_link_latency(
     dict
         ``{"payload_bytes", "queries", "runs": [{"kind", "p50_ms", "p99_ms", "mean_ms"}]}``.
     """
-    import socket
+    from scmr_mesh.ports import free_port
     import statistics
     import tempfile
     import time
@@ -47,9 +47,7 @@ def bench_link_latency(
         for kind in kinds:
             base = kind.split("+")[0]
             prof = None if base == "none" else SecurityProfile(kind=base, credentials=creds, acl=kind.endswith("+acl"))
-            with socket.socket() as s:
-                s.bind(("127.0.0.1", 0))
-                port = s.getsockname()[1]
+            port = free_port()
             ep = f"tcp/127.0.0.1:{port}"
             confs = []
             for ident, listen, connect in (("cloud", [ep], []), ("robot1", [], [ep])):

@@ -35,22 +35,15 @@ import time
 from typing import Sequence
 
 from scmr_mesh.errors import ScenarioError
-from scmr_mesh.scenario.loopback import free_ports
+from scmr_mesh.ports import free_ports
 from scmr_mesh.scenario.plan import Event, proxy_actions
 from scmr_mesh.scenario.spec import Scenario
 
-__all__ = ["LinkProxy", "ProxyBackend", "free_port"]
+__all__ = ["LinkProxy", "ProxyBackend"]
 
 log = logging.getLogger(__name__)
 
 _CHUNK = 65536
-
-
-def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port on ``host`` that is free right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
 
 
 class _Pipe:

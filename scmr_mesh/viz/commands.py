@@ -12,6 +12,7 @@ from urllib.parse import quote
 
 from scmr_mesh import cliargs as ca
 from scmr_mesh.errors import InputError
+from scmr_mesh.ports import free_port
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -101,13 +102,7 @@ def _port_free(port: int) -> bool:
     return True
 
 
-def _any_free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def viewer_ports(web_port: int | None, grpc_port: int | None, *, free=_port_free, pick=_any_free_port) -> tuple[int, int]:
+def viewer_ports(web_port: int | None, grpc_port: int | None, *, free=_port_free, pick=free_port) -> tuple[int, int]:
     """``(web, grpc)`` ports of ``scmr view --web``: the given ones if free, else free ones.
 
     rerun's gRPC server takes 9876 unless told otherwise, so a second viewer exited with

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from scmr_mesh.errors import InputError
+from scmr_mesh.ports import free_port
 from scmr_mesh.viz.common import ViewerError
 from scmr_mesh.viz.rerun_cli import check_rrd, rerun_env, rerun_executable
-from scmr_mesh.viz.sink import _free_port
 
 
 def _use_rerun_env_here() -> None:
@@ -80,7 +80,7 @@ def screenshot(
     _use_rerun_env_here()
     from rerun.experimental import ViewerClient
 
-    port = port or _free_port()
+    port = port or free_port()
     try:
         client = ViewerClient.spawn(
             headless=True, port=port, executable_path=rerun_executable(), hide_welcome_screen=True

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from scmr_mesh.errors import InputError
+from scmr_mesh.ports import free_port
 from scmr_mesh.viz.common import (
     DEFAULT_CONNECT_URL,
     DEFAULT_PORT,
@@ -26,12 +27,6 @@ log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------
 # sinks (fleet process)
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _port_open(port: int, host: str = "127.0.0.1") -> bool:
@@ -100,7 +95,7 @@ class _Sink:
                 raise InputError(f"--save {options.target}: folder {out.parent} does not exist; create it first")
             self.out_path = out
             self.raw_path = out.with_name(out.name + ".partial")
-            port = port or _free_port()
+            port = port or free_port()
             cmd = [exe, "--save", str(self.raw_path), "--port", str(port), "--bind", "127.0.0.1"]
             detach = False
             nice = 10  # a recording must not take CPU from the requests it records
@@ -143,6 +138,8 @@ class _Sink:
             except OSError as exc:  # pragma: no cover - the recording works either way
                 log.debug("could not lower the recorder's priority: %s", exc)
         _wait_port(self.proc, port, timeout=15.0, what=what)
+        if mode == "serve":  # the URL printed must answer: rerun opens the web port after the gRPC one
+            _wait_port(self.proc, web_port, timeout=15.0, what=what)
         if self.proc.stderr is not None:  # keep the pipe from filling up
             threading.Thread(target=_drain, args=(self.proc.stderr,), daemon=True).start()
         self.url = f"rerun+http://127.0.0.1:{port}/proxy"
