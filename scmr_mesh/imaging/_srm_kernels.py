@@ -759,3 +759,78 @@ def boundary_cut_kernel(candidate, lines, max_cut):
                     out[y, x] = 0
         used[li] = 1
     return out, used
+
+
+@njit(cache=True, nogil=True)
+def paint_fill_kernel(candidate, small, lsum, width, brighter):
+    """The candidate with its painted markings filled (:func:`~scmr_mesh.imaging.road_model.fill_paint`).
+
+    A run is a stretch of at most ``width`` non-candidate pixels across a row with candidate on
+    both sides whose brightest pixel is at least ``brighter`` (log brightness, ``lsum[R + G + B]``)
+    above the brighter of the two candidate pixels beside it.  A 4-connected piece of non-candidate
+    pixels is filled when all its pixels lie on runs.  ``candidate`` (h, w) uint8 0/1, ``small``
+    (h, w, 3) uint8; returns the filled candidate (uint8 0/1) and how many pixels were filled."""
+    h, w = candidate.shape
+    runs = np.zeros((h, w), np.uint8)
+    n_runs = 0
+    for y in range(h):
+        x = 0
+        while x < w:
+            if candidate[y, x] != 0:
+                x += 1
+                continue
+            s = x
+            while x < w and candidate[y, x] == 0:
+                x += 1
+            if s == 0 or x == w or x - s > width:
+                continue
+            left = lsum[int(small[y, s - 1, 0]) + int(small[y, s - 1, 1]) + int(small[y, s - 1, 2])]
+            right = lsum[int(small[y, x, 0]) + int(small[y, x, 1]) + int(small[y, x, 2])]
+            edge = max(left, right)
+            top = -1e300
+            for i in range(s, x):
+                v = lsum[int(small[y, i, 0]) + int(small[y, i, 1]) + int(small[y, i, 2])]
+                if v > top:
+                    top = v
+            if top >= edge + brighter:
+                for i in range(s, x):
+                    runs[y, i] = 1
+                n_runs += x - s
+    out = candidate.copy()
+    if n_runs == 0:
+        return out, 0
+    # a piece of non-candidate pixels lies wholly on runs when a walk through its run pixels
+    # never steps onto a non-candidate pixel that is on no run (the walk visits run pixels only)
+    seen = np.zeros((h, w), np.uint8)
+    piece = np.empty(n_runs, np.int64)
+    filled = 0
+    for y0 in range(h):
+        for x0 in range(w):
+            if runs[y0, x0] == 0 or seen[y0, x0] != 0:
+                continue
+            seen[y0, x0] = 1
+            piece[0] = y0 * w + x0
+            n = 1
+            k = 0
+            whole = True
+            while k < n:
+                y = piece[k] // w
+                x = piece[k] - y * w
+                k += 1
+                for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                    yy = y + dy
+                    xx = x + dx
+                    if yy < 0 or yy >= h or xx < 0 or xx >= w or candidate[yy, xx] != 0:
+                        continue
+                    if runs[yy, xx] == 0:
+                        whole = False
+                    elif seen[yy, xx] == 0:
+                        seen[yy, xx] = 1
+                        piece[n] = yy * w + xx
+                        n += 1
+            if whole:
+                for k in range(n):
+                    y = piece[k] // w
+                    out[y, piece[k] - y * w] = 1
+                filled += n
+    return out, filled
