@@ -265,6 +265,9 @@ def test_bench_pipeline_runs_in_its_own_process(tmp_path):
     assert dec["peak_rss_growth_mb"] < 20
     assert "reference" not in doc
     assert "timed 8/8 runs" in r.stderr
+    # libjpeg's warning for each truncated bomb is counted, not printed (it buried the table)
+    assert "Corrupt JPEG data" not in r.stderr and dec["libjpeg_warnings"] >= 4
+    assert f"libjpeg warned {dec['libjpeg_warnings']} times" in r.stdout
 
 
 def test_bench_pipeline_reference_needs_dpm_srm(tmp_path):

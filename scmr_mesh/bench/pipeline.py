@@ -12,9 +12,11 @@ package on the same frames and reports ours as ratios of it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -89,6 +91,24 @@ def _package_version(name: str) -> str | None:
         return None
 
 
+#: What libjpeg writes to stderr for each truncated bomb it decodes (the bombs end after 16x16 pixels).
+LIBJPEG_WARNING = "Corrupt JPEG data"
+
+
+@contextlib.contextmanager
+def _c_stderr_into(tmp):
+    """Send what C code writes to stderr (fd 2) into the file ``tmp`` meanwhile."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.dup2(tmp.fileno(), 2)
+    try:
+        yield
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict, dict]:
     """Time :func:`decode_frame` per encoding: each source as PNG and as JPEG (quality 90), and the bombs."""
     import resource
@@ -111,23 +131,34 @@ def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict
     samples: dict[str, list[float]] = {"png": [], "jpeg": [], **{label: [] for label in bombs}}
     outcome = {}
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # libjpeg warns on stderr for every truncated bomb: 200 lines of "Corrupt JPEG data" hid the
+    # progress and the table; they are collected, counted and reported in one line
+    c_err = tempfile.TemporaryFile()
     for i in range(frames):
         enc = encoded[i % len(encoded)]
         for kind in ("png", "jpeg"):
             t0 = time.perf_counter()
             decode_frame(enc[kind])
             samples[kind].append((time.perf_counter() - t0) * 1000)
-        for label, data in bombs.items():
-            t0 = time.perf_counter()
-            try:
-                decode_frame(data, max_png_pixels=MAX_PNG_FRAME_PIXELS)  # as a service's workers do
-                outcome[label] = "decoded in full" if label.startswith("png") else "decoded at reduced scale"
-            except ImageDecodeError:
-                outcome[label] = "refused from its header"
-            samples[label].append((time.perf_counter() - t0) * 1000)
+        with _c_stderr_into(c_err):
+            for label, data in bombs.items():
+                t0 = time.perf_counter()
+                try:
+                    decode_frame(data, max_png_pixels=MAX_PNG_FRAME_PIXELS)  # as a service's workers do
+                    outcome[label] = "decoded in full" if label.startswith("png") else "decoded at reduced scale"
+                except ImageDecodeError:
+                    outcome[label] = "refused from its header"
+                samples[label].append((time.perf_counter() - t0) * 1000)
         if progress and (i % 20 == 0 or i == frames - 1):
             progress(i + 1, total)
     growth = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
+    c_err.seek(0)
+    lines = c_err.read().decode(errors="replace").splitlines()
+    c_err.close()
+    warnings = sum(ln.startswith(LIBJPEG_WARNING) for ln in lines)
+    for ln in lines:   # anything else is passed on
+        if not ln.startswith(LIBJPEG_WARNING):
+            print(ln, file=sys.stderr)
     sizes = {
         "png": int(np.median([len(e["png"]) for e in encoded])),
         "jpeg": int(np.median([len(e["jpeg"]) for e in encoded])),
@@ -136,7 +167,8 @@ def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict
     med = {k: round(float(np.median(v)), 4) for k, v in samples.items()}
     p99 = {k: round(float(np.percentile(v, 99)), 4) for k, v in samples.items()}
     decode = {"median_ms": med, "p99_ms": p99, "bytes": sizes, "bombs": outcome,
-              "peak_rss_growth_mb": round(growth, 2), "jpeg_quality": JPEG_QUALITY}
+              "peak_rss_growth_mb": round(growth, 2), "jpeg_quality": JPEG_QUALITY,
+              "libjpeg_warnings": warnings}
     return decode, med, p99
 
 
@@ -326,6 +358,9 @@ def cmd_bench_pipeline(args: argparse.Namespace) -> int:
         note = f"  ({dec['bombs'][k]})" if k in dec["bombs"] else ""
         print(f"{k:23s} {dec['median_ms'][k]:10.3f} {dec['p99_ms'][k]:10.3f} {dec['bytes'][k]:9d}{note}")
     print(f"peak RSS growth over the decode pass: {dec['peak_rss_growth_mb']} MB")
+    if dec.get("libjpeg_warnings"):
+        print(f"libjpeg warned {dec['libjpeg_warnings']} times ({LIBJPEG_WARNING!r}: the bombs are truncated "
+              "on purpose; the warnings are counted here, not printed)")
     if "reference" in result:
         ref, rat = result["reference"], result["ratios"]
         print(f"\nreference: {ref['package']} {ref['version']} grey SRM at Q={ref['q']:g}: "
