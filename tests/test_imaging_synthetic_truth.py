@@ -8,9 +8,11 @@ one is fixed and when one gets worse):
 
 * ``desert``: since the open-ground test (sand reaching the horizon under a smooth sky is not a
   leak, :func:`scmr_mesh.imaging.road_model.open_ground`) it is no longer shrunk to the rows
-  below ``cap`` (0.639 before), and the bands standing above the horizon go; left: hills that
-  SRM merges with the sand stay green, the column fill bridges rocks shorter than its gap, and
-  the sand in the lens's dark corners and in cast shadows at the sides is lost.
+  below ``cap`` (0.639 before), and the bands standing above the horizon go; since the
+  open-ground fill keeps the sand beyond a rock (2026-11-29) 0.767 -> 0.781; left: hills that
+  SRM merges with the sand stay green, the column fill bridges rocks shorter than its gap, the
+  sand in the lens's dark corners and in cast shadows at the sides is lost, and where a shadow
+  band crosses the frame (seeds 1, 5, 6: no open ground found) the mask stops at ``cap``.
 
 The structured road was below it too until the paint fill (2026-11-29:
 :func:`scmr_mesh.imaging.road_model.fill_paint`, 0.837 -> 0.852): a dash longer than the column

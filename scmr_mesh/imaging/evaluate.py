@@ -564,14 +564,15 @@ MIN_PRECISION = 0.88
 #: :func:`~scmr_mesh.imaging.synthetic.make_scene`, mean precision >= :data:`SYNTHETIC_PRECISION`
 #: and mean IoU >= :data:`SYNTHETIC_IOU_TARGET`, or, for the kinds still below that target, >= the
 #: floor each holds today (:data:`SYNTHETIC_KNOWN_BELOW`, measured 2026-11-29 with the defaults, seeds
-#: 0-7: desert 0.767; structured road 0.852 since the paint fill (0.837 with the boundary cut alone,
+#: 0-7: desert 0.781 since the open-ground fill keeps the sand beyond a rock (0.767 before);
+#: structured road 0.852 since the paint fill (0.837 with the boundary cut alone,
 #: 0.814 before it), dirt road 0.967, tunnel 0.902, hallway 0.959).
 #: ``tests/test_imaging_synthetic_truth.py`` holds the defaults to them, and
 #: :func:`cross_validate` lets every fold choose only among the combinations that meet them.
 SYNTHETIC_SEEDS = range(8)
 SYNTHETIC_IOU_TARGET = 0.85
 SYNTHETIC_PRECISION = 0.85
-SYNTHETIC_KNOWN_BELOW = {"desert": 0.73}
+SYNTHETIC_KNOWN_BELOW = {"desert": 0.77}
 
 
 def synthetic_floor(kind: str) -> float:

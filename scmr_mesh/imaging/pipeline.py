@@ -348,7 +348,10 @@ def column_fill(candidate: np.ndarray, gap: int, lowest: bool) -> np.ndarray:
     the same rule, and stays empty below that pixel.  The candidate is 4-connected to the seed
     and the ground runs on to the horizon across the frame, so such a column is ground beyond
     an obstacle, not an island.  (As a cross-validated constant for every frame it was neutral
-    on the 60 labelled images: mean IoU 0.7968 either way, precision 0.8905 -> 0.8886.)
+    on the 60 labelled images: mean IoU 0.7968 either way, precision 0.8905 -> 0.8886.)  For the
+    same reason the candidate above a gap longer than ``gap`` (the sand beyond a rock) stays:
+    the column fill stops there, but the robot reaches that ground around the rock (synthetic
+    desert 0.767 -> 0.781; no mask of the 60 labelled images changes, 2026-11-29).
     """
     if not lowest:
         return fill_columns(candidate, max_gap=gap)
@@ -359,6 +362,7 @@ def column_fill(candidate: np.ndarray, gap: int, lowest: bool) -> np.ndarray:
     below = (np.arange(h)[:, None] > low[None, :]) & (has & (h - 1 - low > gap))[None, :]
     filled = fill_columns(c | below, max_gap=gap)
     filled[below] = 0
+    filled[c] = 255
     return filled
 
 
