@@ -2,10 +2,18 @@
 
 The demo's overlays are these scenes: road green, verges, walls, rocks and sky red.  A robot
 drives where the mask is green, so precision (no green where it cannot drive) is held on every
-kind; IoU >= 0.85 is the target of every kind.  One kind is below it today and is asserted
+kind; IoU >= 0.85 is the target of every kind.  Two kinds are below it today and are asserted
 as such (``KNOWN_BELOW``: the floor each holds now, and below the target, so the test says when
 one is fixed and when one gets worse):
 
+* ``structured_road``: a grey gravel verge of the asphalt's colour is taken for road (seeds 2,
+  4; the chromaticity differs by about 2 standard deviations of the road's, inside the
+  seed's ellipsoid), the road's edges in the lens's dark corners are lost (seeds 1, 6), and a
+  dash longer than the column fill's gap near the bottom empties the columns it crosses (a
+  red line down the road: seeds 1, 3, 4, 5, 6; a fill of bright narrow pieces fixed it, 0.837 ->
+  0.852, and was withdrawn because it painted white posts on the road green, docs/ACCURACY.md).
+  (Seed 0's far road, in the sun beyond the shaded seed, joins since the join's shade-line
+  test for seeds below ``sunlit``: 0.57 -> 0.90, floor 0.73 -> 0.80);
 * ``desert``: since the open-ground test (sand reaching the horizon under a smooth sky is not a
   leak, :func:`scmr_mesh.imaging.road_model.open_ground`) it is no longer shrunk to the rows
   below ``cap`` (0.639 before), and the bands standing above the horizon go; since the
@@ -13,12 +21,6 @@ one is fixed and when one gets worse):
   SRM merges with the sand stay green, the column fill bridges rocks shorter than its gap, the
   sand in the lens's dark corners and in cast shadows at the sides is lost, and where a shadow
   band crosses the frame (seeds 1, 5, 6: no open ground found) the mask stops at ``cap``.
-
-The structured road was below it too until the paint fill (2026-11-29:
-:func:`scmr_mesh.imaging.road_model.fill_paint`, 0.837 -> 0.852): a dash longer than the column
-fill's gap near the bottom emptied its columns, a red line down the road.  Its gravel verge of
-the asphalt's colour (seed 2) and the road's edges in the lens's dark corners (seeds 1, 6) are
-still lost or taken.
 """
 
 from __future__ import annotations

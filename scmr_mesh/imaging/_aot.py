@@ -41,8 +41,7 @@ log = logging.getLogger(__name__)
 #: The kernels called from outside ``_srm_kernels`` (srm.py, steps.py, road_model.py, codec.py).
 KERNELS: tuple[str, ...] = ("srm_kernel", "b2_table", "remove_sparse_kernel", "column_fill_kernel",
                              "road_share_kernel", "candidate_kernel", "area_rows_kernel", "area_round_kernel",
-                             "area_half_kernel", "boundary_sides_kernel", "boundary_cut_kernel",
-                             "paint_fill_kernel")
+                             "area_half_kernel", "boundary_sides_kernel", "boundary_cut_kernel")
 
 #: Environment switch: ``0`` uses the numba JIT even when an AOT module exists.
 ENV = "SCMR_AOT"

@@ -65,7 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "them on the other datasets and score this one; prints cross-validated and in-sample "
                         "IoU, precision and recall and the bottom-half baseline per dataset; every choice is made "
                         "among the combinations that keep the synthetic scenes at their floors, as the shipped "
-                        "defaults must (about 45 s on the shared images, 2 cores)")
+                        "defaults must (about 30 s on the shared images, 2 cores)")
     p.add_argument("--sequences", action="store_true",
                    help="the road model carried across a robot's frames against the per-frame one: group the "
                         "labelled frames into drives (<dataset>_<sequence>_<frame> names, CamVid's, at 30 fps; or "

@@ -37,7 +37,6 @@ from scmr_mesh.imaging.road_model import (
     abstain,
     classify,
     cut_at_boundaries,
-    fill_paint,
     straight_edges,
     tone_curve,
 )
@@ -288,7 +287,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
 #: :class:`RoadParams` fields read only after :func:`classify` (by :func:`_best_mask` and :func:`abstain`):
 #: :func:`best_masks` classifies once for all params that differ only in these.  A new field is
 #: left out of this list, so it keys the classification (slower, never wrong).
-AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap", "boundary", "paint")
+AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap", "boundary")
 
 
 def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
@@ -330,7 +329,6 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
             if lines is None:
                 lines = edges[key] = straight_edges(small, candidate, params.boundary)
         candidate = cut_at_boundaries(candidate, small, params.boundary, lines)[0]
-    candidate = fill_paint(candidate, small, params.paint)
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = column_fill(candidate, gap, lowest)
@@ -529,7 +527,3 @@ def warm_up() -> None:
     boundary_sides_kernel(line, candidate, small, np.array(BOUNDARY_SIDES, np.float64), float(FEATURE_OFFSET))
     boundary_cut_kernel(candidate, line, 0.5)
     cut_at_boundaries(candidate, small, DEFAULT_PARAMS.boundary or 0.3)
-    # and the paint fill's: a brighter line two pixels wide across the candidate
-    small[:, 70:72] = 200
-    candidate[:, 70:72] = 0
-    fill_paint(candidate, small, DEFAULT_PARAMS.paint or 3)

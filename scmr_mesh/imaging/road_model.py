@@ -125,10 +125,6 @@ class RoadParams:
         :data:`BOUNDARY_MIN_LENGTH`), running up the frame through the candidate
         between two surfaces of different material (a kerb, a verge's edge line, a wall's foot);
         only the robot's side stays (0 = off).
-    paint : int
-        Fill painted markings on the road (see :func:`fill_paint`): a strip of at most this many
-        working pixels across each row, brighter than the road on both sides of it and lying
-        wholly on the road (0 = off).
     """
 
     gamma: float = 1.0
@@ -150,7 +146,6 @@ class RoadParams:
     lateral: float = 0.25
     weak: float = 6.0
     boundary: float = 0.3
-    paint: int = 3
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
@@ -191,10 +186,6 @@ class RoadParams:
         if not (self.boundary == 0 or BOUNDARY_MIN_LENGTH <= self.boundary < 1):
             raise InputError(f"boundary must be 0 (off) or a share of the height in [{BOUNDARY_MIN_LENGTH}, 1) "
                              f"(shorter edges are texture, not kerbs), got {self.boundary}")
-        if not (isinstance(self.paint, (int, np.integer)) and not isinstance(self.paint, bool)
-                and 0 <= self.paint <= PAINT_MAX_WIDTH):
-            raise InputError(f"paint must be an integer width in working pixels in [0, {PAINT_MAX_WIDTH}] "
-                             f"(0 = off; wider strips are not paint), got {self.paint!r}")
         return self
 
     def as_dict(self) -> dict:
@@ -879,42 +870,3 @@ def _touching_the_cell(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     reaches[np.unique(bottom_centre(roi(comp)))] = True
     reaches[0] = False
     return comp, reaches
-
-
-#: The widest ``paint`` accepted (working pixels, 8 % of the working frame's width: a marking seen
-#: from a robot's camera; anything wider is a surface).
-PAINT_MAX_WIDTH = 12
-#: How much brighter than the road on both sides a marking's brightest pixel is, at least (log
-#: brightness: about 16 %; white and yellow paint on asphalt or concrete).  Fixed, chosen on the
-#: synthetic structured road (2026-11-29), not by the cross-validation, which chooses ``paint``.
-PAINT_BRIGHTER = 0.15
-
-
-def fill_paint(candidate: np.ndarray, small: np.ndarray, width: int) -> np.ndarray:
-    """Fill the painted markings on the road: the candidate with the lane lines it left out.
-
-    SRM keeps a lane line apart from the asphalt and the road model leaves it out, so the
-    candidate has a hole along it; the column fill bridges it only where it is at most ``gap``
-    rows tall.  A dash longer than that near the bottom of the frame emptied the columns it
-    crosses from the bottom up, and the mask showed a red line down the middle of the road (the
-    demo's structured road: a planner reads it as a wall between the two lanes).
-
-    A marking is a run of at most ``width`` non-candidate pixels across a row, with candidate on
-    both sides, whose brightest pixel is at least :data:`PAINT_BRIGHTER` above the brighter pixel
-    beside it (paint is white or yellow).  And it lies wholly on the road: a 4-connected piece of
-    non-candidate pixels is filled only when every pixel of it lies on such a run.  A pole, a
-    person or a car rises above the road's edge into what is not road, or widens, or is darker,
-    so its piece keeps pixels that are not on such runs and stays out.  What the fill does not
-    stop: an object narrower than ``width`` and brighter than the road that stands wholly on it
-    (a cone far ahead); the column fill already bridges any object shorter than ``gap``.
-
-    Returns the candidate (the input itself when nothing is filled, else uint8 0/1).
-    """
-    from scmr_mesh.imaging._aot import paint_fill_kernel
-
-    if width <= 0 or not candidate.any():
-        return candidate
-    cand = np.ascontiguousarray(candidate != 0, dtype=np.uint8)
-    out, filled = paint_fill_kernel(cand, np.ascontiguousarray(small), _tables()[1], int(width),
-                                    float(PAINT_BRIGHTER))
-    return out if filled else candidate
