@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from scmr_mesh.imaging.pipeline import column_fill
 
@@ -45,3 +46,43 @@ def test_on_open_ground_short_holes_are_bridged_and_a_bottom_rock_stays_red():
     out = column_fill(c, GAP, True) > 0
     assert out[30:33, 5:8].all()
     assert not out[H - 10:, 30:36].any() and out[20:H - 10, 30:36].all()
+
+
+def _road_frame(paint) -> tuple[np.ndarray, np.ndarray]:
+    """A 300x225 frame: sky, grey road from row 100, and ``paint(img, yy, xx)`` returning a mask."""
+    img = np.empty((225, 300, 3))
+    img[:] = (140, 170, 210)
+    img[100:] = (95, 95, 98)
+    yy, xx = np.mgrid[0:225, 0:300]
+    m = paint(img, yy, xx)
+    img = np.clip(np.rint(img + np.random.default_rng(0).normal(0, 3, img.shape)), 0, 255).astype(np.uint8)
+    return img, m
+
+
+def _box(img, yy, xx, x0, y0, w, h, colour):
+    m = (xx >= x0) & (xx < x0 + w) & (yy >= y0) & (yy < y0 + h)
+    img[m] = colour
+    return m
+
+
+def _dark_pole_with_a_highlight(img, yy, xx):
+    m = _box(img, yy, xx, 150, 130, 6, 60, (45, 45, 45))
+    img[m & (xx < 152)] = (225, 225, 225)
+    return m
+
+
+@pytest.mark.parametrize("paint", [
+    lambda img, yy, xx: _box(img, yy, xx, 100, 150, 6, 30, (235, 235, 230)),   # a white bollard
+    lambda img, yy, xx: _box(img, yy, xx, 200, 120, 6, 88, (235, 235, 230)),   # a white post
+    _dark_pole_with_a_highlight,
+], ids=["white bollard", "white post", "dark pole with a highlight"])
+def test_a_narrow_post_standing_on_the_road_stays_red(paint):
+    """The attacker's scenes of the 2026-11-29 review: narrow objects wholly on the road, taller than
+    the column fill's gap.  A fill of bright narrow pieces (to mend lane dashes) painted them all
+    green and was withdrawn; any such fill must keep them red."""
+    from scmr_mesh.imaging import segment_drivable
+
+    img, post = _road_frame(paint)
+    mask = segment_drivable(img).mask > 0
+    assert not mask[post].any()
+    assert mask[200:, :90].all()     # while the road beside them is green
