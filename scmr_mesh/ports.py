@@ -44,28 +44,28 @@ def free_ports(names: Sequence[str], host: str = "127.0.0.1") -> dict[str, int]:
     pool = range(10000, lo) if lo - 10000 >= 1000 else range(hi + 1, 65536)
     rng = random.SystemRandom()
     socks, ports = [], {}
-    with _LOCK:
-        recent = set(_ISSUED)
-    try:
-        for n in names:
-            s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            for _ in range(1000):
-                port = rng.choice(pool)
-                if port in ports.values() or port in recent:
-                    continue
-                try:
-                    s.bind((host, port))
-                    break
-                except OSError:
-                    continue
-            else:
-                s.bind((host, 0))   # the pool is full: any free port
-            socks.append(s)
-            ports[n] = s.getsockname()[1]
-    finally:
-        for s in socks:
-            s.close()
-    with _LOCK:
+    with _LOCK:   # held throughout: two threads picking at once never draw the same port
+        try:
+            for n in names:
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                socks.append(s)
+                for _ in range(1000 if len(pool) >= 1000 else 0):
+                    port = rng.choice(pool)
+                    if port in ports.values() or port in _ISSUED:
+                        continue
+                    try:
+                        s.bind((host, port))
+                        break
+                    except OSError:
+                        continue
+                else:
+                    # no room outside the ephemeral range (ip_local_port_range 1024 65535), or
+                    # nothing free there: any free port, as bind(0) gives
+                    s.bind((host, 0))
+                ports[n] = s.getsockname()[1]
+        finally:
+            for s in socks:
+                s.close()
         _ISSUED.extend(ports.values())
     return ports
 

@@ -266,6 +266,20 @@ def test_serve_waits_for_the_web_port_before_it_prints_the_url(isolated_env, tmp
         viz.FleetViz(viz.RerunOptions("serve"), robots=["r0"], port=free_port(), web_port=web)
 
 
+def test_serve_refuses_a_web_port_another_server_holds(isolated_env):
+    """Another server on the web port would answer the wait for rerun's: refused, in one line."""
+    import socket
+
+    from conftest import free_port
+
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", free_port()))
+        other.listen(1)
+        web = other.getsockname()[1]
+        with pytest.raises(viz.ViewerError, match=rf"^--serve: the web viewer port {web} is taken"):
+            viz.FleetViz(viz.RerunOptions("serve"), robots=["r0"], port=free_port(), web_port=web)
+
+
 def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):
     from conftest import free_port
 

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import pytest
 
-from scmr_mesh.mesh.testing import wait_for
 
 pytest.importorskip("rerun")
 
@@ -30,22 +29,20 @@ def _view(rrd, env, *extra):
                             start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
 
 
-def _serving(proc, timeout=60.0):
-    """Wait for the URL line and for the web port to accept; return (web port, grpc port)."""
-    line = proc.stderr.readline()
-    m = re.search(r"http://127\.0\.0\.1:(\d+)\?url=rerun%2Bhttp%3A%2F%2F127\.0\.0\.1%3A(\d+)%2Fproxy", line)
-    assert m, line
+def _serving(proc):
+    """Read stderr up to the URL line (rerun logs its own lines first); the URL is printed once the
+    web and gRPC ports answer, so both accept at once.  Returns (web port, grpc port)."""
+    pat = re.compile(r"serving the web viewer on http://127\.0\.0\.1:(\d+)\?url=rerun%2Bhttp%3A%2F%2F127\.0\.0\.1%3A(\d+)%2Fproxy")
+    seen, m = [], None
+    for line in proc.stderr:   # ends when the command exits: then the assert below names why
+        seen.append(line)
+        m = pat.search(line)
+        if m:
+            break
+    assert m, "".join(seen)
     web, grpc = int(m.group(1)), int(m.group(2))
-
-    def listening():
-        assert proc.poll() is None, proc.stderr.read()
-        try:
-            socket.create_connection(("127.0.0.1", web), timeout=0.2).close()
-            return True
-        except OSError:
-            return False
-
-    wait_for(listening, timeout=timeout, what=f"web viewer on {web}")
+    for port in (web, grpc):
+        socket.create_connection(("127.0.0.1", port), timeout=5).close()
     return web, grpc
 
 

@@ -73,9 +73,9 @@ def run(args: argparse.Namespace) -> int:
         web, grpc = viewer_ports(args.web_port, args.port)
         cmd = [exe, "--web-viewer", "--web-viewer-port", str(web), "--port", str(grpc), "--bind", "127.0.0.1",
                str(path)]
-        print(f"serving the web viewer on {viewer_url(web, grpc)} (Ctrl-C to stop)", file=sys.stderr)
         try:
-            return serve(cmd, env=viz.rerun_env())
+            return serve(cmd, env=viz.rerun_env(), ready_ports=(web, grpc),
+                         ready=f"serving the web viewer on {viewer_url(web, grpc)} (Ctrl-C to stop)")
         except OSError as exc:
             raise viz.ViewerError(f"could not run {cmd[0]}: {exc}") from exc
     else:
@@ -141,15 +141,17 @@ def viewer_url(web_port: int, grpc_port: int) -> str:
 STOP_GRACE_S = 1.0
 
 
-def serve(cmd, *, env=None) -> int:
+def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     """Run the rerun web viewer until it exits or SIGINT/SIGTERM; return an exit status.
+
+    ``ready`` is printed once every port of ``ready_ports`` answers (the URL must open when shown).
 
     A Python started with SIGINT ignored (a script or CI job that ran it in the background)
     keeps ignoring it, and so did the rerun child: Ctrl-C/SIGINT did nothing.  Here the
     handlers are installed explicitly, rerun runs in its own session with SIGINT at its
     default, and a signal stops it (SIGINT, then SIGTERM and SIGKILL after a grace).
     """
-    from scmr_mesh.viz.sink import _stop
+    from scmr_mesh.viz.sink import _port_open, _stop
 
     got: list[int] = []
     stop = threading.Event()
@@ -164,9 +166,13 @@ def serve(cmd, *, env=None) -> int:
             old[sig] = signal.signal(sig, handle)
     proc = subprocess.Popen(cmd, env=env, start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    waiting = list(ready_ports) if ready else []
     try:
-        while proc.poll() is None and not stop.wait(0.1):
-            pass
+        while proc.poll() is None and not stop.wait(0.05 if waiting else 0.1):
+            if ready and waiting:
+                waiting = [p for p in waiting if not _port_open(p)]
+                if not waiting:
+                    print(ready, file=sys.stderr)
     finally:
         if proc.poll() is None:
             _stop(proc, grace=STOP_GRACE_S)

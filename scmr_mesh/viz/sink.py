@@ -117,6 +117,10 @@ class _Sink:
         else:  # serve
             port = port or DEFAULT_PORT
             web_port = web_port or DEFAULT_WEB_PORT
+            for flag, p in (("web viewer", web_port), ("gRPC", port)):
+                if _port_open(p):   # the wait below would take the other server for rerun
+                    raise ViewerError(f"--serve: the {flag} port {p} is taken (another viewer?); stop it, "
+                                      "or use --connect to stream to it")
             cmd = [exe, "--serve-web", "--port", str(port), "--web-viewer-port", str(web_port), "--bind", "127.0.0.1"]
             detach = False
             what = "the rerun web viewer (`rerun --serve-web`)"
