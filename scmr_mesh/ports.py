@@ -8,6 +8,7 @@ ephemeral range, where only another process picking at random can collide.
 from __future__ import annotations
 
 import collections
+import os
 import random
 import socket
 import threading
@@ -19,6 +20,15 @@ __all__ = ["free_port", "free_ports"]
 # must not return the same port before either is bound.
 _ISSUED: collections.deque[int] = collections.deque(maxlen=4096)
 _LOCK = threading.Lock()
+
+
+def _new_lock_in_child() -> None:
+    # a child forked while another thread held the lock would wait on it for ever
+    global _LOCK
+    _LOCK = threading.Lock()
+
+
+os.register_at_fork(after_in_child=_new_lock_in_child)
 
 
 def _ephemeral_range() -> tuple[int, int]:

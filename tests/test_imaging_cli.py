@@ -301,3 +301,24 @@ def test_bench_pipeline_reference_ratios(tmp_path):
     assert "ours / reference" in r.stdout
     verdict = "met" if ratios["total_over_reference_srm_paired"] <= 0.5 else "not met"
     assert f"the total target (<= 0.5) is {verdict} in this run" in r.stdout
+
+
+def test_bench_decode_pass_passes_on_what_else_reaches_stderr_even_when_it_fails(monkeypatch, capfd):
+    """libjpeg's bomb warnings are collected from fd 2; anything else written there comes out, also
+    when the pass raises (a review found it lost then)."""
+    from scmr_mesh.bench import pipeline as bp
+    from scmr_mesh.imaging import codec
+
+    def decode(data, **kw):
+        if kw:   # a bomb: the capture is on
+            os.write(2, b"Corrupt JPEG data: premature end of data segment\n")
+            os.write(2, b"libpng error: something the user must see\n")
+            raise RuntimeError("boom")
+        return np.zeros((225, 300, 3), np.uint8)
+
+    monkeypatch.setattr(codec, "decode_frame", decode)
+    src = [("x", codec.encode_png(np.zeros((8, 8, 3), np.uint8)))]
+    with pytest.raises(RuntimeError, match="boom"):
+        bp._decode_pass(src, 1, None, 1)
+    err = capfd.readouterr().err
+    assert "libpng error: something the user must see" in err and "Corrupt JPEG data" not in err

@@ -86,3 +86,18 @@ def test_a_narrow_post_standing_on_the_road_stays_red(paint):
     mask = segment_drivable(img).mask > 0
     assert not mask[post].any()
     assert mask[200:, :90].all()     # while the road beside them is green
+
+
+def test_on_open_ground_a_piece_the_fill_did_not_reach_stays_out():
+    """The carried model's candidate and the boundary cut can hold pieces apart from the seed: only
+    the candidate joined to what the column fill reached stays beyond a rock."""
+    c, rock = _ground_with_a_rock()
+    c[20:25, 17:23] = 0                    # cut the ground beyond the rock off at its top ...
+    c[20:25, 16] = 0
+    c[20:25, 23] = 0
+    island = np.zeros((H, W), bool)
+    island[8:12, 17:23] = True             # ... and an island of candidate above, apart from it all
+    c[island] = 1
+    out = column_fill(c, GAP, True) > 0
+    assert out[25:35, 17:23].all()         # the ground beyond the rock, joined to the rest
+    assert not out[island].any()

@@ -129,6 +129,8 @@ def test_free_ports_lie_outside_the_ephemeral_range():
     from scmr_mesh.ports import _ephemeral_range
 
     lo, hi = _ephemeral_range()
+    if lo - 10000 < 1000 and hi > 64535:
+        pytest.skip(f"this host's ephemeral range {lo}-{hi} leaves no room outside it (bind(0) is used)")
     ports = free_ports([f"p{i}" for i in range(50)]).values()
     assert all(not lo <= p <= hi for p in ports)
 

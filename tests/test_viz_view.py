@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import os
+import queue
 import re
 import signal
 import socket
 import subprocess
 import sys
-import pytest
+import threading
+import time
 
+import pytest
 
 pytest.importorskip("rerun")
 
@@ -29,17 +32,23 @@ def _view(rrd, env, *extra):
                             start_new_session=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
 
 
-def _serving(proc):
-    """Read stderr up to the URL line (rerun logs its own lines first); the URL is printed once the
-    web and gRPC ports answer, so both accept at once.  Returns (web port, grpc port)."""
+def _serving(proc, timeout=60.0):
+    """Read stderr up to the URL line (rerun logs its own lines first), for at most ``timeout``
+    seconds; the URL is printed once the web and gRPC ports answer, so both accept at once.
+    Returns (web port, grpc port)."""
     pat = re.compile(r"serving the web viewer on http://127\.0\.0\.1:(\d+)\?url=rerun%2Bhttp%3A%2F%2F127\.0\.0\.1%3A(\d+)%2Fproxy")
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stderr], daemon=True).start()
     seen, m = [], None
-    for line in proc.stderr:   # ends when the command exits: then the assert below names why
+    deadline = time.monotonic() + timeout
+    while m is None and time.monotonic() < deadline:
+        try:
+            line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
+        except queue.Empty:
+            break
         seen.append(line)
         m = pat.search(line)
-        if m:
-            break
-    assert m, "".join(seen)
+    assert m, f"no URL within {timeout:.0f} s: " + "".join(seen)
     web, grpc = int(m.group(1)), int(m.group(2))
     for port in (web, grpc):
         socket.create_connection(("127.0.0.1", port), timeout=5).close()

@@ -109,31 +109,11 @@ def _c_stderr_into(tmp):
         os.close(saved)
 
 
-def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict, dict]:
-    """Time :func:`decode_frame` per encoding: each source as PNG and as JPEG (quality 90), and the bombs."""
-    import resource
-
+def _decode_frames(encoded, bombs, samples, outcome, frames, progress, total, c_err) -> None:
+    """The decode pass's loop (see :func:`_decode_pass`); libjpeg's stderr goes to ``c_err``."""
     from scmr_mesh.errors import ImageDecodeError
-    from scmr_mesh.imaging.codec import JPEG_QUALITY, decode_frame, decode_image, encode_jpeg, encode_png
-    from scmr_mesh.imaging.testing import jpeg_bomb
+    from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS, decode_frame
 
-    encoded = []
-    for _, data in sources:
-        rgb = decode_image(data)
-        encoded.append({"png": encode_png(rgb), "jpeg": encode_jpeg(rgb, quality=JPEG_QUALITY)})
-    from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS
-
-    bombs = {label: jpeg_bomb(w, h) for label, w, h in BOMBS}
-    # PNG has no reduced decode: a PNG of zeros (~1000:1) over the services' PNG limit, and the
-    # worst one under it (decoded in full)
-    bombs["png bomb 3840x2160"] = encode_png(np.zeros((2160, 3840, 3), np.uint8))
-    bombs["png 1280x960 (largest accepted)"] = encode_png(np.zeros((960, 1280, 3), np.uint8))
-    samples: dict[str, list[float]] = {"png": [], "jpeg": [], **{label: [] for label in bombs}}
-    outcome = {}
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    # libjpeg warns on stderr for every truncated bomb: 200 lines of "Corrupt JPEG data" hid the
-    # progress and the table; they are collected, counted and reported in one line
-    c_err = tempfile.TemporaryFile()
     for i in range(frames):
         enc = encoded[i % len(encoded)]
         for kind in ("png", "jpeg"):
@@ -151,14 +131,42 @@ def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict
                 samples[label].append((time.perf_counter() - t0) * 1000)
         if progress and (i % 20 == 0 or i == frames - 1):
             progress(i + 1, total)
+
+
+def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict, dict]:
+    """Time :func:`decode_frame` per encoding: each source as PNG and as JPEG (quality 90), and the bombs."""
+    import resource
+
+    from scmr_mesh.imaging.codec import JPEG_QUALITY, decode_image, encode_jpeg, encode_png
+    from scmr_mesh.imaging.testing import jpeg_bomb
+
+    encoded = []
+    for _, data in sources:
+        rgb = decode_image(data)
+        encoded.append({"png": encode_png(rgb), "jpeg": encode_jpeg(rgb, quality=JPEG_QUALITY)})
+
+    bombs = {label: jpeg_bomb(w, h) for label, w, h in BOMBS}
+    # PNG has no reduced decode: a PNG of zeros (~1000:1) over the services' PNG limit, and the
+    # worst one under it (decoded in full)
+    bombs["png bomb 3840x2160"] = encode_png(np.zeros((2160, 3840, 3), np.uint8))
+    bombs["png 1280x960 (largest accepted)"] = encode_png(np.zeros((960, 1280, 3), np.uint8))
+    samples: dict[str, list[float]] = {"png": [], "jpeg": [], **{label: [] for label in bombs}}
+    outcome = {}
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # libjpeg warns on stderr for every truncated bomb: 200 lines of "Corrupt JPEG data" hid the
+    # progress and the table; they are collected, counted and reported in one line
+    c_err = tempfile.TemporaryFile()
+    try:
+        _decode_frames(encoded, bombs, samples, outcome, frames, progress, total, c_err)
+    finally:   # what else was written there comes out, whatever happened
+        c_err.seek(0)
+        lines = c_err.read().decode(errors="replace").splitlines()
+        c_err.close()
+        warnings = sum(ln.startswith(LIBJPEG_WARNING) for ln in lines)
+        for ln in lines:
+            if not ln.startswith(LIBJPEG_WARNING):
+                print(ln, file=sys.stderr)
     growth = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
-    c_err.seek(0)
-    lines = c_err.read().decode(errors="replace").splitlines()
-    c_err.close()
-    warnings = sum(ln.startswith(LIBJPEG_WARNING) for ln in lines)
-    for ln in lines:   # anything else is passed on
-        if not ln.startswith(LIBJPEG_WARNING):
-            print(ln, file=sys.stderr)
     sizes = {
         "png": int(np.median([len(e["png"]) for e in encoded])),
         "jpeg": int(np.median([len(e["jpeg"]) for e in encoded])),

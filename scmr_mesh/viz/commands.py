@@ -8,6 +8,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from urllib.parse import quote
 
 from scmr_mesh import cliargs as ca
@@ -139,12 +140,15 @@ def viewer_url(web_port: int, grpc_port: int) -> str:
 
 #: After Ctrl-C, how long rerun may take to stop before SIGTERM, then SIGKILL.
 STOP_GRACE_S = 1.0
+#: How long ``serve`` waits for the viewer's ports before it prints the URL with a warning.
+READY_WAIT_S = 15.0
 
 
 def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     """Run the rerun web viewer until it exits or SIGINT/SIGTERM; return an exit status.
 
-    ``ready`` is printed once every port of ``ready_ports`` answers (the URL must open when shown).
+    ``ready`` is printed once every port of ``ready_ports`` answers (the URL must open when shown),
+    or after :data:`READY_WAIT_S` with the ports that do not answer yet named.
 
     A Python started with SIGINT ignored (a script or CI job that ran it in the background)
     keeps ignoring it, and so did the rerun child: Ctrl-C/SIGINT did nothing.  Here the
@@ -166,13 +170,22 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
             old[sig] = signal.signal(sig, handle)
     proc = subprocess.Popen(cmd, env=env, start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    waiting = list(ready_ports) if ready else []
+    waiting = list(ready_ports)
+    if ready and not waiting:
+        print(ready, file=sys.stderr)
+        ready = None
+    deadline = time.monotonic() + READY_WAIT_S
     try:
-        while proc.poll() is None and not stop.wait(0.05 if waiting else 0.1):
-            if ready and waiting:
+        while proc.poll() is None and not stop.wait(0.05 if ready else 0.1):
+            if ready:
                 waiting = [p for p in waiting if not _port_open(p)]
                 if not waiting:
                     print(ready, file=sys.stderr)
+                    ready = None
+                elif time.monotonic() > deadline:
+                    print(f"{ready} [port {', '.join(map(str, waiting))} not answering after "
+                          f"{READY_WAIT_S:.0f} s]", file=sys.stderr)
+                    ready = None
     finally:
         if proc.poll() is None:
             _stop(proc, grace=STOP_GRACE_S)
