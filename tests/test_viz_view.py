@@ -77,3 +77,27 @@ def test_two_web_viewers_run_side_by_side_and_sigint_ends_each(tmp_path):
             if p is not None and p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
+
+
+def test_a_killed_viewer_command_leaves_no_rerun_behind(tmp_path):
+    """SIGKILL runs no handler: rerun, in its own session, kept serving until the kernel's
+    parent-death signal was set for it."""
+    env = dict(os.environ, SCMR_RERUN_HOME=str(tmp_path / "rr"))
+    p = _view(_rrd(tmp_path), env)
+    try:
+        web, grpc = _serving(p)
+    finally:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.wait()
+
+    def closed():
+        try:
+            socket.create_connection(("127.0.0.1", web), timeout=0.2).close()
+            return False
+        except OSError:
+            return True
+
+    deadline = time.monotonic() + 30
+    while not closed() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert closed(), f"rerun still serves on {web} after its parent was killed"

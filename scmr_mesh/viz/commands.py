@@ -144,6 +144,20 @@ STOP_GRACE_S = 1.0
 READY_WAIT_S = 15.0
 
 
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM when the parent dies (Linux ``PR_SET_PDEATHSIG``).
+
+    rerun runs in its own session, so a ``scmr view --web`` killed with SIGKILL (no handler runs)
+    left it serving: two such viewers were found still running after a test failed.
+    """
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))   # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):   # pragma: no cover - not Linux
+        pass
+
+
 def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     """Run the rerun web viewer until it exits or SIGINT/SIGTERM; return an exit status.
 
@@ -168,8 +182,14 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, handle)
-    proc = subprocess.Popen(cmd, env=env, start_new_session=True,
-                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    main = threading.current_thread() is threading.main_thread()
+
+    def child_setup() -> None:
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+        if main:   # the death signal follows the thread that forks: only the main thread's lasts
+            _die_with_parent()
+
+    proc = subprocess.Popen(cmd, env=env, start_new_session=True, preexec_fn=child_setup)
     waiting = list(ready_ports)
     if ready and not waiting:
         print(ready, file=sys.stderr)
