@@ -14,6 +14,8 @@ import time
 
 import pytest
 
+from scmr_mesh.mesh.testing import wait_for
+
 pytest.importorskip("rerun")
 
 
@@ -97,7 +99,4 @@ def test_a_killed_viewer_command_leaves_no_rerun_behind(tmp_path):
         except OSError:
             return True
 
-    deadline = time.monotonic() + 30
-    while not closed() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert closed(), f"rerun still serves on {web} after its parent was killed"
+    wait_for(closed, timeout=30, what=f"rerun to stop serving on {web} after its parent was killed")
