@@ -109,35 +109,19 @@ def _c_stderr_into(tmp):
         os.close(saved)
 
 
-def _decode_frames(encoded, bombs, samples, outcome, frames, progress, total, c_err) -> None:
-    """The decode pass's loop (see :func:`_decode_pass`); libjpeg's stderr goes to ``c_err``."""
-    from scmr_mesh.errors import ImageDecodeError
-    from scmr_mesh.imaging.codec import MAX_PNG_FRAME_PIXELS, decode_frame
-
-    for i in range(frames):
-        enc = encoded[i % len(encoded)]
-        for kind in ("png", "jpeg"):
-            t0 = time.perf_counter()
-            decode_frame(enc[kind])
-            samples[kind].append((time.perf_counter() - t0) * 1000)
-        with _c_stderr_into(c_err):
-            for label, data in bombs.items():
-                t0 = time.perf_counter()
-                try:
-                    decode_frame(data, max_png_pixels=MAX_PNG_FRAME_PIXELS)  # as a service's workers do
-                    outcome[label] = "decoded in full" if label.startswith("png") else "decoded at reduced scale"
-                except ImageDecodeError:
-                    outcome[label] = "refused from its header"
-                samples[label].append((time.perf_counter() - t0) * 1000)
-        if progress and (i % 20 == 0 or i == frames - 1):
-            progress(i + 1, total)
-
-
 def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict, dict]:
     """Time :func:`decode_frame` per encoding: each source as PNG and as JPEG (quality 90), and the bombs."""
     import resource
 
-    from scmr_mesh.imaging.codec import JPEG_QUALITY, decode_image, encode_jpeg, encode_png
+    from scmr_mesh.errors import ImageDecodeError
+    from scmr_mesh.imaging.codec import (
+        JPEG_QUALITY,
+        MAX_PNG_FRAME_PIXELS,
+        decode_frame,
+        decode_image,
+        encode_jpeg,
+        encode_png,
+    )
     from scmr_mesh.imaging.testing import jpeg_bomb
 
     encoded = []
@@ -157,7 +141,23 @@ def _decode_pass(sources, frames: int, progress, total: int) -> tuple[dict, dict
     # progress and the table; they are collected, counted and reported in one line
     c_err = tempfile.TemporaryFile()
     try:
-        _decode_frames(encoded, bombs, samples, outcome, frames, progress, total, c_err)
+        for i in range(frames):
+            enc = encoded[i % len(encoded)]
+            for kind in ("png", "jpeg"):
+                t0 = time.perf_counter()
+                decode_frame(enc[kind])
+                samples[kind].append((time.perf_counter() - t0) * 1000)
+            with _c_stderr_into(c_err):
+                for label, data in bombs.items():
+                    t0 = time.perf_counter()
+                    try:
+                        decode_frame(data, max_png_pixels=MAX_PNG_FRAME_PIXELS)  # as a service's workers do
+                        outcome[label] = "decoded in full" if label.startswith("png") else "decoded at reduced scale"
+                    except ImageDecodeError:
+                        outcome[label] = "refused from its header"
+                    samples[label].append((time.perf_counter() - t0) * 1000)
+            if progress and (i % 20 == 0 or i == frames - 1):
+                progress(i + 1, total)
     finally:   # what else was written there comes out, whatever happened
         c_err.seek(0)
         lines = c_err.read().decode(errors="replace").splitlines()

@@ -49,6 +49,8 @@ import sys
 import threading
 import time
 
+from scmr_mesh.ports import free_port, free_ports
+
 KEY_TOKEN = "probe/alive/server"
 KEY_ECHO = "probe/echo"
 
@@ -115,12 +117,6 @@ def _spawn_server(port: int, *, lease: int, busy: int = 0, no_shm: bool = False,
         p.kill()
         raise RuntimeError(f"probe server failed to start: {line!r}")
     return p
-
-
-def _free_port() -> int:
-    from scmr_mesh.ports import free_port
-
-    return free_port()
 
 
 class Proxy:
@@ -206,7 +202,7 @@ def probe_detect(args) -> int:
     for lease in args.lease:
         for case in args.cases:
             for rep in range(args.repeat):
-                port = _free_port()
+                port = free_port()
                 srv = _spawn_server(port, lease=lease, close_after=1.0 if case == "close" else None)
                 proxy = Proxy(port) if case == "blackhole" else None
                 ep = f"tcp/127.0.0.1:{proxy.port if proxy else port}"
@@ -255,7 +251,7 @@ def probe_stress(args) -> int:
     import zenoh
 
     for lease in args.lease:
-        port = _free_port()
+        port = free_port()
         srv = _spawn_server(port, lease=lease, busy=args.busy, reply_bytes=args.bytes)
         stop = threading.Event()
         for _ in range(args.busy):
@@ -310,7 +306,7 @@ def probe_reconnect(args) -> int:
         retry = {"period_init_ms": int(init), "period_max_ms": int(top), "period_increase_factor": factor}
         vals, cpus = [], []
         for rep in range(args.repeat):
-            port = _free_port()
+            port = free_port()
             srv = _spawn_server(port, lease=500)
             conf = _conf(connect=[f"tcp/127.0.0.1:{port}"])
             conf.cfg.append(f"connect/retry:{json.dumps(retry)}")
@@ -355,7 +351,7 @@ def probe_latency(args) -> int:
 
     for shm in (True, False):
         for size in args.sizes:
-            port = _free_port()
+            port = free_port()
             srv = _spawn_server(port, lease=500, no_shm=not shm, reply_bytes=args.reply_bytes)
             with zenoh.open(_conf(connect=[f"tcp/127.0.0.1:{port}"], shm=shm).build()) as s:
                 q = s.declare_querier(KEY_ECHO, timeout=5.0)
@@ -463,7 +459,7 @@ def probe_failover(args) -> int:
     from scmr_mesh.mesh.testing import read_records, spawn_peer, stop_peer, wait_for
 
     tmp = Path(tempfile.mkdtemp(prefix="scmr-failover-"))
-    cp, lp = _free_port(), _free_port()
+    cp, lp = free_ports(["c", "l"]).values()
     ep = "tcp/127.0.0.1:{}".format
     svc = ["--workers", str(args.workers), "--lease-ms", "500"] + (["--process", args.process] if args.process else [])
     procs = {}
@@ -540,7 +536,7 @@ def probe_redundant(args) -> int:
     from scmr_mesh.mesh.testing import read_records, spawn_peer, stop_peer, wait_for
 
     tmp = Path(tempfile.mkdtemp(prefix="scmr-redundant-"))
-    cp, lp = _free_port(), _free_port()
+    cp, lp = free_ports(["c", "l"]).values()
     ep = "tcp/127.0.0.1:{}".format
     proc = ["--process", args.process] if args.process else []
     svc = ["--workers", str(args.workers), *proc]

@@ -33,11 +33,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from scmr_mesh.errors import InputError
-from scmr_mesh.ports import free_port
-
-
-def _port() -> int:
-    return free_port()
+from scmr_mesh.ports import free_ports
 
 
 def _stats(xs: list[float]) -> dict[str, Any]:
@@ -57,7 +53,7 @@ def discovery_once(robots: int = 4, *, lease_ms: int = 500, timeout: float = 10.
     from scmr_mesh.mesh.config import close_session, open_session
 
     sec = sec or BenchSecurity(None)
-    ports = {n: _port() for n in ["cloud", "leader0", *[f"r{i}" for i in range(1, robots + 1)]]}
+    ports = free_ports(["cloud", "leader0", *[f"r{i}" for i in range(1, robots + 1)]])
     ep = {n: f"tcp/127.0.0.1:{p}" for n, p in ports.items()}
     sessions = []
     out: dict[str, list[float]] = {"leader_token_ms": [], "full_mesh_ms": [], "tls_link_share": []}
@@ -103,7 +99,7 @@ def succession_once(tmp: Path, *, lease_ms: int = 500, insecure: bool = False) -
 
     sec = bench_security(tmp, "leader0=leader,r1=robot+leader-capable,r2=robot+leader-capable,r3=robot",
                          insecure=insecure)
-    ports = {n: _port() for n in ("leader0", "r1", "r2", "r3")}
+    ports = free_ports(["leader0", "r1", "r2", "r3"])
     procs = {}
 
     def start(name: str, args: list[str]) -> None:

@@ -179,10 +179,10 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
         stop.set()
 
     old = {}
-    if threading.current_thread() is threading.main_thread():
+    main = threading.current_thread() is threading.main_thread()
+    if main:
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, handle)
-    main = threading.current_thread() is threading.main_thread()
 
     def child_setup() -> None:
         signal.signal(signal.SIGINT, signal.SIG_DFL)
