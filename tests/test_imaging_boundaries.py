@@ -70,6 +70,27 @@ def test_a_kerb_between_two_materials_cuts_the_far_side():
     assert kept[H - 1, W // 2]
 
 
+def test_a_kerb_of_a_faint_chromaticity_change_cuts():
+    """A pale pavement whose chromaticity differs from the asphalt's by 0.017 (between the floor of
+    0.015 and the prototype's 0.02, which missed the synthetic structured road's seed 2 verge at 0.019)
+    is a boundary; KITTI's lane lines measure 0.006-0.008 and the painted line below stays none."""
+    small = _scene((100, 100, 100), beyond=(150, 150, 144))
+    found = boundary_lines(_candidate(), small, 0.3)
+    assert len(found) == 1 and 0.015 <= found[0]["chroma"] < 0.02 and found[0]["boundary"], found
+    out, used = cut_at_boundaries(_candidate(), small, 0.3)
+    assert used and not (out.astype(bool) & BEYOND & (XX > found[0]["line"][0] + 3)).any()
+
+
+def test_the_synthetic_structured_roads_gravel_verge_is_cut():
+    """Seed 2: the gravel verge right of the road passes the road model; its edge line (chromaticity
+    0.019 apart) cuts it, so the mask's precision there is that of the road (0.79 with the floor at 0.02)."""
+    rgb, truth = make_scene("structured_road", seed=2)
+    mask = segment_drivable(rgb).mask > 0
+    road = truth > 0
+    assert (mask & road).sum() >= 0.97 * mask.sum(), "the verge is painted green"
+    assert (mask & road).sum() >= 0.85 * road.sum()
+
+
 def _shaded(rgb, t: float) -> tuple:
     """``rgb`` moved by ``t`` along :data:`SHADE_DIRECTION` in the road model's features (exactly:
     ``log((R+o)/(G+o))``, ``log((B+o)/(G+o))``, ``log((R+G+B)/3 + o)``, o = the feature offset)."""

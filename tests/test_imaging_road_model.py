@@ -838,7 +838,7 @@ def test_the_synthetic_floors_hold_iou_and_precision_per_kind():
     """:func:`synthetic_fits`: a kind below its IoU floor, or below the precision floor, fails the params;
     the kinds still below the 0.85 target are held to their own floor (the desert's 0.77)."""
     assert synthetic_floor("tunnel") == 0.85 and synthetic_floor("desert") == 0.77
-    assert synthetic_floor("structured_road") == 0.83
+    assert synthetic_floor("structured_road") == 0.85   # at the target since the boundary cut's floor 0.015
     iou = {"tunnel": np.array([0.86, 0.86, 0.84, 0.86]), "desert": np.array([0.78, 0.78, 0.78, 0.76])}
     prec = {"tunnel": np.array([0.90, 0.84, 0.90, 0.90]), "desert": np.array([0.90, 0.90, 0.90, 0.90])}
     assert synthetic_fits(iou, prec).tolist() == [True, False, False, False]
