@@ -14,11 +14,14 @@ from hypothesis import strategies as st
 from scmr_mesh.errors import InputError
 from scmr_mesh.imaging import segment_drivable, srm
 from scmr_mesh.imaging._srm_kernels import candidate_kernel, road_share_kernel
+from scmr_mesh.imaging.codec import load_frame
 from scmr_mesh.imaging.evaluate import (
     choose_combination,
     cross_validate,
     evaluate,
     format_cv_table,
+    load_manifest,
+    score,
     synthetic_fits,
     synthetic_floor,
     synthetic_scores,
@@ -680,6 +683,38 @@ def test_open_ground_is_a_flat_front_under_a_smooth_sky():
     assert not kept[:40].any() and kept[40:].all()
 
 
+@pytest.mark.parametrize("seed", [1, 5, 6])
+def test_a_shadow_band_across_the_sand_does_not_hide_open_ground(seed):
+    """The synthetic desert's seeds 1, 5 and 6: a cast shadow's band near the horizon (and the lens's dark
+    corners) leaves the candidate's front over 0.68-0.83 of the width; with ``front`` 0.97 they were
+    shrunk to ``cap`` ("seed reaches the horizon", IoU 0.55-0.61), with 0.6 they are open ground."""
+    rgb, truth = make_scene("desert", seed=seed)
+    res = segment_drivable(rgb)
+    assert res.abstained is None and res.confidence == 1.0
+    got = score(res.mask, truth)
+    assert got["iou"] >= 0.75 and got["precision"] >= 0.85, got
+
+
+def test_no_labelled_frame_is_open_ground(roads_dir):
+    """``front`` is fixed, not cross-validated, because no labelled frame passes :func:`open_ground` at any
+    value above 0.3 (the highest front among the frames that reach above ``reach`` with sky room and a
+    smooth top band is CamVid 0016E5_02040's 0.29; ORFD's orfd2, 0.47, has a textured top): so this
+    holds at the default, and a ``front`` low enough to take a street for open ground fails it."""
+    def open_frames(front):
+        out = []
+        for item in load_manifest(roads_dir):
+            small, seg = working_frame(load_frame(item.image))
+            params = dataclasses.replace(DEFAULT_PARAMS, front=front)
+            cand, info = classify(small, seg, params)
+            abstain(cand, info, params)
+            if info.get("open_ground"):
+                out.append(item.image.name)
+        return out
+
+    assert open_frames(DEFAULT_PARAMS.front) == []
+    assert "camvid_0016E5_02040.png" in open_frames(0.25)   # control: the test can see a frame pass
+
+
 @pytest.mark.parametrize("bad", [dict(gamma=0), dict(p=1.0), dict(noise=0), dict(horizon=1.0), dict(gap=-1),
                                  dict(reach=1.0), dict(cap=1.0), dict(opening=-1), dict(dim=300),
                                  dict(seed_share=0), dict(frac=0), dict(frac=1.5), dict(q=0), dict(q=float("inf")),
@@ -834,11 +869,15 @@ def test_a_combination_below_the_synthetic_floors_does_not_fit():
     assert res["iou"]["tunnel"][1] < synthetic_floor("tunnel") <= res["iou"]["tunnel"][0]
 
 
-def test_the_synthetic_floors_hold_iou_and_precision_per_kind():
+def test_the_synthetic_floors_hold_iou_and_precision_per_kind(monkeypatch):
     """:func:`synthetic_fits`: a kind below its IoU floor, or below the precision floor, fails the params;
-    the kinds still below the 0.85 target are held to their own floor (the desert's 0.77)."""
+    a kind listed as still below the 0.85 target is held to its own floor (none is since 2026-11-29:
+    the structured road 0.858, the desert 0.876; the list's mechanism is tested with the desert's old 0.77)."""
+    import scmr_mesh.imaging.evaluate as ev
+
+    assert all(synthetic_floor(k) == 0.85 for k in ("tunnel", "desert", "structured_road", "dirt_road", "hallway"))
+    monkeypatch.setattr(ev, "SYNTHETIC_KNOWN_BELOW", {"desert": 0.77})
     assert synthetic_floor("tunnel") == 0.85 and synthetic_floor("desert") == 0.77
-    assert synthetic_floor("structured_road") == 0.85   # at the target since the boundary cut's floor 0.015
     iou = {"tunnel": np.array([0.86, 0.86, 0.84, 0.86]), "desert": np.array([0.78, 0.78, 0.78, 0.76])}
     prec = {"tunnel": np.array([0.90, 0.84, 0.90, 0.90]), "desert": np.array([0.90, 0.90, 0.90, 0.90])}
     assert synthetic_fits(iou, prec).tolist() == [True, False, False, False]
