@@ -141,6 +141,26 @@ def test_cleanup_removes_stale_namespaces_and_their_processes(entered):
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
+@pytest.mark.parametrize("family", ["scmrm", "scmrb", "scmrh", "scmrg"])
+def test_cleanup_removes_the_other_namespace_users_leftovers(family):
+    """A killed test run or bench leaves its sites (scmrm-), tx-stall hosts (scmrb-) or bridged hosts
+    (scmrh-) behind, as one SIGKILLed suite did on 2026-11-29; `scmr scenario cleanup` removes those too."""
+    prefix = f"{family}-stale{secrets.token_hex(2)}"
+    ns = f"{prefix}-x"
+    run_cmd(("ip", "netns", "add", ns))
+    p = subprocess.Popen(["ip", "netns", "exec", ns, "sleep", "60"])
+    try:
+        wait_for(lambda: str(p.pid) in run_cmd(("ip", "netns", "pids", ns)).split(), timeout=30,
+                 what="sleep inside the namespace")
+        assert cleanup_stale(prefix) == [ns]
+        assert p.wait(timeout=10) != 0
+        assert ns not in list_namespaces("")
+    finally:
+        if p.poll() is None:
+            p.kill()
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
 def test_cleanup_kills_a_process_that_enters_while_it_runs():
     """The race made deterministic: a process enters right after the cleanup listed the namespace's pids
     (as `ip netns exec` may): the sweep by the namespace's inode after the delete still kills it."""

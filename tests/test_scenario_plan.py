@@ -254,3 +254,55 @@ def test_the_runner_ends_held_faults_with_their_holder_but_not_at_the_teardown()
     to_the_end = _scenario({"kind": "link_down", "at_s": 1, "for_s": 5, "link": ["robot2", "cloud"]},
                            {"kind": "partition", "at_s": 4, "groups": [["cloud"], ["leader", "robot1", "robot2"]]})
     assert _ends_after_running(to_the_end) == {0: False, 1: False}
+
+
+def test_cleanup_by_default_takes_every_prefix_of_the_project_and_nothing_else():
+    """`scmr scenario cleanup` (``cleanup_stale()``): the namespaces of scenario runs, sites, the tx-stall
+    bench and the tests' hosts go; a namespace of anyone else (or ``scmr-...``, no family letter) stays;
+    a prefix outside the project's is refused.  A recording runner, so no root is needed."""
+    import pytest
+
+    from scmr_mesh.errors import ScenarioError
+    from scmr_mesh.scenario.netns import cleanup_stale
+
+    listed = ["scmrs-r1-cloud", "scmrm-123-a", "scmrb-ab12-br", "scmrh-99-r1", "scmrg-7-a", "docker-1", "scmr-x",
+              "scmrz-1"]
+    deleted = []
+
+    def run(cmd):
+        cmd = tuple(cmd)
+        if cmd == ("ip", "netns", "list"):
+            return "\n".join(f"{n} (id: {i})" for i, n in enumerate(listed))
+        if cmd[:3] == ("ip", "netns", "pids"):
+            return ""
+        if cmd[:3] == ("ip", "netns", "del"):
+            deleted.append(cmd[3])
+            return ""
+        raise AssertionError(cmd)
+
+    assert cleanup_stale(run=run) == listed[:5] and deleted == listed[:5]
+    deleted.clear()
+    assert cleanup_stale("scmrh-", run=run) == ["scmrh-99-r1"] and deleted == ["scmrh-99-r1"]
+    for bad in ("docker", "scmr", "scmrz-", ""):
+        with pytest.raises(ScenarioError, match="refusing"):
+            cleanup_stale(bad, run=run)
+
+
+def test_every_namespace_the_code_names_has_one_of_the_projects_prefixes():
+    """A scan of the sources and tests for namespace-like names ``scmr<letter>-``: each family is in
+    OWN_NS_PREFIXES, so `scmr scenario cleanup` can remove what a killed run of it left."""
+    import re
+    from pathlib import Path
+
+    from scmr_mesh.scenario.plan import OWN_NS_PREFIXES
+
+    root = Path(__file__).resolve().parents[1]
+    found = {}
+    for path in [*root.joinpath("scmr_mesh").rglob("*.py"), *root.joinpath("tests").glob("*.py")]:
+        if path.name == Path(__file__).name:   # this file names strangers on purpose
+            continue
+        for m in re.finditer(r"[\"'{ ]scmr([a-z])-", path.read_text()):
+            found.setdefault(f"scmr{m.group(1)}-", path.name)
+    unknown = {p: f for p, f in found.items() if p not in OWN_NS_PREFIXES}
+    assert {"scmrs-", "scmrm-", "scmrb-", "scmrh-", "scmrg-"} <= set(found), found
+    assert not unknown, unknown

@@ -255,7 +255,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--run-id", default="RUNID", help="run id used in namespace names (default RUNID)")
     pl.set_defaults(func=_cmd_plan)
 
-    cl = ssub.add_parser("cleanup", help="remove scmrs-* namespaces and their processes left by a crashed run",
+    cl = ssub.add_parser("cleanup", help="remove the project's network namespaces and their processes left by a killed run",
                          description="Kill the processes inside, and delete, every network namespace whose "
-                         "name starts with 'scmrs-' (only scenario runs create them). Needs root.")
+                         "name starts with one of the project's prefixes: 'scmrs-' (scenario runs), 'scmrm-' "
+                         "(several-sites tests, the router probe), 'scmrb-' (the tx-stall bench), 'scmrh-' and 'scmrg-' "
+                         "(the test suite's hosts). Only this project creates them; a run still going loses "
+                         "its own, so run it when none is. Needs root.")
     cl.set_defaults(func=_cmd_cleanup)

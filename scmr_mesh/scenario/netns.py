@@ -10,8 +10,9 @@ it (:func:`netem_available` detects it; without it those faults are skipped and
 reported, not failed).
 
 The executor is passed in (``run=``), so tests can record the commands.
-:func:`cleanup_stale` removes ``scmrs-*`` namespaces (and kills the processes
-inside them) that a crashed run left behind.
+:func:`cleanup_stale` removes the namespaces (and kills the processes inside them)
+that a crashed run left behind: ``scmrs-*`` of scenario runs and, by default, those of
+the project's other namespace users too (:data:`~scmr_mesh.scenario.plan.OWN_NS_PREFIXES`).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from scmr_mesh.errors import ScenarioError
-from scmr_mesh.scenario.plan import NS_PREFIX, Event, NetnsLayout
+from scmr_mesh.scenario.plan import NS_PREFIX, OWN_NS_PREFIXES, Event, NetnsLayout
 from scmr_mesh.scenario.spec import Scenario
 
 __all__ = [
@@ -156,19 +157,24 @@ def _kill_pids_in(ns: str, run: Runner, ino: tuple[int, int] | None = None) -> i
     return n
 
 
-def cleanup_stale(prefix: str = NS_PREFIX, *, run: Runner = run_cmd) -> list[str]:
+def cleanup_stale(prefix: str | None = None, *, run: Runner = run_cmd) -> list[str]:
     """Kill processes in, and delete, every namespace starting with ``prefix``.
 
-    Only namespaces this package creates carry the ``scmrs-`` prefix.  Returns
-    the names removed.  A process still entering a namespace (``ip netns exec``
-    between opening it and ``setns``) is killed too, and after the name is
-    deleted the namespace is swept again by its inode until nothing is left in
-    it, so nothing keeps running in a namespace nobody can name any more.
+    ``prefix`` None: every prefix the project uses (:data:`OWN_NS_PREFIXES`: scenario runs,
+    sites, the tx-stall bench, the tests' hosts); only namespaces this package and its tests
+    create carry them.  A ``prefix`` must start with one of them.  Returns the names removed.
+    A process still entering a namespace (``ip netns exec`` between opening it and
+    ``setns``) is killed too, and after the name is deleted the namespace is swept again by
+    its inode until nothing is left in it, so nothing keeps running in a namespace nobody can
+    name any more.
     """
-    if not prefix.startswith(NS_PREFIX):
-        raise ScenarioError(f"refusing to clean namespaces with prefix {prefix!r}; it must start with {NS_PREFIX!r}")
+    if prefix is not None and not prefix.startswith(OWN_NS_PREFIXES):
+        raise ScenarioError(f"refusing to clean namespaces with prefix {prefix!r}; it must start with one of "
+                            f"{', '.join(OWN_NS_PREFIXES)}")
+    prefixes = OWN_NS_PREFIXES if prefix is None else (prefix,)
     removed = []
-    for ns in list_namespaces(prefix, run=run):
+    names = [ns for ns in list_namespaces("", run=run) if ns.startswith(prefixes)]
+    for ns in names:
         ino = _ns_inode(ns)
         killed = _kill_pids_in(ns, run, ino)
         try:
