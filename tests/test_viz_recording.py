@@ -280,6 +280,46 @@ def test_serve_refuses_a_web_port_another_server_holds(isolated_env):
             viz.FleetViz(viz.RerunOptions("serve"), robots=["r0"], port=free_port(), web_port=web)
 
 
+SINK_THEN_WAIT = r"""
+import sys, threading
+from scmr_mesh import viz
+mode, out, port, web = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+if mode == "save":
+    fv = viz.FleetViz(viz.RerunOptions("save", out), robots=["r0"], port=port)
+else:
+    fv = viz.FleetViz(viz.RerunOptions("serve"), robots=["r0"], port=port, web_port=web)
+print(fv._sink.proc.pid, flush=True)
+threading.Event().wait()
+"""
+
+
+@pytest.mark.parametrize("mode", ["save", "serve"])
+def test_a_killed_fleet_leaves_no_recorder_or_web_viewer_behind(isolated_env, tmp_path, mode):
+    """SIGKILL runs no handler: the fleet's `rerun --save` recorder and `rerun --serve-web` viewer,
+    in their own sessions, kept running (recording, holding their ports) until the sink set the
+    kernel's parent-death signal for them; now they stop with the fleet."""
+    from conftest import free_port
+    from scmr_mesh.mesh.testing import wait_for
+
+    port, web = free_port(), free_port()
+    p = subprocess.Popen([sys.executable, "-c", SINK_THEN_WAIT, mode, str(tmp_path / "run.rrd"), str(port), str(web)],
+                         stdout=subprocess.PIPE, text=True)
+    try:
+        rerun_pid = int(p.stdout.readline())
+    finally:
+        p.kill()
+        p.wait()
+
+    def gone():
+        try:
+            with open(f"/proc/{rerun_pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+        except OSError:
+            return True
+
+    wait_for(gone, timeout=30, what=f"rerun ({mode}, pid {rerun_pid}) to stop after the fleet was killed")
+
+
 def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):
     from conftest import free_port
 

@@ -144,20 +144,6 @@ STOP_GRACE_S = 1.0
 READY_WAIT_S = 15.0
 
 
-def _die_with_parent() -> None:
-    """In the child before exec: SIGTERM when the parent dies (Linux ``PR_SET_PDEATHSIG``).
-
-    rerun runs in its own session, so a ``scmr view --web`` killed with SIGKILL (no handler runs)
-    left it serving: two such viewers were found still running after a test failed.
-    """
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGTERM))   # 1 = PR_SET_PDEATHSIG
-    except (OSError, AttributeError):   # pragma: no cover - not Linux
-        pass
-
-
 def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     """Run the rerun web viewer until it exits or SIGINT/SIGTERM; return an exit status.
 
@@ -169,7 +155,7 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     handlers are installed explicitly, rerun runs in its own session with SIGINT at its
     default, and a signal stops it (SIGINT, then SIGTERM and SIGKILL after a grace).
     """
-    from scmr_mesh.viz.sink import _port_open, _stop
+    from scmr_mesh.viz.sink import _port_open, _stop, die_with_parent_setup
 
     got: list[int] = []
     stop = threading.Event()
@@ -184,10 +170,12 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, handle)
 
+    die = die_with_parent_setup()   # None off the main thread (the signal follows the forking thread)
+
     def child_setup() -> None:
         signal.signal(signal.SIGINT, signal.SIG_DFL)
-        if main:   # the death signal follows the thread that forks: only the main thread's lasts
-            _die_with_parent()
+        if die is not None:
+            die()
 
     proc = subprocess.Popen(cmd, env=env, start_new_session=True, preexec_fn=child_setup)
     waiting = list(ready_ports)

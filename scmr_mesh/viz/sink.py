@@ -25,6 +25,36 @@ from scmr_mesh.viz.rerun_cli import rerun_env, rerun_executable, run_rerun_cli
 
 log = logging.getLogger(__name__)
 
+try:   # looked up before any fork: the child between fork and exec only calls it
+    import ctypes
+
+    _PRCTL = ctypes.CDLL(None, use_errno=True).prctl
+except (OSError, AttributeError):   # pragma: no cover - not Linux
+    _PRCTL = None
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent_setup(sig: int = signal.SIGTERM):
+    """A ``preexec_fn`` that has the kernel send ``sig`` to the child when this process dies
+    (Linux ``PR_SET_PDEATHSIG``), or None where that cannot hold.
+
+    rerun runs in its own session, so a parent killed with SIGKILL (no handler runs) left it
+    recording or serving: two web viewers of ``scmr view`` were found after a failed test.  The
+    death signal follows the *thread* that forks, so it is set only when called from the main
+    thread (off it, None: a worker thread that ends would stop rerun with it); a parent that died
+    before the signal was set makes the child exit at once.
+    """
+    if _PRCTL is None or threading.current_thread() is not threading.main_thread():
+        return None
+    parent, prctl, signum = os.getpid(), _PRCTL, int(sig)
+
+    def setup() -> None:   # between fork and exec: keep it tiny
+        prctl(_PR_SET_PDEATHSIG, signum, 0, 0, 0)
+        if os.getppid() != parent:
+            os._exit(1)
+
+    return setup
+
 # --------------------------------------------------------------------------
 # sinks (fleet process)
 
@@ -133,6 +163,9 @@ class _Sink:
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.PIPE if not detach else subprocess.DEVNULL,
                 start_new_session=True,  # Ctrl-C in the fleet does not reach it; we stop it ourselves
+                # a recorder or web viewer ends with the fleet, even a SIGKILLed one (a --save file
+                # is then left as FILE.partial, loadable); a spawned viewer stays open for the user
+                preexec_fn=None if detach else die_with_parent_setup(),
             )
         except OSError as exc:
             raise ViewerError(f"could not start {what}: {exc}") from exc
