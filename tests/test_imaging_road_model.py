@@ -683,36 +683,64 @@ def test_open_ground_is_a_flat_front_under_a_smooth_sky():
     assert not kept[:40].any() and kept[40:].all()
 
 
-@pytest.mark.parametrize("seed", [1, 5, 6])
-def test_a_shadow_band_across_the_sand_does_not_hide_open_ground(seed):
-    """The synthetic desert's seeds 1, 5 and 6: a cast shadow's band near the horizon (and the lens's dark
-    corners) leaves the candidate's front over 0.68-0.83 of the width; with ``front`` 0.97 they were
-    shrunk to ``cap`` ("seed reaches the horizon", IoU 0.55-0.61), with 0.6 they are open ground."""
-    rgb, truth = make_scene("desert", seed=seed)
-    res = segment_drivable(rgb)
-    assert res.abstained is None and res.confidence == 1.0
-    got = score(res.mask, truth)
-    assert got["iou"] >= 0.75 and got["precision"] >= 0.85, got
+def test_no_labelled_frame_is_open_ground(roads_dir, monkeypatch):
+    """``front`` is fixed, not cross-validated, because no labelled frame is open ground at the default
+    (0.97), measured where the pipeline decides it (on the candidate after the opening); the highest
+    front of a frame that reaches above ``reach`` with room for a sky is ``umich_early_forest1``'s 0.84,
+    kept out by the front and by its canopy's texture (2026-11-29; ``front`` 0.6 was tried and
+    withdrawn, docs/ACCURACY.md).  Control: at 0.3 CamVid 0016E5_02400 (front 0.333) passes."""
+    import scmr_mesh.imaging.pipeline as pipeline
 
+    seen: list[bool] = []
 
-def test_no_labelled_frame_is_open_ground(roads_dir):
-    """``front`` is fixed, not cross-validated, because no labelled frame passes :func:`open_ground` at any
-    value above 0.3 (the highest front among the frames that reach above ``reach`` with sky room and a
-    smooth top band is CamVid 0016E5_02040's 0.29; ORFD's orfd2, 0.47, has a textured top): so this
-    holds at the default, and a ``front`` low enough to take a street for open ground fails it."""
+    def spy(candidate, info, params):
+        out = abstain(candidate, info, params)
+        seen.append(bool(info.get("open_ground")))
+        return out
+
+    monkeypatch.setattr(pipeline, "abstain", spy)
+
     def open_frames(front):
         out = []
         for item in load_manifest(roads_dir):
-            small, seg = working_frame(load_frame(item.image))
-            params = dataclasses.replace(DEFAULT_PARAMS, front=front)
-            cand, info = classify(small, seg, params)
-            abstain(cand, info, params)
-            if info.get("open_ground"):
+            seen.clear()
+            segment_drivable(load_frame(item.image), params=dataclasses.replace(DEFAULT_PARAMS, front=front))
+            assert len(seen) == 1
+            if seen[0]:
                 out.append(item.image.name)
         return out
 
     assert open_frames(DEFAULT_PARAMS.front) == []
-    assert "camvid_0016E5_02040.png" in open_frames(0.25)   # control: the test can see a frame pass
+    assert open_frames(0.3) == ["camvid_0016E5_02400.png"]
+
+
+@pytest.mark.parametrize("share", [0.62, 0.8])
+def test_a_road_grey_wall_under_a_clear_sky_is_not_open_ground(share):
+    """A hostile review's scene (2026-11-29): a wall of the road's grey with a flat top across ``share`` of
+    the width, standing on the grass ahead of a road under a clear sky.  Its top is a flat front under a
+    smooth sky; with ``front`` 0.6 it passed as open ground and was painted green (precision 0.59 /
+    0.53).  It must abstain and stay red.  (A wall across the whole width still passes: a flat front over
+    0.97 of the width under a smooth sky is what open ground is, and one frame cannot tell them apart.)"""
+    h, w = WORK_SHAPE[0] * 2 + 1, WORK_SHAPE[1] * 2
+    yy, xx = np.mgrid[:h, :w]
+    rng = np.random.default_rng(0)
+
+    def tex(a, c):
+        g = rng.uniform(-1, 1, (h // c + 2, w // c + 2)).astype(np.float32)
+        return a * cv2.resize(g, (g.shape[1] * c, g.shape[0] * c), interpolation=cv2.INTER_CUBIC)[:h, :w, None]
+
+    img = np.stack([150 + 40 * yy / 80, 175 + 30 * yy / 80, 215 + 10 * yy / 80], -1).astype(np.float32)
+    grass = yy > 80
+    img[grass] = ((90, 130, 70) + tex(12, 4))[grass]
+    road = grass & (np.abs(xx - 150) <= 90 * (yy - 80) / (h - 80) + 2)
+    img[road] = ((100, 100, 100) + tex(8, 6))[road]
+    wall = (yy > 50) & (yy <= 100) & (xx >= w * (1 - share))
+    img[wall] = ((80, 80, 80) + tex(8, 6))[wall]
+    img = np.clip(img + np.random.default_rng(1).normal(0, 3, img.shape), 0, 255).astype(np.uint8)
+    res = segment_drivable(img)
+    assert res.abstained == "seed reaches the horizon"
+    assert score(res.mask, road & ~wall)["precision"] >= 0.95
+    assert not (res.mask.astype(bool) & wall).any()
 
 
 @pytest.mark.parametrize("bad", [dict(gamma=0), dict(p=1.0), dict(noise=0), dict(horizon=1.0), dict(gap=-1),
@@ -869,15 +897,11 @@ def test_a_combination_below_the_synthetic_floors_does_not_fit():
     assert res["iou"]["tunnel"][1] < synthetic_floor("tunnel") <= res["iou"]["tunnel"][0]
 
 
-def test_the_synthetic_floors_hold_iou_and_precision_per_kind(monkeypatch):
+def test_the_synthetic_floors_hold_iou_and_precision_per_kind():
     """:func:`synthetic_fits`: a kind below its IoU floor, or below the precision floor, fails the params;
-    a kind listed as still below the 0.85 target is held to its own floor (none is since 2026-11-29:
-    the structured road 0.858, the desert 0.876; the list's mechanism is tested with the desert's old 0.77)."""
-    import scmr_mesh.imaging.evaluate as ev
-
-    assert all(synthetic_floor(k) == 0.85 for k in ("tunnel", "desert", "structured_road", "dirt_road", "hallway"))
-    monkeypatch.setattr(ev, "SYNTHETIC_KNOWN_BELOW", {"desert": 0.77})
+    the kinds still below the 0.85 target are held to their own floor (the desert's 0.77)."""
     assert synthetic_floor("tunnel") == 0.85 and synthetic_floor("desert") == 0.77
+    assert synthetic_floor("structured_road") == 0.85   # at the target since the boundary cut's floor 0.015
     iou = {"tunnel": np.array([0.86, 0.86, 0.84, 0.86]), "desert": np.array([0.78, 0.78, 0.78, 0.76])}
     prec = {"tunnel": np.array([0.90, 0.84, 0.90, 0.90]), "desert": np.array([0.90, 0.90, 0.90, 0.90])}
     assert synthetic_fits(iou, prec).tolist() == [True, False, False, False]

@@ -107,10 +107,7 @@ class RoadParams:
     front : float
         A candidate that reaches above ``reach`` is *open ground*, not a leak, when its upper
         edge is a horizon: a flat front over at least this share of the frame's width, with sky
-        room above it (see :func:`open_ground`; 0 = never, the abstention as before).  Fixed,
-        not cross-validated: no labelled frame passes at any value above 0.3; 0.6 lies between
-        the labelled frames' highest front with sky room (0.47) and the synthetic deserts'
-        lowest (0.68; docs/PIPELINE.md step 6).
+        room above it (see :func:`open_ground`; 0 = never, the abstention as before).
     lateral : float
         A seed region other than the one covering most of the bottom-centre cell is dropped when
         its centroid lies outside ``[lateral, 1 - lateral]`` of the frame's width and it reaches
@@ -145,7 +142,7 @@ class RoadParams:
     dim: float = 0.0
     cap: float = 0.5
     standing: bool = True
-    front: float = 0.6
+    front: float = 0.97
     lateral: float = 0.25
     weak: float = 6.0
     boundary: float = 0.3
