@@ -83,6 +83,10 @@ def bridged_hosts(prefix: str, addr: dict[str, str]):
     """Network namespaces ``<prefix>-<host>``, one per key of ``addr``, on one bridge (``<prefix>-br``),
     each with ``eth0`` at its address (/24) and no route out; deleted on exit.  Yields host -> namespace
     name.  Kill what runs inside before leaving."""
+    from scmr_mesh.scenario.plan import OWN_NS_PREFIXES
+
+    # `scmr scenario cleanup` removes only these families: a killed run's hosts must be among them
+    assert f"{prefix}-".startswith(OWN_NS_PREFIXES), f"namespace prefix {prefix!r} is none of {OWN_NS_PREFIXES}"
     names = {h: f"{prefix}-{h}" for h in ("br", *addr)}
     try:
         _ip("ip", "netns", "add", names["br"])

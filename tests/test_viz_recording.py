@@ -281,9 +281,11 @@ def test_serve_refuses_a_web_port_another_server_holds(isolated_env):
 
 
 SINK_THEN_WAIT = r"""
-import sys, threading
+import signal, sys, threading
 from scmr_mesh import viz
-mode, out, port, web = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+mode, out, port, web, ignore = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), sys.argv[5] == "1"
+if ignore:   # started with SIGTERM ignored (`trap '' TERM`, some supervisors): rerun inherited that
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 if mode == "save":
     fv = viz.FleetViz(viz.RerunOptions("save", out), robots=["r0"], port=port)
 else:
@@ -293,18 +295,25 @@ threading.Event().wait()
 """
 
 
-@pytest.mark.parametrize("mode", ["save", "serve"])
-def test_a_killed_fleet_leaves_no_recorder_or_web_viewer_behind(isolated_env, tmp_path, mode):
+@pytest.mark.parametrize("mode, ignore", [("save", False), ("serve", False), ("save", True)],
+                         ids=["save", "serve", "save-with-SIGTERM-ignored"])
+def test_a_killed_fleet_leaves_no_recorder_or_web_viewer_behind(isolated_env, tmp_path, mode, ignore):
     """SIGKILL runs no handler: the fleet's `rerun --save` recorder and `rerun --serve-web` viewer,
     in their own sessions, kept running (recording, holding their ports) until the sink set the
-    kernel's parent-death signal for them; now they stop with the fleet."""
+    kernel's parent-death signal for them; now they stop with the fleet, also when the fleet was
+    started with SIGTERM ignored (rerun inherited that and ignored its death signal, a review found)."""
+    import select
+
     from conftest import free_port
     from scmr_mesh.mesh.testing import wait_for
 
     port, web = free_port(), free_port()
-    p = subprocess.Popen([sys.executable, "-c", SINK_THEN_WAIT, mode, str(tmp_path / "run.rrd"), str(port), str(web)],
-                         stdout=subprocess.PIPE, text=True)
+    p = subprocess.Popen([sys.executable, "-c", SINK_THEN_WAIT, mode, str(tmp_path / "run.rrd"), str(port), str(web),
+                          "1" if ignore else "0"], stdout=subprocess.PIPE, text=True)
+    rerun_pid = None
     try:
+        ready, _, _ = select.select([p.stdout], [], [], 60)
+        assert ready, "the fleet process printed no rerun pid within 60 s"
         rerun_pid = int(p.stdout.readline())
     finally:
         p.kill()
@@ -317,7 +326,11 @@ def test_a_killed_fleet_leaves_no_recorder_or_web_viewer_behind(isolated_env, tm
         except OSError:
             return True
 
-    wait_for(gone, timeout=30, what=f"rerun ({mode}, pid {rerun_pid}) to stop after the fleet was killed")
+    try:
+        wait_for(gone, timeout=30, what=f"rerun ({mode}, pid {rerun_pid}) to stop after the fleet was killed")
+    finally:   # a failure must not leave rerun holding its ports for the rest of the suite
+        if not gone():
+            os.kill(rerun_pid, 9)
 
 
 def test_spawn_without_display_fails_fast(isolated_env, monkeypatch):

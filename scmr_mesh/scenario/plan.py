@@ -49,7 +49,7 @@ __all__ = [
 #: Every namespace a scenario run creates starts with this prefix.
 NS_PREFIX = "scmrs-"
 #: The prefixes of every network namespace the project creates, and only of those: scenario runs
-#: (``scmrs-``), the sites of the several-sites tests and the router probe (``scmrm-``,
+#: (``scmrs-``, also the blackhole test's hosts), the sites of the several-sites tests and the router probe (``scmrm-``,
 #: :mod:`scmr_mesh.scenario.sites`), the tx-stall bench (``scmrb-``, :mod:`scmr_mesh.bench.txstall`),
 #: the tests' bridged hosts (``scmrh-``, ``tests/conftest.py``) and the TCP guard's test hosts
 #: (``scmrg-``, ``tests/test_mesh_tcpguard.py``).  ``scmr scenario cleanup``

@@ -42,13 +42,17 @@ def die_with_parent_setup(sig: int = signal.SIGTERM):
     recording or serving: two web viewers of ``scmr view`` were found after a failed test.  The
     death signal follows the *thread* that forks, so it is set only when called from the main
     thread (off it, None: a worker thread that ends would stop rerun with it); a parent that died
-    before the signal was set makes the child exit at once.
+    before the signal was set makes the child exit at once; ``sig`` is reset to its default in
+    the child, since an ignored signal stays ignored across exec.
     """
     if _PRCTL is None or threading.current_thread() is not threading.main_thread():
         return None
     parent, prctl, signum = os.getpid(), _PRCTL, int(sig)
 
     def setup() -> None:   # between fork and exec: keep it tiny
+        # an ignored signal stays ignored across exec: a parent started with SIGTERM ignored (a
+        # `trap '' TERM`, some supervisors) gave rerun a death signal it then ignored
+        signal.signal(signum, signal.SIG_DFL)
         prctl(_PR_SET_PDEATHSIG, signum, 0, 0, 0)
         if os.getppid() != parent:
             os._exit(1)
@@ -164,7 +168,8 @@ class _Sink:
                 stderr=subprocess.PIPE if not detach else subprocess.DEVNULL,
                 start_new_session=True,  # Ctrl-C in the fleet does not reach it; we stop it ourselves
                 # a recorder or web viewer ends with the fleet, even a SIGKILLed one (a --save file
-                # is then left as FILE.partial, loadable); a spawned viewer stays open for the user
+                # is then left as FILE.partial: rerun reads it, unfinalised); a spawned viewer stays
+                # open for the user
                 preexec_fn=None if detach else die_with_parent_setup(),
             )
         except OSError as exc:
