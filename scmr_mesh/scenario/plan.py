@@ -49,11 +49,11 @@ __all__ = [
 #: Every namespace a scenario run creates starts with this prefix.
 NS_PREFIX = "scmrs-"
 #: The prefixes of every network namespace the project creates, and only of those: scenario runs
-#: (``scmrs-``, also the blackhole test's hosts), the sites of the several-sites tests and the router probe (``scmrm-``,
-#: :mod:`scmr_mesh.scenario.sites`), the tx-stall bench (``scmrb-``, :mod:`scmr_mesh.bench.txstall`),
-#: the tests' bridged hosts (``scmrh-``, ``tests/conftest.py``) and the TCP guard's test hosts
-#: (``scmrg-``, ``tests/test_mesh_tcpguard.py``).  ``scmr scenario cleanup``
-#: removes what a killed run of any of them left; a test checks that no other prefix is used.
+#: (``scmrs-``, also the blackhole test's hosts), the sites of the several-sites tests and the
+#: router probe (``scmrm-``, :mod:`scmr_mesh.scenario.sites`), the tx-stall bench (``scmrb-``,
+#: :mod:`scmr_mesh.bench.txstall`), the tests' bridged hosts (``scmrh-``, ``tests/conftest.py``)
+#: and the TCP guard's test hosts (``scmrg-``, ``tests/test_mesh_tcpguard.py``).  ``scmr scenario
+#: cleanup`` removes what a killed run of any of them left; a test checks that no other prefix is used.
 OWN_NS_PREFIXES = (NS_PREFIX, "scmrm-", "scmrb-", "scmrh-", "scmrg-")
 #: The private test subnet (RFC 2544 benchmarking range); it exists only inside our namespaces.
 SUBNET = "198.18.0"

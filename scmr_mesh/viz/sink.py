@@ -59,6 +59,7 @@ def die_with_parent_setup(sig: int = signal.SIGTERM):
 
     return setup
 
+
 # --------------------------------------------------------------------------
 # sinks (fleet process)
 
