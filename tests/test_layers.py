@@ -5,7 +5,8 @@ Layers, lowest first; a module may import its own layer and the ones below:
 =========  ==================================================================
 base       ``errors``, ``_lazy``, ``_schema``, ``wire``, ``keys``, ``cliargs`` (shared argparse types),
            ``vocab`` (the control vocabulary: tiers and other enums), ``_cpu`` (the usable cores),
-           ``ports`` (free loopback ports outside the ephemeral range)
+           ``ports`` (free loopback ports outside the ephemeral range), ``deathsig`` (the kernel's parent-death
+           signal for the children the project starts)
 core       ``imaging/``, ``energy/``, ``data/``, ``qos/``, ``security/``, ``ros/``, and the
            pure scenario modules ``scenario/spec.py``, ``scenario/plan.py``, ``scenario/radio.py``
 mesh       ``mesh/``: every Zenoh import of the running system
@@ -42,7 +43,8 @@ def layer(rel: Path) -> str:
         stem = rel.stem
         if stem in ("cli", "__main__"):
             return "cli"
-        if stem in ("errors", "_lazy", "_schema", "wire", "keys", "cliargs", "vocab", "_cpu", "ports", "__init__"):
+        if stem in ("errors", "_lazy", "_schema", "wire", "keys", "cliargs", "vocab", "_cpu", "ports", "deathsig",
+                    "__init__"):
             return "base"
         raise AssertionError(f"top-level module {rel} has no layer; add it to tests/test_layers.py")
     top = parts[0]

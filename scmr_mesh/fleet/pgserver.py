@@ -37,6 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from scmr_mesh import deathsig
 from scmr_mesh.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -46,7 +47,6 @@ DB_NAME = "scmr"
 DB_USER = "scmr"
 #: Longest Unix socket directory (sun_path is 108 bytes with ``/.s.PGSQL.NNNNN``).
 _MAX_SOCKET_DIR = 90
-_PR_SET_PDEATHSIG = 1
 
 INSTALL_HINT = "install Debian's postgresql package (apt-get install -y postgresql; `make` does it)"
 
@@ -237,9 +237,11 @@ class PgServer:
         with open(self.log_path, "ab") as logf:
             if self.user is not None:
                 self._chown(self.log_path)
-            parent = os.getpid()
+            # SIGKILL the server when the starting thread dies; subprocess switches to the server's
+            # user *before* calling preexec_fn, so the death signal survives (a credential change
+            # would clear it)
             self.proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=logf, stderr=subprocess.STDOUT,
-                                         start_new_session=True, preexec_fn=_die_with(parent),
+                                         start_new_session=True, preexec_fn=deathsig.preexec(signal.SIGKILL),
                                          close_fds=True, **as_user)
         self._wait_ready(timeout)
         self._create_db()
@@ -336,28 +338,6 @@ class PgServer:
 
     def __exit__(self, *exc) -> None:
         self.stop()
-
-
-def _die_with(parent_pid: int):
-    """preexec_fn: SIGKILL the server when the starting thread dies.
-
-    subprocess switches to the server's user *before* calling it, so the
-    death signal survives (a credential change would clear it).
-    """
-    try:
-        import ctypes
-
-        prctl = ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        prctl = None
-
-    def setup() -> None:
-        if prctl is not None:
-            prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
-        if os.getppid() != parent_pid:
-            os._exit(1)
-
-    return setup
 
 
 __all__ = ["DB_NAME", "DB_USER", "PgServer", "PgServerError", "available", "find_bin", "run_store"]

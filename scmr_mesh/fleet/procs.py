@@ -29,7 +29,6 @@ Example
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import os
 import signal
@@ -40,19 +39,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from scmr_mesh import deathsig
 from scmr_mesh.errors import MeshError
 
 __all__ = ["PeerSpec", "Proc", "Supervisor", "die_with_parent", "log_tail"]
 
 log = logging.getLogger(__name__)
-
-_PR_SET_PDEATHSIG = 1
-try:
-    _libc = ctypes.CDLL(None, use_errno=True)
-    _prctl = _libc.prctl
-except (OSError, AttributeError):  # pragma: no cover - not Linux
-    _prctl = None
-
 
 def die_with_parent(sig: int = signal.SIGKILL) -> bool:
     """Ask the kernel to send ``sig`` to this process when its parent dies.
@@ -61,26 +53,12 @@ def die_with_parent(sig: int = signal.SIGKILL) -> bool:
     ``prctl`` is unavailable (not Linux).  If the parent is already gone
     (reparented to init), the process exits at once.
     """
-    if _prctl is None:
-        return False
     ppid = os.getppid()
-    _prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
+    if not deathsig.set_in_this_process(sig):
+        return False
     if ppid == 1 or os.getppid() != ppid:
         os._exit(1)
     return True
-
-
-def _preexec(parent_pid: int):
-    prctl = _prctl
-    sigkill = int(signal.SIGKILL)
-
-    def setup() -> None:  # runs in the child between fork and exec: keep it tiny
-        if prctl is not None:
-            prctl(_PR_SET_PDEATHSIG, sigkill, 0, 0, 0)
-        if os.getppid() != parent_pid:  # the parent died before prctl took effect
-            os._exit(1)
-
-    return setup
 
 
 @contextmanager
@@ -235,7 +213,7 @@ class Supervisor:
             try:
                 popen = subprocess.Popen(
                     list(spec.argv), stdin=subprocess.DEVNULL, stdout=logf, stderr=subprocess.STDOUT,
-                    env=env, cwd=spec.cwd, start_new_session=True, preexec_fn=_preexec(os.getpid()),
+                    env=env, cwd=spec.cwd, start_new_session=True, preexec_fn=deathsig.preexec(signal.SIGKILL),
                     close_fds=True,
                 )
             except OSError as exc:

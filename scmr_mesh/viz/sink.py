@@ -12,6 +12,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from scmr_mesh import deathsig
 from scmr_mesh.errors import InputError
 from scmr_mesh.ports import free_port
 from scmr_mesh.viz.common import (
@@ -25,39 +26,17 @@ from scmr_mesh.viz.rerun_cli import rerun_env, rerun_executable, run_rerun_cli
 
 log = logging.getLogger(__name__)
 
-try:   # looked up before any fork: the child between fork and exec only calls it
-    import ctypes
-
-    _PRCTL = ctypes.CDLL(None, use_errno=True).prctl
-except (OSError, AttributeError):   # pragma: no cover - not Linux
-    _PRCTL = None
-_PR_SET_PDEATHSIG = 1
-
-
-def die_with_parent_setup(sig: int = signal.SIGTERM):
-    """A ``preexec_fn`` that has the kernel send ``sig`` to the child when this process dies
-    (Linux ``PR_SET_PDEATHSIG``), or None where that cannot hold.
+def _dies_with_us():
+    """The ``preexec_fn`` of a recorder or web viewer: SIGTERM when this process dies
+    (:func:`scmr_mesh.deathsig.preexec`, SIGTERM reset to its default first), or None off the main
+    thread (the signal follows the forking thread, and a worker thread that ended would stop rerun).
 
     rerun runs in its own session, so a parent killed with SIGKILL (no handler runs) left it
-    recording or serving: two web viewers of ``scmr view`` were found after a failed test.  The
-    death signal follows the *thread* that forks, so it is set only when called from the main
-    thread (off it, None: a worker thread that ends would stop rerun with it); a parent that died
-    before the signal was set makes the child exit at once; ``sig`` is reset to its default in
-    the child, since an ignored signal stays ignored across exec.
+    recording or serving: two web viewers of ``scmr view`` were found after a failed test.
     """
-    if _PRCTL is None or threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread():
         return None
-    parent, prctl, signum = os.getpid(), _PRCTL, int(sig)
-
-    def setup() -> None:   # between fork and exec: keep it tiny
-        # an ignored signal stays ignored across exec: a parent started with SIGTERM ignored (a
-        # `trap '' TERM`, some supervisors) gave rerun a death signal it then ignored
-        signal.signal(signum, signal.SIG_DFL)
-        prctl(_PR_SET_PDEATHSIG, signum, 0, 0, 0)
-        if os.getppid() != parent:
-            os._exit(1)
-
-    return setup
+    return deathsig.preexec(signal.SIGTERM, reset=True)
 
 
 # --------------------------------------------------------------------------
@@ -171,7 +150,7 @@ class _Sink:
                 # a recorder or web viewer ends with the fleet, even a SIGKILLed one (a --save file
                 # is then left as FILE.partial: rerun reads it, unfinalised); a spawned viewer stays
                 # open for the user
-                preexec_fn=None if detach else die_with_parent_setup(),
+                preexec_fn=None if detach else _dies_with_us(),
             )
         except OSError as exc:
             raise ViewerError(f"could not start {what}: {exc}") from exc
