@@ -10,6 +10,8 @@ import pytest
 import scmr_mesh.ports as ports
 
 REPO = Path(__file__).resolve().parent.parent
+#: ``NAME.bind((host, 0))``: a pick by the kernel (the check below and its control share it)
+BIND0 = re.compile(r"([\w.]+)\.bind\(\([^()]*,\s*0\)\)")
 
 
 def test_two_picks_in_a_row_never_return_the_same_port(monkeypatch):
@@ -34,7 +36,6 @@ def test_no_module_picks_a_port_with_bind_zero_and_releases_it():
     """The pick-and-release pattern in the ephemeral range took a robot's port under load
     ("Address already in use"); every pick goes through scmr_mesh.ports.  A ``bind(0)`` elsewhere
     must be a listener that keeps its socket: ``listen`` on the same socket within 3 lines."""
-    bind0 = re.compile(r"([\w.]+)\.bind\(\([^()]*,\s*0\)\)")
     found = []
     for d in ("scmr_mesh", "peers", "tests"):
         for p in (REPO / d).rglob("*.py"):
@@ -42,7 +43,7 @@ def test_no_module_picks_a_port_with_bind_zero_and_releases_it():
                 continue
             lines = p.read_text().splitlines()
             for i, line in enumerate(lines):
-                m = bind0.search(line)
+                m = BIND0.search(line)
                 if m and not any(f"{m.group(1)}.listen(" in nxt for nxt in lines[i + 1:i + 4]):
                     found.append(f"{p.relative_to(REPO)}:{i + 1}")
     assert found == []
@@ -50,9 +51,8 @@ def test_no_module_picks_a_port_with_bind_zero_and_releases_it():
 
 def test_the_pick_and_release_check_finds_one():
     """Control for the check above: the pattern the review slipped past the first regex."""
-    bind0 = re.compile(r"([\w.]+)\.bind\(\([^()]*,\s*0\)\)")
     src = 's = socket.socket(); s.bind(("127.0.0.1", 0)); port = s.getsockname()[1]; s.close()'
-    m = bind0.search(src)
+    m = BIND0.search(src)
     assert m and m.group(1) == "s"
 
 
