@@ -49,9 +49,8 @@ def preexec(sig: int = signal.SIGKILL, *, reset: bool = False) -> Callable[[], N
 def set_in_this_process(sig: int = signal.SIGKILL) -> bool:
     """Ask the kernel to send ``sig`` to the calling process when its parent (thread) dies.
 
-    For a forked worker, first thing.  False where ``prctl`` is missing (not Linux).
+    For a forked worker, first thing.  False where ``prctl`` is missing (not Linux) or refuses.
     """
     if _PRCTL is None:
         return False
-    _PRCTL(PR_SET_PDEATHSIG, int(sig), 0, 0, 0)
-    return True
+    return _PRCTL(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0

@@ -33,6 +33,7 @@ import signal
 import threading
 from typing import Any, Callable
 
+from scmr_mesh import deathsig
 from scmr_mesh.mesh.data_common import _answer, _drop, _payload
 
 log = logging.getLogger(__name__)
@@ -84,15 +85,9 @@ class _PipeQuery:
 def _die_with_parent() -> None:
     """PR_SET_PDEATHSIG = SIGKILL: the child must not outlive a SIGKILLed cloud (it holds the store).
     The pipe cannot tell it: the workers forked after it inherit the parent's end."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(1, signal.SIGKILL, 0, 0, 0) != 0:  # PR_SET_PDEATHSIG
-            raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
-    except Exception as exc:
-        log.warning("data process: cannot ask to die with the cloud (%s); if the cloud is killed, kill "
-                    "process %d too", exc, os.getpid())
+    if not deathsig.set_in_this_process(signal.SIGKILL):
+        log.warning("data process: cannot ask to die with the cloud (prctl PR_SET_PDEATHSIG failed or is "
+                    "missing); if the cloud is killed, kill process %d too", os.getpid())
 
 
 def _child_main(conn, parent_end, make_data: Callable[[], Any], parent: int) -> None:

@@ -32,6 +32,7 @@ import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Callable
 
+from scmr_mesh import deathsig
 from scmr_mesh.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -158,13 +159,7 @@ process_frame.warm_up = _warm_pipeline  # type: ignore[attr-defined]
 
 # ------------------------------------------------------------------- workers
 def _die_with_parent(parent_pid: int) -> None:
-    try:  # Linux: SIGKILL this worker when its parent thread dies
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG
-    except Exception:  # pragma: no cover - not Linux
-        pass
+    deathsig.set_in_this_process(signal.SIGKILL)   # Linux: SIGKILL this worker when its parent thread dies
 
     def watch() -> None:
         while True:
