@@ -41,7 +41,11 @@ from scmr_mesh.imaging.road_model import (
     connected_to_seeds,
     feature_tables,
     below_the_horizon,
+    cut_above_horizon,
+    front_share,
+    horizon_line,
     open_ground,
+    same_surface,
     seed_regions,
     tone_curve,
 )
@@ -897,11 +901,15 @@ def test_a_combination_below_the_synthetic_floors_does_not_fit():
     assert res["iou"]["tunnel"][1] < synthetic_floor("tunnel") <= res["iou"]["tunnel"][0]
 
 
-def test_the_synthetic_floors_hold_iou_and_precision_per_kind():
+def test_the_synthetic_floors_hold_iou_and_precision_per_kind(monkeypatch):
     """:func:`synthetic_fits`: a kind below its IoU floor, or below the precision floor, fails the params;
-    the kinds still below the 0.85 target are held to their own floor (the desert's 0.77)."""
+    a kind still below the 0.85 target is held to its own floor (none since 2026-11-29, when the desert
+    left at 0.910; here the desert's old 0.77 is put back)."""
+    import scmr_mesh.imaging.evaluate as evaluate
+
+    assert all(synthetic_floor(k) == 0.85 for k in SCENE_KINDS)
+    monkeypatch.setitem(evaluate.SYNTHETIC_KNOWN_BELOW, "desert", 0.77)
     assert synthetic_floor("tunnel") == 0.85 and synthetic_floor("desert") == 0.77
-    assert synthetic_floor("structured_road") == 0.85   # at the target since the boundary cut's floor 0.015
     iou = {"tunnel": np.array([0.86, 0.86, 0.84, 0.86]), "desert": np.array([0.78, 0.78, 0.78, 0.76])}
     prec = {"tunnel": np.array([0.90, 0.84, 0.90, 0.90]), "desert": np.array([0.90, 0.90, 0.90, 0.90])}
     assert synthetic_fits(iou, prec).tolist() == [True, False, False, False]
@@ -955,3 +963,145 @@ def test_the_evaluation_module_examples_hold():
 
     failed, tried = doctest.testmod(evaluate)
     assert failed == 0 and tried >= 4
+
+
+# ---------------------------------------------------------------- open ground's horizon and front
+SAND = (200.0, 165.0, 115.0)
+HILLS = (160.0, 130.0, 120.0)
+SKY = (170.0, 195.0, 225.0)
+SHADE_GAIN = (0.62, 0.66, 0.78)   # the synthetic scenes' cast shadow: skylight only
+
+
+def _open_frame(foot, slope=0.0, above=HILLS, seed=0):
+    """A working frame of open ground: sky, then ``above`` from row 30 down to the ground's far edge,
+    a line through (75, ``foot``) with ``slope``, then sand; grain and sensor noise."""
+    h, w = WORK_SHAPE
+    yy, xx = np.mgrid[:h, :w]
+    rng = np.random.default_rng(seed)
+    edge = foot + slope * (xx - w / 2)
+    img = np.empty((h, w, 3), np.float32)
+    img[:] = SKY
+    img[yy >= 30] = above
+    img[yy >= edge] = SAND
+    img *= 1 + 0.03 * rng.standard_normal((h, w, 1)).astype(np.float32)
+    img += rng.normal(0, 2, img.shape).astype(np.float32)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("slope", [0.0, 0.1, -0.15])
+def test_the_horizon_is_the_lowest_material_boundary_near_the_candidate_top(slope):
+    """Hills of another material stand on the sand's far edge and the candidate took them: the line
+    found is the sand's far edge (their foot), not the sky's edge above them, at the camera's roll."""
+    small = _open_frame(45, slope)
+    cand = np.zeros(WORK_SHAPE, np.uint8)
+    cand[30:] = 1
+    found = horizon_line(small, cand)
+    assert found is not None
+    got_slope, row = found
+    assert abs(got_slope - slope) <= 0.02 and abs(row - 45) <= 1.5
+
+
+def test_a_short_or_steep_edge_is_no_horizon():
+    """A shadow's edge across 0.4 of the width, or one at a slope of 0.3 (a cast shadow seen in
+    perspective), is no horizon: the line found is the sky's edge at row 30 (control: across the
+    whole width and level, the edge at row 45 is taken, whatever lies above it)."""
+    shaded = np.array([c * g for c, g in zip(SAND, SHADE_GAIN)])
+    cand = np.zeros(WORK_SHAPE, np.uint8)
+    cand[30:] = 1
+    h, w = WORK_SHAPE
+    yy, xx = np.mgrid[:h, :w]
+    short = _open_frame(45, above=tuple(shaded))
+    short[(yy >= 30) & (yy < 45) & (xx >= 0.4 * w)] = np.array(SAND, np.uint8)
+    assert horizon_line(short, cand)[1] == pytest.approx(30, abs=1)
+    steep = _open_frame(30, above=SAND)
+    steep[(yy >= 30) & (yy < 50 + 0.3 * (xx - w / 2))] = np.rint(shaded).astype(np.uint8)
+    assert horizon_line(steep, cand)[1] == pytest.approx(30, abs=1)
+    assert horizon_line(_open_frame(45, above=tuple(shaded)), cand)[1] == pytest.approx(45, abs=1)
+
+
+def test_cut_above_horizon_keeps_the_ground_below_the_line_and_what_touches_a_seed():
+    small = _open_frame(45)
+    h, w = WORK_SHAPE
+    labels = np.zeros(WORK_SHAPE, np.int32)
+    labels[45:] = 1                          # the sand, the seed region
+    labels[30:45] = 2                        # the hills
+    cand = np.zeros(WORK_SHAPE, np.uint8)
+    cand[30:] = 1
+    cand[5:8, 10:14] = 1                     # a speck in the sky, apart from the seed
+    info = {"small": small, "labels": labels, "sizes": np.bincount(labels.ravel()), "seeds": np.array([1])}
+    cut = cut_above_horizon(cand, info)
+    assert not cut[:44].any() and cut[46:].all()
+
+
+def _gaussians(mu_chroma, sd=0.03):
+    """``classify``-like seed Gaussians: one seed with mean log R/G, log B/G ``mu_chroma`` and log brightness 5."""
+    mus = np.array([[*mu_chroma, 5.0, 0.5]])
+    covs = np.diag([sd ** 2, sd ** 2, 0.04, 0.04])[None]
+    return mus, covs
+
+
+def test_same_surface_is_the_seeds_hue_in_the_same_light_or_in_shade_never_a_grey_seeds():
+    sand = np.log([SAND[0] / SAND[1], SAND[2] / SAND[1]])
+    mus, covs = _gaussians(sand)
+    v = SHADE_DIRECTION
+    chroma = np.array([
+        [*sand, 5.0],                                   # the seed's surface
+        [*(sand + 0.5 * v[:2]), 5.0 + 0.5 * v[2]],      # the same in half a shadow (darker, bluer)
+        [*(sand - 0.5 * v[:2]), 5.0 - 0.5 * v[2]],      # "more sun": brighter and less blue; no
+        [0.0, 0.0, 5.0],                                # grey concrete
+        [*(sand + [0.0, 0.4]), 5.0],                    # another hue
+    ])
+    got = same_surface({"chroma": chroma, "mus": mus, "covs": covs})
+    assert got.tolist() == [True, True, False, False, False]
+    grey_mus, grey_covs = _gaussians((0.01, -0.02))
+    assert not same_surface({"chroma": np.array([[0.01, -0.02, 5.0]]), "mus": grey_mus, "covs": grey_covs}).any()
+
+
+def _front_case(beside):
+    """A sand candidate whose right 20 columns stop at row 80: above them, from the horizon band down,
+    lies a region of chromaticity ``beside`` (log R/G, log B/G, log brightness)."""
+    h, w = WORK_SHAPE
+    sand = np.log([SAND[0] / SAND[1], SAND[2] / SAND[1]])
+    mus, covs = _gaussians(sand)
+    labels = np.zeros(WORK_SHAPE, np.int32)            # 0: sky
+    labels[40:, :] = 1                                 # 1: the seed's sand
+    labels[40:80, w - 20:] = 2                         # 2: the region beside
+    cand = (labels == 1).astype(np.uint8)
+    chroma = np.array([[0.0, 0.0, 5.0], [*sand, 5.0], beside])
+    info = {"labels": labels, "sizes": np.bincount(labels.ravel()), "chroma": chroma, "mus": mus, "covs": covs}
+    return cand, info
+
+
+def test_the_front_counts_the_seeds_surface_running_on_to_the_horizon():
+    """The lens's dark corner: the same sand, darker and bluer (shade's move), was not taken, but runs on
+    to the horizon band; its columns count for the front.  Grass there does not."""
+    v = SHADE_DIRECTION
+    sand = np.log([SAND[0] / SAND[1], SAND[2] / SAND[1]])
+    cand, info = _front_case([*(sand + 0.3 * v[:2]), 5.0 + 0.3 * v[2]])
+    plain, _ = front_share(cand)
+    share, _ = front_share(cand, info)
+    assert plain == pytest.approx(130 / 150) and share == 1.0
+    cand, info = _front_case([-0.3, -0.5, 4.8])        # green grass
+    assert front_share(cand, info)[0] == pytest.approx(130 / 150)
+
+
+@pytest.mark.parametrize("seed", [0, 2, 7])
+def test_distant_hills_above_the_desert_horizon_stay_red(seed):
+    """The synthetic desert's hills (seeds 0, 2, 7: precision 0.86 / 0.90 / 0.89 before the horizon cut,
+    2026-11-29): SRM merges them with the far sand, so regions straddle the horizon; the cut takes them out."""
+    img, truth = make_scene("desert", seed=seed)
+    res = segment_drivable(img)
+    assert res.abstained is None
+    assert score(res.mask, truth)["precision"] >= 0.94
+
+
+@pytest.mark.parametrize("seed", [1, 5, 6])
+def test_desert_sand_in_shade_at_the_horizon_keeps_the_front(seed):
+    """Seeds 1, 5, 6 of the synthetic desert: a shadow band or the lens's dark corner keeps columns of the
+    candidate short, so the front fell under 0.97 and the mask was shrunk to ``cap`` (IoU 0.60 / 0.61 /
+    0.55).  The same sand runs on there to the horizon, so they are open ground now."""
+    img, truth = make_scene("desert", seed=seed)
+    res = segment_drivable(img)
+    assert res.abstained is None and res.confidence == 1.0
+    s = score(res.mask, truth)
+    assert s["iou"] >= 0.78 and s["precision"] >= 0.9
