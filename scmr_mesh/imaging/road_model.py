@@ -618,14 +618,16 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
 
 def front_share(candidate: np.ndarray, info: dict | None = None) -> tuple[float, np.ndarray]:
     """:func:`open_ground`'s front: the share of the columns on it, and the candidate it was measured on
-    (cut at the :func:`horizon_line` when ``info`` holds the working frame).  The share is 0 for
-    an empty candidate or one with no room for a sky above its highest row."""
+    (cut at the :func:`horizon_line` when ``info`` holds the working frame; the line is left in
+    ``info["horizon"]`` for :func:`abstain`'s cut).  The share is 0 for an empty candidate or one
+    with no room for a sky above its highest row."""
     h, w = candidate.shape
     has = candidate.any(axis=0)
     if not has.any() or _front_top(np.where(has, candidate.argmax(axis=0), h)) < int(SKY_ROOM * h):
         return 0.0, candidate
     if info is not None and "small" in info:
-        candidate = cut_above_horizon(candidate, info)
+        info["horizon"] = horizon_line(info["small"], candidate)
+        candidate = cut_above_horizon(candidate, info, info["horizon"])
         has = candidate.any(axis=0)
         if not has.any():
             return 0.0, candidate
@@ -636,8 +638,9 @@ def front_share(candidate: np.ndarray, info: dict | None = None) -> tuple[float,
     if info is not None and "mus" in info and not ok.all():
         labels = info["labels"]
         k = info["sizes"].size
-        rtop = np.full(k, h, np.int64)
-        np.minimum.at(rtop, labels.ravel(), np.repeat(np.arange(h), w))
+        rtop = np.full(k, h, np.int64)   # each region's top row
+        for y in range(h - 1, -1, -1):
+            rtop[labels[y]] = y
         runs_on = same_surface(info) & (rtop <= band) & (rtop >= hi - FRONT_BAND * h)
         rows = np.arange(h)[:, None]
         ok |= has & (np.take(runs_on, labels) & (rows > band) & (rows < tops[None, :])).any(axis=0)
@@ -717,11 +720,13 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> tuple[float, float
     r1 = min(h - HORIZON_ROWS, top + int(HORIZON_DEPTH * h))
     if r1 <= r0:
         return None
-    f = small.astype(np.float32) + np.float32(FEATURE_OFFSET)
+    lo, hi = r0 - HORIZON_ROWS, r1 + HORIZON_ROWS   # the rows the steps read
+    f = small[lo:hi].astype(np.float32) + np.float32(FEATURE_OFFSET)
     chroma = cv2.blur(f / f.sum(axis=2, keepdims=True), (HORIZON_BLUR, 1))
     cs = np.concatenate([np.zeros((1, w, 3), np.float32), np.cumsum(chroma, axis=0)])
     ys = np.arange(r0, r1)
-    step = np.abs((cs[ys] - cs[ys - HORIZON_ROWS]) - (cs[ys + HORIZON_ROWS] - cs[ys])).sum(axis=2) / HORIZON_ROWS
+    at = ys - lo
+    step = np.abs((cs[at] - cs[at - HORIZON_ROWS]) - (cs[at + HORIZON_ROWS] - cs[at])).sum(axis=2) / HORIZON_ROWS
     x = np.arange(w) - w / 2
     slopes = np.linspace(-HORIZON_SLOPE, HORIZON_SLOPE, 37)
     found = None
@@ -737,13 +742,15 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> tuple[float, float
         vote = strength >= BOUNDARY_CHROMA
         if not vote.any():
             break
-        best = (0, 0.0, 0)
-        for slope in slopes:
-            b = np.rint(row[vote] - slope * x[vote]).astype(np.int64)
-            counts = np.convolve(np.bincount(b - b.min() + 1, minlength=3), [1, 1, 1], mode="same")
-            i = int(counts.argmax())
-            if counts[i] > best[0]:
-                best = (int(counts[i]), float(slope), int(i + b.min() - 1))
+        # a Hough vote: per slope, the votes' intercepts binned by row, summed over 3 rows
+        b = np.rint(row[vote][None, :] - slopes[:, None] * x[vote][None, :]).astype(np.int64)
+        b0 = int(b.min())
+        nb = int(b.max()) - b0 + 3
+        counts = np.bincount((np.arange(slopes.size)[:, None] * nb + b - b0 + 1).ravel(),
+                             minlength=slopes.size * nb).reshape(slopes.size, nb)
+        window = counts[:, :-2] + counts[:, 1:-1] + counts[:, 2:]   # centred on bins 1 .. nb - 2
+        si, bi = np.unravel_index(int(window.argmax()), window.shape)
+        best = (int(window[si, bi]), float(slopes[si]), int(bi + b0))
         if best[0] < HORIZON_SUPPORT * w:
             break
         # the line through the votes within a row of the best bin (least squares)
@@ -755,10 +762,12 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> tuple[float, float
     return found
 
 
-def cut_above_horizon(candidate: np.ndarray, info: dict) -> np.ndarray:
-    """The candidate less what lies above its :func:`horizon_line` (``info["small"]``, the working
-    frame), then only what still touches a seed region; the candidate itself when there is no line."""
-    found = horizon_line(info["small"], candidate)
+def cut_above_horizon(candidate: np.ndarray, info: dict, found: tuple[float, float] | None | str = "find") -> np.ndarray:
+    """The candidate less what lies above the horizon line ``found`` (``(slope, row at the centre
+    column)``; by default its own :func:`horizon_line` in ``info["small"]``, the working frame),
+    then only what still touches a seed region; the candidate itself when there is no line."""
+    if isinstance(found, str):
+        found = horizon_line(info["small"], candidate)
     if found is None:
         return candidate
     slope, b = found
@@ -863,8 +872,8 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     if info["grounded"] and confidence >= 1.0:
         if info.get("open_ground"):
             candidate = below_the_horizon(candidate, info)
-            if "small" in info:
-                candidate = cut_above_horizon(candidate, info)
+            if "horizon" in info:   # the line open_ground found (front_share)
+                candidate = cut_above_horizon(candidate, info, info["horizon"])
         return candidate, 1.0, None
     if not info["grounded"]:
         confidence, reason = 0.0, ABSTAIN_REASONS[0]
