@@ -775,11 +775,17 @@ def cut_above_horizon(candidate: np.ndarray, info: dict, found: tuple[float, flo
     line = np.rint(b + slope * (np.arange(w) - w / 2))
     cut = candidate.copy()
     cut[np.arange(h)[:, None] < line[None, :]] = 0
-    n, comp = cv2.connectedComponents(cut, connectivity=4)
+    return _touching_seeds(cut, info)
+
+
+def _touching_seeds(mask: np.ndarray, info: dict) -> np.ndarray:
+    """The 4-connected pieces of ``mask`` (uint8) that hold a pixel of a seed region (``info``'s
+    ``labels``, ``sizes`` and ``seeds``), as a uint8 0/1 mask."""
     is_seed = np.zeros(info["sizes"].size, bool)
     is_seed[info["seeds"]] = True
+    n, comp = cv2.connectedComponents(mask, connectivity=4)
     keep = np.zeros(n, np.uint8)
-    keep[comp[np.take(is_seed, info["labels"]) & (cut > 0)]] = 1
+    keep[comp[np.take(is_seed, info["labels"]) & (mask > 0)]] = 1
     keep[0] = 0
     return np.take(keep, comp)
 
@@ -806,16 +812,10 @@ def below_the_horizon(candidate: np.ndarray, info: dict) -> np.ndarray:
     band = _front_top(np.where(has, candidate.argmax(axis=0), h)) + FRONT_BAND * h
     k = info["sizes"].size
     drop = np.bincount(labels[int(math.ceil(band)):].ravel(), minlength=k) == 0   # no pixel below the band
-    is_seed = np.zeros(k, bool)
-    is_seed[info["seeds"]] = True
-    drop &= ~is_seed
+    drop[info["seeds"]] = False
     kept = candidate.copy()
     kept[np.take(drop, labels)] = 0
-    n, comp = cv2.connectedComponents(kept, connectivity=4)
-    keep = np.zeros(n, np.uint8)
-    keep[comp[np.take(is_seed, labels) & (kept > 0)]] = 1
-    keep[0] = 0
-    return np.take(keep, comp)
+    return _touching_seeds(kept, info)
 
 
 #: Reasons :func:`abstain` gives for shrinking the mask (the reply's ``abstained``).
