@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -625,26 +626,38 @@ def front_share(candidate: np.ndarray, info: dict | None = None) -> tuple[float,
     has = candidate.any(axis=0)
     if not has.any() or _front_top(np.where(has, candidate.argmax(axis=0), h)) < int(SKY_ROOM * h):
         return 0.0, candidate
+    rows = np.arange(h)[:, None]
+    line = None
+    standing = np.zeros(w, bool)
     if info is not None and "small" in info:
-        info["horizon"] = horizon_line(info["small"], candidate)
-        candidate = cut_above_horizon(candidate, info, info["horizon"])
-        has = candidate.any(axis=0)
-        if not has.any():
-            return 0.0, candidate
+        horizon = info["horizon"] = horizon_line(info["small"], candidate)
+        if horizon is not None:
+            line = horizon.rows(w)
+            # candidate well above the line in a column with no boundary on it: the line runs
+            # through something standing there (a wall of the ground's colour), not under it;
+            # gaps in the boundary narrower than HORIZON_BLUR columns are closed (the hills'
+            # colour near the far sand's in a few columns; a pole is a spike the front allows)
+            on = cv2.morphologyEx(horizon.on.astype(np.uint8)[None, :], cv2.MORPH_CLOSE,
+                                  np.ones((1, HORIZON_BLUR), np.uint8))[0] > 0
+            standing = ((rows < line[None, :] - HORIZON_ROWS) & (candidate > 0)).any(axis=0) & ~on
+            candidate = cut_above_horizon(candidate, info, horizon)
+            has = candidate.any(axis=0)
+            if not has.any():
+                return 0.0, candidate
     tops = np.where(has, candidate.argmax(axis=0), h)
     hi = _front_top(tops)
     band = hi + FRONT_BAND * h
     ok = has & (tops <= band)
-    if info is not None and "mus" in info and not ok.all():
+    if line is not None and "mus" in info and not ok.all():
         labels = info["labels"]
         k = info["sizes"].size
         rtop = np.full(k, h, np.int64)   # each region's top row
         for y in range(h - 1, -1, -1):
             rtop[labels[y]] = y
         runs_on = same_surface(info) & (rtop <= band) & (rtop >= hi - FRONT_BAND * h)
-        rows = np.arange(h)[:, None]
-        ok |= has & (np.take(runs_on, labels) & (rows > band) & (rows < tops[None, :])).any(axis=0)
-    return float(np.mean(ok)), candidate
+        at = (rows > band) & (rows < tops[None, :]) & (rows >= line[None, :])   # below the horizon
+        ok |= has & (np.take(runs_on, labels) & at).any(axis=0)
+    return float(np.mean(ok & ~standing)), candidate
 
 
 def same_surface(info: dict) -> np.ndarray:
@@ -698,7 +711,20 @@ HORIZON_SLOPE = 0.18
 HORIZON_SUPPORT = 0.6
 
 
-def horizon_line(small: np.ndarray, candidate: np.ndarray) -> tuple[float, float] | None:
+class Horizon(NamedTuple):
+    """A line of :func:`horizon_line`: in column ``x`` of a frame ``w`` wide it lies on row
+    ``row + slope * (x - w / 2)``; ``on`` (w,) bool: the columns with a step peak of at least
+    :data:`BOUNDARY_CHROMA` within a row of it (a boundary there, not only a line drawn across)."""
+    slope: float
+    row: float
+    on: np.ndarray
+
+    def rows(self, w: int) -> np.ndarray:
+        """The line's row in each of ``w`` columns (int64)."""
+        return np.rint(self.row + self.slope * (np.arange(w) - w / 2)).astype(np.int64)
+
+
+def horizon_line(small: np.ndarray, candidate: np.ndarray) -> Horizon | None:
     """The horizon of open ground: the lowest long, near-level boundary between two materials near
     the candidate's top, as ``(slope, row at the frame's centre column)``, or None.
 
@@ -720,13 +746,12 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> tuple[float, float
     r1 = min(h - HORIZON_ROWS, top + int(HORIZON_DEPTH * h))
     if r1 <= r0:
         return None
-    lo, hi = r0 - HORIZON_ROWS, r1 + HORIZON_ROWS   # the rows the steps read
-    f = small[lo:hi].astype(np.float32) + np.float32(FEATURE_OFFSET)
+    f = small.astype(np.float32) + np.float32(FEATURE_OFFSET)
     chroma = cv2.blur(f / f.sum(axis=2, keepdims=True), (HORIZON_BLUR, 1))
     cs = np.concatenate([np.zeros((1, w, 3), np.float32), np.cumsum(chroma, axis=0)])
+
     ys = np.arange(r0, r1)
-    at = ys - lo
-    step = np.abs((cs[at] - cs[at - HORIZON_ROWS]) - (cs[at + HORIZON_ROWS] - cs[at])).sum(axis=2) / HORIZON_ROWS
+    step = np.abs((cs[ys] - cs[ys - HORIZON_ROWS]) - (cs[ys + HORIZON_ROWS] - cs[ys])).sum(axis=2) / HORIZON_ROWS
     x = np.arange(w) - w / 2
     slopes = np.linspace(-HORIZON_SLOPE, HORIZON_SLOPE, 37)
     found = None
@@ -753,26 +778,38 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> tuple[float, float
         best = (int(window[si, bi]), float(slopes[si]), int(bi + b0))
         if best[0] < HORIZON_SUPPORT * w:
             break
-        # the line through the votes within a row of the best bin (least squares)
-        inl = vote & (np.abs(row - (best[2] + best[1] * x)) <= 1.0)
+        # the line through the votes of the best bin and its neighbours (least squares)
+        inl = vote & (np.abs(row - (best[2] + best[1] * x)) <= 1.5)
+        if np.count_nonzero(inl) < 2:
+            break
         slope, b = np.polyfit(x[inl], row[inl].astype(np.float64), 1)
         line = np.rint(b + slope * x).astype(np.int64)
-        found = (float(slope), float(b))
+        found = (float(slope), float(b), line)
         below = np.maximum(below, line + HORIZON_ROWS)
-    return found
+    if found is None:
+        return None
+    slope, b, line = found
+    # the step within a row of the line in every column (the line may leave the rows searched)
+    cols = np.arange(w)
+    there = np.zeros(w, np.float32)
+    for d in (-1, 0, 1):
+        r = np.clip(line + d, HORIZON_ROWS, h - HORIZON_ROWS)
+        mid = cs[r, cols]
+        there = np.maximum(there, np.abs((mid - cs[r - HORIZON_ROWS, cols]) - (cs[r + HORIZON_ROWS, cols] - mid)).sum(axis=-1)
+                           / HORIZON_ROWS)
+    return Horizon(slope, b, there >= BOUNDARY_CHROMA)
 
 
-def cut_above_horizon(candidate: np.ndarray, info: dict, found: tuple[float, float] | None | str = "find") -> np.ndarray:
-    """The candidate less what lies above the horizon line ``found`` (``(slope, row at the centre
-    column)``; by default its own :func:`horizon_line` in ``info["small"]``, the working frame),
-    then only what still touches a seed region; the candidate itself when there is no line."""
+def cut_above_horizon(candidate: np.ndarray, info: dict, found: Horizon | None | str = "find") -> np.ndarray:
+    """The candidate less what lies above the horizon line ``found`` (by default its own
+    :func:`horizon_line` in ``info["small"]``, the working frame), then only what still touches a
+    seed region; the candidate itself when there is no line."""
     if isinstance(found, str):
         found = horizon_line(info["small"], candidate)
     if found is None:
         return candidate
-    slope, b = found
     h, w = candidate.shape
-    line = np.rint(b + slope * (np.arange(w) - w / 2))
+    line = found.rows(w)
     cut = candidate.copy()
     cut[np.arange(h)[:, None] < line[None, :]] = 0
     return _touching_seeds(cut, info)

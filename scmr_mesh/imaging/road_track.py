@@ -247,7 +247,10 @@ def tracked_candidate(small: np.ndarray, seg, params: RoadParams, track: RoadTra
                 carried = "replaced"
                 road = (t_share >= params.frac) | is_seed
                 candidate = connected_to_seeds(road, labels, is_seed, params, anywhere=True)
-                info = {**info, "seeds": np.flatnonzero(is_seed), "grounded": True}
+                # the seed Gaussians (mus, covs) are the rejected seeds': open_ground's front must not
+                # take the surface running on to the horizon for theirs
+                info = {**{n: v for n, v in info.items() if n not in ("mus", "covs")},
+                        "seeds": np.flatnonzero(is_seed), "grounded": True}
                 if params.dim > 0:  # the dim test judges the new seeds' grey level
                     grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY)[is_seed[labels]]
                     info["seed_grey"] = float(grey.mean())
