@@ -581,8 +581,12 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
     * at least ``front`` of the columns have their highest candidate pixel within
       :data:`FRONT_BAND` of the height below the candidate's highest row.  With ``info`` (from
       :func:`classify`) the candidate is first cut at its :func:`horizon_line` (distant terrain
-      of the ground's colour above the horizon does not set the front), and a column whose
-      candidate stops lower still counts when, between the front's band and its top, it holds
+      of the ground's colour above the horizon does not set the front).  A column where the cut
+      removed candidate well above the line (more than :data:`HORIZON_ROWS`) with no boundary on
+      the line there (``Horizon.on``, gaps narrower than :data:`HORIZON_BLUR` columns closed) is
+      never on the front: the line runs through something standing, a wall of the ground's
+      colour, not under distant terrain.  When a line was found, a column whose candidate stops
+      lower still counts if, below the line and between the front's band and its top, it holds
       a region of the seed's surface (:func:`same_surface`: its hue, or its hue in more shade)
       whose top lies in the band or within :data:`FRONT_BAND` above it: the same ground
       running on to the horizon, only darker than the seed's model lets in (the lens's dark
@@ -669,7 +673,9 @@ def same_surface(info: dict) -> np.ndarray:
     chromaticity less ``t`` x :data:`SHADE_DIRECTION`'s, ``t = lift / v[2]`` clipped to
     0..:data:`FULL_SHADE`).  A seed whose hue test also passes neutral grey (log R/G = log B/G
     = 0: asphalt, concrete) names no region: in a street the walls, the pavement and the poles
-    are of that hue too (CamVid 0016E5_02040's facades and poles passed, 2026-11-29).
+    are of that hue too (CamVid 0016E5_02040's facades and poles passed, 2026-11-29).  A
+    tinted asphalt (the synthetic structured road's) is not grey by this test, so there the
+    verges of its hue may count (:func:`front_share` asks for a horizon line above them too).
     ``info``: :func:`classify`'s (``chroma``, ``mus``, ``covs``).
     """
     chroma, mus, covs = info["chroma"], info["mus"], info["covs"]
