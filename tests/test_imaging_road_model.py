@@ -690,9 +690,9 @@ def test_open_ground_is_a_flat_front_under_a_smooth_sky():
 def test_no_labelled_frame_is_open_ground(roads_dir, monkeypatch):
     """``front`` is fixed, not cross-validated, because no labelled frame is open ground at the default
     (0.97), measured where the pipeline decides it (on the candidate after the opening); the highest
-    front of a frame that reaches above ``reach`` with room for a sky is ``umich_early_forest1``'s 0.887
-    (0.84 before the front counted the seed's surface running on), kept out by the front and by its
-    canopy's texture (2026-11-29; ``front`` 0.6 was tried and withdrawn, docs/ACCURACY.md).  Control:
+    front of a frame that reaches above ``reach`` with room for a sky is ``umich_early_forest1``'s 0.84
+    (with the horizon cut and the running-on surface too), kept out by the front and by its canopy's
+    texture (2026-11-29; ``front`` 0.6 was tried and withdrawn, docs/ACCURACY.md).  Control:
     at 0.3 CamVid 0016E5_02400 (front 0.333) passes."""
     import scmr_mesh.imaging.pipeline as pipeline
 
