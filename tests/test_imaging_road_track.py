@@ -61,6 +61,28 @@ def test_the_carried_model_recovers_when_the_seed_is_an_obstacle():
     assert track.frames == 2                            # a replaced frame is not learnt from
 
 
+def test_replaced_seeds_carry_no_seed_gaussians_to_the_open_ground_front(monkeypatch):
+    """A review (2026-11-29): the replaced seeds' info kept classify's seed Gaussians, those of the seeds
+    just rejected (the box), and open_ground's front would count regions of the box's hue as ground
+    running on.  The replaced frame's abstain sees no Gaussians; the clean frames' do (control)."""
+    import scmr_mesh.imaging.road_track as road_track
+
+    seen: list[tuple[str, bool]] = []
+    real = road_track.abstain
+
+    def spy(candidate, info, params):
+        seen.append(("mus" in info, len(info["seeds"])))
+        return real(candidate, info, params)
+
+    monkeypatch.setattr(road_track, "abstain", spy)
+    img, truth = make_scene("dirt_road", seed=0)
+    ob, _t, _b = _obstacle(img, truth)
+    track = RoadTrack()
+    hows = [segment_drivable(f, track=track).carried for f in (img, img, ob)]
+    assert hows[2] == "replaced"
+    assert [has for has, _n in seen] == [True, True, False]
+
+
 def test_the_track_resets_after_patience_frames_that_disagree():
     img, truth = make_scene("dirt_road", seed=0)
     ob, _t, _b = _obstacle(img, truth)
