@@ -580,12 +580,12 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
       of the height above it empty of candidate (room for the sky);
     * at least ``front`` of the columns have their highest candidate pixel within
       :data:`FRONT_BAND` of the height below the candidate's highest row.  With ``info`` (from
-      :func:`classify`) the candidate is first cut at its :func:`horizon_line` (distant terrain
-      of the ground's colour above the horizon does not set the front).  A column where the cut
-      removed candidate well above the line (more than :data:`HORIZON_ROWS`) with no boundary on
-      the line there (``Horizon.on``, gaps narrower than :data:`HORIZON_BLUR` columns closed) is
-      never on the front: the line runs through something standing, a wall of the ground's
-      colour, not under distant terrain.  When a line was found, a column whose candidate stops
+      :func:`classify`, holding the working frame) the candidate's :func:`horizon_line` is
+      found (and left in ``info["horizon"]``: on open ground :func:`abstain` cuts the candidate
+      there, which only ever removes candidate).  The front is measured on the candidate as it
+      is, never on the cut one: cutting first let a wall of the ground's colour, standing on the
+      ground with its top above the horizon, pass with a flat front (2026-11-29, two reviews;
+      ACCURACY.md).  When a line was found, a column whose candidate stops
       lower still counts if, below the line and between the front's band and its top, it holds
       a region of the seed's surface (:func:`same_surface`: its hue, or its hue in more shade)
       whose top lies in the band or within :data:`FRONT_BAND` above it: the same ground
@@ -609,49 +609,36 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
     >>> open_ground(trunk, 0.7)
     False
     """
-    if front <= 0:
-        return False
-    share, cut = front_share(candidate, info)
-    if share < front:
+    if front <= 0 or front_share(candidate, info) < front:
         return False
     if grad is None:
         return True
     room = int(SKY_ROOM * candidate.shape[0])
     texture = np.log1p(np.rint(np.clip(grad, 0, 2047)) / 8.0)
-    return float(texture[:room].mean()) < float(texture[cut > 0].mean())
+    return float(texture[:room].mean()) < float(texture[candidate > 0].mean())
 
 
-def front_share(candidate: np.ndarray, info: dict | None = None) -> tuple[float, np.ndarray]:
-    """:func:`open_ground`'s front: the share of the columns on it, and the candidate it was measured on
-    (cut at the :func:`horizon_line` when ``info`` holds the working frame; the line is left in
-    ``info["horizon"]`` for :func:`abstain`'s cut).  The share is 0 for an empty candidate or one
-    with no room for a sky above its highest row."""
+def front_share(candidate: np.ndarray, info: dict | None = None) -> float:
+    """:func:`open_ground`'s front: the share of the columns on it (0 for an empty candidate or one
+    with no room for a sky above its highest row).  With ``info`` holding the working frame its
+    :func:`horizon_line` is found and left in ``info["horizon"]`` (for :func:`abstain`'s cut), and
+    with the seeds' Gaussians too a column below the band counts when the seed's surface runs on
+    there, below that line, up to the band (see :func:`open_ground`)."""
     h, w = candidate.shape
     has = candidate.any(axis=0)
-    if not has.any() or _front_top(np.where(has, candidate.argmax(axis=0), h)) < int(SKY_ROOM * h):
-        return 0.0, candidate
-    rows = np.arange(h)[:, None]
+    if not has.any():
+        return 0.0
+    tops = np.where(has, candidate.argmax(axis=0), h)
+    hi = _front_top(tops)
+    if hi < int(SKY_ROOM * h):
+        return 0.0
+    band = hi + FRONT_BAND * h
+    ok = has & (tops <= band)
     line = None
-    standing = np.zeros(w, bool)
     if info is not None and "small" in info:
         horizon = info["horizon"] = horizon_line(info["small"], candidate)
         if horizon is not None:
             line = horizon.rows(w)
-            # candidate well above the line in a column with no boundary on it: the line runs
-            # through something standing there (a wall of the ground's colour), not under it;
-            # gaps in the boundary narrower than HORIZON_BLUR columns are closed (the hills'
-            # colour near the far sand's in a few columns; a pole is a spike the front allows)
-            on = cv2.morphologyEx(horizon.on.astype(np.uint8)[None, :], cv2.MORPH_CLOSE,
-                                  np.ones((1, HORIZON_BLUR), np.uint8))[0] > 0
-            standing = ((rows < line[None, :] - HORIZON_ROWS) & (candidate > 0)).any(axis=0) & ~on
-            candidate = cut_above_horizon(candidate, info, horizon)
-            has = candidate.any(axis=0)
-            if not has.any():
-                return 0.0, candidate
-    tops = np.where(has, candidate.argmax(axis=0), h)
-    hi = _front_top(tops)
-    band = hi + FRONT_BAND * h
-    ok = has & (tops <= band)
     if line is not None and "mus" in info and not ok.all():
         labels = info["labels"]
         k = info["sizes"].size
@@ -659,9 +646,10 @@ def front_share(candidate: np.ndarray, info: dict | None = None) -> tuple[float,
         for y in range(h - 1, -1, -1):
             rtop[labels[y]] = y
         runs_on = same_surface(info) & (rtop <= band) & (rtop >= hi - FRONT_BAND * h)
+        rows = np.arange(h)[:, None]
         at = (rows > band) & (rows < tops[None, :]) & (rows >= line[None, :])   # below the horizon
         ok |= has & (np.take(runs_on, labels) & at).any(axis=0)
-    return float(np.mean(ok & ~standing)), candidate
+    return float(np.mean(ok))
 
 
 def same_surface(info: dict) -> np.ndarray:
@@ -719,11 +707,9 @@ HORIZON_SUPPORT = 0.6
 
 class Horizon(NamedTuple):
     """A line of :func:`horizon_line`: in column ``x`` of a frame ``w`` wide it lies on row
-    ``row + slope * (x - w / 2)``; ``on`` (w,) bool: the columns with a step peak of at least
-    :data:`BOUNDARY_CHROMA` within a row of it (a boundary there, not only a line drawn across)."""
+    ``row + slope * (x - w / 2)``."""
     slope: float
     row: float
-    on: np.ndarray
 
     def rows(self, w: int) -> np.ndarray:
         """The line's row in each of ``w`` columns (int64)."""
@@ -732,7 +718,8 @@ class Horizon(NamedTuple):
 
 def horizon_line(small: np.ndarray, candidate: np.ndarray) -> Horizon | None:
     """The horizon of open ground: the lowest long, near-level boundary between two materials near
-    the candidate's top, as ``(slope, row at the frame's centre column)``, or None.
+    the candidate's top, as a :class:`Horizon` (its slope and its row at the frame's centre
+    column), or None.
 
     On open ground the ground's far edge is a near-level line across the frame; above it stand
     distant hills, dunes or a treeline that SRM may merge with the ground (their colour close
@@ -752,12 +739,13 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> Horizon | None:
     r1 = min(h - HORIZON_ROWS, top + int(HORIZON_DEPTH * h))
     if r1 <= r0:
         return None
-    f = small.astype(np.float32) + np.float32(FEATURE_OFFSET)
+    lo = r0 - HORIZON_ROWS   # the steps read the rows lo .. r1 + HORIZON_ROWS
+    f = small[lo:r1 + HORIZON_ROWS].astype(np.float32) + np.float32(FEATURE_OFFSET)
     chroma = cv2.blur(f / f.sum(axis=2, keepdims=True), (HORIZON_BLUR, 1))
     cs = np.concatenate([np.zeros((1, w, 3), np.float32), np.cumsum(chroma, axis=0)])
-
     ys = np.arange(r0, r1)
-    step = np.abs((cs[ys] - cs[ys - HORIZON_ROWS]) - (cs[ys + HORIZON_ROWS] - cs[ys])).sum(axis=2) / HORIZON_ROWS
+    at = ys - lo
+    step = np.abs((cs[at] - cs[at - HORIZON_ROWS]) - (cs[at + HORIZON_ROWS] - cs[at])).sum(axis=2) / HORIZON_ROWS
     x = np.arange(w) - w / 2
     slopes = np.linspace(-HORIZON_SLOPE, HORIZON_SLOPE, 37)
     found = None
@@ -790,20 +778,9 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> Horizon | None:
             break
         slope, b = np.polyfit(x[inl], row[inl].astype(np.float64), 1)
         line = np.rint(b + slope * x).astype(np.int64)
-        found = (float(slope), float(b), line)
+        found = (float(slope), float(b))
         below = np.maximum(below, line + HORIZON_ROWS)
-    if found is None:
-        return None
-    slope, b, line = found
-    # the step within a row of the line in every column (the line may leave the rows searched)
-    cols = np.arange(w)
-    there = np.zeros(w, np.float32)
-    for d in (-1, 0, 1):
-        r = np.clip(line + d, HORIZON_ROWS, h - HORIZON_ROWS)
-        mid = cs[r, cols]
-        there = np.maximum(there, np.abs((mid - cs[r - HORIZON_ROWS, cols]) - (cs[r + HORIZON_ROWS, cols] - mid)).sum(axis=-1)
-                           / HORIZON_ROWS)
-    return Horizon(slope, b, there >= BOUNDARY_CHROMA)
+    return None if found is None else Horizon(found[0], found[1])
 
 
 def cut_above_horizon(candidate: np.ndarray, info: dict, found: Horizon | None | str = "find") -> np.ndarray:
@@ -826,6 +803,7 @@ def _touching_seeds(mask: np.ndarray, info: dict) -> np.ndarray:
     ``labels``, ``sizes`` and ``seeds``), as a uint8 0/1 mask."""
     is_seed = np.zeros(info["sizes"].size, bool)
     is_seed[info["seeds"]] = True
+    mask = (np.asarray(mask) > 0).astype(np.uint8)
     n, comp = cv2.connectedComponents(mask, connectivity=4)
     keep = np.zeros(n, np.uint8)
     keep[comp[np.take(is_seed, info["labels"]) & (mask > 0)]] = 1
