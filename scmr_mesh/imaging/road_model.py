@@ -866,8 +866,9 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
 
     When the candidate reaches above ``reach`` but :func:`open_ground` says its upper edge is a
     horizon, it is not shrunk to ``cap``: only the regions standing above the horizon go
-    (:func:`below_the_horizon`), and ``info["open_ground"]`` is set (the caller's column fill
-    then starts at each column's lowest candidate pixel).
+    (:func:`below_the_horizon`), then what lies above the horizon line :func:`open_ground` found
+    (:func:`cut_above_horizon`, with ``info["horizon"]``), and ``info["open_ground"]`` is set
+    (the caller's column fill then starts at each column's lowest candidate pixel).
 
     Returns
     -------
