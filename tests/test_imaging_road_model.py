@@ -1032,7 +1032,7 @@ def test_cut_above_horizon_keeps_the_ground_below_the_line_and_what_touches_a_se
     cand[69:74, 99:111] = 0
     cand[70:73, 100:110] = 1
     info = {"small": small, "labels": labels, "sizes": np.bincount(labels.ravel()), "seeds": np.array([1])}
-    cut = cut_above_horizon(cand, info)
+    cut = cut_above_horizon(cand, info, horizon_line(small, cand))
     assert not cut[:44].any() and cut[46:69].all() and not cut[70:73, 100:110].any()
     assert cut[74:].all()
 

@@ -609,13 +609,14 @@ def open_ground(candidate: np.ndarray, front: float, grad: np.ndarray | None = N
     >>> open_ground(trunk, 0.7)
     False
     """
-    if front <= 0 or front_share(candidate, info) < front:
+    if front <= 0 or not candidate.any():
         return False
-    if grad is None:
-        return True
-    room = int(SKY_ROOM * candidate.shape[0])
-    texture = np.log1p(np.rint(np.clip(grad, 0, 2047)) / 8.0)
-    return float(texture[:room].mean()) < float(texture[candidate > 0].mean())
+    if grad is not None:   # the sky test first: it is cheap, and the front may look for a horizon line
+        room = int(SKY_ROOM * candidate.shape[0])
+        texture = np.log1p(np.rint(np.clip(grad, 0, 2047)) / 8.0)
+        if not float(texture[:room].mean()) < float(texture[candidate > 0].mean()):
+            return False
+    return front_share(candidate, info) >= front
 
 
 def front_share(candidate: np.ndarray, info: dict | None = None) -> float:
@@ -783,16 +784,11 @@ def horizon_line(small: np.ndarray, candidate: np.ndarray) -> Horizon | None:
     return None if found is None else Horizon(found[0], found[1])
 
 
-def cut_above_horizon(candidate: np.ndarray, info: dict, found: Horizon | None | str = "find") -> np.ndarray:
-    """The candidate less what lies above the horizon line ``found`` (by default its own
-    :func:`horizon_line` in ``info["small"]``, the working frame), then only what still touches a
-    seed region; the candidate itself when there is no line."""
-    if isinstance(found, str):
-        found = horizon_line(info["small"], candidate)
-    if found is None:
-        return candidate
+def cut_above_horizon(candidate: np.ndarray, info: dict, horizon: Horizon) -> np.ndarray:
+    """The candidate less what lies above the ``horizon`` line, then only what still touches a seed
+    region (``info``'s ``labels``, ``sizes`` and ``seeds``)."""
     h, w = candidate.shape
-    line = found.rows(w)
+    line = horizon.rows(w)
     cut = candidate.copy()
     cut[np.arange(h)[:, None] < line[None, :]] = 0
     return _touching_seeds(cut, info)
@@ -894,7 +890,7 @@ def abstain(candidate: np.ndarray, info: dict, params: RoadParams) -> tuple[np.n
     if info["grounded"] and confidence >= 1.0:
         if info.get("open_ground"):
             candidate = below_the_horizon(candidate, info)
-            if "horizon" in info:   # the line open_ground found (front_share)
+            if info.get("horizon") is not None:   # the line open_ground found (front_share)
                 candidate = cut_above_horizon(candidate, info, info["horizon"])
         return candidate, 1.0, None
     if not info["grounded"]:
