@@ -155,8 +155,7 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
     handlers are installed explicitly, rerun runs in its own session with SIGINT at its
     default, and a signal stops it (SIGINT, then SIGTERM and SIGKILL after a grace).
     """
-    from scmr_mesh.deathsig import preexec
-    from scmr_mesh.viz.sink import _port_open, _stop
+    from scmr_mesh.viz.sink import _dies_with_us, _port_open, _stop
 
     got: list[int] = []
     stop = threading.Event()
@@ -171,9 +170,8 @@ def serve(cmd, *, env=None, ready_ports=(), ready: str | None = None) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             old[sig] = signal.signal(sig, handle)
 
-    # rerun dies with this command, even a SIGKILLed one; only from the main thread (the signal
-    # follows the thread that forks)
-    die = preexec(signal.SIGTERM, reset=True) if main else None
+    # rerun dies with this command, even a SIGKILLed one (None off the main thread)
+    die = _dies_with_us()
 
     def child_setup() -> None:
         signal.signal(signal.SIGINT, signal.SIG_DFL)
