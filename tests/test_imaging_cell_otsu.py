@@ -63,7 +63,7 @@ def test_the_road_frames_srm_results(roads_dir):
     for item in items:
         bgr = cv2.imread(str(roads_dir / item["image"]), cv2.IMREAD_COLOR)
         frame = decode_frame(cv2.imencode(".jpg", bgr)[1].tobytes())
-        _, seg = working_frame(frame)
+        seg = working_frame(frame).seg
         palette = np.rint(seg.means).clip(0, 255).astype(np.uint8)
         _same(seg.labels, palette)
 

@@ -453,7 +453,7 @@ def test_the_weak_join_under_a_horizon_stays_below_it():
     rgb, _ = make_scene("structured_road", seed=2)
     joined = []
     for params in (RoadParams(horizon=0.5), RoadParams(horizon=0.5, weak=50.0)):
-        small, seg = working_frame(rgb, params)
+        small, seg, _frame = working_frame(rgb, params)
         cand, info = classify(small, seg, params)
         assert not cand[: int(0.5 * cand.shape[0])].any()
         assert cand.any()

@@ -759,3 +759,69 @@ def boundary_cut_kernel(candidate, lines, max_cut):
                     out[y, x] = 0
         used[li] = 1
     return out, used
+
+
+@njit(cache=True, nogil=True)
+def _row_median(values, mask, y, hist, min_count):
+    """The median of ``values[y]`` over ``mask[y] != 0`` (NaN below ``min_count`` pixels), ``hist``
+    a 256-bin scratch array."""
+    w = values.shape[1]
+    for v in range(256):
+        hist[v] = 0
+    n = 0
+    for x in range(w):
+        if mask[y, x] != 0:
+            hist[values[y, x]] += 1
+            n += 1
+    if n < min_count or n == 0:
+        return np.nan
+    k_lo = (n - 1) // 2
+    k_hi = n // 2
+    lo = -1
+    cum = 0
+    for v in range(256):
+        cum += hist[v]
+        if lo < 0 and cum > k_lo:
+            lo = v
+        if cum > k_hi:
+            return (lo + v) / 2.0
+    return np.nan
+
+
+@njit(cache=True, nogil=True)
+def row_medians_kernel(values, mask, min_count):
+    """Per row of ``values`` (uint8, 2-D), the median over the pixels where ``mask`` (uint8, same
+    shape) is not 0: np.median's value (the mean of the two middle values when the count is even),
+    from the row's 256-bin histogram; NaN for a row with fewer than ``min_count`` such pixels.
+    Returns (rows,) float32."""
+    h = values.shape[0]
+    out = np.empty(h, np.float32)
+    hist = np.zeros(256, np.int64)
+    for y in range(h):
+        out[y] = np.float32(_row_median(values, mask, y, hist, min_count))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def rough_rows_kernel(texture, mask, ratio, min_count):
+    """The rough pixels of :func:`~scmr_mesh.imaging.road_model.rough_surface`: per row of
+    ``texture`` (uint8, 2-D) with at least ``min_count`` pixels of ``mask`` (uint8), those of
+    ``mask`` whose texture exceeds ``ratio`` x the row's median over ``mask`` (at least 1).
+    Returns the (rows, cols) uint8 0/1 mask and its count."""
+    h, w = texture.shape
+    out = np.zeros((h, w), np.uint8)
+    hist = np.zeros(256, np.int64)
+    total = 0
+    for y in range(h):
+        med = _row_median(texture, mask, y, hist, min_count)
+        if med != med:   # NaN: too few pixels to judge the row
+            continue
+        limit = ratio * max(med, 1.0)
+        ty = texture[y]
+        my = mask[y]
+        oy = out[y]
+        for x in range(w):
+            if my[x] != 0 and ty[x] > limit:
+                oy[x] = 1
+                total += 1
+    return out, total

@@ -25,6 +25,7 @@ import dataclasses
 import numbers
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -37,6 +38,7 @@ from scmr_mesh.imaging.road_model import (
     abstain,
     classify,
     cut_at_boundaries,
+    cut_rough,
     straight_edges,
     tone_curve,
 )
@@ -257,7 +259,7 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
     t["otsu"] = t4 - t3
     t["edges"] = 0.0
 
-    mask, confidence, abstained, t6, carried = _best_mask(small, seg, params, carry)
+    mask, confidence, abstained, t6, carried = _best_mask(small, seg, params, carry, frame=frame)
     t["classify"] = t6 - t4
     t7 = _clock()
     t["sparse"] = t7 - t6
@@ -287,18 +289,21 @@ def _segment_best(frame: np.ndarray, q: float, stages: bool, params: RoadParams,
 #: :class:`RoadParams` fields read only after :func:`classify` (by :func:`_best_mask` and :func:`abstain`):
 #: :func:`best_masks` classifies once for all params that differ only in these.  A new field is
 #: left out of this list, so it keys the classification (slower, never wrong).
-AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap", "boundary")
+AFTER_CLASSIFY = ("opening", "reach", "cap", "standing", "gap", "boundary", "rough")
+
 
 
 def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
-               classified: tuple[np.ndarray, dict] | None = None, edges: dict | None = None):
+               classified: tuple[np.ndarray, dict] | None = None, edges: dict | None = None,
+               frame: np.ndarray | None = None):
     """The road model on SRM regions of the working frame.
 
     Returns mask (225, 300), confidence, abstained, the clock after classify, and ``carried``
     (None without ``carry = (track, track_params, t)``).  ``classified``: :func:`classify`'s
     result for these params, shared between calls (copied here, never changed), else computed.
     ``edges``: a cache of this frame's :func:`~scmr_mesh.imaging.road_model.straight_edges` by
-    ``boundary`` and candidate, shared between calls (filled here).
+    ``boundary`` and candidate, shared between calls (filled here).  ``frame``: the 300x225 frame
+    ``small`` was made from, needed when ``params.rough`` is on (its fine texture).
     """
     def opening(candidate: np.ndarray) -> np.ndarray:
         if params.opening > 1:
@@ -329,6 +334,10 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
             if lines is None:
                 lines = edges[key] = straight_edges(small, candidate, params.boundary)
         candidate = cut_at_boundaries(candidate, small, params.boundary, lines)[0]
+    if params.rough > 0:
+        if frame is None:
+            raise ValueError("the rough-surface cut (params.rough > 0) needs the 300x225 frame")
+        candidate = cut_rough(candidate, small, frame, params.rough)
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = column_fill(candidate, gap, lowest)
@@ -393,21 +402,32 @@ def best_masks(rgb: np.ndarray, params_list, *, q: float = 32):
         if ckey not in classified:
             classified[ckey] = classify(small, segs[key], params)
         mask, confidence, abstained, _t, _c = _best_mask(small, segs[key], params, classified=classified[ckey],
-                                                         edges=edges)
+                                                         edges=edges, frame=frame)
         yield mask, confidence, abstained
 
 
-def working_frame(rgb: np.ndarray, params: RoadParams | None = None, *, q: float = 32):
-    """``(small, seg)``: ``best``'s working frame of ``rgb`` and its SRM regions, for :func:`best_mask_from`."""
+class WorkingFrame(NamedTuple):
+    """What ``best`` computes of a frame before its road model: :func:`working_frame`'s result."""
+
+    #: the half-size working frame, (112, 150, 3) uint8 RGB
+    small: np.ndarray
+    #: its SRM regions
+    seg: object
+    #: the 300x225 frame it was made from, (225, 300, 3) uint8 RGB (the rough-surface cut's texture)
+    frame: np.ndarray
+
+
+def working_frame(rgb: np.ndarray, params: RoadParams | None = None, *, q: float = 32) -> WorkingFrame:
+    """``best``'s working frame of ``rgb``, its SRM regions and the 300x225 frame, for :func:`best_mask_from`."""
     params = (params or DEFAULT_PARAMS).check()
     frame = resize_frame(as_rgb(rgb, name="rgb"))
     wh, ww = WORK_SHAPE
     small = area_resize(frame, ww, wh)
     seg = srm(tone_curve(small, params.gamma) if params.gamma != 1.0 else small, q=srm_q("best", q, params))
-    return small, seg
+    return WorkingFrame(small, seg, frame)
 
 
-def best_mask_from(small: np.ndarray, seg, params: RoadParams | None = None, *, track=None, track_params=None,
+def best_mask_from(work: WorkingFrame, params: RoadParams | None = None, *, track=None, track_params=None,
                    t: float | None = None):
     """``best``'s ``(mask, confidence, abstained, carried)`` from :func:`working_frame`'s output.
 
@@ -420,7 +440,7 @@ def best_mask_from(small: np.ndarray, seg, params: RoadParams | None = None, *, 
         from scmr_mesh.imaging.road_track import TrackParams
 
         carry = (track, (track_params or TrackParams()).check(), t)
-    mask, confidence, abstained, _t, carried = _best_mask(small, seg, params, carry)
+    mask, confidence, abstained, _t, carried = _best_mask(work.small, work.seg, params, carry, frame=work.frame)
     return mask, confidence, abstained, carried
 
 
@@ -533,3 +553,4 @@ def warm_up() -> None:
     boundary_sides_kernel(line, candidate, small, np.array(BOUNDARY_SIDES, np.float64), float(FEATURE_OFFSET))
     boundary_cut_kernel(candidate, line, 0.5)
     cut_at_boundaries(candidate, small, DEFAULT_PARAMS.boundary or 0.3)
+    cut_rough(candidate, small, cv2.resize(small, (FRAME_SHAPE[1], FRAME_SHAPE[0])), 1.75)
