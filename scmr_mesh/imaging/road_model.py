@@ -1111,8 +1111,9 @@ def rough_surface(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, r
     texture in its row (at least 1): the comparison is made at one distance from the camera, so
     perspective, which shrinks the texture of the far road, does not enter.  A row with fewer
     than :data:`ROUGH_MIN_ROW` candidate pixels is not judged.  An opening (:data:`ROUGH_OPEN`)
-    and a least area (:data:`ROUGH_MIN_AREA`) keep the surfaces, not the rims and spots.  Only
-    the frame's rows from the first judged row down are read.  Returns a bool mask of the
+    and a least area (:data:`ROUGH_MIN_AREA`) keep the surfaces, not the rims and spots; a
+    surface covering half the bottom-centre cell the seeds come from is the robot's own ground
+    and is never rough.  Only the frame's rows from the first judged row down are read.  Returns a bool mask of the
     working frame (0.1-0.2 ms).
     """
     from scmr_mesh.imaging._aot import rough_rows_kernel
@@ -1148,6 +1149,13 @@ def rough_surface(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, r
     rough = cv2.dilate(core, kernel)
     n, lab, stats, _ = cv2.connectedComponentsWithStats(rough, connectivity=8)
     big = stats[:, cv2.CC_STAT_AREA] >= ROUGH_MIN_AREA
+    big[0] = False
+    full = np.zeros((wh, ww), lab.dtype)
+    full[w0:] = lab
+    # a rough surface that covers half the bottom-centre cell the seeds come from is the ground
+    # the robot stands on, rough or not: the smooth surface beside it is the other material
+    cell = bottom_centre(roi(full))
+    big[np.bincount(cell.ravel(), minlength=n) * 2 >= cell.size] = False
     big[0] = False
     out[w0:] = np.take(big, lab)
     return out
