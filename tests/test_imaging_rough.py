@@ -2,7 +2,7 @@
 
 Analytic scenes on the 300x225 frame: cobbles beside smooth asphalt are cut, bright paint on the
 asphalt is not rough (and is, with the paint clip off: the clip is what keeps it), one texture
-everywhere is nothing, the robot's own rough ground stays; the kernels against numpy; and the
+everywhere is nothing, rough ground in the robot's path stays; the kernels against numpy; and the
 shared road frames, where the cut lifts KITTI's cobbled pavement and costs no frame.
 """
 
@@ -98,16 +98,35 @@ def test_one_texture_everywhere_is_not_rough():
     assert not rough_surface(cand, small, frame, 1.75).any()
 
 
-def test_the_robots_own_rough_ground_stays():
-    """A cobbled lane under the robot (the whole bottom-centre cell) between smooth asphalt on both
-    sides: rougher than the row's median, and kept; the same lane off to the side is cut."""
-    middle = (FX >= FW // 4) & (FX < 3 * FW // 4 - 30)   # the lane, 45 % of the width, over the cell
-    frame = _frame(cobbles=middle)
-    small, cand = _small(frame), _candidate()
-    assert not rough_surface(cand, small, frame, 1.75).any()
-    side = FX >= 3 * FW // 4 - 20
-    frame = _frame(cobbles=side)
-    assert rough_surface(cand, _small(frame), frame, 1.75)[:, -10:].any()
+def test_rough_ground_in_the_robots_path_stays(monkeypatch):
+    """What reaches into the robot's path (the centre columns) is ground it drives on: a gravel
+    strip under the robot converging ahead, and a band of cobbles across the road at an angle (a
+    hostile review's scenes: with a guard on the bottom-centre cell instead, the strip and the
+    band were cut, and everything beyond the band with them).  The same strip beside the path is
+    cut; with the path rule off (an empty path) the strip and the band are cut too."""
+    cand = _candidate()
+    t = np.clip((FY - 75) / (FH - 1 - 75), 0, 1)
+    strip = (FX >= np.rint(148 - 23 * t)) & (FX < np.rint(152 + 23 * t)) & (FY >= 75)
+    a = 175 - 60 * FX / (FW - 1)
+    band = (FY >= a) & (FY < a + 24)
+    for where in (strip, band):
+        frame = _frame(cobbles=where)
+        assert not rough_surface(cand, _small(frame), frame, 1.75).any()
+        assert cut_rough(cand, _small(frame), frame, 1.75) is cand
+    beside = (FX >= 240) & (FX < 280) & (FY >= 75)
+    frame = _frame(cobbles=beside)
+    assert rough_surface(cand, _small(frame), frame, 1.75)[60:, 122:138].all()
+    monkeypatch.setattr(road_model, "ROUGH_PATH", -1)   # ww // 2 + 1 : ww // 2: no column
+    for where in (strip, band):
+        frame = _frame(cobbles=where)
+        assert rough_surface(cand, _small(frame), frame, 1.75).any()
+
+
+def test_a_frame_of_another_size_is_refused():
+    """The texture is read at the 300x225 frame's pixel pitch: another size would misplace it."""
+    frame = np.zeros((240, 320, 3), np.uint8)
+    with pytest.raises(ValueError, match="300x225"):
+        rough_surface(_candidate(), _small(_frame()), frame, 1.75)
 
 
 def test_what_the_cut_detaches_goes_and_what_was_apart_stays():

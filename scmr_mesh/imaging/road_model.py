@@ -1088,6 +1088,11 @@ ROUGH_OPEN = 5
 ROUGH_MIN_AREA = 100
 #: A row's median is taken over at least this many candidate pixels (fewer: the row is not judged).
 ROUGH_MIN_ROW = 10
+#: The robot's path: the working frame's centre column and this many on each side (11 of 150).  A
+#: rough surface reaching into it is driven on, never cut (a cobbled stretch ahead, a gravel strip
+#: under the robot, a band across the road: a hostile review's scenes, 2026-11-29).  Up to 8 it
+#: leaves every shared frame's cut as it is; at 12 KITTI semantics 000004's pavement reaches it.
+ROUGH_PATH = 5
 
 
 def _row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -1112,14 +1117,17 @@ def rough_surface(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, r
     perspective, which shrinks the texture of the far road, does not enter.  A row with fewer
     than :data:`ROUGH_MIN_ROW` candidate pixels is not judged.  An opening (:data:`ROUGH_OPEN`)
     and a least area (:data:`ROUGH_MIN_AREA`) keep the surfaces, not the rims and spots; a
-    surface covering half the bottom-centre cell the seeds come from is the robot's own ground
-    and is never rough.  Only the frame's rows from the first judged row down are read.  Returns a bool mask of the
+    surface reaching into the robot's path (:data:`ROUGH_PATH`) is ground it drives on and is
+    never rough: only surfaces wholly beside the path are.  Only the frame's rows from the first judged row down are read.  Returns a bool mask of the
     working frame (0.1-0.2 ms).
     """
     from scmr_mesh.imaging._aot import rough_rows_kernel
 
     wh, ww = candidate.shape
     fh, fw = frame.shape[:2]
+    if (fh, fw) != (2 * wh + 1, 2 * ww) or small.shape[:2] != (wh, ww):
+        raise ValueError(f"rough_surface reads the 300x225 frame of a 150x112 working frame; got a frame of "
+                         f"{fw}x{fh}, a working frame of {small.shape[1]}x{small.shape[0]} and a candidate of {ww}x{wh}")
     out = np.zeros((wh, ww), bool)
     mask = (candidate != 0).view(np.uint8)
     med = _row_medians(cv2.cvtColor(small, cv2.COLOR_RGB2GRAY), mask)
@@ -1152,10 +1160,11 @@ def rough_surface(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, r
     big[0] = False
     full = np.zeros((wh, ww), lab.dtype)
     full[w0:] = lab
-    # a rough surface that covers half the bottom-centre cell the seeds come from is the ground
-    # the robot stands on, rough or not: the smooth surface beside it is the other material
-    cell = bottom_centre(roi(full))
-    big[np.bincount(cell.ravel(), minlength=n) * 2 >= cell.size] = False
+    # a rough surface in the robot's path (crossing the frame's centre columns: a cobbled stretch
+    # ahead, a gravel strip under the robot, a band across the road) is ground it drives on, rough
+    # or not; only what lies wholly beside the path is another material (a pavement, a verge)
+    path = full[:, ww // 2 - ROUGH_PATH: ww // 2 + ROUGH_PATH + 1]
+    big[np.unique(path)] = False
     big[0] = False
     out[w0:] = np.take(big, lab)
     return out
