@@ -844,7 +844,7 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     of it): cobbles and paving joined to the asphalt by colour are cut where their fine texture is
     over 1.75 x the road's in the same row.  KITTI semantics 0.704 -> 0.733 (precision 0.800 ->
     0.839), ORFD 0.818 -> 0.835 (precision 0.853 -> 0.874), CamVid unchanged; over images 0.830 ->
-    0.834, over datasets 0.786 -> 0.795, precision 0.901 -> 0.906.  Every fold chooses 1.75.  The
+    0.833, over datasets 0.786 -> 0.795, precision 0.901 -> 0.906.  Every fold chooses 1.75.  The
     code before fails the floors of KITTI semantics, ORFD's precision and the datasets' mean.
     """
     import json
