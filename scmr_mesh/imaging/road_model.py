@@ -1132,8 +1132,8 @@ def rough_surface(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, r
     never rough, nor is one that does not reach the bottom :data:`ROUGH_BESIDE` rows (it lies
     ahead, not beside), nor one with more than :data:`ROUGH_BEYOND` x its area of smooth
     candidate beyond it (a band across the road): only surfaces beside the path from where the
-    robot stands, with no road beyond them, are.  Only the frame's rows from the first judged row down are read.  Returns a bool mask of the
-    working frame (0.1-0.2 ms).
+    robot stands, with no road beyond them, are.  Only the frame's rows from the first judged row
+    down are read.  Returns a bool mask of the working frame (0.1-0.2 ms).
     """
     from scmr_mesh.imaging._aot import rough_rows_kernel
 
