@@ -1,4 +1,4 @@
-"""The cut of the candidate's rough surfaces (``RoadParams.rough``, :func:`cut_rough`).
+"""The cut of the candidate's rough surfaces (``RoadParams.rough``, :func:`cut_rough`; off by default).
 
 Analytic scenes on the 300x225 frame: cobbles beside smooth asphalt are cut, bright paint on the
 asphalt is not rough (and is, with the paint clip off: the clip is what keeps it), one texture
@@ -24,6 +24,8 @@ from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS, best_mask_from, segment_d
 from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, cut_rough, rough_surface
 from scmr_mesh.imaging import road_model
 
+#: the cut on (it is off by default: test_partial_blur_fools_the_cut_so_it_is_off_by_default)
+ROUGH = dataclasses.replace(DEFAULT_PARAMS, rough=1.75)
 FH, FW = FRAME_SHAPE
 H, W = WORK_SHAPE
 FY, FX = np.mgrid[0:FH, 0:FW]
@@ -158,12 +160,11 @@ def test_a_band_across_the_road_takes_nothing_beyond_it(monkeypatch, seed, y0, s
     with more than ROUGH_BEYOND x its area of road beyond it is a band: neither is cut.  Off, the
     loss comes back (the test of the test)."""
     img, truth = _band_scene(seed, y0, slope, thick)
-    off = dataclasses.replace(DEFAULT_PARAMS, rough=0.0)
-    base = score(segment_drivable(img, params=off).mask, truth)["iou"]
-    assert score(segment_drivable(img).mask, truth)["iou"] >= base - 0.02
+    base = score(segment_drivable(img).mask, truth)["iou"]
+    assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] >= base - 0.02
     monkeypatch.setattr(road_model, "ROUGH_BESIDE", H)
     monkeypatch.setattr(road_model, "ROUGH_BEYOND", float("inf"))
-    assert score(segment_drivable(img).mask, truth)["iou"] < base - 0.2
+    assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] < base - 0.2
 
 
 #: bands that the road-beyond rule alone let the cut take: they lie ahead, not beside the robot
@@ -176,11 +177,10 @@ def test_a_band_ahead_is_not_beside_the_robot(monkeypatch, seed, y0, slope, thic
     do not reach the frame's bottom rows: the ROUGH_BESIDE rule keeps them (off, they lose 0.13-0.24
     of IoU with the road-beyond rule alone, 2026-11-29)."""
     img, truth = _band_scene(seed, y0, slope, thick)
-    off = dataclasses.replace(DEFAULT_PARAMS, rough=0.0)
-    base = score(segment_drivable(img, params=off).mask, truth)["iou"]
-    assert score(segment_drivable(img).mask, truth)["iou"] >= base - 0.02
+    base = score(segment_drivable(img).mask, truth)["iou"]
+    assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] >= base - 0.02
     monkeypatch.setattr(road_model, "ROUGH_BESIDE", H)
-    assert score(segment_drivable(img).mask, truth)["iou"] < base - 0.1
+    assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] < base - 0.1
 
 
 def test_a_frame_of_another_size_is_refused():
@@ -264,23 +264,44 @@ def test_the_working_frame_path_gives_segment_drivables_mask(roads_dir):
     """best_mask_from(working_frame(...)) carries the 300x225 frame the cut reads: the same mask."""
     item = next(it for it in load_manifest(roads_dir) if it.image.name == "kitti_semantics_000004_10.png")
     rgb = load_frame(item.image)
-    assert (best_mask_from(working_frame(rgb))[0] == segment_drivable(rgb).mask).all()
+    assert (best_mask_from(working_frame(rgb, ROUGH), ROUGH)[0] == segment_drivable(rgb, params=ROUGH).mask).all()
 
 
 def test_on_the_shared_frames_the_cut_lifts_kittis_cobbles_and_costs_no_frame(roads_dir):
     """KITTI semantics 000004: the cobbled pavement on the right joined the road by colour (precision
     0.619 without the cut, 0.773 with it, 2026-11-29).  Over the 60 frames no mask loses more than
     0.01 of IoU and at least four gain 0.015 (KITTI road, ORFD 2, KITTI semantics 2 and 4)."""
-    off = dataclasses.replace(DEFAULT_PARAMS, rough=0.0)
     gains, losses = [], []
     for item in load_manifest(roads_dir):
         rgb = load_frame(item.image)
         road, valid, _ = labels_at_frame(item)
-        with_cut = score(segment_drivable(rgb).mask, road, valid)
-        without = score(segment_drivable(rgb, params=off).mask, road, valid)
+        with_cut = score(segment_drivable(rgb, params=ROUGH).mask, road, valid)
+        without = score(segment_drivable(rgb).mask, road, valid)
         d = with_cut["iou"] - without["iou"]
         (gains if d >= 0.015 else losses if d < -0.01 else []).append(item.image.name)
         if item.image.name == "kitti_semantics_000004_10.png":
             assert without["precision"] < 0.65 and with_cut["precision"] > 0.75
     assert not losses, losses
     assert len(gains) >= 4, gains
+
+
+def test_partial_blur_fools_the_cut_so_it_is_off_by_default():
+    """A blur over most of a row (a water drop, mud, motion blur on part of the lens) lowers the row's
+    median texture, and the sharp road beside it reads as rough: a straight road with its left 60 %
+    blurred (sigma 1) loses a third of its IoU under the cut (a second hostile review, 2026-11-29; on
+    the shared frames blurred so, mean IoU 0.783 -> 0.634).  No labelled frame is blurred in part,
+    so the cross-validation cannot see it: the cut is off by default and out of the grid.  When a
+    guard against blur makes this pass, the default can be chosen again."""
+    rng = np.random.default_rng(0)
+    img = np.empty((FH, FW, 3))
+    img[:85] = (150, 180, 225)
+    img[85:] = 100 + rng.normal(0, 3, (FH - 85, FW, 1))
+    img = np.clip(img, 0, 255).astype(np.uint8)
+    blurred = cv2.GaussianBlur(img, (0, 0), 1.0)
+    img[:, : 3 * FW // 5] = blurred[:, : 3 * FW // 5]
+    truth = np.zeros((FH, FW), np.uint8)
+    truth[85:] = 255
+    assert DEFAULT_PARAMS.rough == 0
+    base = score(segment_drivable(img).mask, truth)["iou"]
+    assert base > 0.95
+    assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] < base - 0.2
