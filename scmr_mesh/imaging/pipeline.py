@@ -301,8 +301,7 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
     (None without ``carry = (track, track_params, t)``).  ``classified``: :func:`classify`'s
     result for these params, shared between calls (copied here, never changed), else computed.
     ``edges``: a cache of this frame's :func:`~scmr_mesh.imaging.road_model.straight_edges` by
-    ``boundary`` and candidate, and of its rough cuts by ``rough`` and candidate, shared between
-    calls (filled here; the candidates they return are only read).  ``frame``: the 300x225 frame
+    ``boundary`` and candidate, shared between calls (filled here).  ``frame``: the 300x225 frame
     ``small`` was made from, needed when ``params.rough`` is on (its fine texture).
     """
     def opening(candidate: np.ndarray) -> np.ndarray:
@@ -337,14 +336,7 @@ def _best_mask(small: np.ndarray, seg, params: RoadParams, carry=None,
     if params.rough > 0:
         if frame is None:
             raise ValueError("the rough-surface cut (params.rough > 0) needs the 300x225 frame")
-        if edges is not None:   # the same candidate under other constants: the same cut
-            key = ("rough", params.rough, candidate.tobytes())
-            cut = edges.get(key)
-            if cut is None:
-                cut = edges[key] = cut_rough(candidate, small, frame, params.rough)
-            candidate = cut
-        else:
-            candidate = cut_rough(candidate, small, frame, params.rough)
+        candidate = cut_rough(candidate, small, frame, params.rough)
     t6 = _clock()
     gap = int(round(params.gap * WORK_SHAPE[1] / FRAME_SHAPE[1]))
     small_mask = column_fill(candidate, gap, lowest)

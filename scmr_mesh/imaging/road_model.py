@@ -1066,15 +1066,7 @@ def cut_at_boundaries(candidate: np.ndarray, small: np.ndarray, length: float,
     used = [line for line, d in zip(found, did) if d]
     if not used:
         return candidate, []
-    # what the cuts detached from the robot's side goes too: the pieces of the cut candidate
-    # that no longer touch the seeds' bottom-centre cell but were connected to it before the cut.
-    # Pieces already apart from it stay, as they do in a frame without a cut (the carried
-    # model's candidate may not touch the cell at all: a box over it).
-    comp0, robot0 = _touching_the_cell(cand)
-    comp, robot = _touching_the_cell(cut)
-    detached = (cut > 0) & ~np.take(robot, comp) & np.take(robot0, comp0)
-    cut[detached] = 0
-    return cut, used
+    return _drop_detached(cand, cut), used
 
 
 #: :func:`cut_rough`'s fixed geometry (chosen by eye in the prototype of 2026-11-29 on the shared
@@ -1221,7 +1213,15 @@ def cut_rough(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, ratio
     cand = (candidate != 0).astype(np.uint8)
     cut = cand.copy()
     cut[rough] = 0
-    comp0, robot0 = _touching_the_cell(cand)
+    return _drop_detached(cand, cut)
+
+
+def _drop_detached(before: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """``cut`` (uint8 0/1, changed in place and returned) less what a cut detached from the robot's
+    side: the pieces that no longer touch the seeds' bottom-centre cell but were connected to it in
+    ``before``.  Pieces already apart from it stay, as they do in a frame without a cut (the carried
+    model's candidate may not touch the cell at all: a box over it)."""
+    comp0, robot0 = _touching_the_cell(before)
     comp, robot = _touching_the_cell(cut)
     cut[(cut > 0) & ~np.take(robot, comp) & np.take(robot0, comp0)] = 0
     return cut
