@@ -27,8 +27,9 @@ from scmr_mesh.imaging.pipeline import DEFAULT_PARAMS, best_mask_from, segment_d
 from scmr_mesh.imaging.road_model import WORK_SHAPE, RoadParams, blur_spread, cut_rough, rough_surface, sharpness_maps
 from scmr_mesh.imaging import road_model
 
-#: the cut on
+#: the cut on (the default) and off
 ROUGH = dataclasses.replace(DEFAULT_PARAMS, rough=1.75)
+OFF = dataclasses.replace(DEFAULT_PARAMS, rough=0.0)
 FH, FW = FRAME_SHAPE
 H, W = WORK_SHAPE
 FY, FX = np.mgrid[0:FH, 0:FW]
@@ -171,7 +172,7 @@ def test_a_band_across_the_road_takes_nothing_beyond_it(monkeypatch, seed, y0, s
     with more than ROUGH_BEYOND x its area of road beyond it is a band: neither is cut.  Off, the
     loss comes back (the test of the test)."""
     img, truth = _band_scene(seed, y0, slope, thick)
-    base = score(segment_drivable(img).mask, truth)["iou"]
+    base = score(segment_drivable(img, params=OFF).mask, truth)["iou"]
     assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] >= base - 0.02
     monkeypatch.setattr(road_model, "ROUGH_BESIDE", H)
     monkeypatch.setattr(road_model, "ROUGH_BEYOND", float("inf"))
@@ -189,7 +190,7 @@ def test_a_band_ahead_is_not_beside_the_robot(monkeypatch, seed, y0, slope, thic
     do not reach the frame's bottom rows: the ROUGH_BESIDE rule keeps them (off, they lose 0.13-0.24
     of IoU with the road-beyond rule alone, 2026-11-29)."""
     img, truth = _band_scene(seed, y0, slope, thick)
-    base = score(segment_drivable(img).mask, truth)["iou"]
+    base = score(segment_drivable(img, params=OFF).mask, truth)["iou"]
     assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] >= base - 0.02
     monkeypatch.setattr(road_model, "ROUGH_BESIDE", H)
     _no_blur_guard(monkeypatch)
@@ -289,7 +290,7 @@ def test_on_the_shared_frames_the_cut_lifts_kittis_cobbles_and_costs_no_frame(ro
         rgb = load_frame(item.image)
         road, valid, _ = labels_at_frame(item)
         with_cut = score(segment_drivable(rgb, params=ROUGH).mask, road, valid)
-        without = score(segment_drivable(rgb).mask, road, valid)
+        without = score(segment_drivable(rgb, params=OFF).mask, road, valid)
         d = with_cut["iou"] - without["iou"]
         (gains if d >= 0.015 else losses if d < -0.01 else []).append(item.image.name)
         if item.image.name == "kitti_semantics_000004_10.png":
@@ -325,7 +326,7 @@ def test_partial_blur_is_no_rough_surface(monkeypatch, where, sigma):
     sharper than the road beside it (ROUGH_SHARPER); with both off the loss comes back."""
     img, truth = _blurred_road(where, sigma)
     sharper = road_model.ROUGH_SHARPER
-    base = score(segment_drivable(img, params=dataclasses.replace(ROUGH, rough=0.0)).mask, truth)["iou"]
+    base = score(segment_drivable(img, params=OFF).mask, truth)["iou"]
     assert base > 0.95
     assert score(segment_drivable(img, params=ROUGH).mask, truth)["iou"] >= base - 0.01
     monkeypatch.setattr(road_model, "ROUGH_SHARPER", float("inf"))
@@ -367,7 +368,6 @@ def test_on_the_shared_frames_blurred_in_part_the_guard_keeps_the_road(monkeypat
     300x225).  With the guard the cut costs no frame more than 0.02 of IoU and the mean nothing
     (measured: 0.7830 off and on); with the guard off the mean falls by more than 0.1 (0.783 ->
     0.634, the reason the cut was off by default until the guard)."""
-    off = dataclasses.replace(ROUGH, rough=0.0)
     items = load_manifest(roads_dir)
     base, on = [], []
     frames = []
@@ -375,7 +375,7 @@ def test_on_the_shared_frames_blurred_in_part_the_guard_keeps_the_road(monkeypat
         road, valid, _ = labels_at_frame(item)
         rgb = _left_blurred(load_frame(item.image))
         frames.append((rgb, road, valid))
-        base.append(score(segment_drivable(rgb, params=off).mask, road, valid)["iou"])
+        base.append(score(segment_drivable(rgb, params=OFF).mask, road, valid)["iou"])
         on.append(score(segment_drivable(rgb, params=ROUGH).mask, road, valid)["iou"])
     base, on = np.array(base), np.array(on)
     assert (on >= base - 0.02).all(), [items[i].image.name for i in np.flatnonzero(on < base - 0.02)]
@@ -384,3 +384,8 @@ def test_on_the_shared_frames_blurred_in_part_the_guard_keeps_the_road(monkeypat
     unguarded = np.array([score(segment_drivable(rgb, params=ROUGH).mask, road, valid)["iou"]
                           for rgb, road, valid in frames])
     assert unguarded.mean() < base.mean() - 0.1
+
+
+def test_the_cut_is_on_by_default():
+    """The cross-validation chooses 1.75 in every fold (test_imaging_road_model's CV test)."""
+    assert DEFAULT_PARAMS.rough == ROUGH.rough == 1.75

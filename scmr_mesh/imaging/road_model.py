@@ -131,11 +131,11 @@ class RoadParams:
         300x225 frame is more than this multiple of the candidate's median texture in the same
         row (one distance from the camera), over a surface of at least :data:`ROUGH_MIN_AREA`
         working pixels, the candidate is not asphalt but cobbles, paving slabs or a littered
-        verge that SRM joined to it by colour (0 = off, the default; else > 1).  At 1.75 it lifts
-        KITTI semantics' precision 0.800 -> 0.839 on the shared frames, but a blur over most of a
-        row (a water drop, mud, motion blur on part of the lens) makes the sharp road beside it
-        rough: on the shared frames with their left 60 % blurred, mean IoU 0.783 -> 0.634, so it
-        is off by default and out of the cross-validation grid (docs/ACCURACY.md).
+        verge that SRM joined to it by colour (0 = off; else > 1).  At 1.75, the cross-validation's
+        choice, it lifts KITTI semantics' precision 0.800 -> 0.839 on the shared frames.  A blur
+        over part of the frame (a water drop, mud, motion blur on part of the lens) would make the
+        sharp road beside it rough; the blur guard (:data:`ROUGH_BLUR_SPREAD`,
+        :data:`ROUGH_SHARPER`) keeps it (docs/ACCURACY.md).
     """
 
     gamma: float = 1.0
@@ -157,7 +157,7 @@ class RoadParams:
     lateral: float = 0.25
     weak: float = 6.0
     boundary: float = 0.3
-    rough: float = 0.0
+    rough: float = 1.75
 
     def check(self) -> RoadParams:
         if not 0 < self.gamma <= 4:
