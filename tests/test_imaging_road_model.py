@@ -840,14 +840,10 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     synthetic floors, so each fold had a choice), so the cross-validated figures equal the
     in-sample ones.  The code before fails CamVid's and the datasets' floors.
 
-    Issue 27 (2026-11-29, the cut of rough surfaces with its blur guard, ``rough`` 0 / 1.75 in the
-    grid, ``weak`` 0 out of it): cobbles and paving joined to the asphalt by colour are cut where
-    their fine texture is over 1.75 x the road's in the same row, unless blur over part of the frame
-    made them rough (tests/test_imaging_rough.py).  KITTI semantics 0.704 -> 0.734 (precision
-    0.800 -> 0.839), ORFD 0.818 -> 0.835 (precision 0.853 -> 0.874), CamVid unchanged; over images
-    0.830 -> 0.833, over datasets 0.786 -> 0.795, precision 0.901 -> 0.906.  Every fold chooses
-    1.75.  The code before fails the floors of KITTI semantics, ORFD's precision and the datasets'
-    mean.
+    The cut of rough surfaces (``rough``, 2026-11-29) is not in the grid: every fold chose it (0.833
+    over images, 0.795 over datasets, KITTI semantics' precision 0.839), also with its blur guard,
+    but a strong blur over the bottom centre fools it (tests/test_imaging_rough.py), so the grid
+    and the figures here are those before it.
     """
     import json
 
@@ -858,16 +854,14 @@ def test_cross_validation_on_the_shared_images(roads_dir):
     assert sum(r["n"] for r in res["per_dataset"].values()) == len(items) >= 60
     chosen = res["in_sample"]["params"]
     assert {k: getattr(DEFAULT_PARAMS, k) for k in chosen} == chosen
-    assert res["mean"]["in_sample_iou"] >= 0.83   # 0.830 before the rough cut
-    assert res["mean"]["cv_iou"] >= 0.83   # 0.830 before the rough cut
-    assert res["mean_of_datasets"]["cv_iou"] >= 0.79   # 0.765 before the cut along the boundaries, 0.786 before rough
+    assert res["mean"]["in_sample_iou"] >= 0.825
+    assert res["mean"]["cv_iou"] >= 0.825
+    assert res["mean_of_datasets"]["cv_iou"] >= 0.78   # 0.765 before the cut along the boundaries
     assert res["per_dataset"]["camvid"]["cv_iou"] >= 0.84   # 0.828 before it
-    assert res["per_dataset"]["kitti_semantics"]["cv_precision"] >= 0.83   # 0.800 before the rough cut
-    assert res["per_dataset"]["kitti_semantics"]["cv_iou"] >= 0.72   # 0.704 before it
-    assert res["per_dataset"]["orfd"]["cv_precision"] >= 0.865   # 0.853 before it
     assert res["per_dataset"]["umich_campus_sidewalk"]["cv_iou"] >= 0.78   # 0.737 with the symmetric shade term
-    assert res["mean"]["in_sample_precision"] >= 0.903   # 0.901 before the rough cut
-    assert res["mean"]["cv_precision"] >= 0.903
+    assert res["per_dataset"]["orfd"]["cv_precision"] >= 0.85
+    assert res["mean"]["in_sample_precision"] >= 0.895
+    assert res["mean"]["cv_precision"] >= 0.895
     assert res["min_precision"] == 0.88
     # every choice meets the synthetic scenes' floors, the shipped defaults' among them
     syn = res["synthetic"]
