@@ -1118,7 +1118,9 @@ ROUGH_BLUR_MIN_BLOCKS = 4
 #: the frame is blurred and nothing is cut.  The 60 shared frames measure 1.26-2.27 (median 1.56);
 #: with a third to 60 % of the frame blurred at sigma 1.2 (a side, the centre, a disc over the
 #: bottom centre) 2.49-6.14; at sigma 0.7, 1.70-3.88.  2.0 with ROUGH_SHARPER left every shared
-#: frame's cut as it was and no review transform worse on average than the cut off.
+#: frame's cut as it was and none of the second review's transforms worse on average than the cut
+#: off; a third review found blurs both halves miss (a strong drop over the bottom centre, whose
+#: blocks fall under ROUGH_BLUR_EDGES), which is why ``rough`` is off by default.
 ROUGH_BLUR_SPREAD = 2.0
 #: A rough surface whose sharpness is more than this x that of the smooth candidate in its rows
 #: is the road beside a blur, not another material, and is not cut (the shared frames' cut
@@ -1281,11 +1283,12 @@ def _spare_the_sharp(big: np.ndarray, full: np.ndarray, mask: np.ndarray, frame:
     for k in np.flatnonzero(big):
         blob = full == k
         rows = np.flatnonzero(blob.any(axis=1))
-        rest = smooth[rows[0]: rows[-1] + 1]
+        rest = smooth[rows[0]: rows[-1] + 1]   # the smooth candidate in the surface's rows
         if int(rest.sum()) < ROUGH_SHARPER_MIN:
             continue
+        band = slice(int(rows[0]), int(rows[-1]) + 1)
         mine = float(lap_w[blob].sum()) / max(float(grad_w[blob].sum()), 1e-6)
-        beside = float(lap_w[rows[0]: rows[-1] + 1][rest].sum()) / max(float(grad_w[rows[0]: rows[-1] + 1][rest].sum()), 1e-6)
+        beside = float(lap_w[band][rest].sum()) / max(float(grad_w[band][rest].sum()), 1e-6)
         if mine > ROUGH_SHARPER * max(beside, 1e-6):
             big[k] = False
 
