@@ -300,6 +300,13 @@ def test_on_the_shared_frames_the_cut_lifts_kittis_cobbles_and_costs_no_frame(ro
     assert len(gains) >= 4, gains
 
 
+def _blur_part(img: np.ndarray, part: np.ndarray, sigma: float) -> np.ndarray:
+    """``img`` (300x225, changed in place and returned) blurred at ``sigma`` where ``part`` (bool)."""
+    blurred = cv2.GaussianBlur(img, (0, 0), sigma)
+    img[part] = blurred[part]
+    return img
+
+
 def _blurred_road(where: str, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     """A straight smooth road (grey 100, grain 3) to a horizon at row 85, part of it blurred."""
     rng = np.random.default_rng(0)
@@ -307,10 +314,9 @@ def _blurred_road(where: str, sigma: float) -> tuple[np.ndarray, np.ndarray]:
     img[:85] = (150, 180, 225)
     img[85:] = 100 + rng.normal(0, 3, (FH - 85, FW, 1))
     img = np.clip(img, 0, 255).astype(np.uint8)
-    blurred = cv2.GaussianBlur(img, (0, 0), sigma)
     part = {"left": FX < 3 * FW // 5, "right": FX >= 2 * FW // 5,
             "drop": np.hypot(FX - 140, FY - 160) < 95}[where]
-    img[part] = blurred[part]
+    img = _blur_part(img, part, sigma)
     truth = np.zeros((FH, FW), np.uint8)
     truth[85:] = 255
     return img, truth
@@ -358,10 +364,8 @@ def test_blur_spread_is_low_in_one_focus_and_high_with_part_blurred():
 
 
 def _left_blurred(rgb: np.ndarray) -> np.ndarray:
-    f = area_resize(rgb, FW, FH)
-    b = cv2.GaussianBlur(f, (0, 0), 1.2)
-    f[:, : 3 * FW // 5] = b[:, : 3 * FW // 5]
-    return f
+    """``rgb`` at 300x225 with its left 60 % blurred at sigma 1.2 (the second review's transform)."""
+    return _blur_part(area_resize(rgb, FW, FH), FX < 3 * FW // 5, 1.2)
 
 
 def test_on_the_shared_frames_blurred_in_part_the_guard_keeps_the_road(monkeypatch, roads_dir):
@@ -389,11 +393,7 @@ def test_on_the_shared_frames_blurred_in_part_the_guard_keeps_the_road(monkeypat
 
 def _bottom_drop(rgb: np.ndarray, sigma: float) -> np.ndarray:
     """A drop of radius 70 px over the bottom centre of the 300x225 frame, blurred at ``sigma``."""
-    f = area_resize(rgb, FW, FH)
-    b = cv2.GaussianBlur(f, (0, 0), sigma)
-    drop = np.hypot(FX - 150, FY - 225) < 70
-    f[drop] = b[drop]
-    return f
+    return _blur_part(area_resize(rgb, FW, FH), np.hypot(FX - 150, FY - 225) < 70, sigma)
 
 
 def test_a_strong_blur_over_the_bottom_centre_fools_the_guard_so_the_cut_is_off_by_default(roads_dir):

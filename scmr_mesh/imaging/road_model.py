@@ -1212,7 +1212,6 @@ def rough_surface(candidate: np.ndarray, small: np.ndarray, frame: np.ndarray, r
     # angle, beside the path only in part), and cutting it would take the road beyond it too
     lowest = w0 + stats[:, cv2.CC_STAT_TOP] + stats[:, cv2.CC_STAT_HEIGHT] - 1
     big[lowest < wh - ROUGH_BESIDE] = False
-    big[0] = False
     # ... and no more smooth candidate lies beyond it (above it in its columns) than
     # ROUGH_BEYOND x its area: the road goes on beyond a band across it, not beyond a pavement
     if big.any():
@@ -1283,10 +1282,10 @@ def _spare_the_sharp(big: np.ndarray, full: np.ndarray, mask: np.ndarray, frame:
     for k in np.flatnonzero(big):
         blob = full == k
         rows = np.flatnonzero(blob.any(axis=1))
-        rest = smooth[rows[0]: rows[-1] + 1]   # the smooth candidate in the surface's rows
+        band = slice(int(rows[0]), int(rows[-1]) + 1)   # the surface's rows
+        rest = smooth[band]   # the smooth candidate in them
         if int(rest.sum()) < ROUGH_SHARPER_MIN:
             continue
-        band = slice(int(rows[0]), int(rows[-1]) + 1)
         mine = float(lap_w[blob].sum()) / max(float(grad_w[blob].sum()), 1e-6)
         beside = float(lap_w[band][rest].sum()) / max(float(grad_w[band][rest].sum()), 1e-6)
         if mine > ROUGH_SHARPER * max(beside, 1e-6):
