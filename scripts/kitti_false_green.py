@@ -45,9 +45,10 @@ CROP = (slice(5, None), slice(18, None))
 def _kitti_semantics(item, source: Path) -> tuple[float, float, Counter]:
     name = item.image.name.removeprefix("kitti_semantics_")
     path = source / "data_semantics" / "training" / "semantic" / name
-    full = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if full is None:
-        raise SystemExit(f"cannot read {path}: give a checkout of CaioChaves/Road-Detection-KITTI as SOURCE")
+    full = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    if full is None or full.ndim != 2 or full.shape[0] <= CROP[0].start or full.shape[1] <= CROP[1].start:
+        raise SystemExit(f"cannot read a label image at {path}: give a checkout of CaioChaves/Road-Detection-KITTI "
+                         "as SOURCE")
     road, valid, _ = labels_at_frame(item)
     sem = cv2.resize(full[CROP], (road.shape[1], road.shape[0]), interpolation=cv2.INTER_NEAREST)
     if not np.array_equal(sem == ROAD, road):
@@ -97,7 +98,10 @@ def main(source: str, roads: str) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) not in (2, 3) or sys.argv[1] in ("-h", "--help"):
-        raise SystemExit(__doc__)
+    if len(sys.argv) > 1 and sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        sys.exit(0)
+    if len(sys.argv) not in (2, 3):
+        sys.exit("usage: python scripts/kitti_false_green.py SOURCE [ROADS] (--help says what SOURCE is)")
     main(sys.argv[1], sys.argv[2] if len(sys.argv) == 3 else str(Path(__file__).resolve().parents[2] / "shared"
                                                                     / "data" / "roads"))
