@@ -4,23 +4,28 @@
 
 SOURCE is a checkout of CaioChaves/Road-Detection-KITTI (the repository the shared
 ``kitti_semantics`` frames come from; commit 6f71e08691b9458efc3ea676dee5ef958cf5717b read
-2026-11-29), ROADS the shared data folder (default ../shared/data/roads).  Nothing is copied:
-the script reads the source's full Cityscapes-style labels (``data_semantics/training/semantic/``,
-1242x375, ids as in Cityscapes: 7 road, 8 sidewalk, 9 parking, 10 rail track, ...) in place,
-crops them as the shared frames were cropped (rows 5-374, columns 18-1241; SOURCES.md), checks
-that ``id == 7`` equals the shared binary mask pixel for pixel at 300x225, and prints per frame:
+2026-11-29), ROADS the shared data folder (default $SCMR_SHARED/data/roads, else
+../shared/data/roads).  Nothing is copied: the script reads the source's full Cityscapes-style
+labels (``data_semantics/training/semantic/``, 1242x375, ids as in Cityscapes: 7 road,
+8 sidewalk, 9 parking, 10 rail track, ...) in place, crops them as the shared frames were
+cropped (rows 5-374, columns 18-1241; SOURCES.md), checks that ``id == 7`` equals the shared
+binary mask pixel for pixel at 300x225, and prints per frame:
 
 - the frame's precision under its shared label;
 - the classes of its false-green pixels (the mask green, the label not road);
 - the precision if a parking strip counted as ground a robot can drive.
 
 For the one ``kitti_road`` frame (a binary label, no classes) it splits the false-green pixels
-left and right of each row's labelled road centre, and prints the precision if the right-hand
-strip (the cycle lane between the road's solid edge line and the wall) counted as road.
+left and right of each row's labelled road centre (:func:`split_false_green`), and prints the
+precision if the right-hand part counted as road.  In ``um_000000`` that part is the cycle track
+right of the road: behind a row of low stone kerbs, up to the solid white line that parts it
+from the footway by the wall (a cyclist rides on it); the false green of the rows without road
+is the frame's bottom two rows, which the label leaves not road under the road.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -28,6 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from scmr_mesh.errors import ConfigError, InputError
 from scmr_mesh.imaging.codec import load_frame
 from scmr_mesh.imaging.evaluate import labels_at_frame, load_manifest, score
 from scmr_mesh.imaging.pipeline import segment_drivable
@@ -59,23 +65,40 @@ def _kitti_semantics(item, source: Path) -> tuple[float, float, Counter]:
     return score(green, road, valid)["precision"], score(green, drivable, valid)["precision"], classes
 
 
+def split_false_green(green: np.ndarray, road: np.ndarray,
+                      valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The false-green pixels (green, valid, not road) left and right of each row's labelled road centre.
+
+    Returns ``(left, right, off)``, bool masks that partition the false green: a row with road
+    splits at the midpoint of its leftmost and rightmost road pixel (the midpoint column counts
+    as right); ``off`` holds the false green of the rows without road.
+    """
+    false = green & ~road & valid
+    right, rows = np.zeros_like(false), road.any(axis=1)
+    for y in np.flatnonzero(rows):
+        xs = np.flatnonzero(road[y])
+        right[y, int(np.ceil((xs.min() + xs.max()) / 2)):] = True
+    return false & rows[:, None] & ~right, false & right, false & ~rows[:, None]
+
+
 def _kitti_road(item) -> tuple[float, float, int, int, int]:
     road, valid, _ = labels_at_frame(item)
     green = segment_drivable(load_frame(item.image)).mask > 0
-    false = green & ~road & valid
-    right, rows = np.zeros_like(false), np.zeros_like(false)
-    for y in np.flatnonzero(road.any(axis=1)):
-        xs = np.flatnonzero(road[y])
-        right[y, int(np.ceil((xs.min() + xs.max()) / 2)):] = True
-        rows[y] = True
-    return (score(green, road, valid)["precision"], score(green, road | (false & right), valid)["precision"],
-            int((false & rows & ~right).sum()), int((false & right).sum()), int((false & ~rows).sum()))
+    left, right, off = split_false_green(green, road, valid)
+    return (score(green, road, valid)["precision"], score(green, road | right, valid)["precision"],
+            int(left.sum()), int(right.sum()), int(off.sum()))
 
 
 def main(source: str, roads: str) -> None:
-    items = [it for it in load_manifest(roads) if it.dataset in ("kitti_semantics", "kitti_road")]
+    try:
+        items = [it for it in load_manifest(roads) if it.dataset in ("kitti_semantics", "kitti_road")]
+    except (InputError, ConfigError) as e:
+        raise SystemExit(f"{e} (ROADS: the shared data folder, e.g. ../shared/data/roads)") from None
     if not items:
         raise SystemExit(f"no kitti frames in {roads}/manifest.json")
+    labels = Path(source) / "data_semantics" / "training" / "semantic"
+    if any(it.dataset == "kitti_semantics" for it in items) and not labels.is_dir():
+        raise SystemExit(f"no folder {labels}: give a checkout of CaioChaves/Road-Detection-KITTI as SOURCE")
     shipped, parked, total = [], [], Counter()
     for it in items:
         if it.dataset == "kitti_road":
@@ -98,10 +121,11 @@ def main(source: str, roads: str) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 1 and sys.argv[1] in ("-h", "--help"):
+    args = sys.argv[1:]
+    if "-h" in args or "--help" in args:
         print(__doc__)
         sys.exit(0)
-    if len(sys.argv) not in (2, 3):
+    if len(args) not in (1, 2):
         sys.exit("usage: python scripts/kitti_false_green.py SOURCE [ROADS] (--help says what SOURCE is)")
-    main(sys.argv[1], sys.argv[2] if len(sys.argv) == 3 else str(Path(__file__).resolve().parents[2] / "shared"
-                                                                    / "data" / "roads"))
+    shared = Path(os.environ.get("SCMR_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+    main(args[0], args[1] if len(args) == 2 else str(shared / "data" / "roads"))

@@ -88,6 +88,28 @@ def test_kitti_road_false_green_splits_into_left_right_and_above_without_loss(ro
     assert p <= p_right <= 1.0 and (right == 0) == (p_right == p)
 
 
+def test_the_split_is_by_each_rows_road_centre():
+    mod = _script()
+    road = np.zeros((4, 20), bool)
+    road[0, 4:8] = True      # centre 5.5: columns 6.. are right
+    road[1, 10:19] = True    # centre 14: columns 14.. are right
+    road[1, [12, 16]] = False  # holes in the label: 12 left of the centre, 16 right
+    road[2, 3] = True        # one pixel: it is the centre, so right
+    green = np.ones_like(road)
+    green[1, 0] = False
+    valid = np.ones_like(road)
+    valid[0, 19] = False
+    left, right, off = mod.split_false_green(green, road, valid)
+    assert not (left & right).any() and not ((left | right) & off).any()
+    assert np.array_equal(left | right | off, green & ~road & valid)
+    assert np.array_equal(np.flatnonzero(left[0]), [0, 1, 2, 3])
+    assert np.array_equal(np.flatnonzero(right[0]), list(range(8, 19)))
+    assert np.array_equal(np.flatnonzero(left[1]), [*range(1, 10), 12])
+    assert np.array_equal(np.flatnonzero(right[1]), [16, 19])
+    assert np.array_equal(np.flatnonzero(left[2]), [0, 1, 2]) and right[2, 4:].all()
+    assert off[3].all() and not off[:3].any()
+
+
 def test_a_missing_source_is_one_line_naming_the_path(roads_dir, tmp_path):
     out = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path / "nowhere"), str(roads_dir)],
                          capture_output=True, text=True, cwd=REPO, timeout=300,
@@ -98,10 +120,27 @@ def test_a_missing_source_is_one_line_naming_the_path(roads_dir, tmp_path):
     assert "Traceback" not in out.stderr
 
 
-def test_help_explains_and_exits(roads_dir):
-    out = subprocess.run([sys.executable, str(SCRIPT), "--help"], capture_output=True, text=True, cwd=REPO,
-                         timeout=60, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=300, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+
+
+@pytest.mark.parametrize("args", [("--help",), ("src", "-h"), ("src", "roads", "--help")])
+def test_help_explains_and_exits(args):
+    out = _run(*args)
     assert out.returncode == 0 and "SOURCE" in out.stdout and "parking" in out.stdout
+
+
+@pytest.mark.parametrize("roads", ["missing", "empty", "bad_json"])
+def test_a_bad_roads_folder_is_one_line(tmp_path, roads):
+    folder = tmp_path / roads
+    if roads != "missing":
+        folder.mkdir()
+    if roads == "bad_json":
+        (folder / "manifest.json").write_text("{not json")
+    out = _run(str(tmp_path), str(folder))
+    err = out.stderr.strip().splitlines()
+    assert out.returncode == 1 and len(err) == 1 and "ROADS" in err[0] and "Traceback" not in out.stderr
 
 
 def test_no_arguments_is_a_usage_line(roads_dir):
