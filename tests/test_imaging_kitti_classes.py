@@ -21,6 +21,11 @@ REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "kitti_false_green.py"
 
 
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=300, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+
+
 def _script():
     spec = importlib.util.spec_from_file_location("kitti_false_green", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
@@ -111,18 +116,11 @@ def test_the_split_is_by_each_rows_road_centre():
 
 
 def test_a_missing_source_is_one_line_naming_the_path(roads_dir, tmp_path):
-    out = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path / "nowhere"), str(roads_dir)],
-                         capture_output=True, text=True, cwd=REPO, timeout=300,
-                         env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    out = _run(str(tmp_path / "nowhere"), str(roads_dir))
     assert out.returncode == 1
     err = out.stderr.strip().splitlines()
     assert len(err) == 1 and "nowhere" in err[0] and "CaioChaves/Road-Detection-KITTI" in err[0], out.stderr
     assert "Traceback" not in out.stderr
-
-
-def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, cwd=REPO,
-                          timeout=300, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
 
 
 @pytest.mark.parametrize("args", [("--help",), ("src", "-h"), ("src", "roads", "--help")])
@@ -144,6 +142,5 @@ def test_a_bad_roads_folder_is_one_line(tmp_path, roads):
 
 
 def test_no_arguments_is_a_usage_line(roads_dir):
-    out = subprocess.run([sys.executable, str(SCRIPT)], capture_output=True, text=True, cwd=REPO,
-                         timeout=60, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    out = _run()
     assert out.returncode == 1 and out.stderr.startswith("usage:") and len(out.stderr.splitlines()) == 1
